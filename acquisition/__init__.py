@@ -1,0 +1,1 @@
+"""Everything that touches hardware or time: pattern plans, displays, cameras, the controller."""

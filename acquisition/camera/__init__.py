@@ -1,0 +1,1 @@
+"""Camera backends behind `acquisition.protocols.Camera`."""

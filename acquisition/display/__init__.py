@@ -1,0 +1,1 @@
+"""Display backends behind `acquisition.protocols.Display`."""

@@ -1,0 +1,1 @@
+"""The REST service, persistence and the command-line interface."""

@@ -1,0 +1,1 @@
+"""Subcommands of the `phasecal` CLI, one module each (see `api.cli`)."""

@@ -1,0 +1,1 @@
+"""Pure numerics: decoding, camera models, fitting, evaluation; no hardware, no HTTP."""

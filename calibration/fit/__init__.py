@@ -1,0 +1,1 @@
+"""Estimators and optimizers that produce camera models from decoded maps."""

@@ -1,0 +1,1 @@
+"""Camera models behind one interface (`calibration.models.base.CameraModel`)."""

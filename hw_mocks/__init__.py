@@ -1,0 +1,1 @@
+"""Simulated rig with exact ground truth: display, camera, optics, timing and faults."""

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Installs the Debian packages phasecal's backends and tests need (Aravis, Xvfb, build
+# headers for PyGObject). Runs apt-get only when something is missing and we are root on
+# a Debian-like system; elsewhere it prints what to install and carries on.
+set -euo pipefail
+packages=(
+  gir1.2-aravis-0.8 libaravis-0.8-0 libgirepository1.0-dev libcairo2-dev pkg-config
+  xvfb x11-utils
+)
+missing=()
+if command -v dpkg-query >/dev/null 2>&1; then
+  for p in "${packages[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+  done
+else
+  echo "install-system-deps: not a Debian system; make sure these are installed: ${packages[*]}" >&2
+  exit 0
+fi
+if [ ${#missing[@]} -eq 0 ]; then
+  exit 0
+fi
+if [ "$(id -u)" -ne 0 ] || ! command -v apt-get >/dev/null 2>&1; then
+  echo "install-system-deps: missing Debian packages (run as root: apt-get install ${missing[*]})" >&2
+  exit 0
+fi
+echo "install-system-deps: installing ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+apt-get update -qq
+apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
