@@ -223,11 +223,13 @@ def render_frame(
     code = response.code_for(linear) if response is not None else linear * top
     if dither == "ordered":
         h, w = code.shape
-        tile = _bayer_matrix(8)
+        # The tile is shifted per frame so that the small residual error of ordered
+        # dithering on sloped patterns differs between phase steps and averages out.
+        tile = np.roll(_bayer_matrix(8), (index * 3 % 8, index * 5 % 8), axis=(0, 1))
         thresh = np.tile(tile, (h // 8 + 1, w // 8 + 1))[:h, :w]
         out = np.floor(code + thresh)
     elif dither == "random":
-        gen = rng if rng is not None else np.random.default_rng()
+        gen = rng if rng is not None else np.random.default_rng(index)
         out = np.floor(code + gen.random(code.shape))
     elif dither is None:
         out = np.rint(code)
