@@ -1,0 +1,328 @@
+"""Aravis (GenICam: GigE Vision, USB3 Vision) camera through GObject introspection.
+
+Open by device id or address (never by discovery here), choose the pixel format
+(Mono8/10/12/16, packed and Bayer formats decoded to grey), exposure and gain with auto
+modes off and read back, frame rate, software or hardware trigger. Frames come from a
+pool of stream buffers; incomplete or lost buffers are counted and recycled, every wait
+has a timeout, frames exposed before the last trigger or flush are dropped (never
+returned stale), and a lost control channel surfaces as `CameraDisconnected` so that
+`reconnect()` can reopen the device with the same settings.
+
+Device timestamps (ns, start of frame) are mapped to the controller's clock by the
+smallest observed (arrival - device time) offset over recent frames, the arrival dated
+by the host's reception timestamp: a mapped time is never earlier than the true one, so
+a frame exposed after a trigger always passes the staleness check, and one exposed
+before it is caught even if it is the first frame seen.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from acquisition.camera.aravis_gi import GLib, aravis
+from acquisition.camera.pixel_formats import PIXEL_FORMATS, decode_image, pixel_format
+from acquisition.clock import Clock, RealClock
+from acquisition.errors import CameraDisconnected, CameraError, CameraTimeout, DeviceSettingsError
+from acquisition.protocols import CameraInfo, CameraSettings, Frame, TriggerMode
+
+# How many recent frames the device-to-clock offset is estimated from.
+OFFSET_WINDOW = 64
+# Relative tolerance on exposure read-back (devices round to their own increments).
+EXPOSURE_TOLERANCE = 0.02
+
+
+class AravisCamera:
+    """A `Camera` on one GenICam device opened by id (`Vendor-Model-Serial`) or address."""
+
+    def __init__(
+        self,
+        device: str,
+        *,
+        buffers: int = 8,
+        bayer: str = "demosaic",
+        trigger_line: str = "Line0",
+        clock: Clock | None = None,
+    ) -> None:
+        if not device:
+            raise DeviceSettingsError(
+                "Aravis camera: give a device id or address (discovery is never implicit)"
+            )
+        if buffers < 2:
+            raise DeviceSettingsError(f"Aravis camera: buffers must be >= 2, got {buffers}")
+        self._Aravis = aravis()
+        self.device = device
+        self._buffers = buffers
+        self._bayer = bayer
+        self._trigger_line = trigger_line
+        self._clock = clock if clock is not None else RealClock()
+        self._lost = threading.Event()
+        self._offsets: collections.deque[float] = collections.deque(maxlen=OFFSET_WINDOW)
+        self._not_before = -np.inf
+        self._stream: Any = None
+        self._running = False
+        self.incomplete_buffers = 0
+        self.stale_frames = 0
+        self._open()
+        self._settings = self._read_settings()
+
+    # -- opening -------------------------------------------------------------------
+    def _open(self) -> None:
+        try:
+            self._cam = self._Aravis.Camera.new(self.device)
+        except GLib.Error as exc:
+            raise CameraDisconnected(
+                f"Aravis camera {self.device!r}: cannot open ({exc.message}); check the "
+                "address/id, cabling and that no other program holds the camera"
+            ) from exc
+        self._lost.clear()
+        dev = self._cam.get_device()
+        dev.connect("control-lost", lambda *_: self._lost.set())
+        _, _, w, h = self._cam.get_region()
+        formats = tuple(
+            f for f in (self._cam.dup_available_pixel_formats_as_strings() or [])
+            if f in PIXEL_FORMATS
+        )
+        sources = self._cam.dup_available_trigger_sources() or []
+        modes: list[TriggerMode] = ["free-running"]
+        if "Software" in sources:
+            modes.append("software")
+        if any(s.startswith("Line") for s in sources):
+            modes.append("hardware")
+        fmt = pixel_format(self._cam.get_pixel_format_as_string())
+        self._info = CameraInfo(
+            name=f"{self._cam.get_vendor_name()} {self._cam.get_model_name()}",
+            serial=self._cam.get_device_serial_number() or "",
+            width=w, height=h, bit_depth=fmt.bit_depth,
+            pixel_formats=formats, trigger_modes=tuple(modes),
+        )
+
+    def _read_settings(self) -> CameraSettings:
+        c = self._cam
+        return CameraSettings(
+            exposure_s=c.get_exposure_time() * 1e-6,
+            gain_db=c.get_gain(),
+            pixel_format=c.get_pixel_format_as_string(),
+            trigger_mode=self._trigger_mode_now(),
+            frame_rate_hz=c.get_frame_rate() if c.is_frame_rate_available() else None,
+        )
+
+    def _trigger_mode_now(self) -> TriggerMode:
+        try:
+            if self._cam.get_string("TriggerMode") != "On":
+                return "free-running"
+        except GLib.Error:
+            return "free-running"
+        return "software" if self._cam.get_trigger_source() == "Software" else "hardware"
+
+    @property
+    def info(self) -> CameraInfo:
+        return self._info
+
+    # -- settings -------------------------------------------------------------------
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        """Apply settings (auto exposure/gain off first) and return the read-back values."""
+        was_running = self._running
+        if was_running:
+            self.stop()
+        try:
+            self._apply(settings)
+        except GLib.Error as exc:
+            raise self._error(f"configure({settings})", exc) from exc
+        applied = replace(self._read_settings(), extra=dict(settings.extra))
+        want, got = settings.exposure_s, applied.exposure_s
+        if abs(got - want) > EXPOSURE_TOLERANCE * want + 1e-6:
+            raise DeviceSettingsError(
+                f"Aravis camera {self.device}: exposure_s {want} did not take effect "
+                f"(device reports {got:.6f} s; bounds {self._cam.get_exposure_time_bounds()} us)"
+            )
+        self._settings = applied
+        fmt = pixel_format(applied.pixel_format)
+        self._info = replace(self._info, bit_depth=fmt.bit_depth)
+        if was_running:
+            self.start()
+        return applied
+
+    def _apply(self, s: CameraSettings) -> None:
+        c = self._cam
+        if s.pixel_format not in self._info.pixel_formats:
+            raise DeviceSettingsError(
+                f"Aravis camera {self.device}: pixel_format {s.pixel_format!r} not offered; "
+                f"choose one of {list(self._info.pixel_formats)}"
+            )
+        if s.trigger_mode not in self._info.trigger_modes:
+            raise DeviceSettingsError(
+                f"Aravis camera {self.device}: trigger_mode {s.trigger_mode!r} not supported; "
+                f"choose one of {list(self._info.trigger_modes)}"
+            )
+        c.set_pixel_format_from_string(s.pixel_format)
+        if c.is_exposure_auto_available():
+            c.set_exposure_time_auto(self._Aravis.Auto.OFF)
+        lo, hi = c.get_exposure_time_bounds()
+        if not lo <= s.exposure_s * 1e6 <= hi:
+            raise DeviceSettingsError(
+                f"Aravis camera {self.device}: exposure_s {s.exposure_s} outside "
+                f"[{lo * 1e-6:g}, {hi * 1e-6:g}] s"
+            )
+        c.set_exposure_time(s.exposure_s * 1e6)
+        if c.is_gain_auto_available():
+            c.set_gain_auto(self._Aravis.Auto.OFF)
+        if c.is_gain_available():
+            glo, ghi = c.get_gain_bounds()
+            if not glo <= s.gain_db <= ghi:
+                raise DeviceSettingsError(
+                    f"Aravis camera {self.device}: gain_db {s.gain_db} outside [{glo}, {ghi}]"
+                )
+            c.set_gain(s.gain_db)
+        if s.trigger_mode == "software":
+            c.set_trigger("Software")
+        elif s.trigger_mode == "hardware":
+            c.set_trigger(str(s.extra.get("trigger_line", self._trigger_line)))
+        else:
+            c.clear_triggers()
+            c.set_acquisition_mode(self._Aravis.AcquisitionMode.CONTINUOUS)
+            if s.frame_rate_hz and c.is_frame_rate_available():
+                c.set_frame_rate(s.frame_rate_hz)
+
+    # -- streaming ------------------------------------------------------------------
+    def start(self) -> None:
+        """Allocate the stream buffers and start acquisition."""
+        if self._running:
+            return
+        try:
+            self._stream = self._cam.create_stream(None, None)
+            payload = self._cam.get_payload()
+            for _ in range(self._buffers):
+                self._stream.push_buffer(self._Aravis.Buffer.new_allocate(payload))
+            self._cam.start_acquisition()
+        except GLib.Error as exc:
+            raise self._error("start", exc) from exc
+        self._payload_fmt = pixel_format(self._settings.pixel_format)
+        self._region = self._cam.get_region()
+        self._not_before = self._clock.now()
+        self._running = True
+
+    def stop(self) -> None:
+        """Stop acquisition and release the stream (buffers are freed with it)."""
+        if not self._running:
+            return
+        self._running = False
+        try:
+            self._cam.stop_acquisition()
+        except GLib.Error:
+            pass  # the device may be gone; the stream is released anyway
+        self._stream = None
+
+    def trigger(self) -> None:
+        """Software trigger (hardware mode: the line fires; free-running: nothing to do)."""
+        if not self._running:
+            raise CameraError(f"Aravis camera {self.device}: trigger() before start()")
+        t = self._clock.now()
+        self._not_before = max(self._not_before, t)
+        if self._settings.trigger_mode != "software":
+            return
+        if self._lost.is_set():
+            raise CameraDisconnected(f"Aravis camera {self.device}: control channel lost")
+        try:
+            self._cam.software_trigger()
+        except GLib.Error as exc:
+            raise self._error("software trigger", exc) from exc
+
+    def _to_clock(self, device_ns: int, system_ns: int, popped: float) -> float:
+        """Device time -> clock time; `system_ns` (host wall time at reception) dates the
+        arrival even when the buffer waited in the queue before being popped."""
+        arrived = popped
+        if system_ns > 0:
+            arrived = popped - max(0.0, (time.time_ns() - system_ns) * 1e-9)
+        if device_ns <= 0:
+            return arrived - self._settings.exposure_s
+        self._offsets.append(arrived - device_ns * 1e-9)
+        return device_ns * 1e-9 + min(self._offsets)
+
+    def grab(self, timeout_s: float) -> Frame:
+        """Next good frame exposed after the last trigger/flush, within `timeout_s`."""
+        if not self._running or self._stream is None:
+            raise CameraError(f"Aravis camera {self.device}: grab() before start()")
+        deadline = self._clock.now() + timeout_s
+        while True:
+            remaining = deadline - self._clock.now()
+            if remaining <= 0:
+                self._check_alive()
+                raise CameraTimeout(
+                    f"Aravis camera {self.device}: no frame within {timeout_s:.3f} s "
+                    f"(trigger mode {self._settings.trigger_mode}; "
+                    f"{self.incomplete_buffers} incomplete buffers so far)"
+                )
+            buf = self._stream.timeout_pop_buffer(max(1, int(min(remaining, 0.1) * 1e6)))
+            if buf is None:
+                if self._lost.is_set():
+                    raise CameraDisconnected(f"Aravis camera {self.device}: control channel lost")
+                continue
+            frame = self._accept(buf)
+            if frame is not None:
+                return frame
+
+    def _accept(self, buf: Any) -> Frame | None:
+        arrived = self._clock.now()
+        try:
+            if buf.get_status() != self._Aravis.BufferStatus.SUCCESS:
+                self.incomplete_buffers += 1
+                return None
+            w, h = buf.get_image_width(), buf.get_image_height()
+            fmt = pixel_format(buf.get_image_pixel_format())
+            image = decode_image(buf.get_data(), fmt, w, h, self._bayer)
+            t = self._to_clock(buf.get_timestamp(), buf.get_system_timestamp(), arrived)
+            seq = buf.get_frame_id()
+        finally:
+            self._stream.push_buffer(buf)
+        if t < self._not_before:
+            self.stale_frames += 1
+            return None
+        return Frame(image, t, self._settings.exposure_s, int(seq))
+
+    def flush(self) -> int:
+        """Return every queued buffer to the pool; later frames start after this call."""
+        if self._stream is None:
+            return 0
+        n = 0
+        while (buf := self._stream.try_pop_buffer()) is not None:
+            self._stream.push_buffer(buf)
+            n += 1
+        self._not_before = max(self._not_before, self._clock.now())
+        return n
+
+    def _check_alive(self) -> None:
+        """Read a register: a camera that cannot answer is reported as disconnected."""
+        if self._lost.is_set():
+            raise CameraDisconnected(f"Aravis camera {self.device}: control channel lost")
+        try:
+            self._cam.get_device().get_integer_feature_value("Width")
+        except GLib.Error as exc:
+            self._lost.set()
+            raise CameraDisconnected(
+                f"Aravis camera {self.device}: not answering ({exc.message}); reconnect()"
+            ) from exc
+
+    def _error(self, what: str, exc: Any) -> CameraError:
+        if self._lost.is_set() or "timeout" in str(exc).lower():
+            return CameraDisconnected(f"Aravis camera {self.device}: {what}: {exc}")
+        return DeviceSettingsError(f"Aravis camera {self.device}: {what}: {exc}")
+
+    def reconnect(self) -> None:
+        """Reopen the device and restore settings (and streaming if it was on)."""
+        running = self._running
+        self.stop()
+        self._cam = None
+        self._open()
+        self.configure(self._settings)
+        if running:
+            self.start()
+
+    def close(self) -> None:
+        self.stop()
+        self._cam = None

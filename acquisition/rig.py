@@ -1,0 +1,299 @@
+"""Rig configuration (TOML or JSON -> `RigConfig`) and opening a rig's devices.
+
+A rig is one display, one camera, the screen geometry (pixel pitch in mm), the camera
+settings to start from and optionally a USB trigger box. `kind = "simulated"` (the
+default) opens the simulated rig of `hw_mocks`; `kind = "hardware"` opens real backends.
+See docs/hardware.md and docs/rigs/*.toml for examples.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from acquisition.clock import Clock, RealClock
+from acquisition.protocols import Camera, CameraSettings, Display
+from calibration.plan import ScreenGeometry
+
+RIG_FORMAT = "phasecal.rig/1"
+
+
+class RigConfigError(ValueError):
+    """A rig config file is invalid; the message names the file and the field."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ScreenConfig(_Strict):
+    """The screen's pixel pitch (mm) and, optionally, its size (default: the display's)."""
+
+    pitch_mm: float | tuple[float, float] | None = None
+    width_px: int | None = Field(default=None, gt=0)
+    height_px: int | None = Field(default=None, gt=0)
+
+
+class FramebufferConfig(_Strict):
+    """Linux framebuffer display; geometry from the device, a sysfs folder, or given here."""
+
+    backend: Literal["framebuffer"]
+    device: str = "/dev/fb0"
+    sysfs_root: str | None = None
+    width: int | None = Field(default=None, gt=0)
+    height: int | None = Field(default=None, gt=0)
+    bits_per_pixel: Literal[16, 24, 32] | None = None
+    line_length: int | None = Field(default=None, gt=0)
+    refresh_hz: float | None = Field(default=None, gt=0)
+
+
+class SdlConfig(_Strict):
+    """Full-screen SDL (pygame) window on a monitor."""
+
+    backend: Literal["sdl"]
+    monitor: int = Field(default=0, ge=0)
+    width: int | None = Field(default=None, gt=0)
+    height: int | None = Field(default=None, gt=0)
+    refresh_hz: float = Field(default=60.0, gt=0)
+    vsync: bool = True
+    video_driver: str | None = None
+
+
+class SimulatedPart(BaseModel):
+    """Simulated display or camera: its parameters go to `hw_mocks` unchanged."""
+
+    model_config = ConfigDict(extra="allow")
+    backend: Literal["simulated"] = "simulated"
+
+
+class OpenCvConfig(_Strict):
+    """OpenCV VideoCapture camera: device index, /dev/videoN, or a recording."""
+
+    backend: Literal["opencv"]
+    source: int | str = 0
+    width: int | None = Field(default=None, gt=0)
+    height: int | None = Field(default=None, gt=0)
+    buffers: int = Field(default=2, ge=1)
+    replay_rate_hz: float | None = Field(default=None, gt=0)
+    v4l2_controls: bool = True
+
+
+class AravisConfig(_Strict):
+    """GenICam camera through Aravis, opened by id or address (never by discovery)."""
+
+    backend: Literal["aravis"]
+    device: str = Field(min_length=1)
+    buffers: int = Field(default=8, ge=2)
+    bayer: Literal["demosaic", "raw"] = "demosaic"
+    trigger_line: str = "Line0"
+
+
+DisplayConfig = Annotated[FramebufferConfig | SdlConfig | SimulatedPart,
+                          Field(discriminator="backend")]
+CameraConfig = Annotated[OpenCvConfig | AravisConfig | SimulatedPart,
+                         Field(discriminator="backend")]
+
+
+class SettingsConfig(_Strict):
+    """Camera settings to start from (`phasecal check` and auto-setup may refine them)."""
+
+    exposure_s: float = Field(default=0.010, gt=0)
+    gain_db: float = 0.0
+    pixel_format: str = "Mono8"
+    trigger_mode: Literal["software", "hardware", "free-running"] = "free-running"
+    frame_rate_hz: float | None = Field(default=None, gt=0)
+    extra: dict[str, float | int | str] = Field(default_factory=dict)
+
+    def to_settings(self) -> CameraSettings:
+        """As the protocol's `CameraSettings`."""
+        return CameraSettings(self.exposure_s, self.gain_db, self.pixel_format,
+                              self.trigger_mode, self.frame_rate_hz, dict(self.extra))
+
+
+class TriggerBoxConfig(_Strict):
+    """A USB trigger box fired on each display flip (vendor control transfer)."""
+
+    vendor_id: int = Field(ge=0, le=0xFFFF)
+    product_id: int = Field(ge=0, le=0xFFFF)
+    serial: str | None = None
+    request: int = Field(default=1, ge=0, le=0xFF)
+    index: int = Field(default=0, ge=0, le=0xFFFF)
+
+
+class RigConfig(_Strict):
+    """A whole rig: `phasecal.rig/1`."""
+
+    format: Literal["phasecal.rig/1"] = RIG_FORMAT
+    kind: Literal["simulated", "hardware"] = "simulated"
+    name: str | None = None
+    screen: ScreenConfig = Field(default_factory=ScreenConfig)
+    display: DisplayConfig = Field(default_factory=SimulatedPart)
+    camera: CameraConfig = Field(default_factory=SimulatedPart)
+    settings: SettingsConfig | None = None
+    trigger_box: TriggerBoxConfig | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_backends(cls, data: Any) -> Any:
+        """Simulated rigs may omit `backend`; hardware rigs must name theirs."""
+        if isinstance(data, dict) and data.get("kind", "simulated") == "simulated":
+            data = dict(data)
+            for part in ("display", "camera"):
+                if isinstance(data.get(part), dict) and "backend" not in data[part]:
+                    data[part] = {**data[part], "backend": "simulated"}
+        return data
+
+    @model_validator(mode="after")
+    def _consistent(self) -> RigConfig:
+        sim = {p for p in ("display", "camera") if getattr(self, p).backend == "simulated"}
+        if self.kind == "hardware" and sim:
+            raise ValueError(f"kind 'hardware' needs real backends; {sorted(sim)} simulated")
+        if self.kind == "simulated" and len(sim) != 2:
+            raise ValueError("kind 'simulated' uses the simulated display and camera; set "
+                             "kind = 'hardware' to use real backends")
+        if self.kind == "hardware" and self.screen.pitch_mm is None:
+            raise ValueError("screen.pitch_mm is missing: the monitor's pixel pitch in mm "
+                             "(panel width in mm / width in px), required for real displays")
+        return self
+
+
+def parse_rig_config(data: dict[str, Any], source: str = "rig config") -> RigConfig:
+    """Validate rig config data; RigConfigError names the source and the field."""
+    try:
+        return RigConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err.get("loc", ())) or "(top level)"
+        raise RigConfigError(f"{source}: {where}: {err.get('msg')}") from None
+
+
+def load_rig_config(path: str | Path) -> RigConfig:
+    """Read a TOML (`.toml`) or JSON rig config file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"rig config {path}: no such file") from None
+    try:
+        data = tomllib.loads(text) if path.suffix != ".json" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        raise RigConfigError(f"rig config {path}: not valid {path.suffix[1:].upper()}: "
+                             f"{exc}") from None
+    return parse_rig_config(data, f"rig config {path}")
+
+
+@dataclass
+class Rig:
+    """An opened rig: devices, screen geometry, clock, start settings, optional trigger."""
+
+    config: RigConfig
+    display: Display
+    camera: Camera
+    screen: ScreenGeometry
+    clock: Clock
+    settings: CameraSettings
+    simulated: Any = None  # hw_mocks.rig.SimulatedRig for simulated rigs
+    trigger: Any = None  # acquisition.usb.trigger_box.TriggerSink, fired after each flip
+    _closed: bool = field(default=False, repr=False)
+
+    def close(self) -> None:
+        """Close the camera, the display and the trigger box (once)."""
+        if self._closed:
+            return
+        self._closed = True
+        for part in (self.camera, self.display, self.trigger):
+            if part is not None:
+                part.close()
+
+
+def _pitch(config: RigConfig) -> tuple[float, float]:
+    p = config.screen.pitch_mm
+    assert p is not None
+    return (float(p), float(p)) if isinstance(p, int | float) else (float(p[0]), float(p[1]))
+
+
+def open_display(cfg: FramebufferConfig | SdlConfig, clock: Clock) -> Display:
+    """Open a real display backend from its config section."""
+    if isinstance(cfg, FramebufferConfig):
+        from acquisition.display.framebuffer import FramebufferDisplay, FramebufferGeometry
+
+        geometry = None
+        if cfg.width or cfg.height or cfg.bits_per_pixel:
+            if not (cfg.width and cfg.height):
+                raise RigConfigError("display: framebuffer geometry needs both width and height")
+            geometry = FramebufferGeometry.standard(cfg.width, cfg.height,
+                                                    cfg.bits_per_pixel or 32, cfg.line_length,
+                                                    cfg.refresh_hz)
+        return FramebufferDisplay(cfg.device, geometry=geometry, sysfs_root=cfg.sysfs_root,
+                                  refresh_hz=cfg.refresh_hz, clock=clock)
+    from acquisition.display.sdl import SdlDisplay
+
+    size = (cfg.width, cfg.height) if cfg.width and cfg.height else None
+    return SdlDisplay(cfg.monitor, size=size, refresh_hz=cfg.refresh_hz, vsync=cfg.vsync,
+                      clock=clock, video_driver=cfg.video_driver)
+
+
+def open_camera(cfg: OpenCvConfig | AravisConfig, clock: Clock) -> Camera:
+    """Open a real camera backend from its config section."""
+    if isinstance(cfg, OpenCvConfig):
+        from acquisition.camera.opencv_capture import OpenCvCamera, is_recording
+        from acquisition.camera.v4l2_controls import V4l2Controls
+
+        controls = None
+        src = cfg.source
+        if cfg.v4l2_controls and not is_recording(src):
+            controls = V4l2Controls(f"/dev/video{src}" if isinstance(src, int) else str(src))
+        return OpenCvCamera(src, width=cfg.width, height=cfg.height, buffers=cfg.buffers,
+                            replay_rate_hz=cfg.replay_rate_hz, clock=clock, controls=controls)
+    from acquisition.camera.aravis_camera import AravisCamera
+
+    return AravisCamera(cfg.device, buffers=cfg.buffers, bayer=cfg.bayer,
+                        trigger_line=cfg.trigger_line, clock=clock)
+
+
+def _open_simulated(config: RigConfig, clock: Clock | None) -> Rig:
+    from hw_mocks.rig import SimulatedRig
+
+    sim = SimulatedRig.from_config(config.model_dump(mode="json"), clock=clock)
+    settings = config.settings.to_settings() if config.settings else sim.camera_settings
+    return Rig(config, sim.display, sim.camera, sim.screen, sim.clock, settings, simulated=sim)
+
+
+def open_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
+    """Open every device of a rig; on failure, what was opened is closed again."""
+    if config.kind == "simulated":
+        return _open_simulated(config, clock)
+    clock = clock if clock is not None else RealClock()
+    opened: list[Any] = []
+    try:
+        display = open_display(config.display, clock)  # type: ignore[arg-type]
+        opened.append(display)
+        camera = open_camera(config.camera, clock)  # type: ignore[arg-type]
+        opened.append(camera)
+        trigger = None
+        if config.trigger_box is not None:
+            from acquisition.usb.trigger_box import UsbTriggerBox
+
+            tb = config.trigger_box
+            trigger = UsbTriggerBox(tb.vendor_id, tb.product_id, serial=tb.serial,
+                                    request=tb.request, index=tb.index)
+            opened.append(trigger)
+        info = display.info
+        screen = ScreenGeometry(config.screen.width_px or info.width_px,
+                                config.screen.height_px or info.height_px, _pitch(config))
+        if (screen.width_px, screen.height_px) != (info.width_px, info.height_px):
+            raise RigConfigError(
+                f"screen: {screen.width_px}x{screen.height_px} px in the config, the display "
+                f"is {info.width_px}x{info.height_px}"
+            )
+        settings = config.settings.to_settings() if config.settings else CameraSettings()
+        return Rig(config, display, camera, screen, clock, settings, trigger=trigger)
+    except BaseException:
+        for part in reversed(opened):
+            part.close()
+        raise

@@ -1,0 +1,1 @@
+"""USB: pyusb discovery of UVC and USB3 Vision cameras, and the optional flip trigger box."""

@@ -1,0 +1,63 @@
+"""The FastAPI application: routes, problem+json errors, security, idempotency, lifecycle."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+
+from api.config import ServiceConfig
+from api.idempotency import IdempotencyMiddleware
+from api.problems import install_handlers
+from api.routes import calibrations, jobs, rigs, sessions
+from api.security import BodyLimitMiddleware, TokenMiddleware
+from api.services import Services
+
+DESCRIPTION = """Camera calibration with an active phase-shift target.
+
+Flow: create a session (rig + plan), capture or import poses (jobs), calibrate chosen
+poses with a model (a job), then download the model, exports and residual plot, or
+project/unproject points. Every long operation answers `202 Accepted` with a job
+(`Location: /jobs/<id>`): poll it or follow `/jobs/<id>/events` (SSE). Errors are
+RFC 9457 `application/problem+json`. POSTs accept an `Idempotency-Key` header so that
+a rig script can retry safely.
+"""
+
+
+def create_app(config: ServiceConfig | None = None) -> FastAPI:
+    """Build the app for `config` (default: from PHASECAL_* environment variables)."""
+    cfg = config or ServiceConfig.from_env()
+    cfg.check_security()
+    services = Services.build(cfg)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        services.jobs.bind_loop(asyncio.get_running_loop())
+        yield
+        await asyncio.to_thread(services.close)
+
+    app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app.state.services = services
+    install_handlers(app)
+    for module in (rigs, sessions, calibrations, jobs):
+        app.include_router(module.router)
+
+    @app.get("/health", tags=["service"])
+    def health() -> dict[str, Any]:
+        """Liveness: status, data directory and number of active jobs."""
+        return {"status": "ok", "data_dir": str(services.store.root),
+                "active_jobs": len(services.jobs.active_ids())}
+
+    app.add_middleware(IdempotencyMiddleware, db_getter=lambda: services.db)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)
+    if cfg.token:
+        app.add_middleware(TokenMiddleware, token=cfg.token)
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for `uvicorn --factory api.app:app_from_env` (config from PHASECAL_* env)."""
+    return create_app(ServiceConfig.from_env())

@@ -1,0 +1,36 @@
+"""`phasecal serve`: run the REST service (uvicorn) on a rig."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "run the REST service (default 127.0.0.1:8000, simulated rig)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.1", help="bind address (non-loopback needs a token)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port")
+    p.add_argument("--rig", default=None, help="'simulated' (default) or a rig .toml/.json file")
+    p.add_argument("--data-dir", default=None, help="data directory (default ./phasecal-data "
+                   "or PHASECAL_DATA_DIR)")
+    p.add_argument("--token", default=None, help="API token (or PHASECAL_TOKEN); required for "
+                   "non-loopback hosts")
+    p.add_argument("--executor", default=None, help="Dask scheduler tcp://host:port "
+                   "(or PHASECAL_DASK); default: in-process threads")
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from api.app import create_app
+    from api.config import ServiceConfig
+
+    config = ServiceConfig.from_env(host=args.host, port=args.port, rig=args.rig,
+                                    data_dir=args.data_dir, token=args.token,
+                                    executor=args.executor)
+    config.check_security()
+    app = create_app(config)
+    print(f"phasecal: serving on http://{config.host}:{config.port} "
+          f"(data {config.data_dir.resolve()}, rig {config.rig})", flush=True)
+    uvicorn.run(app, host=config.host, port=config.port, log_level="warning")
+    return 0

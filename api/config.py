@@ -1,0 +1,66 @@
+"""Service configuration: where data lives, how it binds, limits; from arguments or env."""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """Everything `create_app` needs; env names are PHASECAL_<FIELD> (upper case)."""
+
+    data_dir: Path = field(default_factory=lambda: Path("phasecal-data"))
+    host: str = "127.0.0.1"
+    port: int = 8000
+    token: str | None = None
+    rig: str = "simulated"
+    executor: str | None = None
+    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES
+
+    @classmethod
+    def from_env(cls, **overrides: object) -> ServiceConfig:
+        """Defaults, then PHASECAL_* environment variables, then explicit non-None overrides."""
+        env = os.environ
+        values: dict[str, object] = {}
+        if env.get("PHASECAL_DATA_DIR"):
+            values["data_dir"] = Path(env["PHASECAL_DATA_DIR"])
+        if env.get("PHASECAL_TOKEN"):
+            values["token"] = env["PHASECAL_TOKEN"]
+        if env.get("PHASECAL_RIG"):
+            values["rig"] = env["PHASECAL_RIG"]
+        if env.get("PHASECAL_DASK"):
+            values["executor"] = env["PHASECAL_DASK"]
+        if env.get("PHASECAL_MAX_UPLOAD_BYTES"):
+            raw = env["PHASECAL_MAX_UPLOAD_BYTES"]
+            if not raw.isdigit():
+                raise ValueError(
+                    f"PHASECAL_MAX_UPLOAD_BYTES: expected a byte count (integer), got {raw!r}"
+                )
+            values["max_upload_bytes"] = int(raw)
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        if "data_dir" in values:
+            values["data_dir"] = Path(str(values["data_dir"]))
+        return cls(**values)  # type: ignore[arg-type]
+
+    def check_security(self) -> None:
+        """Refuse a non-loopback bind without an API token (ValueError names the fix)."""
+        if not is_loopback(self.host) and not self.token:
+            raise ValueError(
+                f"--host {self.host}: binding to a non-loopback address requires an API token; "
+                "set PHASECAL_TOKEN (or --token) and send it as 'Authorization: Bearer <token>'"
+            )
+
+
+def is_loopback(host: str) -> bool:
+    """True for 'localhost' and loopback IP literals (127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -1,0 +1,130 @@
+"""Rigs of the service: records in SQLite, opened lazily through `acquisition.rig`.
+
+A rig is opened once per process and shared; its lock serializes captures and
+settings changes (one camera, one screen).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+
+from api.db import Database, RigRecord
+from api.problems import Problem
+from api.store import new_id
+
+DEFAULT_RIG_NAME = "default"
+
+
+@dataclass
+class RigHandle:
+    """An opened rig (`acquisition.rig.Rig`) and the lock that serializes its use."""
+
+    rig_id: str
+    rig: Any
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def simulated(self) -> Any | None:
+        """The `hw_mocks.rig.SimulatedRig` behind a simulated rig, else None."""
+        return getattr(self.rig, "simulated", None)
+
+
+def parse_rig_config(config: dict[str, Any], source: str = "rig config") -> Any:
+    """Validate a rig config (the TOML/JSON fields) with `acquisition.rig`; 422 on error."""
+    from acquisition.rig import RigConfigError
+    from acquisition.rig import parse_rig_config as parse
+
+    try:
+        return parse(config, source)
+    except RigConfigError as exc:
+        raise Problem(422, "invalid-rig-config", str(exc)) from None
+
+
+def load_default_config(spec: str) -> dict[str, Any]:
+    """`simulated` (the default simulated rig) or a TOML/JSON rig config file -> config data.
+
+    The simulated default is validated when first opened; a file is validated at once so
+    that `phasecal serve --rig bad.toml` fails at startup.
+    """
+    if spec == "simulated":
+        return {"kind": "simulated"}
+    from acquisition.rig import load_rig_config
+
+    path = Path(spec)
+    if not path.is_file():
+        raise ValueError(f"--rig {spec}: no such rig config file (or use 'simulated')")
+    return load_rig_config(path).model_dump(mode="json")
+
+
+class RigManager:
+    """Creates rig records, opens rigs on demand and closes them at shutdown."""
+
+    def __init__(self, db: Database, default_spec: str) -> None:
+        self.db = db
+        self._handles: dict[str, RigHandle] = {}
+        self._lock = threading.Lock()
+        config = load_default_config(default_spec)
+        with db.session() as s:
+            rec = s.scalars(select(RigRecord).where(RigRecord.name == DEFAULT_RIG_NAME)).first()
+            if rec is None:
+                rec = RigRecord(id=new_id("rig"), name=DEFAULT_RIG_NAME, config=config,
+                                created_at=time.time())
+                s.add(rec)
+            else:
+                rec.config = config
+            self.default_id = rec.id
+
+    def create(self, name: str, config: dict[str, Any]) -> RigRecord:
+        """Validate and store a new rig (opened on first use)."""
+        if name == DEFAULT_RIG_NAME:
+            raise Problem(409, "conflict", f"rig name {name!r} is reserved for the server's rig")
+        parsed = parse_rig_config(config, "config")
+        with self.db.session() as s:
+            rec = RigRecord(id=new_id("rig"), name=name, config=parsed.model_dump(mode="json"),
+                            created_at=time.time())
+            s.add(rec)
+        return rec
+
+    def record(self, rig_id: str) -> RigRecord:
+        """The stored rig or a 404 problem."""
+        with self.db.session() as s:
+            rec = s.get(RigRecord, rig_id)
+            if rec is None:
+                raise Problem(404, "not-found", f"rig {rig_id!r} does not exist")
+            return rec
+
+    def handle(self, rig_id: str) -> RigHandle:
+        """The opened rig (opening it on first use)."""
+        with self._lock:
+            h = self._handles.get(rig_id)
+            if h is not None:
+                return h
+        rec = self.record(rig_id)
+        from acquisition.rig import open_rig
+
+        rig = open_rig(parse_rig_config(rec.config, f"rig {rig_id}"))
+        with self._lock:
+            h = self._handles.setdefault(rig_id, RigHandle(rig_id, rig))
+        if h.rig is not rig:
+            _close(rig)
+        return h
+
+    def close(self) -> None:
+        """Close every opened rig."""
+        with self._lock:
+            handles, self._handles = list(self._handles.values()), {}
+        for h in handles:
+            _close(h.rig)
+
+
+def _close(rig: Any) -> None:
+    """Close a rig's devices, whichever close method it offers."""
+    closer = getattr(rig, "close", None)
+    if callable(closer):
+        closer()

@@ -1,0 +1,61 @@
+"""Helpers shared by the route modules: record lookups, 202 answers, error responses."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi.responses import JSONResponse
+
+from api.db import PoseRecord, SessionRecord
+from api.problems import Problem
+from api.schemas import ProblemDetail
+from api.store import check_id
+
+
+def _problem(description: str) -> dict[str, Any]:
+    return {"description": description, "model": ProblemDetail,
+            "content": {"application/problem+json": {}}}
+
+
+PROBLEM_RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: _problem("Malformed request body"),
+    404: _problem("Unknown id"),
+    409: _problem("Conflict with the resource's state"),
+    413: _problem("Request body too large"),
+    422: _problem("Invalid input"),
+}
+
+
+def accepted(job: dict[str, Any]) -> JSONResponse:
+    """202 Accepted with the job body and `Location: /jobs/<id>`."""
+    return JSONResponse(job, status_code=202, headers={"Location": f"/jobs/{job['id']}"})
+
+
+def get_session(s: Any, session_id: str) -> SessionRecord:
+    """The session record or a 404 problem."""
+    check_id(session_id, "ses", "session")
+    rec = s.get(SessionRecord, session_id)
+    if rec is None:
+        raise Problem(404, "not-found", f"session {session_id!r} does not exist")
+    return rec
+
+
+def get_pose(s: Any, session_id: str, pose_id: str) -> PoseRecord:
+    """The pose record of that session or a 404 problem."""
+    get_session(s, session_id)
+    check_id(pose_id, "pose", "pose")
+    rec = s.get(PoseRecord, pose_id)
+    if rec is None or rec.session_id != session_id:
+        raise Problem(404, "not-found",
+                      f"pose {pose_id!r} does not exist in session {session_id!r}")
+    return rec
+
+
+def pose_to_dict(p: PoseRecord) -> dict[str, Any]:
+    """A pose record as API data."""
+    return {
+        "id": p.id, "session_id": p.session_id, "index": p.index, "source": p.source,
+        "status": p.status, "job_id": p.job_id, "valid_pixels": p.valid_pixels,
+        "width": p.width, "height": p.height, "frames_done": p.frames_done,
+        "screen_pose": p.screen_pose, "error": p.error, "created_at": p.created_at,
+    }

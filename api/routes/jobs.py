@@ -1,0 +1,115 @@
+"""Jobs: status with progress and ETA, listing with filters, cancel, live SSE events."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import StreamingResponse
+from sqlalchemy import func, select
+
+from api.db import TERMINAL_JOB_STATES, JobRecord
+from api.jobs import job_to_dict
+from api.problems import Problem
+from api.routes.common import PROBLEM_RESPONSES
+from api.schemas import Job, JobKind, JobPage, JobStatus
+from api.services import Services, get_services
+from api.store import check_id
+
+router = APIRouter(tags=["jobs"], responses=PROBLEM_RESPONSES)
+Svc = Annotated[Services, Depends(get_services)]
+KEEPALIVE_S = 15.0
+
+
+def _job(svc: Services, job_id: str) -> dict[str, Any]:
+    check_id(job_id, "job", "job")
+    job = svc.jobs.get(job_id)
+    if job is None:
+        raise Problem(404, "not-found", f"job {job_id!r} does not exist")
+    return job
+
+
+@router.get("/jobs", response_model=JobPage)
+def list_jobs(svc: Svc, status: JobStatus | None = None, kind: JobKind | None = None,
+              session_id: str | None = None,
+              limit: Annotated[int, Query(ge=1, le=500)] = 50,
+              offset: Annotated[int, Query(ge=0)] = 0) -> dict[str, Any]:
+    """Jobs newest first, filtered by status, kind and session; paginated by limit/offset."""
+    conds = []
+    if status is not None:
+        conds.append(JobRecord.status == status)
+    if kind is not None:
+        conds.append(JobRecord.kind == kind)
+    if session_id is not None:
+        conds.append(JobRecord.session_id == session_id)
+    with svc.db.session() as s:
+        total = s.scalar(select(func.count()).select_from(JobRecord).where(*conds)) or 0
+        recs = s.scalars(select(JobRecord).where(*conds)
+                         .order_by(JobRecord.created_at.desc(), JobRecord.id)
+                         .limit(limit).offset(offset)).all()
+        items = [svc.jobs.snapshot(r.id) or job_to_dict(r) for r in recs]
+    return {"items": items, "total": int(total), "limit": limit, "offset": offset}
+
+
+@router.get("/jobs/{job_id}", response_model=Job)
+async def read_job(job_id: str, request: Request) -> dict[str, Any]:
+    """One job: status, stage, done/total, ETA (served from memory while it runs)."""
+    svc: Services = request.app.state.services
+    check_id(job_id, "job", "job")
+    snap = svc.jobs.snapshot(job_id)
+    if snap is not None:
+        return snap
+    return await asyncio.to_thread(_job, svc, job_id)
+
+
+@router.post("/jobs/{job_id}/cancel", response_model=Job, status_code=202)
+def cancel_job(job_id: str, svc: Svc) -> dict[str, Any]:
+    """Ask a queued/running job to stop; it ends as `cancelled` (409 if already finished)."""
+    job = _job(svc, job_id)
+    if job["status"] in TERMINAL_JOB_STATES or not svc.jobs.cancel(job_id):
+        raise Problem(409, "conflict", f"job {job_id} is {job['status']}; it cannot be cancelled")
+    return svc.jobs.get(job_id) or job
+
+
+def _sse(event: str, data: dict[str, Any]) -> str:
+    return f"event: {event}\ndata: {json.dumps(data)}\n\n"
+
+
+@router.get("/jobs/{job_id}/events", response_class=StreamingResponse,
+            responses={200: {"content": {"text/event-stream": {}},
+                             "description": "progress events until an `end` event"}})
+async def job_events(job_id: str, request: Request) -> StreamingResponse:
+    """Server-sent events: `progress` on every change, then `end` with the final state."""
+    svc: Services = request.app.state.services
+    first = await asyncio.to_thread(_job, svc, job_id)
+    queue = svc.jobs.subscribe(job_id)
+
+    async def stream() -> AsyncIterator[str]:
+        try:
+            if queue is None:
+                final = await asyncio.to_thread(_job, svc, job_id)
+                yield _sse("end", final)
+                return
+            yield _sse("progress", first)
+            while True:
+                try:
+                    event, data = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
+                except TimeoutError:
+                    if await request.is_disconnected():
+                        return
+                    yield ": keepalive\n\n"
+                    continue
+                if event == "end":
+                    final = await asyncio.to_thread(_job, svc, job_id)
+                    yield _sse("end", final)
+                    return
+                yield _sse(event, data)
+        finally:
+            if queue is not None:
+                svc.jobs.unsubscribe(job_id, queue)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache"})

@@ -1,0 +1,101 @@
+"""Devices and rigs: listing, rig configs, camera settings, moving the simulated screen."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import JSONResponse
+from sqlalchemy import select
+
+from api.db import RigRecord
+from api.problems import Problem
+from api.routes.common import PROBLEM_RESPONSES
+from api.schemas import CameraSettingsModel, Device, Rig, RigCreate, ScreenPoseIn
+from api.services import Services, get_services
+from api.store import check_id
+
+router = APIRouter(tags=["rigs"], responses=PROBLEM_RESPONSES)
+Svc = Annotated[Services, Depends(get_services)]
+
+
+def _rig_dict(r: RigRecord) -> dict[str, Any]:
+    return {"id": r.id, "name": r.name, "config": r.config,
+            "simulated": r.config.get("kind", "simulated") == "simulated",
+            "created_at": r.created_at}
+
+
+@router.get("/devices", response_model=list[Device])
+def list_devices() -> list[dict[str, Any]]:
+    """Displays and cameras available here (simulated, and real backends when present).
+
+    Aravis network discovery broadcasts, so it is never run from here.
+    """
+    from acquisition.discovery import list_devices as discover
+
+    return [dataclasses.asdict(d) for d in discover()]
+
+
+@router.get("/rigs", response_model=list[Rig])
+def list_rigs(svc: Svc) -> list[dict[str, Any]]:
+    """All rigs; `default` is the one the server was started with."""
+    with svc.db.session() as s:
+        return [_rig_dict(r) for r in s.scalars(select(RigRecord).order_by(RigRecord.created_at))]
+
+
+@router.post("/rigs", status_code=201, response_model=Rig)
+def create_rig(body: RigCreate, svc: Svc) -> JSONResponse:
+    """Add a rig from a JSON config (same fields as a rig TOML file)."""
+    rec = svc.rigs.create(body.name, body.config)
+    return JSONResponse(_rig_dict(rec), status_code=201, headers={"Location": f"/rigs/{rec.id}"})
+
+
+@router.get("/rigs/{rig_id}", response_model=Rig)
+def read_rig(rig_id: str, svc: Svc) -> dict[str, Any]:
+    """One rig."""
+    check_id(rig_id, "rig", "rig")
+    return _rig_dict(svc.rigs.record(rig_id))
+
+
+def _settings_dict(s: Any) -> dict[str, Any]:
+    return {"exposure_s": s.exposure_s, "gain_db": s.gain_db, "pixel_format": s.pixel_format}
+
+
+@router.get("/rigs/{rig_id}/camera/settings", response_model=CameraSettingsModel)
+def read_camera_settings(rig_id: str, svc: Svc) -> dict[str, Any]:
+    """The camera settings currently applied."""
+    check_id(rig_id, "rig", "rig")
+    return _settings_dict(svc.rigs.handle(rig_id).rig.settings)
+
+
+@router.put("/rigs/{rig_id}/camera/settings", response_model=CameraSettingsModel)
+def change_camera_settings(rig_id: str, body: CameraSettingsModel, svc: Svc) -> dict[str, Any]:
+    """Change exposure, gain or pixel format (not while a capture runs on the rig: 409)."""
+    check_id(rig_id, "rig", "rig")
+    h = svc.rigs.handle(rig_id)
+    if not h.lock.acquire(blocking=False):
+        raise Problem(409, "rig-busy", f"rig {rig_id} is capturing; change settings between poses")
+    try:
+        changes = body.model_dump(exclude_none=True)
+        wanted = dataclasses.replace(h.rig.settings, **changes)
+        h.rig.settings = h.rig.camera.configure(wanted)
+        return _settings_dict(h.rig.settings)
+    finally:
+        h.lock.release()
+
+
+@router.put("/rigs/{rig_id}/screen-pose", response_model=ScreenPoseIn)
+def move_screen(rig_id: str, body: ScreenPoseIn, svc: Svc) -> dict[str, Any]:
+    """Place the simulated screen for the next capture (409 on a real rig or while capturing)."""
+    check_id(rig_id, "rig", "rig")
+    from api.routes.sessions import _move_screen
+
+    h = svc.rigs.handle(rig_id)
+    if not h.lock.acquire(blocking=False):
+        raise Problem(409, "rig-busy", f"rig {rig_id} is capturing; move the screen between poses")
+    try:
+        _move_screen(h, body.model_dump())
+    finally:
+        h.lock.release()
+    return body.model_dump()

@@ -1,0 +1,218 @@
+"""Pydantic request/response models of the REST API (with OpenAPI examples)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+ModelName = Literal["opencv5", "opencv-rational", "fisheye", "raygrid", "sgcc", "sgcc-noncentral"]
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
+JobKind = Literal["capture", "decode", "calibrate"]
+MAX_POINTS = 200_000
+PoseStatus = Literal[
+    "pending", "capturing", "decoding", "ready", "failed", "cancelled", "interrupted"
+]
+
+
+def _strict(*examples: dict[str, Any]) -> ConfigDict:
+    """Config that rejects unknown fields and carries OpenAPI examples."""
+    return ConfigDict(extra="forbid", json_schema_extra={"examples": list(examples)})
+
+
+class ProblemDetail(BaseModel):
+    """RFC 9457 problem document."""
+
+    type: str = Field(examples=["https://phasecal.dev/problems/not-found"])
+    title: str = Field(examples=["Not found"])
+    status: int = Field(examples=[404])
+    detail: str = Field(examples=["session 'ses_0123456789abcdef' does not exist"])
+    instance: str | None = None
+
+
+class Job(BaseModel):
+    """A long operation and its progress."""
+
+    id: str = Field(examples=["job_0123456789abcdef"])
+    kind: JobKind
+    status: JobStatus
+    stage: str = Field(examples=["capture"])
+    done: int = Field(examples=[12])
+    total: int = Field(examples=[50])
+    eta_s: float | None = Field(default=None, description="seconds left in the current stage")
+    resource: str | None = Field(default=None, examples=["/calibrations/cal_0123456789abcdef"])
+    session_id: str | None = None
+    error: str | None = None
+    result: dict[str, Any] | None = None
+    created_at: float
+    started_at: float | None = None
+    finished_at: float | None = None
+
+
+class JobPage(BaseModel):
+    """One page of jobs, newest first."""
+
+    items: list[Job]
+    total: int
+    limit: int
+    offset: int
+
+
+class Device(BaseModel):
+    """A display, camera or rig found here, with the rig config section that selects it."""
+
+    kind: str = Field(examples=["camera"])
+    backend: str = Field(examples=["opencv"])
+    id: str = Field(examples=["/dev/video0"])
+    description: str
+    config: dict[str, Any] = Field(examples=[{"backend": "opencv", "source": "/dev/video0"}])
+
+
+class RigCreate(BaseModel):
+    """A rig from a JSON config (the same fields as a rig TOML file)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"name": "bench-sim", "config": {"kind": "simulated"}}
+    ]})
+    name: str = Field(min_length=1, max_length=200)
+    config: dict[str, Any]
+
+
+class Rig(BaseModel):
+    """A rig: display, camera, screen geometry and settings."""
+
+    id: str
+    name: str
+    config: dict[str, Any]
+    simulated: bool
+    created_at: float
+
+
+class CameraSettingsModel(BaseModel):
+    """Camera settings to read or change."""
+
+    model_config = _strict(
+        {"exposure_s": 0.01, "gain_db": 0.0, "pixel_format": "Mono8"}
+    )
+    exposure_s: float | None = Field(default=None, gt=0, le=10)
+    gain_db: float | None = Field(default=None, ge=0, le=48)
+    pixel_format: str | None = Field(default=None, min_length=1, max_length=32)
+
+
+class ScreenPoseIn(BaseModel):
+    """Where the simulated screen is: X_cam = R S + t; R from a rotation vector (Rodrigues)."""
+
+    model_config = _strict(
+        {"rvec": [0.1, -0.05, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}
+    )
+    rvec: list[float] = Field(min_length=3, max_length=3, description="rotation vector, radians")
+    tvec_mm: list[float] = Field(min_length=3, max_length=3, description="translation, mm")
+
+
+class SessionCreate(BaseModel):
+    """A session on a rig with a plan (given, or built from a preset for the rig's screen)."""
+
+    model_config = _strict(
+        {"name": "lab-1", "preset": "fast"}
+    )
+    name: str = Field(default="", max_length=200)
+    rig_id: str | None = Field(default=None, description="default: the server's rig")
+    plan: dict[str, Any] | None = Field(default=None, description="a phasecal.plan/1 document")
+    preset: str | None = Field(default=None, description="plan preset when no plan is given")
+
+
+class Session(BaseModel):
+    """A session: rig + pattern plan + poses."""
+
+    id: str
+    name: str
+    rig_id: str | None
+    frame_count: int
+    plan_digest: str
+    created_at: float
+
+
+class CaptureRequest(BaseModel):
+    """Capture one pose; optionally move the simulated screen first."""
+
+    model_config = _strict(
+        {"screen_pose": {"rvec": [0.1, 0.0, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}}
+    )
+    screen_pose: ScreenPoseIn | None = None
+
+
+class Pose(BaseModel):
+    """One pose of a session."""
+
+    id: str
+    session_id: str
+    index: int
+    source: Literal["capture", "import"]
+    status: PoseStatus
+    job_id: str | None
+    valid_pixels: int | None
+    width: int | None
+    height: int | None
+    frames_done: int
+    screen_pose: dict[str, Any] | None
+    error: str | None
+    created_at: float
+
+
+class CalibrationCreate(BaseModel):
+    """Calibrate chosen poses (default: every ready pose) with one model."""
+
+    model_config = _strict(
+        {"model": "opencv-rational"}, {"model": "sgcc", "pose_ids": ["pose_0123456789abcdef"]}
+    )
+    model: ModelName
+    pose_ids: list[str] | None = Field(default=None, max_length=500)
+    heldout_pose_ids: list[str] = Field(default_factory=list, max_length=500)
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class Calibration(BaseModel):
+    """A calibration and, once done, its statistics and exports."""
+
+    id: str
+    session_id: str
+    model: ModelName
+    pose_ids: list[str]
+    heldout_pose_ids: list[str]
+    status: Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
+    job_id: str | None
+    stats: dict[str, Any] | None
+    exports: list[str]
+    error: str | None
+    created_at: float
+
+
+class ProjectRequest(BaseModel):
+    """3D points in the model's camera frame, mm."""
+
+    model_config = _strict(
+        {"points": [[0.0, 0.0, 1000.0], [100.0, 50.0, 800.0]]}
+    )
+    points: list[tuple[float, float, float]] = Field(max_length=MAX_POINTS)
+
+
+class ProjectResponse(BaseModel):
+    """Pixels (u, v); null rows where the model cannot see the point."""
+
+    pixels: list[list[float | None]]
+
+
+class UnprojectRequest(BaseModel):
+    """Camera pixels (u, v)."""
+
+    model_config = _strict(
+        {"pixels": [[320.0, 240.0], [10.5, 20.25]]}
+    )
+    pixels: list[tuple[float, float]] = Field(max_length=MAX_POINTS)
+
+
+class UnprojectResponse(BaseModel):
+    """Ray origins (mm) and unit directions; null rows where the model is not defined."""
+
+    origins: list[list[float | None]]
+    directions: list[list[float | None]]

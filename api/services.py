@@ -1,0 +1,60 @@
+"""The service's long-lived parts, built once per app and reached from routes via the request."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from fastapi import Request
+
+from api.config import ServiceConfig
+from api.db import Database
+from api.jobs import JobManager
+from api.rigs import RigManager
+from api.store import DataStore
+from calibration.worker.executor import Executor, make_executor
+
+
+@dataclass
+class Services:
+    """Config, data directory, database, executor, job manager and rigs of one server."""
+
+    config: ServiceConfig
+    store: DataStore
+    db: Database
+    executor: Executor
+    jobs: JobManager
+    rigs: RigManager
+
+    @classmethod
+    def build(cls, config: ServiceConfig) -> Services:
+        """Open (or create) the data directory and database; recover interrupted work."""
+        store = DataStore(config.data_dir)
+        db = Database(store.db_path)
+        executor = make_executor(config.executor)
+        jobs = JobManager(db, executor)
+        rigs = RigManager(db, config.rig)
+        services = cls(config, store, db, executor, jobs, rigs)
+        services.recover()
+        return services
+
+    def recover(self) -> None:
+        """Jobs left active by a previous process become interrupted, and so do their targets."""
+        from api.recovery import mark_interrupted
+
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        reason = f"interrupted: the server stopped while this job was active (restart at {stamp})"
+        ids = self.jobs.recover(reason)
+        mark_interrupted(self.db, ids, reason)
+
+    def close(self) -> None:
+        """Cancel live jobs, stop the executor, close rigs and the database."""
+        self.jobs.shutdown()
+        self.executor.shutdown(wait=False)
+        self.rigs.close()
+        self.db.close()
+
+
+def get_services(request: Request) -> Services:
+    """FastAPI dependency: the app's `Services`."""
+    return request.app.state.services

@@ -1,0 +1,142 @@
+"""REST latency under load: 50 concurrent clients poll a job's status while a calibration runs.
+
+Starts `phasecal serve` as a subprocess on a free loopback port (in-process executor),
+imports synthetic decoded maps (hw_mocks ground truth) as poses, starts a calibration and
+measures GET /jobs/<id> latency from N concurrent clients until it ends; an idle run of
+the same polling gives the baseline. Prints p50/p99/max latency. Goal: p99 < 50 ms on 2 cores.
+
+    .venv/bin/python benchmarks/api.py [--clients 50] [--model sgcc] [--poses 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from api.inprocess import free_port  # noqa: E402
+
+
+def start_server(data_dir: Path) -> tuple[subprocess.Popen, str]:
+    """`python -m api.cli serve` on a free port; returns (process, base URL) once healthy."""
+    port = free_port()
+    env = dict(os.environ, PHASECAL_DATA_DIR=str(data_dir))
+    proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port", str(port)],
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{url}/health", timeout=1).status_code == 200:
+                return proc, url
+        except httpx.TransportError:
+            time.sleep(0.1)
+    proc.kill()
+    err = proc.stderr.read().decode() if proc.stderr else ""
+    raise RuntimeError(f"server did not start: {err}")
+
+
+def prepare(url: str, n_poses: int, width: int, height: int) -> str:
+    """A session whose poses are synthetic maps of a wide-angle camera; returns its id."""
+    from hw_mocks.cameras import wide_fisheye
+    from hw_mocks.poses import random_poses
+    from hw_mocks.synthetic import synthetic_maps
+
+    from acquisition.patterns import build_plan
+
+    plan = build_plan(1920, 1080, 0.2745, preset="fast")
+    with httpx.Client(base_url=url, timeout=60) as c:
+        sess = c.post("/sessions", json={"name": "bench", "plan": plan.to_dict()}).json()
+        cam = wide_fisheye(width, height)
+        rng = np.random.default_rng(3)
+        for k, pose in enumerate(random_poses(cam, plan.screen, n_poses, rng)):
+            maps, _ = synthetic_maps(cam, pose, plan.screen, sigma_px=0.05, rng=rng,
+                                     pose_id=f"bench{k}")
+            maps.meta["plan_digest"] = plan.digest()
+            r = c.post(f"/sessions/{sess['id']}/poses/import-maps",
+                       files={"file": ("maps.npz", maps.to_npz_bytes())})
+            r.raise_for_status()
+    return sess["id"]
+
+
+async def poll(url: str, path: str, clients: int, stop: asyncio.Event,
+               min_requests: int = 0) -> list[float]:
+    """Latencies (s) of GET `path` from `clients` concurrent clients until `stop` is set."""
+    lat: list[float] = []
+
+    async def one() -> None:
+        async with httpx.AsyncClient(base_url=url, timeout=30) as c:
+            n = 0
+            while not stop.is_set() or n < min_requests:
+                t0 = time.perf_counter()
+                r = await c.get(path)
+                lat.append(time.perf_counter() - t0)
+                r.raise_for_status()
+                n += 1
+
+    await asyncio.gather(*(one() for _ in range(clients)))
+    return lat
+
+
+async def measure(url: str, session_id: str, clients: int, model: str) -> dict[str, list[float]]:
+    """Idle baseline, then polling while a calibration job runs."""
+    async with httpx.AsyncClient(base_url=url, timeout=60) as c:
+        stop = asyncio.Event()
+        stop.set()
+        first = (await c.get("/jobs", params={"limit": 1})).json()["items"]
+        idle_path = f"/jobs/{first[0]['id']}" if first else "/health"
+        idle = await poll(url, idle_path, clients, stop, min_requests=20)
+        job = (await c.post(f"/sessions/{session_id}/calibrations", json={"model": model})).json()
+        stop = asyncio.Event()
+        task = asyncio.create_task(poll(url, f"/jobs/{job['id']}", clients, stop))
+        t0 = time.perf_counter()
+        while True:
+            state = (await c.get(f"/jobs/{job['id']}")).json()
+            if state["status"] not in ("queued", "running"):
+                break
+            await asyncio.sleep(0.2)
+        stop.set()
+        busy = await task
+        print(f"calibration {model}: {state['status']} in {time.perf_counter() - t0:.1f} s"
+              + (f" ({state['error']})" if state["error"] else ""))
+    return {"idle": idle, f"during {model}": busy}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--clients", type=int, default=50)
+    ap.add_argument("--model", default="sgcc")
+    ap.add_argument("--poses", type=int, default=4)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=240)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="phasecal-bench-") as tmp:
+        proc, url = start_server(Path(tmp))
+        try:
+            sid = prepare(url, args.poses, args.width, args.height)
+            results = asyncio.run(measure(url, sid, args.clients, args.model))
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    print(f"\n{args.clients} concurrent clients polling GET /jobs/<id> (cpus: {os.cpu_count()})")
+    print(f"{'scenario':<24} {'requests':>9} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
+    for name, lat in results.items():
+        ms = np.asarray(lat) * 1e3
+        print(f"{name:<24} {ms.size:9d} {np.percentile(ms, 50):8.2f} "
+              f"{np.percentile(ms, 99):8.2f} {ms.max():8.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

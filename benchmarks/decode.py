@@ -1,0 +1,149 @@
+"""Decoder throughput: a 2448x2048, 64-frame uint8 stack, versus a memory-bandwidth floor.
+
+Run: .venv/bin/python benchmarks/decode.py [--xp numpy|cupy] [--repeats N]
+Prints Mpixel-frames/s for the streaming accumulation (`add`), for `finish`, end to end,
+and the ratio to a NumPy sum over the same uint8 bytes measured on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from acquisition.patterns import build_plan
+from calibration.decode import StreamingDecoder
+from calibration.plan import Plan, plan_from_dict
+
+H, W = 2048, 2448
+
+
+def bench_plan() -> Plan:
+    """64 frames: 2 bright + 2 dark flats, 3 periods x 10 steps per axis."""
+    base = build_plan(1920, 1080, 0.2745, steps=10, max_ratio=8.0, finest_period_px=48.0)
+    data = base.to_dict()
+    data["frames"] = [{"kind": "flat", "level": 1.0}, {"kind": "flat", "level": 0.0}] + data[
+        "frames"
+    ]
+    plan = plan_from_dict(data)
+    if len(plan.frames) != 64:
+        raise SystemExit(f"benchmark plan has {len(plan.frames)} frames, expected 64")
+    return plan
+
+
+def make_stack(plan: Plan, border: bool) -> np.ndarray:
+    """Camera frames of a tilted screen; `border` adds a black (0 DN, clipped) margin."""
+    u = np.arange(W, dtype=np.float32)[None, :]
+    v = np.arange(H, dtype=np.float32)[:, None]
+    x = 0.75 * u + 0.05 * v
+    y = 0.5 * v - 0.03 * u + 20.0
+    stack = np.empty((len(plan.frames), H, W), dtype=np.uint8)
+    for i, f in enumerate(plan.frames):
+        if f.kind == "flat":
+            lin = np.full((H, W), f.level, dtype=np.float32)
+        else:
+            c = x if f.axis == "x" else y
+            lin = 0.5 + 0.5 * np.cos(2 * np.pi * c / f.period_px + f.phase_shift)
+        stack[i] = (20.0 + 200.0 * lin).astype(np.uint8)
+        if border:
+            stack[i, :, :64] = 0
+            stack[i, :, -64:] = 0
+    return stack
+
+
+def timed(fn, repeats: int) -> float:
+    """Best wall time of `repeats` runs (seconds)."""
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def run_numpy(plan: Plan, stack: np.ndarray, repeats: int) -> tuple[float, float, float]:
+    """(setup, add, finish) seconds on the CPU; setup allocates the sums before capture."""
+    setup = add = float("inf")
+    dec = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        dec = StreamingDecoder(plan, (H, W), noise=1.0)
+        t1 = time.perf_counter()
+        for i in range(stack.shape[0]):
+            dec.add(i, stack[i])
+        t2 = time.perf_counter()
+        setup, add = min(setup, t1 - t0), min(add, t2 - t1)
+    t0 = time.perf_counter()
+    dec.finish()
+    return setup, add, time.perf_counter() - t0
+
+
+def run_cupy(plan: Plan, stack: np.ndarray, repeats: int) -> list[tuple[str, float]]:
+    """Accumulation times on the GPU: frames already on the device, and from pinned host memory."""
+    import cupy as cp
+
+    dev = cp.asarray(stack)
+    pinned_mem = cp.cuda.alloc_pinned_memory(stack.nbytes)
+    pinned = np.frombuffer(pinned_mem, dtype=np.uint8, count=stack.size).reshape(stack.shape)
+    pinned[...] = stack
+
+    def on_device() -> None:
+        dec = StreamingDecoder(plan, (H, W), noise=1.0, xp=cp)
+        for i in range(dev.shape[0]):
+            dec.add(i, dev[i])
+        cp.cuda.Device().synchronize()
+
+    def from_host() -> None:
+        dec = StreamingDecoder(plan, (H, W), noise=1.0, xp=cp)
+        for i in range(pinned.shape[0]):
+            dec.add(i, cp.asarray(pinned[i]))
+        cp.cuda.Device().synchronize()
+
+    on_device()
+    return [("cupy add, frames on GPU", timed(on_device, repeats)),
+            ("cupy add, from pinned host", timed(from_host, repeats))]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--xp", default="numpy", choices=["numpy", "cupy"])
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    plan = bench_plan()
+    npf = H * W * len(plan.frames) / 1e6  # Mpixel-frames
+    rows: list[tuple[str, float]] = []
+    floor = 0.0
+    for border in (False, True):
+        stack = make_stack(plan, border)
+        if not border:
+            floor = timed(
+                lambda s=stack: [s[i].sum(dtype=np.uint64) for i in range(s.shape[0])],
+                args.repeats,
+            )
+            rows.append(("numpy sum over the same bytes (floor)", floor))
+        tag = "with clipped border" if border else "no clipping"
+        if args.xp == "numpy":
+            t_setup, t_add, t_fin = run_numpy(plan, stack, args.repeats)
+            rows.append((f"setup: allocate sums ({tag})", t_setup))
+            rows.append((f"add: streaming accumulation ({tag})", t_add))
+            rows.append((f"finish ({tag})", t_fin))
+            rows.append((f"end to end ({tag})", t_setup + t_add + t_fin))
+        else:
+            rows.extend((f"{name} ({tag})", t) for name, t in run_cupy(plan, stack, args.repeats))
+    floor_rate = npf / floor
+    print(f"decode benchmark: {W}x{H}, {len(plan.frames)} uint8 frames "
+          f"({npf:.0f} Mpixel-frames), xp={args.xp}")
+    print(f"{'stage':50s} {'seconds':>9s} {'Mpix-frames/s':>14s} {'vs floor':>9s}")
+    for name, t in rows:
+        rate = npf / t
+        print(f"{name:50s} {t:9.3f} {rate:14.0f} {rate / floor_rate:9.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,254 @@
+"""Running per-pixel sums of one pose's frames: O(pixels x periods) memory, frames in any order.
+
+For each (axis, period) set it keeps `a = sum v sin(psi)`, `b = sum v cos(psi)`,
+`s0 = sum v` (float32) and, only once a clipped sample appears, a per-pixel bit mask of
+the excluded steps (their values are zeroed before summing, so the sums cover the kept
+steps; the phase fit then solves the least-squares problem of the kept steps). A single
+pose-wide `sum v^2` (only when the noise is estimated from residuals) and the averaged
+bright/dark flats complete the state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from calibration.plan import CosineFrame, FlatFrame, Plan
+
+try:  # OpenCV's fused SIMD kernels accumulate uint8/uint16 into float32 without temporaries.
+    import cv2
+except ImportError:  # pragma: no cover - opencv is a project dependency
+    cv2 = None
+
+ACCEPTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
+
+
+# With this many steps the residual-noise estimate also fits the second harmonic (display
+# gamma puts ~30 % of the fundamental there) and still keeps >= 1 residual degree of freedom.
+HARMONIC_MIN_STEPS = 6
+
+
+class DecodeError(ValueError):
+    """Frames do not match the plan or cannot be decoded; the message says which and why."""
+
+
+@dataclass(frozen=True)
+class SetLayout:
+    """One (axis, period) group: its phase shifts and how the sums are kept."""
+
+    axis: str
+    period_px: float
+    amplitude: float
+    steps: int
+    psi: tuple[float, ...]  # phase shift of each step, radians
+
+
+@dataclass
+class SetSums:
+    """The running sums of one (axis, period) group."""
+
+    layout: SetLayout
+    a: Any
+    b: Any
+    s0: Any
+    excluded: Any | None = None  # per-pixel bit mask of clipped (excluded) steps
+    a2: Any | None = None  # sum v sin(2 psi): second harmonic, residual-noise mode only
+    b2: Any | None = None  # sum v cos(2 psi)
+    seen: int = 0
+
+
+def _bits_dtype(steps: int) -> np.dtype:
+    """Smallest unsigned integer dtype that holds one bit per phase step."""
+    for dt in (np.uint8, np.uint16, np.uint32, np.uint64):
+        if steps <= np.dtype(dt).itemsize * 8:
+            return np.dtype(dt)
+    raise DecodeError(f"plan: {steps} phase steps per period exceeds the supported 64")
+
+
+class FrameAccumulator:
+    """Accumulates frames tagged with plan indices; validates each against the plan."""
+
+    def __init__(
+        self,
+        plan: Plan,
+        shape: tuple[int, int],
+        *,
+        saturation_dn: float | None,
+        need_squares: bool,
+        xp: ModuleType = np,
+    ) -> None:
+        if len(shape) != 2 or min(shape) < 1:
+            raise DecodeError(f"shape: expected (H, W) with H, W >= 1, got {shape}")
+        self.plan = plan
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.xp = xp
+        self.saturation_dn = saturation_dn
+        self.need_squares = need_squares
+        self.dtype: np.dtype | None = None
+        self.high: float | None = None
+        self.low: float | None = None
+        self._seen = np.zeros(len(plan.frames), dtype=bool)
+        self.sets: list[SetSums] = []
+        self._role: dict[int, tuple[str, int, int]] = {}
+        for k, ps in enumerate(plan.period_sets()):
+            frames = [plan.frames[i] for i in ps.frame_indices]
+            amps = {f.amplitude for f in frames if isinstance(f, CosineFrame)}
+            if len(amps) != 1:
+                raise DecodeError(
+                    f"plan: axis {ps.axis} period {ps.period_px:g} px mixes amplitudes "
+                    f"{sorted(amps)}; the decoder needs one amplitude per period"
+                )
+            psi = tuple(2.0 * math.pi * s / ps.steps for s in range(ps.steps))
+            layout = SetLayout(ps.axis, ps.period_px, amps.pop(), ps.steps, psi)
+            sums = SetSums(layout, *(self._zeros(np.float32) for _ in range(3)))
+            if need_squares and ps.steps >= HARMONIC_MIN_STEPS:
+                sums.a2, sums.b2 = self._zeros(np.float32), self._zeros(np.float32)
+            self.sets.append(sums)
+            for step, idx in enumerate(ps.frame_indices):
+                self._role[idx] = ("cos", k, step)
+        levels = [f.level for f in plan.frames if isinstance(f, FlatFrame)]
+        self.bright_level = max(levels)
+        for i, f in enumerate(plan.frames):
+            if isinstance(f, FlatFrame) and f.level == 0.0:
+                self._role[i] = ("dark", 0, 0)
+            elif isinstance(f, FlatFrame) and f.level == self.bright_level:
+                self._role[i] = ("bright", 0, 0)
+        self.bright = self._zeros(np.float64)
+        self.dark = self._zeros(np.float64)
+        self.n_bright = 0
+        self.n_dark = 0
+        self.squares: Any | None = None
+
+    def _zeros(self, dtype: Any) -> Any:
+        """A zeroed array, written now so page faults happen here and not during capture."""
+        arr = self.xp.empty(self.shape, dtype=dtype)
+        arr.fill(0)
+        return arr
+
+    @property
+    def missing(self) -> list[int]:
+        """Plan indices of frames the decoder needs that have not arrived."""
+        return [i for i in sorted(self._role) if not self._seen[i]]
+
+    # -- intake ----------------------------------------------------------------------
+    def _check(self, index: int, image: Any) -> Any:
+        """Validate one frame against the plan and the earlier frames; return it as an xp array."""
+        if isinstance(index, bool) or not isinstance(index, int | np.integer):
+            raise DecodeError(f"frame index: expected an integer, got {index!r}")
+        if not 0 <= index < len(self.plan.frames):
+            raise DecodeError(
+                f"frame {index}: index out of range (the plan has {len(self.plan.frames)} frames)"
+            )
+        if self._seen[index]:
+            raise DecodeError(f"frame {index}: already added (each plan frame exactly once)")
+        if getattr(image, "ndim", None) != 2:
+            shape = getattr(image, "shape", None)
+            raise DecodeError(
+                f"frame {index}: expected a single-channel 2-D image, got shape {shape}"
+            )
+        if tuple(image.shape) != self.shape:
+            raise DecodeError(
+                f"frame {index}: shape {tuple(image.shape)} differs from the camera "
+                f"shape {self.shape}"
+            )
+        dt = np.dtype(image.dtype)
+        if dt not in ACCEPTED_DTYPES:
+            raise DecodeError(
+                f"frame {index}: dtype {dt} not supported; expected uint8, uint16 or float32"
+            )
+        if self.dtype is None:
+            self._set_dtype(dt)
+        elif dt != self.dtype:
+            raise DecodeError(
+                f"frame {index}: dtype {dt} differs from the earlier frames' {self.dtype}"
+            )
+        return self.xp.asarray(image)
+
+    def _set_dtype(self, dt: np.dtype) -> None:
+        """Fix the frame dtype and the clipping levels it implies."""
+        self.dtype = dt
+        if dt.kind == "u":
+            top = float(np.iinfo(dt).max)
+            self.high = top if self.saturation_dn is None else float(self.saturation_dn)
+            self.low = 0.0  # an integer 0 is a clipped reading, not a measurement
+        else:
+            self.high = None if self.saturation_dn is None else float(self.saturation_dn)
+            self.low = None
+        if self.need_squares:
+            # uint8 squares summed in float32 stay exact integers (< 2**24 for <= 258 frames).
+            sq_dtype = np.float32 if dt == np.uint8 and len(self.plan.frames) <= 258 else np.float64
+            self.squares = self._zeros(sq_dtype)
+
+    def add(self, index: int, image: Any) -> None:
+        """Fold one frame into the sums (any order, each plan index once)."""
+        img = self._check(index, image)
+        role = self._role.get(int(index))
+        self._seen[index] = True
+        if role is None:
+            return  # a flat at another level: not used by the decoder
+        kind, k, step = role
+        if kind == "bright":
+            self._add_flat(self.bright, img)
+            self.n_bright += 1
+        elif kind == "dark":
+            self._add_flat(self.dark, img)
+            self.n_dark += 1
+        else:
+            self._add_cosine(self.sets[k], step, img)
+
+    def _add_flat(self, total: Any, img: Any) -> None:
+        """Sum a flat frame (float64) for its per-pixel average."""
+        if self.xp is np and cv2 is not None:
+            cv2.accumulate(img, total)
+        else:
+            total += img
+
+    def _clipped(self, img: Any) -> Any | None:
+        """Boolean map of clipped samples, or None when the frame has none (fast check)."""
+        if self.high is None and self.low is None:
+            return None
+        if self.xp is np and cv2 is not None:
+            lo, hi, _, _ = cv2.minMaxLoc(img)
+        else:
+            lo, hi = float(img.min()), float(img.max())
+        hit_hi = self.high is not None and hi >= self.high
+        hit_lo = self.low is not None and lo <= self.low
+        if not (hit_hi or hit_lo):
+            return None
+        clip = img >= self.high if hit_hi else None
+        if hit_lo:
+            clip = img <= self.low if clip is None else clip | (img <= self.low)
+        return clip
+
+    def _add_cosine(self, sums: SetSums, step: int, img: Any) -> None:
+        """a += v sin(psi), b += v cos(psi), s0 += v, squares += v^2 over the kept samples."""
+        clip = self._clipped(img)
+        if clip is not None:
+            img = self.xp.where(clip, self.xp.zeros((), dtype=img.dtype), img)
+            if sums.excluded is None:
+                sums.excluded = self._zeros(_bits_dtype(sums.layout.steps))
+            bit = sums.excluded.dtype.type(1 << step)
+            sums.excluded |= clip.astype(sums.excluded.dtype) * bit
+        psi = sums.layout.psi[step]
+        pairs = [(sums.a, math.sin(psi)), (sums.b, math.cos(psi))]
+        if sums.a2 is not None:
+            pairs += [(sums.a2, math.sin(2 * psi)), (sums.b2, math.cos(2 * psi))]
+        pairs = [(acc, w) for acc, w in pairs if abs(w) > 1e-12]
+        if self.xp is np and cv2 is not None:
+            for acc, w in pairs:
+                cv2.addWeighted(acc, 1.0, img, w, 0.0, dst=acc, dtype=cv2.CV_32F)
+            cv2.accumulate(img, sums.s0)
+            if self.squares is not None:
+                cv2.accumulateSquare(img, self.squares)
+        else:
+            v = img.astype(self.xp.float32)
+            for acc, w in pairs:
+                acc += v * self.xp.float32(w)
+            sums.s0 += v
+            if self.squares is not None:
+                self.squares += v.astype(self.squares.dtype) ** 2
+        sums.seen += 1

@@ -1,0 +1,36 @@
+"""Array-namespace helpers: the decoder runs on NumPy or, optionally, CuPy arrays."""
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+
+def array_module(name: str | ModuleType | None) -> ModuleType:
+    """`numpy` (default) or `cupy` by name or module; a clear error when CuPy is missing."""
+    if name is None or name is np or name == "numpy":
+        return np
+    if isinstance(name, ModuleType):
+        return name
+    if name == "cupy":
+        try:
+            return importlib.import_module("cupy")
+        except ImportError as exc:
+            raise ValueError(f"xp: 'cupy' requested but not importable ({exc})") from None
+    raise ValueError(f"xp: expected 'numpy' or 'cupy', got {name!r}")
+
+
+def to_host(arr: Any) -> np.ndarray:
+    """A NumPy copy/view of an xp array (CuPy arrays are copied from the device)."""
+    get = getattr(arr, "get", None)
+    return np.asarray(get() if callable(get) else arr)
+
+
+def special(xp: ModuleType) -> ModuleType:
+    """`scipy.special` or `cupyx.scipy.special`, matching the array namespace."""
+    if xp is np:
+        return importlib.import_module("scipy.special")
+    return importlib.import_module("cupyx.scipy.special")

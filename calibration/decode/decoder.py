@@ -1,0 +1,335 @@
+"""`StreamingDecoder`: frames in (any order), `phasecal.maps/1` decoded maps out.
+
+The per-frame work is only the accumulation (accumulate.py); `finish` fits each period
+(phase.py), estimates the noise, unwraps (unwrap.py), fits blur (blur.py) and applies the
+validity rules (validity.py), chunk by chunk over the pixels to bound temporary memory.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from calibration.decode.accumulate import DecodeError, FrameAccumulator
+from calibration.decode.arrays import array_module, to_host
+from calibration.decode.blur import fit_blur
+from calibration.decode.noise import (
+    LinearVariance,
+    NoiseModel,
+    NoiseSource,
+    VarianceFn,
+    fit_photon_transfer,
+    variance_function,
+)
+from calibration.decode.options import DecodeOptions
+from calibration.decode.phase import SetFit, fit_set
+from calibration.decode.unwrap import fuse_axis
+from calibration.decode.validity import REASONS, AxisChecks, classify
+from calibration.maps import MAPS_FORMAT, DecodedMaps
+from calibration.plan import Plan
+
+# Periods finer than the coarsest enter the fusion and the blur fit only above this
+# modulation SNR: below it the phase noise is no longer Gaussian (the linearized sigma lies).
+MIN_PERIOD_SNR = 4.0
+
+
+@functools.lru_cache(maxsize=8)
+def _chi2_tail(max_dof: int) -> np.ndarray:
+    """Per-dof ratio chi2.isf(1e-6, d)/d for d = 0..max_dof (inf for d = 0)."""
+    d = np.arange(max_dof + 1, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = chi2_dist.isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
+    ratio[0] = np.inf
+    return ratio
+
+
+def _software_version() -> str:
+    """Installed phasecal version, or 'unknown' when running from a bare checkout."""
+    try:
+        from importlib.metadata import version
+
+        return version("phasecal")
+    except Exception:
+        return "unknown"
+
+
+class StreamingDecoder:
+    """Accepts one pose's frames one at a time (`add`), then decodes them (`finish`).
+
+    Implements `acquisition.sinks.FrameSink`. `noise` is the per-frame camera noise: a
+    `NoiseModel`, any object with `noise_sigma_dn(mean)` (e.g. a sensor model), a constant
+    sigma in DN, or None to estimate it per pixel from the cosine-fit residuals.
+    `saturation_dn` is the clipping level (default: the dtype maximum for integer frames).
+    """
+
+    def __init__(
+        self,
+        plan: Plan,
+        shape: tuple[int, int],
+        *,
+        noise: NoiseModel | NoiseSource | float | None = None,
+        saturation_dn: float | None = None,
+        options: DecodeOptions | None = None,
+        xp: ModuleType | str | None = np,
+    ) -> None:
+        self.plan = plan
+        self.options = options or DecodeOptions()
+        self.xp = array_module(xp)
+        self._variance = variance_function(noise)
+        constant = isinstance(noise, int | float)
+        self._noise_kind = "residual" if noise is None else "constant" if constant else "model"
+        self._acc = FrameAccumulator(
+            plan,
+            shape,
+            saturation_dn=saturation_dn,
+            need_squares=self._variance is None,
+            xp=self.xp,
+        )
+        self._finished = False
+        self._ptc: LinearVariance | None = None
+
+    @property
+    def missing(self) -> list[int]:
+        """Plan indices still needed before `finish`."""
+        return self._acc.missing
+
+    def add(self, index: int, image: np.ndarray) -> None:
+        """Fold plan frame `index` into the running sums (any order, each index once)."""
+        if self._finished:
+            raise DecodeError(f"frame {index}: the decoder has already finished")
+        self._acc.add(index, image)
+
+    # -- finishing ---------------------------------------------------------------------
+    def finish(self, meta: dict[str, Any] | None = None) -> DecodedMaps:
+        """Decode the accumulated frames into `DecodedMaps` (raises `DecodeError` if unusable)."""
+        acc = self._acc
+        missing = acc.missing
+        if missing:
+            raise DecodeError(
+                f"frames: {len(missing)} plan frame(s) missing, first {missing[:10]}; "
+                "every cosine and flat frame of the plan is needed"
+            )
+        self._finished = True
+        h, w = acc.shape
+        npix = h * w
+        axes = self.plan.axes()
+        out = {
+            key: np.full(npix, np.nan, dtype=np.float64 if key in ("x", "y") else np.float32)
+            for key in ("x", "y", "sigma_x", "sigma_y", "modulation_x", "modulation_y",
+                        "blur_x", "blur_y")
+        }
+        reason = np.zeros(npix, dtype=np.uint8)
+        step = self.options.chunk_pixels
+        if self._variance is None:
+            self._estimate_noise(npix)
+        chunks = [slice(s, min(s + step, npix)) for s in range(0, npix, step)]
+        self._map(lambda sl: self._finish_chunk(sl, axes, out, reason), chunks)
+        counts = {name: int((reason == code).sum()) for code, name in enumerate(REASONS)}
+        if counts["valid"] == 0:
+            raise DecodeError(self._no_valid_message(counts, npix))
+        mask = reason == 0
+        for key in ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y"):
+            out[key][~mask] = np.nan
+        info = {
+            "format": MAPS_FORMAT,
+            "plan_digest": self.plan.digest(),
+            "software": f"phasecal {_software_version()}",
+            "decoder": {
+                "noise": self._noise_kind,
+                "saturation_dn": acc.high,
+                "frame_dtype": str(acc.dtype),
+                "options": asdict(self.options),
+            },
+            "pixel_counts": counts,
+        }
+        info.update(meta or {})
+        shaped = {k: v.reshape(h, w) for k, v in out.items()}
+        has_blur = len(axes) > 0
+        return DecodedMaps(
+            x=shaped["x"],
+            y=shaped["y"],
+            sigma_x=shaped["sigma_x"],
+            sigma_y=shaped["sigma_y"],
+            mask=mask.reshape(h, w),
+            modulation_x=shaped["modulation_x"],
+            modulation_y=shaped["modulation_y"],
+            blur_x=shaped["blur_x"] if has_blur and "x" in axes else None,
+            blur_y=shaped["blur_y"] if has_blur and "y" in axes else None,
+            meta=info,
+        )
+
+    def _map(self, fn: Callable[[slice], None], chunks: list[slice]) -> None:
+        """Run `fn` on disjoint pixel chunks; NumPy releases the GIL, so threads use the cores."""
+        workers = min(len(chunks), os.cpu_count() or 1, 4) if self.xp is np else 1
+        if workers <= 1:
+            for sl in chunks:
+                fn(sl)
+            return
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(fn, chunks))
+
+    def _no_valid_message(self, counts: dict[str, int], npix: int) -> str:
+        """One line saying why no pixel could be decoded."""
+        worst = max((n, name) for name, n in counts.items() if name != "valid")[1]
+        if counts["no_screen"] == npix:
+            return (
+                "frames: no pixel sees the screen (the bright flat is nowhere brighter than "
+                "the dark flat beyond the noise): all-dark stack, display off or lens capped?"
+            )
+        return f"frames: no pixel could be decoded; most common reason: {worst} ({counts})"
+
+    def _residuals(self, fits: list[SetFit], sl: slice) -> tuple[Any, Any, Any]:
+        """Per-pixel residual sum of squares, its degrees of freedom and mean level."""
+        xp = self.xp
+        rss = self._acc.squares.reshape(-1)[sl].astype(xp.float64)
+        dof = xp.zeros_like(rss)
+        level = xp.zeros_like(rss)
+        for f in fits:
+            rss = rss - xp.where(f.ok, f.explained, 0.0)
+            dof = dof + xp.where(f.ok, f.dof, 0.0)
+            level = level + xp.where(f.ok, f.mean, 0.0)
+        used = sum(xp.where(f.ok, 1.0, 0.0) for f in fits)
+        return xp.maximum(rss, 0.0), dof, level / xp.maximum(used, 1.0)
+
+    def _estimate_noise(self, npix: int) -> None:
+        """Residual mode: fit a photon-transfer line to all pixels' residuals (first pass)."""
+        acc, step = self._acc, self.options.chunk_pixels
+        mean, rss, dof = (np.empty(npix, dtype=np.float32) for _ in range(3))
+
+        def one(sl: slice) -> None:
+            fits = [fit_set(self.xp, s, sl) for s in acc.sets]
+            r, d, m = self._residuals(fits, sl)
+            rss[sl], dof[sl], mean[sl] = to_host(r), to_host(d), to_host(m)
+
+        self._map(one, [slice(s, min(s + step, npix)) for s in range(0, npix, step)])
+        self._ptc = fit_photon_transfer(mean, rss, dof, self._floor)
+
+    @property
+    def _floor(self) -> float:
+        """Smallest credible sample variance: quantization of integer frames."""
+        return 1.0 / 12.0 if self._acc.dtype.kind == "u" else 1e-12
+
+    def _noise_variances(self, fits: list[SetFit], sl: slice) -> tuple[list[Any], VarianceFn]:
+        """Per-set sample variance (DN^2) for this chunk, and the variance function for flats.
+
+        With a given noise model it is evaluated at each period's mean level. In residual
+        mode the fitted photon-transfer line is used, except at pixels whose own residuals
+        exceed it beyond a 1e-6 chi-square tail (a model error there): those keep their
+        own, larger residual variance.
+        """
+        xp = self.xp
+        if self._variance is not None:
+            fn = self._variance
+            return [fn(xp.maximum(f.mean, 0.0)) for f in fits], fn
+        rss, dof, _ = self._residuals(fits, sl)
+        own = xp.where(dof > 0, xp.maximum(rss / xp.maximum(dof, 1.0), self._floor), xp.nan)
+        if self._ptc is None:
+            return [own] * len(fits), lambda level: own
+        ptc = self._ptc.variance
+        limit = xp.asarray(_chi2_tail(int(to_host(dof).max()) if dof.size else 0))
+        excess = own > ptc(xp.maximum(fits[0].mean, 0.0)) * limit[dof.astype(xp.int64)]
+        per_set = [xp.where(excess, own, ptc(xp.maximum(f.mean, 0.0))) for f in fits]
+        return per_set, lambda level: xp.where(excess, own, ptc(level))
+
+    def _finish_chunk(self, sl: slice, axes: list[str], out: dict, reason: np.ndarray) -> None:
+        """Decode one flattened pixel range into `out` and `reason`."""
+        xp, acc, opt = self.xp, self._acc, self.options
+        fits = [fit_set(xp, s, sl) for s in acc.sets]
+        variances, level_var = self._noise_variances(fits, sl)
+        bright = acc.bright.reshape(-1)[sl] / acc.n_bright
+        dark = acc.dark.reshape(-1)[sl] / acc.n_dark
+        var_b, var_d = level_var(bright), level_var(xp.maximum(dark, 0.0))
+        contrast_var = var_b / acc.n_bright + var_d / acc.n_dark
+        contrast_snr = (bright - dark) / xp.sqrt(contrast_var)
+        contrast_snr = xp.where(xp.isfinite(contrast_snr), contrast_snr, 0.0)
+        checks: list[AxisChecks] = []
+        for axis in axes:
+            idx = [k for k, s in enumerate(acc.sets) if s.layout.axis == axis]
+            periods = [acc.sets[k].layout.period_px for k in idx]
+            pos, sig, use, mods, mod_sig = [], [], [], [], []
+            for k, period in zip(idx, periods, strict=True):
+                f, var = fits[k], variances[k]
+                s_b = xp.sqrt(var * f.modulation_var())
+                mod = f.modulation
+                sig_c = (period / (2.0 * math.pi)) * xp.sqrt(var * f.phase_var())
+                usable = f.ok & (mod >= MIN_PERIOD_SNR * s_b) & xp.isfinite(sig_c)
+                pos.append(f.position(xp, period))
+                sig.append(xp.where(usable, sig_c, period))
+                use.append(usable)
+                mods.append(mod)
+                mod_sig.append(s_b)
+            post = fuse_axis(xp, pos, sig, periods, use, self.plan.screen.extent_px(axis))
+            limits = xp.asarray(
+                [math.inf]
+                + [float(chi2_dist.isf(opt.consistency_p, d)) for d in range(1, len(idx))]
+            )
+            checks.append(
+                AxisChecks(
+                    anchor_ok=fits[idx[0]].ok,
+                    anchor_snr=mods[0] / xp.where(mod_sig[0] > 0, mod_sig[0], xp.inf),
+                    ambiguity=post.ambiguity,
+                    chi2=post.chi2,
+                    chi2_limit=limits[post.dof.astype(xp.int64)],
+                    position=post.position,
+                    sigma=post.sigma,
+                    extent_px=self.plan.screen.extent_px(axis),
+                )
+            )
+            amps = [acc.sets[k].layout.amplitude for k in idx]
+            blur, _ = fit_blur(xp, mods, mod_sig, amps, periods, MIN_PERIOD_SNR)
+            out[axis][sl] = to_host(post.position)
+            out[f"sigma_{axis}"][sl] = to_host(post.sigma)
+            out[f"modulation_{axis}"][sl] = to_host(mods[-1])
+            out[f"blur_{axis}"][sl] = to_host(blur)
+        reason[sl] = to_host(
+            classify(
+                xp,
+                contrast_snr,
+                checks,
+                min_contrast_snr=opt.min_contrast_snr,
+                min_modulation_snr=opt.min_modulation_snr,
+                max_ambiguity=opt.max_ambiguity,
+                screen_margin_sigma=opt.screen_margin_sigma,
+                max_sigma_px=opt.max_sigma_px,
+            )
+        )
+
+
+def decode_stack(
+    plan: Plan,
+    frames: Any,
+    *,
+    noise: NoiseModel | NoiseSource | float | None = None,
+    saturation_dn: float | None = None,
+    options: DecodeOptions | None = None,
+    xp: ModuleType | str | None = np,
+    meta: dict[str, Any] | None = None,
+) -> DecodedMaps:
+    """Decode a whole (F, H, W) stack (or any sequence of 2-D frames in plan order)."""
+    count = len(frames)
+    if count != len(plan.frames):
+        raise DecodeError(
+            f"frames: {count} frames given, the plan has {len(plan.frames)} "
+            "(frame i must be captured while plan frame i was shown)"
+        )
+    first = frames[0]
+    if getattr(first, "ndim", None) != 2:
+        raise DecodeError(
+            f"frames: expected a (F, H, W) stack of single-channel frames, got frame shape "
+            f"{getattr(first, 'shape', None)}"
+        )
+    dec = StreamingDecoder(
+        plan, tuple(first.shape), noise=noise, saturation_dn=saturation_dn, options=options, xp=xp
+    )
+    for i in range(count):
+        dec.add(i, frames[i])
+    return dec.finish(meta)

@@ -1,0 +1,133 @@
+"""Per-period least-squares cosine fit: wrapped position, modulation B* and its covariance.
+
+Each pixel's samples of one period obey `v_i = C + alpha sin(psi_i) + beta cos(psi_i)`
+with `alpha = -B sin(phi)`, `beta = B cos(phi)` (PHYSICS.md section 1). With all steps
+kept this is the classic closed form; with clipped steps excluded it is the least-squares
+solution over the kept steps, solved per distinct exclusion pattern (a handful), not per pixel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from calibration.decode.accumulate import SetSums
+from calibration.decode.arrays import to_host
+
+# Kept steps whose normal matrix is this ill-conditioned cannot fix a phase.
+_MAX_CONDITION = 1e6
+
+
+@dataclass
+class SetFit:
+    """Fit of one (axis, period) group over a chunk of pixels (1-D arrays)."""
+
+    mean: Any  # C, DN
+    alpha: Any
+    beta: Any
+    c_aa: Any  # covariance of (alpha, beta) per unit sample variance
+    c_bb: Any
+    c_ab: Any
+    explained: Any  # p . rhs: the part of sum v^2 the fit explains
+    dof: Any  # kept samples - 3
+    ok: Any  # enough kept samples, well-conditioned
+
+    @property
+    def modulation(self) -> Any:
+        """Observed modulation amplitude B* (DN)."""
+        return (self.alpha**2 + self.beta**2) ** 0.5
+
+    def modulation_var(self) -> Any:
+        """Variance of B* per unit sample variance (linearized)."""
+        b2 = self.alpha**2 + self.beta**2
+        num = self.alpha**2 * self.c_aa + 2 * self.alpha * self.beta * self.c_ab
+        num = num + self.beta**2 * self.c_bb
+        isotropic = 0.5 * (self.c_aa + self.c_bb)
+        return (num + isotropic * (b2 == 0)) / (b2 + (b2 == 0))
+
+    def phase_var(self) -> Any:
+        """Variance of the phase (rad^2) per unit sample variance (linearized)."""
+        b2 = self.alpha**2 + self.beta**2
+        num = self.beta**2 * self.c_aa - 2 * self.alpha * self.beta * self.c_ab
+        num = num + self.alpha**2 * self.c_bb
+        return num / (b2 * b2 + (b2 == 0)) + (b2 == 0) * 1e30  # no modulation: no phase
+
+    def position(self, xp: ModuleType, period: float) -> Any:
+        """Wrapped screen position in [0, period) screen px."""
+        phi = xp.arctan2(-self.alpha, self.beta)
+        return xp.mod(phi * (period / (2.0 * math.pi)), period)
+
+
+def _normal_inverse(steps: int, excluded_mask: int, columns: int) -> tuple[np.ndarray, int]:
+    """Inverse normal matrix of the kept steps (NaN if too few or degenerate), and their count.
+
+    Columns: 1, sin(psi), cos(psi) and, when `columns` is 5, sin(2 psi), cos(2 psi).
+    """
+    psi = 2.0 * np.pi * np.arange(steps) / steps
+    kept = [(excluded_mask >> i) & 1 == 0 for i in range(steps)]
+    basis = [np.ones(steps), np.sin(psi), np.cos(psi), np.sin(2 * psi), np.cos(2 * psi)]
+    rows = np.stack(basis[:columns], axis=1)[kept]
+    n = int(rows.shape[0])
+    m = rows.T @ rows
+    if n < columns or np.linalg.cond(m) > _MAX_CONDITION:
+        return np.full((columns, columns), np.nan), n
+    return np.linalg.inv(m), n
+
+
+def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
+    """Fit the cosine model of one period group on the flattened pixel range `sl`.
+
+    When the second-harmonic sums exist (residual-noise mode) the model includes the
+    second harmonic, so display gamma does not inflate the residual noise estimate; for
+    all steps kept it is orthogonal to the fundamental and leaves the phase unchanged.
+    """
+    n = sums.layout.steps
+    flat = [x.reshape(-1)[sl].astype(xp.float64) for x in (sums.s0, sums.a, sums.b)]
+    if sums.a2 is not None:
+        flat += [x.reshape(-1)[sl].astype(xp.float64) for x in (sums.a2, sums.b2)]
+    s0, a, b = flat[:3]
+    columns = len(flat)
+    size = a.shape[0]
+    full = xp.full(size, 2.0 / n)
+    explained = s0**2 / n
+    for extra in flat[1:]:
+        explained = explained + extra**2 * (2.0 / n)
+    fit = SetFit(
+        mean=s0 / n,
+        alpha=a * (2.0 / n),
+        beta=b * (2.0 / n),
+        c_aa=full,
+        c_bb=full.copy(),
+        c_ab=xp.zeros(size),
+        explained=explained,
+        dof=xp.full(size, float(n - columns)),
+        ok=xp.ones(size, dtype=bool),
+    )
+    if sums.excluded is None:
+        return fit
+    bits = sums.excluded.reshape(-1)[sl]
+    idx = xp.nonzero(bits)[0]
+    if idx.shape[0] == 0:
+        return fit
+    uniq, inv = xp.unique(bits[idx], return_inverse=True)
+    tables = [_normal_inverse(n, int(u), columns) for u in to_host(uniq)]
+    minv = xp.asarray(np.stack([t[0] for t in tables]))[inv.reshape(-1)]  # (P, k, k)
+    kept = xp.asarray(np.array([t[1] for t in tables], dtype=np.float64))[inv.reshape(-1)]
+    rhs = xp.stack([f[idx] for f in flat], axis=1)
+    p = xp.einsum("pij,pj->pi", minv, rhs)
+    good = xp.isfinite(p).all(axis=1)
+    p = xp.where(good[:, None], p, 0.0)
+    fit.mean[idx] = p[:, 0]
+    fit.alpha[idx] = p[:, 1]
+    fit.beta[idx] = p[:, 2]
+    fit.c_aa[idx] = xp.where(good, minv[:, 1, 1], 0.0)
+    fit.c_bb[idx] = xp.where(good, minv[:, 2, 2], 0.0)
+    fit.c_ab[idx] = xp.where(good, minv[:, 1, 2], 0.0)
+    fit.explained[idx] = (p * rhs).sum(axis=1)
+    fit.dof[idx] = xp.maximum(kept - columns, 0.0)
+    fit.ok[idx] = good
+    return fit

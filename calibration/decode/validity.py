@@ -1,0 +1,72 @@
+"""Validity rules: why a pixel is not trusted, as one reason code per pixel (0 = valid).
+
+Rules are applied in order; the first that fails names the pixel's reason, so the counts
+in the maps' meta say what limited a pose (docs/decoder.md lists them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+REASONS = (
+    "valid",
+    "no_screen",  # bright flat not brighter than the dark flat: the pixel sees no screen
+    "clipped",  # too few unclipped samples in the coarsest period
+    "low_modulation",  # coarsest period too noisy to anchor the unwrapping
+    "ambiguous",  # competing peaks of the comb product hold too much posterior mass
+    "inconsistent",  # the periods disagree beyond the chi-square threshold
+    "off_screen",  # decoded position outside the screen extent
+    "uncertain",  # final sigma above the threshold
+)
+
+
+@dataclass
+class AxisChecks:
+    """Per-axis quantities the rules look at (1-D arrays over a chunk of pixels)."""
+
+    anchor_ok: Any  # coarsest period has enough kept samples
+    anchor_snr: Any  # coarsest period B* / sigma_B
+    ambiguity: Any
+    chi2: Any
+    chi2_limit: Any
+    position: Any
+    sigma: Any
+    extent_px: int
+
+
+def classify(
+    xp: ModuleType,
+    contrast_snr: Any,
+    axes: list[AxisChecks],
+    *,
+    min_contrast_snr: float,
+    min_modulation_snr: float,
+    max_ambiguity: float,
+    screen_margin_sigma: float,
+    max_sigma_px: float,
+) -> Any:
+    """Reason code per pixel (uint8, index into REASONS); 0 where every rule passes."""
+    failures: list[Any] = [~(contrast_snr >= min_contrast_snr)]
+    per_rule: list[list[Any]] = [[] for _ in range(len(REASONS) - 2)]
+    for ax in axes:
+        margin = screen_margin_sigma * ax.sigma
+        inside = (ax.position >= -0.5 - margin) & (ax.position <= ax.extent_px - 0.5 + margin)
+        per_rule[0].append(~ax.anchor_ok)
+        per_rule[1].append(~(ax.anchor_snr >= min_modulation_snr))
+        per_rule[2].append(~(ax.ambiguity <= max_ambiguity))
+        per_rule[3].append(~(ax.chi2 <= ax.chi2_limit))
+        per_rule[4].append(~inside)
+        per_rule[5].append(~(ax.sigma <= max_sigma_px))
+    for rule in per_rule:
+        failed = rule[0]
+        for other in rule[1:]:
+            failed = failed | other
+        failures.append(failed)
+    reason = xp.zeros(contrast_snr.shape, dtype=xp.uint8)
+    for code in range(len(failures), 0, -1):
+        reason = xp.where(failures[code - 1], np.uint8(code), reason)
+    return reason

@@ -1,0 +1,318 @@
+"""The Dask-backed executor: the same task functions as `InProcessExecutor`, on a cluster.
+
+`DaskExecutor(address)` connects a `distributed.Client` to a scheduler (`tcp://host:8786`)
+or starts a private `LocalCluster` for `local` / `local:N`. Every job-aware task runs in a
+small wrapper on the worker that gives it a `TaskContext` whose
+
+- `progress()` goes out through `Worker.log_event` on one topic that this client
+  subscribes to once (`Client.subscribe_topic`) and routes to the job's callback;
+- `cancelled()` reads a `distributed.Event` named after the job (set by `cancel`),
+  polled at most every `cancel_poll_s` so tight loops do not flood the scheduler.
+
+Results come back as `concurrent.futures.Future`s, so the service awaits both executors
+the same way. Arguments are paths (data by reference): large arrays in `run_task`
+arguments are refused. A worker that dies mid-task makes the scheduler re-run the task
+elsewhere; after `distributed.scheduler.allowed-failures` deaths the job fails with
+`WorkerLost`, which names the task and the reason, instead of hanging.
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future, InvalidStateError
+from typing import Any
+
+from calibration.worker.dask_context import PROGRESS_TOPIC, cancel_event_name, run_in_worker
+from calibration.worker.executor import JobCancelled, ProgressCallback
+
+LOCAL_PREFIX = "local"
+DEFAULT_MAX_ARG_BYTES = 1 << 20
+
+
+class WorkerLost(RuntimeError):
+    """A task's worker died more often than the scheduler allows; the job failed."""
+
+
+class _Job:
+    """Client-side bookkeeping of one submitted job."""
+
+    def __init__(self, job_id: str, on_progress: ProgressCallback | None) -> None:
+        self.job_id = job_id
+        self.on_progress = on_progress
+        self.started = False
+        self.cancel_requested = False
+        self.dask_future: Any = None
+        self.future: Future = Future()
+
+
+def _parse_local(address: str) -> int | None:
+    """Worker count of a `local` / `local:N` address; None for a scheduler address."""
+    if not address.startswith(LOCAL_PREFIX):
+        return None
+    rest = address[len(LOCAL_PREFIX):]
+    if rest == "":
+        return 2
+    if rest.startswith(":") and rest[1:].isdigit() and int(rest[1:]) > 0:
+        return int(rest[1:])
+    raise ValueError(f"executor address {address!r}: expected 'local' or 'local:N' with N >= 1")
+
+
+def start_local_cluster(n_workers: int = 2) -> Any:
+    """A loopback-only `LocalCluster` of single-threaded worker processes, no dashboard."""
+    from distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+    )
+
+
+def _nbytes(value: Any) -> int:
+    """Size of the array or buffer payload in an argument (one level into containers)."""
+    if hasattr(value, "nbytes") and hasattr(value, "dtype"):
+        return int(value.nbytes)
+    if isinstance(value, bytes | bytearray | memoryview):
+        return len(value)
+    if isinstance(value, list | tuple):
+        return sum(_nbytes(v) for v in value if not isinstance(v, list | tuple | dict))
+    if isinstance(value, dict):
+        return sum(_nbytes(v) for v in value.values() if not isinstance(v, list | tuple | dict))
+    return 0
+
+
+class DaskExecutor:
+    """Runs job tasks on a Dask cluster with progress, cooperative cancel and clean failure."""
+
+    def __init__(
+        self,
+        address: str | Any,
+        *,
+        timeout_s: float = 10.0,
+        cancel_poll_s: float = 0.2,
+        progress_interval_s: float = 0.05,
+        max_arg_bytes: int = DEFAULT_MAX_ARG_BYTES,
+    ) -> None:
+        from distributed import Client
+
+        self._cluster: Any = None
+        if isinstance(address, Client):
+            self.client = address
+            self._owns_client = False
+        else:
+            n_local = _parse_local(str(address))
+            target: Any = str(address)
+            if n_local is not None:
+                self._cluster = start_local_cluster(n_local)
+                target = self._cluster
+            try:
+                self.client = Client(target, timeout=timeout_s, set_as_default=False)
+            except OSError as exc:
+                if self._cluster is not None:
+                    self._cluster.close()
+                raise ConnectionError(
+                    f"Dask scheduler {address!r} did not answer within {timeout_s:g} s ({exc}); "
+                    "start it with `dask scheduler` and workers with `dask worker ADDRESS`, "
+                    "or unset PHASECAL_DASK to run jobs in-process"
+                ) from exc
+            self._owns_client = True
+        self.cancel_poll_s = float(cancel_poll_s)
+        self.progress_interval_s = float(progress_interval_s)
+        self.max_arg_bytes = int(max_arg_bytes)
+        self._jobs: dict[str, _Job] = {}
+        self._lock = threading.Lock()
+        self._closed = False
+        self.client.subscribe_topic(PROGRESS_TOPIC, self._on_event)
+
+    @property
+    def address(self) -> str:
+        """The scheduler address this executor submits to."""
+        return str(self.client.scheduler.address)
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
+        """Run a plain module-level callable on the cluster (no job context)."""
+        self._check_open()
+        dfut = self.client.submit(fn, *args, pure=False, **kwargs)
+        out: Future = Future()
+        out.set_running_or_notify_cancel()
+        dfut.add_done_callback(lambda f: self._settle(out, f, getattr(fn, "__name__", "task")))
+        return out
+
+    def run_task(
+        self,
+        task_fn: Callable[..., Any],
+        /,
+        *args: Any,
+        job_id: str,
+        on_progress: ProgressCallback | None = None,
+        **kwargs: Any,
+    ) -> Future:
+        """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` on a worker."""
+        self._check_open()
+        self._check_by_reference(task_fn, args, kwargs)
+        job = _Job(job_id, on_progress)
+        with self._lock:
+            if job_id in self._jobs:
+                raise ValueError(f"job {job_id!r} is already running on {self.address}")
+            self._jobs[job_id] = job
+        job.future.set_running_or_notify_cancel()
+        name = getattr(task_fn, "__name__", "task")
+        options = {"cancel_poll_s": self.cancel_poll_s, "progress_s": self.progress_interval_s}
+        job.dask_future = self.client.submit(
+            run_in_worker,
+            task_fn,
+            job_id,
+            args,
+            kwargs,
+            options,
+            key=f"phasecal-{name}-{job_id}-{uuid.uuid4().hex[:8]}",
+            pure=False,
+        )
+        job.dask_future.add_done_callback(lambda f: self._finish(job, f, name))
+        return job.future
+
+    def cancel(self, job_id: str) -> bool:
+        """Ask job `job_id` to stop: a queued task is dropped, a running one sees cancelled()."""
+        with self._lock:
+            job = self._jobs.get(job_id)
+        if job is None:
+            return False
+        from distributed import Event
+
+        job.cancel_requested = True
+        Event(cancel_event_name(job_id), client=self.client).set()
+        if not job.started and job.dask_future is not None:
+            self.client.cancel(job.dask_future)
+        return True
+
+    def running_jobs(self) -> list[str]:
+        """Ids of jobs submitted and not finished yet."""
+        with self._lock:
+            return sorted(self._jobs)
+
+    def shutdown(self, wait: bool = True) -> None:
+        """Wait for every job, or (wait=False) flag them cancelled and fail their futures now;
+        then close the client and any cluster this executor started."""
+        if self._closed:
+            return
+        with self._lock:
+            jobs = list(self._jobs.values())
+        for job in jobs:
+            if wait:
+                job.future.exception()
+            else:
+                self.cancel(job.job_id)
+                _set_exception(job.future, JobCancelled(
+                    f"job {job.job_id}: the executor was shut down while it was active"))
+        self._closed = True
+        self.client.unsubscribe_topic(PROGRESS_TOPIC)
+        if self._owns_client:
+            self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+    def __enter__(self) -> DaskExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown(wait=exc[0] is None)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("DaskExecutor was shut down; create a new one")
+
+    def _check_by_reference(
+        self, task_fn: Callable[..., Any], args: tuple[Any, ...], kwargs: Mapping[str, Any]
+    ) -> None:
+        """Refuse large in-memory arrays: workers read data from the shared store by path."""
+        for where, value in [*((f"argument {i}", a) for i, a in enumerate(args)),
+                             *((f"argument {k!r}", v) for k, v in kwargs.items())]:
+            size = _nbytes(value)
+            if size > self.max_arg_bytes:
+                raise ValueError(
+                    f"{getattr(task_fn, '__name__', 'task')}: {where} carries {size} bytes of "
+                    f"array data (limit {self.max_arg_bytes}); write it to the data store and "
+                    "pass its path so workers read it there"
+                )
+
+    def _on_event(self, event: tuple[float, Any]) -> None:
+        """Route one progress/start message from a worker to its job's callback."""
+        _stamp, msg = event
+        if not isinstance(msg, dict):
+            return
+        with self._lock:
+            job = self._jobs.get(str(msg.get("job_id")))
+        if job is None:
+            return
+        if msg.get("kind") == "start":
+            job.started = True
+        elif msg.get("kind") == "progress" and job.on_progress is not None:
+            job.on_progress(int(msg["done"]), int(msg["total"]), str(msg["stage"]))
+
+    def _finish(self, job: _Job, dfut: Any, name: str) -> None:
+        """Settle the job's future from the Dask future and forget the job."""
+        with self._lock:
+            if self._jobs.get(job.job_id) is job:
+                del self._jobs[job.job_id]
+        self._settle(job.future, dfut, name, job.job_id)
+        if not job.cancel_requested:
+            self._clear_event(job.job_id)
+
+    def _clear_event(self, job_id: str) -> None:
+        """Drop the job's (unset) flag from the scheduler once the job is over.
+
+        A cancelled job keeps its flag set: a task dropped by `Client.cancel` may already be
+        running on a worker and must still see `cancelled()` (one small entry per cancel).
+        """
+        from distributed import Event
+
+        try:
+            Event(cancel_event_name(job_id), client=self.client).clear()
+        except Exception:  # the client may be closing; the flag dies with the scheduler
+            return
+
+    @staticmethod
+    def _settle(out: Future, dfut: Any, name: str, job_id: str | None = None) -> None:
+        """Copy a Dask future's outcome to a concurrent future, naming lost workers."""
+        from distributed import KilledWorker
+
+        what = f"{name} of job {job_id}" if job_id else name
+        if dfut.status == "cancelled":
+            _set_exception(out, JobCancelled(f"{what} was cancelled before it started"))
+            return
+        try:
+            exc = dfut.exception()
+            value = dfut.result() if exc is None else None
+        except Exception as err:  # the client lost the scheduler
+            _set_exception(out, err)
+            return
+        if exc is None:
+            try:
+                out.set_result(value)
+            except InvalidStateError:  # already failed by shutdown(wait=False)
+                return
+        elif isinstance(exc, KilledWorker):
+            failed = WorkerLost(
+                f"{what}: its worker died while running it ({exc}); the scheduler gave up "
+                "after distributed.scheduler.allowed-failures attempts — check worker memory "
+                "limits and logs"
+            )
+            failed.__cause__ = exc
+            _set_exception(out, failed)
+        else:
+            _set_exception(out, exc)
+
+
+def _set_exception(out: Future, exc: BaseException) -> None:
+    """Fail a future unless it is already settled (shutdown and completion may race)."""
+    try:
+        out.set_exception(exc)
+    except InvalidStateError:
+        return
+
+
+__all__ = ["DaskExecutor", "WorkerLost", "start_local_cluster"]

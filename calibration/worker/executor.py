@@ -1,0 +1,143 @@
+"""The executor interface every heavy job of the service goes through.
+
+Task functions are module-level callables `fn(ctx: TaskContext, *args, **kwargs) -> dict`
+(see `calibration.worker.tasks`): they take file paths, write their outputs atomically
+and return a small JSON-able summary, so they can run in a thread or on a Dask worker.
+`InProcessExecutor` runs them on a thread pool (NumPy/SciPy/OpenCV release the GIL);
+`make_executor("tcp://...")` returns the Dask-backed executor of
+`calibration.worker.dask_executor`.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, Protocol, runtime_checkable
+
+ProgressCallback = Callable[[int, int, str], None]
+
+DASK_ENV = "PHASECAL_DASK"
+
+
+class JobCancelled(Exception):
+    """Raised inside a task when its job was cancelled; the job ends as `cancelled`."""
+
+
+class TaskContext:
+    """What a running task sees of its job: report progress, poll for cancellation."""
+
+    def __init__(
+        self,
+        job_id: str,
+        on_progress: ProgressCallback | None = None,
+        cancel_event: threading.Event | None = None,
+    ) -> None:
+        self.job_id = job_id
+        self._on_progress = on_progress
+        self._cancel = cancel_event or threading.Event()
+
+    def progress(self, done: int, total: int, stage: str) -> None:
+        """Report `done` of `total` units in `stage` (forwarded to the job manager)."""
+        if self._on_progress is not None:
+            self._on_progress(int(done), int(total), str(stage))
+
+    def cancelled(self) -> bool:
+        """True once the job was asked to stop; tasks poll this between steps."""
+        return self._cancel.is_set()
+
+    def check_cancelled(self) -> None:
+        """Raise `JobCancelled` if the job was asked to stop."""
+        if self.cancelled():
+            raise JobCancelled(f"job {self.job_id} was cancelled")
+
+
+@runtime_checkable
+class Executor(Protocol):
+    """Shaped like `concurrent.futures.Executor`, plus job-aware submission and cancel."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future: ...
+
+    def run_task(
+        self,
+        task_fn: Callable[..., Any],
+        /,
+        *args: Any,
+        job_id: str,
+        on_progress: ProgressCallback | None = None,
+        **kwargs: Any,
+    ) -> Future: ...
+
+    def cancel(self, job_id: str) -> bool: ...
+
+    def shutdown(self, wait: bool = True) -> None: ...
+
+
+class InProcessExecutor:
+    """Runs tasks on a thread pool in this process; cancel sets the task's flag."""
+
+    def __init__(self, max_workers: int | None = None) -> None:
+        workers = max_workers or max(1, min(4, os.cpu_count() or 1))
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="phasecal-task")
+        self._cancel: dict[str, threading.Event] = {}
+        self._lock = threading.Lock()
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
+        """Run a plain callable on the pool."""
+        return self._pool.submit(fn, *args, **kwargs)
+
+    def run_task(
+        self,
+        task_fn: Callable[..., Any],
+        /,
+        *args: Any,
+        job_id: str,
+        on_progress: ProgressCallback | None = None,
+        **kwargs: Any,
+    ) -> Future:
+        """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id`."""
+        event = threading.Event()
+        with self._lock:
+            self._cancel[job_id] = event
+        ctx = TaskContext(job_id, on_progress, event)
+        fut = self._pool.submit(task_fn, ctx, *args, **kwargs)
+        fut.add_done_callback(lambda _f: self._forget(job_id, event))
+        return fut
+
+    def cancel(self, job_id: str) -> bool:
+        """Ask the task of `job_id` to stop; False if no such task is queued or running."""
+        with self._lock:
+            event = self._cancel.get(job_id)
+        if event is None:
+            return False
+        event.set()
+        return True
+
+    def shutdown(self, wait: bool = True) -> None:
+        """Stop accepting work; flag every running task as cancelled when not waiting."""
+        if not wait:
+            with self._lock:
+                for event in self._cancel.values():
+                    event.set()
+        self._pool.shutdown(wait=wait, cancel_futures=not wait)
+
+    def _forget(self, job_id: str, event: threading.Event) -> None:
+        with self._lock:
+            if self._cancel.get(job_id) is event:
+                del self._cancel[job_id]
+
+
+def make_executor(address: str | None = None) -> Executor:
+    """In-process executor, or the Dask one for `tcp://...` (argument or env PHASECAL_DASK)."""
+    address = address or os.environ.get(DASK_ENV) or None
+    if address is None or address in ("inprocess", "threads"):
+        return InProcessExecutor()
+    if not address.startswith(("tcp://", "tls://", "inproc://", "local")):
+        raise ValueError(
+            f"executor address {address!r}: expected 'tcp://host:port' of a Dask scheduler "
+            f"(or unset {DASK_ENV} for the in-process executor)"
+        )
+    from calibration.worker.dask_executor import DaskExecutor
+
+    return DaskExecutor(address)

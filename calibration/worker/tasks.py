@@ -1,0 +1,147 @@
+"""Module-level task functions run by an executor; data moves by reference (file paths).
+
+Each task takes a `TaskContext` first, reads its inputs from paths, writes its outputs
+atomically to the given paths and returns a small JSON-able summary.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from calibration.worker.executor import JobCancelled, TaskContext
+
+
+def write_json_atomic(path: str | Path, data: Any) -> None:
+    """Write JSON through a temp file in the same folder, then rename."""
+    p = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(data, fh, indent=1, allow_nan=False)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def decode_task(
+    ctx: TaskContext,
+    plan_path: str,
+    frames_path: str,
+    out_path: str,
+    *,
+    noise_dn: float | None = None,
+    meta: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Decode captured frames (`.npy` stack or image folder) to a maps NPZ at `out_path`."""
+    from calibration.decode import DecodeError, StreamingDecoder, read_frames
+    from calibration.maps import save_maps
+    from calibration.plan import read_plan
+
+    t0 = time.perf_counter()
+    plan = read_plan(plan_path)
+    source = read_frames(frames_path)
+    total = len(plan.frames)
+    if source.count != total:
+        raise DecodeError(f"{frames_path}: {source.count} frames but the plan has {total}")
+    decoder = StreamingDecoder(plan, source.shape, noise=noise_dn)
+    for index, image in enumerate(source):
+        ctx.check_cancelled()
+        decoder.add(index, image)
+        ctx.progress(index + 1, total, "decode")
+    ctx.progress(total, total, "unwrap")
+    maps = decoder.finish(dict(meta or {}))
+    save_maps(maps, out_path)
+    h, w = maps.shape
+    return {
+        "valid_pixels": maps.valid_count(),
+        "width": w,
+        "height": h,
+        "wall_s": round(time.perf_counter() - t0, 3),
+    }
+
+
+def calibrate_task(
+    ctx: TaskContext,
+    plan_path: str,
+    maps_paths: list[str],
+    model: str,
+    out_dir: str,
+    *,
+    options: dict[str, Any] | None = None,
+    heldout_paths: list[str] | None = None,
+) -> dict[str, Any]:
+    """Fit `model` to the maps of several poses; write model.json, result.json and exports."""
+    from calibration.fit.dispatch import calibrate
+    from calibration.maps import load_maps
+    from calibration.models.base import _jsonable, save_model
+    from calibration.plan import read_plan
+
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    plan = read_plan(plan_path)
+    ctx.progress(0, len(maps_paths), "load")
+    maps_list = []
+    for i, p in enumerate(maps_paths):
+        ctx.check_cancelled()
+        maps_list.append(load_maps(p))
+        ctx.progress(i + 1, len(maps_paths), "load")
+    heldout = [load_maps(p) for p in heldout_paths] if heldout_paths else None
+    result = calibrate(
+        maps_list,
+        plan.screen,
+        model,
+        options=options or {},
+        heldout=heldout,
+        progress=ctx.progress,
+        cancelled=ctx.cancelled,
+    )
+    ctx.check_cancelled()
+    ctx.progress(0, 1, "write")
+    save_model(result.model, out / "model.json")
+    poses = [
+        {
+            "rotation": p.rotation.tolist(),
+            "translation_mm": p.translation.tolist(),
+            "rms_px": p.rms_px,
+            "rms_screen_px": p.rms_screen_px,
+            "n_points": p.n_points,
+        }
+        for p in result.poses
+    ]
+    stats = _jsonable(dict(result.stats))
+    stats.setdefault("wall_s", round(time.perf_counter() - t0, 3))
+    write_json_atomic(out / "result.json", {"model": model, "stats": stats, "poses": poses})
+    exports = _write_exports(result, out)
+    ctx.progress(1, 1, "write")
+    return {"stats": stats, "exports": exports}
+
+
+def _write_exports(result: Any, out: Path) -> list[str]:
+    """OpenCV YAML, ROS camera_info and the residual plot, where the model supports them."""
+    from calibration import export, report
+
+    written: list[str] = []
+    for name, fn in (
+        ("opencv.yaml", export.write_opencv_yaml),
+        ("camera_info.yaml", export.write_ros_camera_info),
+    ):
+        try:
+            fn(result.model, out / name)
+        except export.ExportNotSupported:
+            continue
+        written.append(name)
+    report.write_residual_plot(result, out / "residuals.png")
+    written.append("residuals.png")
+    return written
+
+
+__all__ = ["JobCancelled", "calibrate_task", "decode_task", "write_json_atomic"]

@@ -1,0 +1,196 @@
+"""Unit tests of the service's building blocks: executor, store, jobs, middleware, errors."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.config import ServiceConfig, is_loopback
+from api.db import Database
+from api.jobs import JobManager
+from api.problems import Problem
+from api.store import DataStore, check_id, new_id
+from calibration.worker.executor import InProcessExecutor, JobCancelled, TaskContext, make_executor
+
+PLAN = {
+    "format": "phasecal.plan/1",
+    "screen": {"width_px": 64, "height_px": 48, "pitch_mm": [0.5, 0.5]},
+    "frames": [
+        {"kind": "flat", "level": 1.0},
+        {"kind": "flat", "level": 0.0},
+        *[{"kind": "cosine", "axis": a, "period_px": 80.0, "step": s, "steps": 4}
+          for a in "xy" for s in range(4)],
+    ],
+}
+
+
+def _count_task(ctx: TaskContext, n: int, delay: float) -> dict:
+    for i in range(n):
+        ctx.check_cancelled()
+        time.sleep(delay)
+        ctx.progress(i + 1, n, "count")
+    return {"n": n}
+
+
+def test_executor_runs_tasks_with_progress_and_cancel() -> None:
+    ex = InProcessExecutor(max_workers=2)
+    seen: list[tuple[int, int, str]] = []
+    fut = ex.run_task(_count_task, 3, 0.0, job_id="job_a", on_progress=lambda *a: seen.append(a))
+    assert fut.result(timeout=10) == {"n": 3}
+    assert seen[-1] == (3, 3, "count")
+    slow = ex.run_task(_count_task, 1000, 0.01, job_id="job_b")
+    time.sleep(0.05)
+    assert ex.cancel("job_b") is True
+    with pytest.raises(JobCancelled):
+        slow.result(timeout=10)
+    assert ex.cancel("job_b") is False  # forgotten once done
+    assert ex.submit(sum, [1, 2, 3]).result() == 6
+    ex.shutdown()
+
+
+def test_make_executor_rejects_bad_address(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("PHASECAL_DASK", raising=False)
+    assert isinstance(make_executor(None), InProcessExecutor)
+    with pytest.raises(ValueError, match="tcp://host:port"):
+        make_executor("http://example")
+
+
+def test_store_ids_and_paths(tmp_path: Path) -> None:
+    store = DataStore(tmp_path)
+    sid = new_id("ses")
+    assert check_id(sid, "ses", "session") == sid
+    for bad in ("../etc", "ses_../../x", "ses_0123", sid.upper(), "pose_" + sid[4:]):
+        with pytest.raises(Problem) as err:
+            check_id(bad, "ses", "session")
+        assert err.value.status == 404
+    folder = store.dir_for(sid)
+    assert folder.parent == tmp_path.resolve() / "sessions"
+    for name in ("../x", ".hidden", "a/b", ""):
+        with pytest.raises(Problem):
+            store.file(sid, name)
+    target = store.file(sid, "plan.json")
+    store.write_bytes(target, b"{}")
+    assert target.read_bytes() == b"{}"
+    assert not list(folder.glob("*.tmp"))
+
+
+def test_job_manager_states_progress_cancel_recover(tmp_path: Path) -> None:
+    db = Database(tmp_path / "db.sqlite")
+    jm = JobManager(db, InProcessExecutor(max_workers=2))
+    outcomes: dict[str, str] = {}
+
+    def body(ctx: TaskContext) -> dict:
+        return jm.executor.run_task(_count_task, 5, 0.01, job_id=ctx.job_id,
+                                    on_progress=ctx.progress).result()
+
+    with db.session() as s:
+        job = jm.create(s, "decode", None, None)
+    jm.start(job.id, body, lambda s, r: outcomes.__setitem__("ok", r["n"]),
+             lambda s, st, e: outcomes.__setitem__("fail", st))
+    _wait(lambda: jm.get(job.id)["status"] == "succeeded")
+    got = jm.get(job.id)
+    assert (got["done"], got["total"], outcomes) == (5, 5, {"ok": 5})
+
+    with db.session() as s:
+        slow = jm.create(s, "decode", None, None)
+    started = threading.Event()
+
+    def slow_body(ctx: TaskContext) -> dict:
+        started.set()
+        return jm.executor.run_task(_count_task, 10_000, 0.005, job_id=ctx.job_id).result()
+
+    jm.start(slow.id, slow_body, lambda s, r: None,
+             lambda s, st, e: outcomes.__setitem__("fail", st))
+    started.wait(5)
+    assert jm.cancel(slow.id)
+    _wait(lambda: jm.get(slow.id)["status"] == "cancelled")
+    assert outcomes["fail"] == "cancelled"
+
+    with db.session() as s:
+        stale = jm.create(s, "capture", None, None)
+    restarted = JobManager(db, jm.executor)
+    assert restarted.recover("server restarted") == [stale.id]
+    rec = restarted.get(stale.id)
+    assert (rec["status"], rec["error"]) == ("interrupted", "server restarted")
+    jm.executor.shutdown()
+
+
+def _wait(cond, timeout: float = 20.0) -> None:
+    t0 = time.monotonic()
+    while not cond():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError("condition not reached in time")
+        time.sleep(0.01)
+
+
+def test_security_config() -> None:
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0")
+    with pytest.raises(ValueError, match="requires an API token"):
+        ServiceConfig(host="0.0.0.0").check_security()
+    ServiceConfig(host="0.0.0.0", token="s3cret").check_security()
+
+
+@pytest.fixture
+def client(tmp_path: Path):
+    cfg = ServiceConfig(data_dir=tmp_path / "data", token="tok", max_upload_bytes=4096)
+    with TestClient(create_app(cfg)) as c:
+        c.headers["Authorization"] = "Bearer tok"
+        yield c
+
+
+def test_token_required(client: TestClient) -> None:
+    assert client.get("/health").status_code == 200
+    r = client.get("/sessions", headers={"Authorization": "Bearer wrong"})
+    assert r.status_code == 401
+    assert r.headers["content-type"] == "application/problem+json"
+    assert "token" in r.json()["detail"]
+
+
+def test_problem_json_for_bad_input(client: TestClient) -> None:
+    cases = [
+        client.get("/sessions/ses_0123456789abcdef"),
+        client.get("/sessions/..%2F..%2Fetc"),
+        client.get("/jobs/job_nothere"),
+        client.get("/no/such/route"),
+        client.post("/sessions", content=b"not json", headers={"content-type": "text/plain"}),
+        client.post("/sessions", json={"plan": {"format": "nope"}}),
+        client.post("/sessions", json={"bogus": 1}),
+        client.post("/sessions", content=b"x" * 5000, headers={"content-type": "application/json"}),
+    ]
+    for r in cases:
+        assert 400 <= r.status_code < 500, (r.request.url, r.status_code, r.text)
+        body = r.json()
+        assert r.headers["content-type"] == "application/problem+json"
+        assert body["status"] == r.status_code and body["detail"]
+    assert cases[5].json()["detail"].startswith("plan: format")
+    assert cases[7].status_code == 413
+
+
+def test_idempotent_post_replays(client: TestClient) -> None:
+    body = {"name": "idem", "plan": PLAN}
+    h = {"Idempotency-Key": "k-1"}
+    a = client.post("/sessions", json=body, headers=h)
+    b = client.post("/sessions", json=body, headers=h)
+    assert a.status_code == b.status_code == 201
+    assert a.json()["id"] == b.json()["id"]
+    assert b.headers.get("idempotent-replayed") == "true"
+    assert len(client.get("/sessions").json()) == 1
+    c = client.post("/sessions", json={"name": "other", "plan": PLAN}, headers=h)
+    assert c.status_code == 422 and "different request" in c.json()["detail"]
+    d = client.post("/sessions", json={"name": "other", "plan": PLAN})
+    assert d.json()["id"] != a.json()["id"]
+
+
+def test_serve_refuses_public_bind_without_token(capsys: pytest.CaptureFixture[str],
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    from api.cli import main
+
+    monkeypatch.delenv("PHASECAL_TOKEN", raising=False)
+    assert main(["serve", "--host", "0.0.0.0", "--port", "1"]) == 1
+    assert "requires an API token" in capsys.readouterr().err

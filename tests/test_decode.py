@@ -1,0 +1,246 @@
+"""Decoder unit tests on an analytic rendering (exact truth): streaming, statistics, bad input, CLI.
+
+The hw_mocks end-to-end checks (optics, sensor, display gamma) are in test_decode_hwmocks.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from acquisition.patterns import build_plan
+from api.cli import main as cli_main
+from calibration.decode import (
+    DecodeError,
+    DecodeOptions,
+    NoiseModel,
+    StreamingDecoder,
+    decode_stack,
+)
+from calibration.maps import load_maps
+from calibration.plan import FlatFrame, Plan, write_plan
+
+H, W = 192, 256
+
+
+@pytest.fixture(scope="module")
+def plan() -> Plan:
+    return build_plan(1920, 1080, 0.2745)
+
+
+def render(
+    plan: Plan,
+    *,
+    read: float = 1.5,
+    gain_e_per_dn: float | None = None,
+    white: float = 200.0,
+    dark: float = 10.0,
+    blur: float = 0.0,
+    seed: int = 0,
+    x0: float = 100.0,
+    dtype=np.uint8,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames of a smooth pixel -> screen mapping with Gaussian blur and sensor noise."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    x = x0 + 6.3 * u + 0.002 * (u - 128) ** 2 + 0.3 * v
+    y = 80 + 5.1 * v + 0.001 * (v - 96) ** 2 - 0.2 * u
+    sw, sh = plan.screen.width_px, plan.screen.height_px
+    on = (x > -0.5) & (x < sw - 0.5) & (y > -0.5) & (y < sh - 0.5)
+    frames = []
+    for f in plan.frames:
+        if isinstance(f, FlatFrame):
+            lin = np.full(x.shape, f.level)
+        else:
+            c = x if f.axis == "x" else y
+            att = np.exp(-2 * np.pi**2 * blur**2 / f.period_px**2)
+            lin = f.offset + f.amplitude * att * np.cos(2 * np.pi * c / f.period_px + f.phase_shift)
+        val = dark + (white - dark) * np.where(on, lin, 0.0)
+        var = read**2 + (0.0 if gain_e_per_dn is None else val / gain_e_per_dn)
+        val = val + rng.normal(0.0, 1.0, val.shape) * np.sqrt(var)
+        if dtype == np.float32:
+            frames.append(val.astype(np.float32))
+        else:
+            frames.append(np.clip(np.rint(val), 0, np.iinfo(dtype).max).astype(dtype))
+    return np.stack(frames), x, y
+
+
+def zscores(maps, x: np.ndarray, y: np.ndarray) -> list[np.ndarray]:
+    m = maps.mask
+    return [((maps.x - x) / maps.sigma_x)[m], ((maps.y - y) / maps.sigma_y)[m]]
+
+
+def check_honest(maps, x, y) -> None:
+    for z in zscores(maps, x, y):
+        assert 0.8 <= z.std() <= 1.25, z.std()
+        assert abs(z.mean()) <= 0.1, z.mean()
+        assert np.sqrt(np.mean(z**2)) <= 1.2
+
+
+@pytest.mark.parametrize(
+    ("read", "white", "blur", "noise_given"),
+    [
+        (1.5, 200.0, 0.0, False),
+        (3.0, 200.0, 3.0, True),
+        (1.0, 60.0, 6.0, False),
+        (4.0, 120.0, 1.0, True),
+    ],
+)
+def test_errors_match_predicted_sigma(plan, read, white, blur, noise_given):
+    stack, x, y = render(plan, read=read, white=white, blur=blur, seed=int(read * 10))
+    noise = (read**2 + 1 / 12) ** 0.5 if noise_given else None
+    maps = decode_stack(plan, stack, noise=noise)
+    assert maps.mask.mean() > 0.97
+    check_honest(maps, x, y)
+
+
+def test_shot_noise_residual_mode_fits_photon_transfer(plan):
+    stack, x, y = render(plan, read=1.0, gain_e_per_dn=0.5, white=220.0, seed=3)
+    maps = decode_stack(plan, stack)
+    check_honest(maps, x, y)
+    model = NoiseModel(read_dn=1.0, gain_e_per_dn=0.5)
+    check_honest(decode_stack(plan, stack, noise=model), x, y)
+
+
+def test_streaming_any_order_matches_stack(plan):
+    stack, *_ = render(plan, seed=5)
+    ref = decode_stack(plan, stack, noise=1.5)
+    dec = StreamingDecoder(plan, (H, W), noise=1.5)
+    for i in np.random.default_rng(1).permutation(len(plan.frames)):
+        dec.add(int(i), stack[i])
+    got = dec.finish({"pose": 3})
+    assert got.meta["pose"] == 3 and got.meta["plan_digest"] == plan.digest()
+    np.testing.assert_array_equal(got.mask, ref.mask)
+    np.testing.assert_allclose(got.x[got.mask], ref.x[ref.mask], atol=1e-4)
+    np.testing.assert_allclose(got.sigma_y[got.mask], ref.sigma_y[ref.mask], rtol=1e-4)
+
+
+def test_saturated_samples_are_excluded_not_biasing(plan):
+    # white 320 DN on an 8-bit camera: the top of every cosine clips at 255.
+    stack, x, y = render(plan, white=320.0, read=1.5, seed=7)
+    assert (stack == 255).mean() > 0.1
+    maps = decode_stack(plan, stack, noise=(1.5**2 + 1 / 12) ** 0.5)
+    assert maps.mask.mean() > 0.97
+    check_honest(maps, x, y)
+    # Without exclusion (saturation level above the data) the clipped tops bias the phase.
+    biased = decode_stack(plan, stack.astype(np.float32), noise=1.5)
+    zb = np.concatenate(zscores(biased, x, y))
+    assert np.sqrt(np.mean(zb**2)) > 2.0
+
+
+def test_blur_estimate(plan):
+    for blur in (2.0, 4.0, 8.0):
+        stack, *_ = render(plan, blur=blur, read=1.0, seed=11)
+        maps = decode_stack(plan, stack)
+        for b in (maps.blur_x, maps.blur_y):
+            assert abs(np.nanmedian(b[maps.mask]) / blur - 1.0) < 0.1
+            assert np.nanpercentile(np.abs(b[maps.mask] / blur - 1.0), 90) < 0.25
+
+
+def test_pixels_seeing_no_screen_are_invalid(plan):
+    stack, x, y = render(plan, x0=-600.0, seed=13)  # the left part of the image sees no screen
+    maps = decode_stack(plan, stack)
+    off = (x < -3) | (x > plan.screen.width_px + 2)
+    assert off.mean() > 0.2
+    assert not maps.mask[off].any()
+    assert maps.mask[~off & (x > 3)].mean() > 0.97
+    assert maps.meta["pixel_counts"]["no_screen"] >= off.sum() * 0.9
+    check_honest(maps, x, y)
+
+
+def test_low_contrast_pixels_flagged_not_guessed(plan):
+    # Vignetting ramp: contrast falls from 90 DN (left) to 2 DN (right).
+    white = np.broadcast_to(np.linspace(100.0, 12.0, W)[None, :], (H, W))
+    stack, x, y = render(plan, white=white, dark=10.0, read=2.0, seed=17)
+    maps = decode_stack(plan, stack)
+    check_honest(maps, x, y)
+    assert maps.mask[:, : W // 4].mean() > 0.97
+    assert not maps.mask[:, -W // 16 :].any()
+    counts = maps.meta["pixel_counts"]
+    assert counts["no_screen"] + counts["low_modulation"] + counts["uncertain"] > H * W // 8
+
+
+def test_uint16_and_float32_frames(plan):
+    for dtype, white in ((np.uint16, 3000.0), (np.float32, 0.8)):
+        read = 4.0 if dtype == np.uint16 else 0.004
+        stack, x, y = render(plan, white=white, dark=white / 20, read=read, dtype=dtype, seed=19)
+        check_honest(decode_stack(plan, stack), x, y)
+
+
+# -- bad input ------------------------------------------------------------------------
+
+
+def test_bad_frames_give_clear_errors(plan):
+    stack, *_ = render(plan, seed=23)
+    dec = StreamingDecoder(plan, (H, W))
+    with pytest.raises(DecodeError, match="shape"):
+        dec.add(0, stack[0][:, :-1])
+    with pytest.raises(DecodeError, match="dtype int32"):
+        dec.add(0, stack[0].astype(np.int32))
+    with pytest.raises(DecodeError, match="single-channel"):
+        dec.add(0, np.dstack([stack[0]] * 3))
+    with pytest.raises(DecodeError, match="out of range"):
+        dec.add(len(plan.frames), stack[0])
+    dec.add(0, stack[0])
+    with pytest.raises(DecodeError, match="already added"):
+        dec.add(0, stack[0])
+    with pytest.raises(DecodeError, match="differs from the earlier"):
+        dec.add(1, stack[1].astype(np.uint16))
+    with pytest.raises(DecodeError, match=r"missing, first \[1, 2"):
+        dec.finish()
+    with pytest.raises(DecodeError, match="the plan has"):
+        decode_stack(plan, stack[:-1])
+
+
+def test_all_dark_stack_is_an_error(plan):
+    rng = np.random.default_rng(0)
+    stack = rng.integers(8, 13, size=(len(plan.frames), H, W)).astype(np.uint8)
+    with pytest.raises(DecodeError, match="no pixel sees the screen"):
+        decode_stack(plan, stack)
+
+
+def test_options_are_validated():
+    with pytest.raises(ValueError, match="max_sigma_px"):
+        DecodeOptions(max_sigma_px=0)
+    with pytest.raises(ValueError, match="max_ambiguity"):
+        DecodeOptions(max_ambiguity=2.0)
+
+
+# -- command line -----------------------------------------------------------------------
+
+
+def test_cli_decode_npy_and_png_folder(plan, tmp_path, capsys):
+    import cv2
+
+    stack, x, y = render(plan, seed=29)
+    write_plan(plan, tmp_path / "plan.json")
+    np.save(tmp_path / "frames.npy", stack)
+    out = tmp_path / "maps.npz"
+    rc = cli_main(["decode", "--plan", str(tmp_path / "plan.json"), "--frames",
+                   str(tmp_path / "frames.npy"), "--noise-dn", "1.53", "-o", str(out)])
+    assert rc == 0
+    maps = load_maps(out)
+    check_honest(maps, x, y)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(stack):
+        cv2.imwrite(str(folder / f"frame_{i:04d}.png"), f.astype(np.uint16) * 16)
+    out2 = tmp_path / "maps2.npz"
+    assert cli_main(["decode", "--plan", str(tmp_path / "plan.json"), "--frames", str(folder),
+                     "-o", str(out2)]) == 0
+    check_honest(load_maps(out2), x, y)
+    capsys.readouterr()
+    (folder / "frame_0005.png").unlink()
+    rc = cli_main(["decode", "--plan", str(tmp_path / "plan.json"), "--frames", str(folder),
+                   "-o", str(out2)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and "missing" in err and "\n" not in err
+    np.save(tmp_path / "short.npy", stack[:5])
+    rc = cli_main(["decode", "--plan", str(tmp_path / "plan.json"), "--frames",
+                   str(tmp_path / "short.npy"), "-o", str(out2)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and "5 frames" in err and "\n" not in err
+    np.save(tmp_path / "bad.npy", stack.astype(np.int16))
+    rc = cli_main(["decode", "--plan", str(tmp_path / "plan.json"), "--frames",
+                   str(tmp_path / "bad.npy"), "-o", str(out2)])
+    assert rc == 1 and "int16" in capsys.readouterr().err

@@ -1,0 +1,167 @@
+"""Aravis camera against the real Aravis stack: a GigE Vision fake camera on loopback."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from acquisition.clock import RealClock
+from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError
+from acquisition.protocols import CameraSettings
+from tests.hw_aravis_support import fake_camera_lock, require_aravis
+
+SERIAL = "PHASECAL-T1"
+W, H = 64, 48
+
+
+class Scene:
+    """What the fake camera shows: a frame counter stamped into a chosen image."""
+
+    def __init__(self) -> None:
+        self.image: np.ndarray = np.zeros((H, W), np.uint16)
+        self.count = 0
+        self.requests: list = []
+
+    def __call__(self, req) -> np.ndarray:
+        self.requests.append(req)
+        self.count += 1
+        img = self.image.copy()
+        img[0, 0] = self.count
+        return img
+
+
+@pytest.fixture(scope="module")
+def fake():
+    require_aravis()
+    from acquisition.camera.aravis_fake import FakeGigECamera
+
+    with fake_camera_lock():
+        holder = {"scene": Scene()}
+        holder["fake"] = FakeGigECamera(SERIAL, holder["scene"])
+        yield holder
+        holder["fake"].stop()
+
+
+@pytest.fixture
+def cam(fake):
+    from acquisition.camera.aravis_camera import AravisCamera
+
+    fake["scene"].__init__()
+    c = AravisCamera("127.0.0.1", clock=RealClock(), bayer="raw")
+    c._cam.set_region(0, 0, W, H)
+    yield c
+    c.close()
+
+
+def _software(pixel_format: str = "Mono16", **kw) -> CameraSettings:
+    return CameraSettings(exposure_s=0.004, gain_db=0.0, pixel_format=pixel_format,
+                          trigger_mode="software", **kw)
+
+
+def test_info_by_address(cam) -> None:
+    info = cam.info
+    assert info.serial == SERIAL
+    assert {"Mono8", "Mono16", "BayerRG8"} <= set(info.pixel_formats)
+    assert {"software", "hardware", "free-running"} == set(info.trigger_modes)
+
+
+def test_exposure_and_gain_read_back_and_reach_the_sensor(cam, fake) -> None:
+    applied = cam.configure(CameraSettings(exposure_s=0.0123, gain_db=3.0, pixel_format="Mono8",
+                                           trigger_mode="software"))
+    assert applied.exposure_s == pytest.approx(0.0123, rel=1e-3)
+    assert applied.gain_db == pytest.approx(3.0)
+    assert applied.trigger_mode == "software"
+    cam.start()
+    cam.trigger()
+    cam.grab(2.0)
+    req = fake["scene"].requests[-1]
+    assert req.exposure_us == 12300 and req.gain == 3 and req.pixel_format == "Mono8"
+    with pytest.raises(DeviceSettingsError, match=r"exposure_s 100\.0 outside"):
+        cam.configure(CameraSettings(exposure_s=100.0))
+    with pytest.raises(DeviceSettingsError, match="pixel_format 'Mono12Packed' not offered"):
+        cam.configure(CameraSettings(pixel_format="Mono12Packed"))
+
+
+@pytest.mark.parametrize("fmt", ["Mono16", "Mono8"])
+def test_triggered_frames_are_exact_and_fresh(cam, fake, fmt: str) -> None:
+    rng = np.random.default_rng(2)
+    scene = fake["scene"]
+    scene.image = rng.integers(256, 65535, size=(H, W)).astype(np.uint16)
+    cam.configure(_software(fmt))
+    cam.start()
+    for _ in range(3):
+        cam.trigger()
+        frame = cam.grab(2.0)
+        want = scene.image.copy()
+        want[0, 0] = scene.count
+        if fmt == "Mono8":
+            want = (want >> 8).astype(np.uint8)
+        assert frame.image.dtype == want.dtype
+        np.testing.assert_array_equal(frame.image, want)
+
+
+def test_no_stale_frame_after_a_trigger(cam, fake) -> None:
+    scene = fake["scene"]
+    cam.configure(_software("Mono16"))
+    cam.start()
+    cam.trigger()
+    clock = RealClock()
+    clock.sleep_until(clock.now() + 0.3)  # frame 1 arrives and waits in the stream
+    cam.trigger()
+    frame = cam.grab(2.0)
+    assert int(frame.image[0, 0]) == scene.count == 2  # frame 1 was dropped as stale
+    assert cam.stale_frames == 1
+
+
+def test_grab_without_trigger_times_out(cam) -> None:
+    cam.configure(_software())
+    cam.start()
+    clock = RealClock()
+    t0 = clock.now()
+    with pytest.raises(CameraTimeout, match=r"no frame within 0\.300 s"):
+        cam.grab(0.3)
+    assert clock.now() - t0 < 1.5
+
+
+def test_free_running_and_bayer(cam, fake) -> None:
+    scene = fake["scene"]
+    scene.image = np.full((H, W), 120 << 8, np.uint16)
+    cam.configure(CameraSettings(exposure_s=0.002, pixel_format="BayerRG8",
+                                 trigger_mode="free-running", frame_rate_hz=50.0))
+    cam.start()
+    frames = [cam.grab(2.0) for _ in range(3)]
+    assert all(f.image.dtype == np.uint8 for f in frames)
+    assert np.all(frames[-1].image[1:, 1:] == 120)
+    assert frames[1].timestamp_s > frames[0].timestamp_s
+    assert cam.flush() >= 0
+    assert cam.grab(2.0).timestamp_s >= frames[-1].timestamp_s
+
+
+def test_unplug_is_detected_and_reconnect_recovers(cam, fake) -> None:
+    from acquisition.camera.aravis_fake import FakeGigECamera
+
+    cam.configure(_software())
+    cam.start()
+    cam.trigger()
+    cam.grab(2.0)
+    fake["fake"].stop()  # the camera vanishes from the network
+    with pytest.raises(CameraDisconnected):
+        cam.trigger()
+        cam.grab(1.0)
+    fake["fake"] = FakeGigECamera(SERIAL, fake["scene"])  # plugged back in
+    cam.reconnect()
+    cam._cam.set_region(0, 0, W, H)
+    cam.stop()
+    cam.start()
+    cam.trigger()
+    assert cam.grab(2.0).image.shape == (H, W)
+
+
+def test_opening_an_absent_camera_is_a_clear_error() -> None:
+    require_aravis()
+    from acquisition.camera.aravis_camera import AravisCamera
+
+    with pytest.raises(CameraDisconnected, match="cannot open"):
+        AravisCamera("127.0.0.1:1")  # no GigE Vision camera answers on this address form
+    with pytest.raises(DeviceSettingsError, match="discovery is never implicit"):
+        AravisCamera("")
