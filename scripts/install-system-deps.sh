@@ -1,11 +1,16 @@
 #!/usr/bin/env bash
-# Installs the Debian packages phasecal's backends and tests need (Aravis, Xvfb, build
-# headers for PyGObject). Runs apt-get only when something is missing and we are root on
-# a Debian-like system; elsewhere it prints what to install and carries on.
+# Installs the Debian packages phasecal's backends and tests need. Runs apt-get only when
+# something is missing and we are root on a Debian-like system; elsewhere it prints what
+# to install and carries on.
+#   Aravis (GenICam cameras, GigE Vision fake for tests): gir1.2-aravis-0.8, libaravis-0.8-0
+#   building PyGObject<3.51 (pip): libgirepository1.0-dev libcairo2-dev pkg-config gcc
+#     python3-dev (pycairo/PyGObject compile C extensions)
+#   SDL display tests under X: xvfb (read-back through Xvfb -fbdir)
+#   pyusb: libusb-1.0-0
 set -euo pipefail
 packages=(
   gir1.2-aravis-0.8 libaravis-0.8-0 libgirepository1.0-dev libcairo2-dev pkg-config
-  xvfb x11-utils
+  gcc python3-dev xvfb libusb-1.0-0
 )
 missing=()
 if command -v dpkg-query >/dev/null 2>&1; then

@@ -1,23 +1,20 @@
-"""Test support for the Aravis GigE Vision fake: one per machine at a time (file lock).
+"""Test support for Aravis: skip locally / fail in CI when missing; the fake's lock.
 
-Only one fake can serve 127.0.0.1 (GVCP port 3956), and the suite runs with
-pytest-xdist, so every test process takes an exclusive lock before starting one.
-Under CI a missing Aravis fails the tests instead of skipping them.
+Only one GigE Vision fake can serve 127.0.0.1 and the suite runs with pytest-xdist, so
+tests hold `fake_camera_lock()` (a machine-wide file lock) while a fake runs.
 """
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import os
-import tempfile
-from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
+from acquisition.camera.aravis_fake import fake_camera_lock
+
+__all__ = ["IN_CI", "fake_camera_lock", "require_aravis"]
+
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
-LOCK_PATH = Path(tempfile.gettempdir()) / "phasecal-aravis-fake.lock"
 
 
 def require_aravis() -> None:
@@ -32,14 +29,3 @@ def require_aravis() -> None:
         if IN_CI:
             pytest.fail(f"Aravis is required in CI: {exc}")
         pytest.skip(str(exc))
-
-
-@contextlib.contextmanager
-def fake_camera_lock() -> Iterator[None]:
-    """Exclusive, machine-wide right to run a GigE Vision fake on 127.0.0.1."""
-    with open(LOCK_PATH, "a+") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)

@@ -16,6 +16,7 @@ import pytest
 
 distributed = pytest.importorskip("distributed")
 
+from calibration.worker.dask_context import cancel_event_name  # noqa: E402
 from calibration.worker.dask_executor import DaskExecutor, WorkerLost  # noqa: E402
 from calibration.worker.executor import (  # noqa: E402
     InProcessExecutor,
@@ -220,8 +221,13 @@ def test_task_cancelled_before_it_started_stops_if_it_runs_anyway(dex, tmp_path)
     dex.cancel("job-early")
     with pytest.raises(JobCancelled):
         fut.result(20.0)
-    while dex.client.processing() != {w: [] for w in dex.client.processing()}:
-        time.sleep(0.05)
+    # the flag stays set: Client.cancel cannot stop a task a worker has already begun
+    flag = distributed.Event(cancel_event_name("job-early"), client=dex.client)
+    assert flag.is_set()
+    # one task pinned to each single-threaded worker runs only after a leftover task ended
+    workers = list(dex.client.scheduler_info()["workers"])
+    probes = [dex.client.submit(plain_add, 1, 1, workers=[w], pure=False) for w in workers]
+    assert dex.client.gather(probes) == [2] * len(workers)
     if started.exists():
         assert _wait_file(Path(str(started) + ".end")) == "cancelled"
 

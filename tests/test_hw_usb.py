@@ -54,6 +54,8 @@ class FakeBackend(usb.backend.IBackend):
                                extra_descriptors=[])
 
     def get_interface_descriptor(self, dev, intf, alt, config):
+        if alt != 0:
+            raise IndexError("one alternate setting per interface")  # ends pyusb's scan
         return dev.interfaces[intf]
 
     def open_device(self, dev):
@@ -116,7 +118,7 @@ def test_trigger_box_selection_errors() -> None:
     a = _device(0x16C0, 0x05DC, ("lab", "flipbox", "S1"), [(0xFF, 0)])
     b = _device(0x16C0, 0x05DC, ("lab", "flipbox", "S2"), [(0xFF, 0)], ports=(5,))
     backend = FakeBackend([a, b])
-    with pytest.raises(TriggerBoxError, match="2 boxes found; set trigger_box.serial"):
+    with pytest.raises(TriggerBoxError, match=r"2 boxes found; set trigger_box\.serial"):
         UsbTriggerBox(0x16C0, 0x05DC, backend=backend)
     box = UsbTriggerBox(0x16C0, 0x05DC, serial="S2", backend=backend)
     box.fire()

@@ -11,16 +11,23 @@ drivers). Only 127.0.0.1 is used and device discovery is never called.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import fcntl
+import tempfile
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from acquisition.camera.aravis_gi import GLib, aravis, libaravis
 from acquisition.camera.pixel_formats import pixel_format
 from acquisition.errors import CameraError
+
+# Only one fake can serve 127.0.0.1 (GVCP port 3956): processes take this lock first.
+LOCK_PATH = Path(tempfile.gettempdir()) / "phasecal-aravis-fake.lock"
 
 FILL_PATTERN = ctypes.CFUNCTYPE(
     None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32
@@ -59,6 +66,17 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         getattr(lib, fn).argtypes = [ctypes.c_void_p]
         getattr(lib, fn).restype = ctypes.c_int
     return lib
+
+
+@contextlib.contextmanager
+def fake_camera_lock() -> Iterator[None]:
+    """Exclusive, machine-wide right to run a GigE Vision fake on 127.0.0.1 (blocks)."""
+    with open(LOCK_PATH, "a+") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 class FakeGigECamera:

@@ -30,7 +30,7 @@ def to_host(arr: Any) -> np.ndarray:
 
 
 def special(xp: ModuleType) -> ModuleType:
-    """`scipy.special` or `cupyx.scipy.special`, matching the array namespace."""
-    if xp is np:
-        return importlib.import_module("scipy.special")
-    return importlib.import_module("cupyx.scipy.special")
+    """`cupyx.scipy.special` for CuPy, else `scipy.special` (NumPy-compatible namespaces)."""
+    if getattr(xp, "__name__", "") == "cupy":
+        return importlib.import_module("cupyx.scipy.special")
+    return importlib.import_module("scipy.special")

@@ -33,7 +33,7 @@ from calibration.decode.noise import (
 from calibration.decode.options import DecodeOptions
 from calibration.decode.phase import SetFit, fit_set
 from calibration.decode.unwrap import fuse_axis
-from calibration.decode.validity import REASONS, AxisChecks, classify
+from calibration.decode.validity import REASONS, AxisChecks, classify, mark_screen_edges
 from calibration.maps import MAPS_FORMAT, DecodedMaps
 from calibration.plan import Plan
 
@@ -133,6 +133,7 @@ class StreamingDecoder:
             self._estimate_noise(npix)
         chunks = [slice(s, min(s + step, npix)) for s in range(0, npix, step)]
         self._map(lambda sl: self._finish_chunk(sl, axes, out, reason), chunks)
+        mark_screen_edges(reason.reshape(h, w))
         counts = {name: int((reason == code).sum()) for code, name in enumerate(REASONS)}
         if counts["valid"] == 0:
             raise DecodeError(self._no_valid_message(counts, npix))
@@ -268,6 +269,8 @@ class StreamingDecoder:
                 mods.append(mod)
                 mod_sig.append(s_b)
             post = fuse_axis(xp, pos, sig, periods, use, self.plan.screen.extent_px(axis))
+            amps = [acc.sets[k].layout.amplitude for k in idx]
+            blur, _ = fit_blur(xp, mods, mod_sig, amps, periods, MIN_PERIOD_SNR)
             limits = xp.asarray(
                 [math.inf]
                 + [float(chi2_dist.isf(opt.consistency_p, d)) for d in range(1, len(idx))]
@@ -281,11 +284,10 @@ class StreamingDecoder:
                     chi2_limit=limits[post.dof.astype(xp.int64)],
                     position=post.position,
                     sigma=post.sigma,
+                    blur=blur,
                     extent_px=self.plan.screen.extent_px(axis),
                 )
             )
-            amps = [acc.sets[k].layout.amplitude for k in idx]
-            blur, _ = fit_blur(xp, mods, mod_sig, amps, periods, MIN_PERIOD_SNR)
             out[axis][sl] = to_host(post.position)
             out[f"sigma_{axis}"][sl] = to_host(post.sigma)
             out[f"modulation_{axis}"][sl] = to_host(mods[-1])
@@ -299,6 +301,7 @@ class StreamingDecoder:
                 min_modulation_snr=opt.min_modulation_snr,
                 max_ambiguity=opt.max_ambiguity,
                 screen_margin_sigma=opt.screen_margin_sigma,
+                edge_margin_blur=opt.edge_margin_blur,
                 max_sigma_px=opt.max_sigma_px,
             )
         )

@@ -18,7 +18,8 @@ class DecodeOptions:
       beyond this tail probability is invalid.
     - `screen_margin_sigma`: decoded positions further than this many sigma outside the
       screen are invalid (off-screen).
-    - `blur_min_snr`: periods whose modulation SNR is below this do not enter the blur fit.
+    - `edge_margin_blur`: decoded points closer to the screen edge than this many blur
+      widths are invalid (the blur kernel reaches past the edge and biases them).
     - `chunk_pixels`: pixels processed at once when finishing (bounds temporary memory).
     """
 
@@ -28,7 +29,7 @@ class DecodeOptions:
     max_ambiguity: float = 1e-6
     consistency_p: float = 1e-6
     screen_margin_sigma: float = 3.0
-    blur_min_snr: float = 3.0
+    edge_margin_blur: float = 3.0
     chunk_pixels: int = 1 << 18
 
     def __post_init__(self) -> None:

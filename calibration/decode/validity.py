@@ -20,6 +20,7 @@ REASONS = (
     "ambiguous",  # competing peaks of the comb product hold too much posterior mass
     "inconsistent",  # the periods disagree beyond the chi-square threshold
     "off_screen",  # decoded position outside the screen extent
+    "screen_edge",  # blur kernel or pixel footprint reaches past the screen edge
     "uncertain",  # final sigma above the threshold
 )
 
@@ -35,6 +36,7 @@ class AxisChecks:
     chi2_limit: Any
     position: Any
     sigma: Any
+    blur: Any  # effective blur width (screen px), NaN where not fitted
     extent_px: int
 
 
@@ -47,6 +49,7 @@ def classify(
     min_modulation_snr: float,
     max_ambiguity: float,
     screen_margin_sigma: float,
+    edge_margin_blur: float,
     max_sigma_px: float,
 ) -> Any:
     """Reason code per pixel (uint8, index into REASONS); 0 where every rule passes."""
@@ -60,7 +63,10 @@ def classify(
         per_rule[2].append(~(ax.ambiguity <= max_ambiguity))
         per_rule[3].append(~(ax.chi2 <= ax.chi2_limit))
         per_rule[4].append(~inside)
-        per_rule[5].append(~(ax.sigma <= max_sigma_px))
+        reach = edge_margin_blur * xp.where(xp.isfinite(ax.blur), ax.blur, 0.0)
+        clear = (ax.position + 0.5 >= reach) & (ax.extent_px - 0.5 - ax.position >= reach)
+        per_rule[5].append(~clear)
+        per_rule[6].append(~(ax.sigma <= max_sigma_px))
     for rule in per_rule:
         failed = rule[0]
         for other in rule[1:]:
@@ -70,3 +76,19 @@ def classify(
     for code in range(len(failures), 0, -1):
         reason = xp.where(failures[code - 1], np.uint8(code), reason)
     return reason
+
+
+def mark_screen_edges(reason: np.ndarray) -> None:
+    """Pixels next to one that sees no screen straddle the screen's edge: mark them (in place).
+
+    `reason` is the (H, W) host array of codes; the footprint of such a pixel covers both
+    the screen and its dark surround, so its decoded point is biased.
+    """
+    sees = reason != REASONS.index("no_screen")
+    padded = np.pad(sees, 1, mode="edge")
+    h, w = sees.shape
+    interior = sees.copy()
+    for dv in range(3):  # 3x3 erosion: 9 shifted views, not a loop over pixels
+        for du in range(3):
+            interior &= padded[dv : dv + h, du : du + w]
+    reason[(reason == 0) & ~interior] = REASONS.index("screen_edge")

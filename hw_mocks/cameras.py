@@ -1,0 +1,407 @@
+"""Ground-truth cameras for the simulated rig: exact rays and projections.
+
+Written independently of `calibration.models` (closed-form formulas, own inverses) so
+that a bug in a fitted model cannot hide by appearing on both sides of a test.
+Conventions (FORMATS.md): pixel centers at integers, top-left pixel center (0, 0);
+camera frame x right, y down, z forward; millimetres.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+_NEWTON_ITERS = 50
+# Newton stops once steps fall below this (normalized units); being quadratic, the
+# remaining error is then far below 1e-12 px.
+_STEP_TOL = 1e-11
+
+
+class TruthCamera(ABC):
+    """A ground-truth camera: per-pixel rays and the projection of 3-D points."""
+
+    width: int
+    height: int
+    is_central: bool
+
+    @abstractmethod
+    def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coords (any shape) -> (origins (...,3) mm, unit directions (...,3)); NaN: none."""
+
+    @abstractmethod
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Points (N,3) mm in the camera frame -> pixels (N,2); NaN rows where not imaged."""
+
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        """Whether pixel coordinates (...,2) lie on the sensor [-0.5, W-0.5] x [-0.5, H-0.5]."""
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+
+    def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H,W) u and v coordinates of all pixel centers."""
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        return u, v
+
+
+def _normalize(d: np.ndarray) -> np.ndarray:
+    """Unit vectors along the last axis."""
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _as_points(points: np.ndarray) -> np.ndarray:
+    """Validate and convert an (N,3) point array to float64."""
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points: expected shape (N, 3), got {p.shape}")
+    return p
+
+
+# -- pinhole with OpenCV distortion ---------------------------------------------------
+
+
+@dataclass
+class PinholeCamera(TruthCamera):
+    """Pinhole camera with OpenCV distortion (k1, k2, p1, p2, k3[, k4, k5, k6 rational])."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: Sequence[float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    is_central: bool = field(default=True, init=False)
+
+    def __post_init__(self) -> None:
+        d = np.zeros(8)
+        coeffs = np.asarray(self.dist, dtype=np.float64).ravel()
+        if coeffs.size not in (4, 5, 8):
+            raise ValueError(
+                f"PinholeCamera.dist: expected 4, 5 or 8 coefficients "
+                f"(k1,k2,p1,p2[,k3[,k4,k5,k6]]), got {coeffs.size}"
+            )
+        d[: coeffs.size] = coeffs
+        self._d = d
+        self._r2_max = self._monotonic_r2_limit()
+
+    @property
+    def camera_matrix(self) -> np.ndarray:
+        """The 3x3 intrinsic matrix K."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def _radial(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Radial factor and its derivative with respect to r^2."""
+        k1, k2, _, _, k3, k4, k5, k6 = self._d
+        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+        return num / den, (dnum * den - num * dden) / den**2
+
+    def _monotonic_r2_limit(self) -> float:
+        """Largest r^2 of normalized coords up to which radial distortion stays one-to-one."""
+        r = np.linspace(0.0, 4.0, 40001)
+        rad, _ = self._radial(r**2)
+        rd = r * rad
+        bad = np.nonzero((np.diff(rd) <= 0) | (rad[1:] <= 0))[0]
+        return float(r[bad[0]] ** 2) if bad.size else float(r[-1] ** 2)
+
+    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normalized undistorted -> distorted coordinates (OpenCV formula)."""
+        _, _, p1, p2, *_ = self._d
+        r2 = x * x + y * y
+        rad, _ = self._radial(r2)
+        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return xd, yd
+
+    def _distort_jacobian(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Partial derivatives (dxd/dx, dxd/dy, dyd/dx, dyd/dy) of `distort`."""
+        _, _, p1, p2, *_ = self._d
+        rad, drad = self._radial(x * x + y * y)
+        a = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        c = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        d = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+        return a, b, c, d
+
+    def undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Invert `distort` by vectorized Newton iteration (to ~1e-15 in normalized units)."""
+        x, y = xd.copy(), yd.copy()
+        for _ in range(_NEWTON_ITERS):
+            fx_, fy_ = self.distort(x, y)
+            ex, ey = fx_ - xd, fy_ - yd
+            a, b, c, d = self._distort_jacobian(x, y)
+            det = a * d - b * c
+            dx = (d * ex - b * ey) / det
+            dy = (a * ey - c * ex) / det
+            x, y = x - dx, y - dy
+            if np.nanmax(np.abs(dx) + np.abs(dy), initial=0.0) < _STEP_TOL:
+                break
+        fx_, fy_ = self.distort(x, y)
+        bad = (x * x + y * y > self._r2_max) | (np.hypot(fx_ - xd, fy_ - yd) > 1e-12)
+        return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
+
+    def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coords -> (zero origins, unit directions) through the optical center."""
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        x, y = self.undistort((u - self.cx) / self.fx, (v - self.cy) / self.fy)
+        d = _normalize(np.stack([x, y, np.ones_like(x)], axis=-1))
+        return np.zeros_like(d), d
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Points in front of the camera -> distorted pixel coordinates; NaN if not imaged."""
+        p = _as_points(points)
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x, y = p[:, 0] / z, p[:, 1] / z
+        xd, yd = self.distort(x, y)
+        uv = np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=1)
+        ok = (z > 0) & (x * x + y * y <= self._r2_max) & self.in_image(uv)
+        uv[~ok] = np.nan
+        return uv
+
+
+def mild_pinhole(width: int = 640, height: int = 480) -> PinholeCamera:
+    """A ~60 degree (horizontal) pinhole with mild OpenCV 5-coefficient distortion."""
+    f = float((width / 2) / np.tan(np.radians(30.0)))
+    return PinholeCamera(
+        width,
+        height,
+        fx=f,
+        fy=f * 1.0007,
+        cx=(width - 1) / 2 + 0.013 * width,
+        cy=(height - 1) / 2 - 0.009 * height,
+        dist=(-0.11, 0.045, 4e-4, -3e-4, -0.008),
+    )
+
+
+# -- equidistant fisheye ---------------------------------------------------------------
+
+
+@dataclass
+class EquidistantFisheye(TruthCamera):
+    """Equidistant fisheye (OpenCV fisheye model): r = f * theta * (1 + k1 t^2 + ... k4 t^8).
+
+    `fov_deg` is the full cone angle the lens accepts; rays beyond fov/2 are not imaged.
+    """
+
+    width: int
+    height: int
+    f: float
+    cx: float
+    cy: float
+    k: Sequence[float] = (0.0, 0.0, 0.0, 0.0)
+    fov_deg: float = 180.0
+    is_central: bool = field(default=True, init=False)
+
+    def __post_init__(self) -> None:
+        kk = np.asarray(self.k, dtype=np.float64).ravel()
+        if kk.size != 4:
+            raise ValueError(f"EquidistantFisheye.k: expected 4 coefficients, got {kk.size}")
+        if not 0 < self.fov_deg < 360:
+            raise ValueError(f"EquidistantFisheye.fov_deg: expected (0, 360), got {self.fov_deg}")
+        self._k = kk
+        self._theta_max = np.radians(self.fov_deg) / 2
+        t = np.linspace(0.0, self._theta_max, 20001)
+        dtd = self._theta_d(t)[1]
+        if np.any(dtd <= 0):
+            raise ValueError("EquidistantFisheye.k: theta_d(theta) must increase within the FOV")
+
+    def _theta_d(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distorted angle theta_d(theta) and its derivative."""
+        k1, k2, k3, k4 = self._k
+        t2 = t * t
+        poly = 1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+        dpoly = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        return t * poly, dpoly
+
+    def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coords -> (zero origins, unit directions); NaN outside the lens' FOV."""
+        du = (np.asarray(u, dtype=np.float64) - self.cx) / self.f
+        dv = (np.asarray(v, dtype=np.float64) - self.cy) / self.f
+        td = np.hypot(du, dv)
+        theta = td.copy()
+        for _ in range(_NEWTON_ITERS):
+            val, der = self._theta_d(theta)
+            step = (val - td) / der
+            theta = theta - step
+            if np.nanmax(np.abs(step), initial=0.0) < _STEP_TOL:
+                break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cphi = np.where(td > 0, du / td, 1.0)
+            sphi = np.where(td > 0, dv / td, 0.0)
+        st = np.sin(theta)
+        d = np.stack([st * cphi, st * sphi, np.cos(theta)], axis=-1)
+        d[theta > self._theta_max + 1e-12] = np.nan
+        return np.zeros_like(d), d
+
+    def project_unclipped(self, points: np.ndarray) -> np.ndarray:
+        """Projection by the lens formula for any direction, ignoring FOV and sensor limits."""
+        p = _as_points(points)
+        rxy = np.hypot(p[:, 0], p[:, 1])
+        theta = np.arctan2(rxy, p[:, 2])
+        td, _ = self._theta_d(theta)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(rxy > 0, td / rxy, 0.0)
+        return np.stack([self.f * scale * p[:, 0] + self.cx, self.f * scale * p[:, 1] + self.cy], 1)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Points (any direction within the FOV cone) -> pixels; NaN if not imaged."""
+        p = _as_points(points)
+        uv = self.project_unclipped(p)
+        theta = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
+        ok = (theta <= self._theta_max) & self.in_image(uv) & (np.linalg.norm(p, axis=1) > 0)
+        uv[~ok] = np.nan
+        return uv
+
+
+def wide_fisheye(width: int = 640, height: int = 480, fov_deg: float = 150.0) -> EquidistantFisheye:
+    """A fisheye whose farther left/right image edge sees rays at fov/2 from the axis."""
+    k = (0.012, -0.004, 0.0008, -0.0001)
+    cx, cy = (width - 1) / 2 + 0.004 * width, (height - 1) / 2 + 0.006 * height
+    tmp = EquidistantFisheye(width, height, 1.0, cx, cy, k, fov_deg)
+    theta_d_edge, _ = tmp._theta_d(np.radians(fov_deg) / 2)
+    edge_px = max(cx + 0.5, width - 0.5 - cx) + 1e-6
+    f = edge_px / float(theta_d_edge)
+    return EquidistantFisheye(width, height, f, cx, cy, k, fov_deg)
+
+
+# -- smooth non-central camera -----------------------------------------------------------
+
+
+@dataclass
+class Bump:
+    """A local Gaussian deviation of ray direction: center (u, v) px, width px, amplitude rad."""
+
+    u: float
+    v: float
+    width_px: float
+    amplitude_rad: tuple[float, float]
+
+
+@dataclass
+class NonCentralCamera(TruthCamera):
+    """A central base camera plus smooth direction (~1e-3 rad) and origin (~0.1 mm) deviations.
+
+    With `bumps`, local Gaussian direction deviations put the ray field outside every
+    parametric family (and outside coarse spline meshes).
+    """
+
+    base: PinholeCamera | EquidistantFisheye
+    direction_amplitude_rad: float = 1.5e-3
+    origin_amplitude_mm: float = 0.3
+    bumps: Sequence[Bump] = ()
+    is_central: bool = field(default=False, init=False)
+
+    def __post_init__(self) -> None:
+        self.width = self.base.width
+        self.height = self.base.height
+
+    def _st(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor coordinates scaled to about [-1, 1]."""
+        return (u - (self.width - 1) / 2) / (self.width / 2), (v - (self.height - 1) / 2) / (
+            self.height / 2
+        )
+
+    def _deviation(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Small tangent-plane angles (a, b) rad added to the base direction at (u, v)."""
+        s, t = self._st(u, v)
+        amp = self.direction_amplitude_rad
+        a = amp * (0.6 * s * t + 0.4 * np.sin(1.7 * s + 0.3) * np.cos(1.1 * t) - 0.25 * t * t)
+        b = amp * (0.5 * s * s - 0.3 * np.cos(1.3 * t - 0.2) * s + 0.35 * np.sin(1.2 * t) * t)
+        for bump in self.bumps:
+            g = np.exp(-((u - bump.u) ** 2 + (v - bump.v) ** 2) / (2 * bump.width_px**2))
+            a = a + bump.amplitude_rad[0] * g
+            b = b + bump.amplitude_rad[1] * g
+        return a, b
+
+    def _origin(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Ray origin (...,3) mm: a smooth surface of about origin_amplitude_mm."""
+        s, t = self._st(u, v)
+        m = self.origin_amplitude_mm
+        ox = m * (0.5 * s + 0.2 * s * t * t)
+        oy = m * (0.45 * t + 0.15 * s * s * t)
+        oz = m * (0.8 * (s * s + t * t) - 0.3 * s * t)
+        return np.stack([ox, oy, oz], axis=-1)
+
+    def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coords -> (origins, unit directions): base ray tilted and displaced smoothly."""
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        _, d0 = self.base.rays(u, v)
+        a, b = self._deviation(u, v)
+        # Tangent basis of the base direction: e1 ~ x, e2 = d0 x e1.
+        ex = np.zeros_like(d0)
+        ex[..., 0] = 1.0
+        e1 = _normalize(ex - np.sum(ex * d0, axis=-1, keepdims=True) * d0)
+        e2 = np.cross(d0, e1)
+        d = _normalize(d0 + a[..., None] * e1 + b[..., None] * e2)
+        o = self._origin(u, v)
+        o = np.where(np.isnan(d), np.nan, o)
+        return o, d
+
+    def _residual(self, uv: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Base-pixel difference between the ray direction at uv and the direction to p."""
+        o, d = self.rays(uv[:, 0], uv[:, 1])
+        base_proj = self._base_unclipped
+        return base_proj(d) - base_proj(p - o)
+
+    def _base_unclipped(self, dirs: np.ndarray) -> np.ndarray:
+        """Base-camera projection of directions ignoring sensor limits."""
+        if isinstance(self.base, EquidistantFisheye):
+            return self.base.project_unclipped(dirs)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x, y = dirs[:, 0] / dirs[:, 2], dirs[:, 1] / dirs[:, 2]
+        xd, yd = self.base.distort(x, y)
+        return np.stack([self.base.fx * xd + self.base.cx, self.base.fy * yd + self.base.cy], 1)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Points -> pixels by a vectorized chord-Newton on the ray condition; NaN if not imaged.
+
+        The Jacobian (central differences) is taken at the start point only: the map is a
+        small smooth perturbation of the identity, so the iteration still contracts fast.
+        """
+        p = _as_points(points)
+        uv = self._base_unclipped(p)
+        h = 1e-3
+        active = np.all(np.isfinite(uv), axis=1)
+        q0, p0 = uv[active], p[active]
+        hu, hv = np.array([h, 0.0]), np.array([0.0, h])
+        ju = (self._residual(q0 + hu, p0) - self._residual(q0 - hu, p0)) / (2 * h)
+        jv = (self._residual(q0 + hv, p0) - self._residual(q0 - hv, p0)) / (2 * h)
+        jac = np.full((len(p), 2, 2), np.nan)
+        jac[active] = np.stack([ju, jv], axis=2)
+        for _ in range(40):
+            idx = np.nonzero(active)[0]
+            if idx.size == 0:
+                break
+            r = self._residual(uv[idx], p[idx])
+            step = np.linalg.solve(jac[idx], r[..., None])[..., 0]
+            uv[idx] -= step
+            size = np.hypot(step[:, 0], step[:, 1])
+            active[idx] = np.isfinite(size) & (size > 1e-11)
+        o, d = self.rays(uv[:, 0], uv[:, 1])
+        w = p - o
+        along = np.sum(w * d, axis=1)
+        miss = np.linalg.norm(w - along[:, None] * d, axis=1)
+        ok = self.in_image(uv) & (along > 0) & (miss <= 1e-9 * np.maximum(along, 1.0))
+        uv[~ok] = np.nan
+        return uv
+
+
+def smooth_noncentral(width: int = 640, height: int = 480, bumps: bool = False) -> NonCentralCamera:
+    """A mild pinhole made non-central by smooth ray deviations; `bumps` adds local ones."""
+    base = mild_pinhole(width, height)
+    extra: tuple[Bump, ...] = ()
+    if bumps:
+        extra = (
+            Bump(0.3 * width, 0.35 * height, 0.04 * width, (1.2e-3, -0.8e-3)),
+            Bump(0.7 * width, 0.6 * height, 0.05 * width, (-0.9e-3, 1.1e-3)),
+            Bump(0.55 * width, 0.2 * height, 0.03 * width, (0.7e-3, 0.9e-3)),
+        )
+    return NonCentralCamera(base, bumps=extra)

@@ -1,0 +1,168 @@
+"""Rig configs (TOML/JSON), opening hardware rigs on real backends, device listing, CLI."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquisition.rig import RigConfig, RigConfigError, load_rig_config, open_rig
+from api.cli import main
+from tests.test_hw_opencv import write_sequence
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "rigs"
+
+
+@pytest.fixture
+def fb_path():
+    path = Path(tempfile.mktemp(prefix="phasecal-fb-", dir="/dev/shm"))
+    path.write_bytes(bytes(32 * 24 * 4))
+    yield path
+    path.unlink(missing_ok=True)
+
+
+def _hardware_toml(fb: Path, frames: str, extra: str = "") -> str:
+    return f"""
+kind = "hardware"
+name = "bench"
+[screen]
+pitch_mm = [0.25, 0.26]
+[display]
+backend = "framebuffer"
+device = "{fb}"
+width = 32
+height = 24
+refresh_hz = 240.0
+[camera]
+backend = "opencv"
+source = "{frames}"
+[settings]
+exposure_s = 0.005
+pixel_format = "Mono16"
+{extra}
+"""
+
+
+def test_example_configs_parse() -> None:
+    files = sorted(DOCS.glob("*.toml"))
+    assert len(files) >= 4
+    for f in files:
+        cfg = load_rig_config(f)
+        assert cfg.format == "phasecal.rig/1"
+    sdl = load_rig_config(DOCS / "sdl-aravis.toml")
+    assert sdl.camera.backend == "aravis" and sdl.trigger_box.vendor_id == 0x16C0
+    assert sdl.settings.to_settings().trigger_mode == "hardware"
+
+
+def test_open_hardware_rig_from_toml(tmp_path: Path, fb_path: Path) -> None:
+    frames = np.random.default_rng(0).integers(0, 65535, (3, 6, 8)).astype(np.uint16)
+    seq = write_sequence(tmp_path / "rec", frames)
+    cfg_file = tmp_path / "rig.toml"
+    cfg_file.write_text(_hardware_toml(fb_path, seq))
+    rig = open_rig(load_rig_config(cfg_file))
+    try:
+        assert (rig.screen.width_px, rig.screen.height_px) == (32, 24)
+        assert rig.screen.pitch_mm == (0.25, 0.26)
+        assert rig.display.info.refresh_hz == 240.0
+        assert rig.camera.info.bit_depth == 16
+        assert rig.settings.exposure_s == 0.005 and rig.simulated is None
+        rig.display.show(np.full((24, 32), 77, np.uint8))
+        assert np.fromfile(fb_path, np.uint8)[:4].tolist() == [77, 77, 77, 0]
+        rig.camera.start()
+        np.testing.assert_array_equal(rig.camera.grab(1.0).image, frames[0])
+    finally:
+        rig.close()
+        rig.close()  # idempotent
+
+
+def test_json_config_is_equivalent(tmp_path: Path, fb_path: Path) -> None:
+    import tomllib
+
+    data = tomllib.loads(_hardware_toml(fb_path, "x/frame_%04d.png"))
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(data))
+    assert load_rig_config(path) == RigConfig.model_validate(data)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda s: s.replace("pitch_mm = [0.25, 0.26]", ""), "screen.pitch_mm is missing"),
+        (lambda s: s.replace('backend = "framebuffer"', 'backend = "crt"'), "display"),
+        (lambda s: s.replace("refresh_hz = 240.0", "refresh_hz = -1"), "display.framebuffer"),
+        (lambda s: s + "\n[camera.extra]\nx = 1\n", "camera.opencv.extra"),
+        (lambda s: s.replace('kind = "hardware"', 'kind = "simulated"'), "kind 'simulated'"),
+        (lambda s: s.replace("[screen]", "[screen]\nwidth_px = 0"), "screen.width_px"),
+    ],
+)
+def test_invalid_configs_name_the_field(tmp_path: Path, fb_path: Path, edit, message) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(edit(_hardware_toml(fb_path, "x/frame_%04d.png")))
+    with pytest.raises(RigConfigError, match=message) as info:
+        load_rig_config(path)
+    assert str(path) in str(info.value)
+
+
+def test_malformed_toml_and_missing_file(tmp_path: Path) -> None:
+    bad = tmp_path / "rig.toml"
+    bad.write_text("kind = \n")
+    with pytest.raises(RigConfigError, match="not valid TOML"):
+        load_rig_config(bad)
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        load_rig_config(tmp_path / "none.toml")
+
+
+def test_failed_open_closes_what_was_opened(tmp_path: Path, fb_path: Path) -> None:
+    from acquisition.errors import CameraDisconnected
+
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(_hardware_toml(fb_path, str(tmp_path / "missing.mkv")))
+    with pytest.raises(CameraDisconnected, match="does not exist"):
+        open_rig(load_rig_config(cfg))
+
+
+def test_screen_size_must_match_the_display(tmp_path: Path, fb_path: Path) -> None:
+    frames = np.zeros((1, 4, 4), np.uint8)
+    seq = write_sequence(tmp_path / "rec", frames)
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(_hardware_toml(fb_path, seq).replace("[screen]", "[screen]\nwidth_px = 30"))
+    with pytest.raises(RigConfigError, match="30x24 px in the config, the display is 32x24"):
+        open_rig(load_rig_config(cfg))
+
+
+def test_list_devices_on_a_fake_system(tmp_path: Path, monkeypatch) -> None:
+    from acquisition.discovery import list_devices
+    from tests.test_hw_usb import FakeBackend, _device
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    dev, sysfs = tmp_path / "dev", tmp_path / "sys"
+    (sysfs / "graphics" / "fb1").mkdir(parents=True)
+    (sysfs / "video4linux" / "video2").mkdir(parents=True)
+    (sysfs / "graphics" / "fb1" / "virtual_size").write_text("800,480\n")
+    (sysfs / "graphics" / "fb1" / "bits_per_pixel").write_text("16\n")
+    (sysfs / "video4linux" / "video2" / "name").write_text("HD Webcam\n")
+    dev.mkdir()
+    (dev / "fb1").touch()
+    (dev / "video2").touch()
+    usb = FakeBackend([_device(0x2676, 0xBA02, ("Basler", "a2A", "77"), [(0xEF, 5)])])
+    found = list_devices(usb_backend=usb, dev_root=dev, sysfs_root=sysfs)
+    by_backend = {d.backend: d for d in found}
+    assert by_backend["simulated"].config == {"kind": "simulated"}
+    assert by_backend["framebuffer"].id == str(dev / "fb1")
+    assert "800x480 16 bpp" in by_backend["framebuffer"].description
+    assert by_backend["opencv"].description == "HD Webcam"
+    assert "virtual" in by_backend["sdl"].description  # dummy driver: no real screen
+    assert "usb3vision 2676:ba02 Basler a2A serial 77" in by_backend["aravis"].description
+    assert not any(d.id == "127.0.0.1" for d in found)  # Aravis only when asked
+
+
+def test_devices_command_json(capsys, monkeypatch) -> None:
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    assert main(["devices", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data[0]["backend"] == "simulated" and data[0]["config"] == {"kind": "simulated"}
+    assert main(["devices"]) == 0
+    assert "simulated" in capsys.readouterr().out
