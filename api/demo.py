@@ -22,6 +22,7 @@ import numpy as np
 from api.client import PhasecalClient
 from api.config import ServiceConfig
 from api.inprocess import running_service
+from calibration.plan import ScreenGeometry
 
 DEFAULT_MODELS = ("opencv-rational", "sgcc")
 
@@ -40,10 +41,15 @@ class DemoRow:
     error: str | None = None
 
 
-def demo_rig_config(width: int, height: int) -> dict[str, Any]:
-    """The simulated rig of the demo: a distorted ~150-degree fisheye camera, 640x480."""
-    return {"kind": "simulated", "camera": {"model": "wide_fisheye", "width": width,
-                                            "height": height}}
+def demo_rig_config(width: int, height: int, camera: str = "wide_fisheye",
+                    screen: ScreenGeometry | None = None) -> dict[str, Any]:
+    """A simulated rig config: truth camera `camera` at width x height, optional screen."""
+    cfg: dict[str, Any] = {"kind": "simulated",
+                           "camera": {"model": camera, "width": width, "height": height}}
+    if screen is not None:
+        cfg["screen"] = {"width_px": screen.width_px, "height_px": screen.height_px,
+                         "pitch_mm": list(screen.pitch_mm)}
+    return cfg
 
 
 def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, height: int = 480,

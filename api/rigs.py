@@ -81,12 +81,16 @@ class RigManager:
             self.default_id = rec.id
 
     def create(self, name: str, config: dict[str, Any]) -> RigRecord:
-        """Validate and store a new rig (opened on first use)."""
+        """Validate, open (so a bad config fails here, not at the first capture) and store."""
         if name == DEFAULT_RIG_NAME:
             raise Problem(409, "conflict", f"rig name {name!r} is reserved for the server's rig")
         parsed = parse_rig_config(config, "config")
+        rig_id = new_id("rig")
+        rig = _open(rig_id, name, parsed)
+        with self._lock:
+            self._handles[rig_id] = RigHandle(rig_id, rig)
         with self.db.session() as s:
-            rec = RigRecord(id=new_id("rig"), name=name, config=parsed.model_dump(mode="json"),
+            rec = RigRecord(id=rig_id, name=name, config=parsed.model_dump(mode="json"),
                             created_at=time.time())
             s.add(rec)
         return rec
@@ -106,9 +110,7 @@ class RigManager:
             if h is not None:
                 return h
         rec = self.record(rig_id)
-        from acquisition.rig import open_rig
-
-        rig = open_rig(parse_rig_config(rec.config, f"rig {rig_id}"))
+        rig = _open(rig_id, rec.name, parse_rig_config(rec.config, f"rig {rig_id}"))
         with self._lock:
             h = self._handles.setdefault(rig_id, RigHandle(rig_id, rig))
         if h.rig is not rig:
@@ -121,6 +123,21 @@ class RigManager:
             handles, self._handles = list(self._handles.values()), {}
         for h in handles:
             _close(h.rig)
+
+
+def _open(rig_id: str, name: str, config: Any) -> Any:
+    """Open a rig's devices; problems name the rig and say whether config or device failed."""
+    from acquisition.errors import AcquisitionError
+    from acquisition.rig import open_rig
+
+    try:
+        return open_rig(config)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise Problem(422, "invalid-rig-config",
+                      f"rig {rig_id} ({name}): cannot be opened: {exc}") from None
+    except (OSError, AcquisitionError) as exc:
+        raise Problem(503, "device-error",
+                      f"rig {rig_id} ({name}): a device failed to open: {exc}") from None
 
 
 def _close(rig: Any) -> None:

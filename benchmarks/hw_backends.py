@@ -57,11 +57,12 @@ def decode_rows(w: int = 1920, h: int = 1200) -> list[tuple[str, float]]:
         "BayerRG8": v8.tobytes(),
         "BayerRG12Packed": pack_mono12(v12, "mono12packed"),
     }
-    return [
-        (f"decode {name} {w}x{h}",
-         _median_ms(lambda d=data, f=pixel_format(name): decode_image(d, f, w, h), 7))
-        for name, data in cases.items()
-    ]
+    rows = []
+    for name, data in cases.items():
+        fmt = pixel_format(name)
+        ms = _median_ms(lambda d=data, f=fmt: decode_image(d, f, w, h), 7)
+        rows.append((f"decode {name} {w}x{h}", ms))
+    return rows
 
 
 def aravis_rows(frames: int = 30) -> list[tuple[str, float]]:

@@ -36,10 +36,13 @@ def main() -> None:
     plan = Plan(
         SCREEN, (CosineFrame("x", 24.0, 1, 8), CosineFrame("y", 24.0, 1, 8), FlatFrame(1.0))
     )
+    torn = frame_linear(plan, 0)
+    torn[: SCREEN.height_px // 3] = frame_linear(plan, 2)[: SCREEN.height_px // 3]
     images = {
         "cos-x": frame_linear(plan, 0),
         "cos-y": frame_linear(plan, 1),
         "flat": frame_linear(plan, 2),
+        "torn": torn,  # not separable: general 2-D sampling path
     }
     sensor = SensorModel(bit_depth=12)
     rng = np.random.default_rng(0)

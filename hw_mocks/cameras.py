@@ -96,10 +96,12 @@ class PinholeCamera(TruthCamera):
         """Radial factor and its derivative with respect to r^2."""
         k1, k2, _, _, k3, k4, k5, k6 = self._d
         num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
         dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        if k4 == k5 == k6 == 0:
+            return num, dnum
+        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
         dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-        return num / den, (dnum * den - num * dden) / den**2
+        return num / den, (dnum * den - num * dden) / (den * den)
 
     def _monotonic_r2_limit(self) -> float:
         """Largest r^2 of normalized coords up to which radial distortion stays one-to-one."""
@@ -118,27 +120,30 @@ class PinholeCamera(TruthCamera):
         yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         return xd, yd
 
-    def _distort_jacobian(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Partial derivatives (dxd/dx, dxd/dy, dyd/dx, dyd/dy) of `distort`."""
+    def _distort_with_jacobian(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+        """`distort` and its partial derivatives (dxd/dx, dxd/dy = dyd/dx, dyd/dy)."""
         _, _, p1, p2, *_ = self._d
-        rad, drad = self._radial(x * x + y * y)
-        a = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-        b = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-        c = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-        d = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-        return a, b, c, d
+        xx, yy, xy = x * x, y * y, x * y
+        r2 = xx + yy
+        rad, drad = self._radial(r2)
+        xd = x * rad + 2 * p1 * xy + p2 * (r2 + 2 * xx)
+        yd = y * rad + p1 * (r2 + 2 * yy) + 2 * p2 * xy
+        a = rad + 2 * xx * drad + 2 * p1 * y + 6 * p2 * x
+        b = 2 * xy * drad + 2 * p1 * x + 2 * p2 * y
+        d = rad + 2 * yy * drad + 6 * p1 * y + 2 * p2 * x
+        return xd, yd, a, b, d
 
     def undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Invert `distort` by vectorized Newton iteration (to ~1e-15 in normalized units)."""
         x, y = xd.copy(), yd.copy()
         for _ in range(_NEWTON_ITERS):
-            fx_, fy_ = self.distort(x, y)
+            fx_, fy_, a, b, d = self._distort_with_jacobian(x, y)
             ex, ey = fx_ - xd, fy_ - yd
-            a, b, c, d = self._distort_jacobian(x, y)
-            det = a * d - b * c
+            det = a * d - b * b
             dx = (d * ex - b * ey) / det
-            dy = (a * ey - c * ex) / det
-            x, y = x - dx, y - dy
+            dy = (a * ey - b * ex) / det
+            x -= dx
+            y -= dy
             if np.nanmax(np.abs(dx) + np.abs(dy), initial=0.0) < _STEP_TOL:
                 break
         fx_, fy_ = self.distort(x, y)
@@ -237,7 +242,8 @@ class EquidistantFisheye(TruthCamera):
             sphi = np.where(td > 0, dv / td, 0.0)
         st = np.sin(theta)
         d = np.stack([st * cphi, st * sphi, np.cos(theta)], axis=-1)
-        d[theta > self._theta_max + 1e-12] = np.nan
+        solved = np.abs(self._theta_d(theta)[0] - td) < 1e-12
+        d[~solved | (theta > self._theta_max + 1e-12)] = np.nan
         return np.zeros_like(d), d
 
     def project_unclipped(self, points: np.ndarray) -> np.ndarray:
@@ -405,3 +411,27 @@ def smooth_noncentral(width: int = 640, height: int = 480, bumps: bool = False) 
             Bump(0.55 * width, 0.2 * height, 0.03 * width, (0.7e-3, 0.9e-3)),
         )
     return NonCentralCamera(base, bumps=extra)
+
+
+# -- named cameras (rig configs refer to truth cameras by name) --------------------------
+
+CAMERA_FACTORIES = {
+    "mild_pinhole": mild_pinhole,
+    "wide_fisheye": wide_fisheye,
+    "smooth_noncentral": smooth_noncentral,
+}
+
+
+def make_truth_camera(model: str, width: int, height: int, **params: object) -> TruthCamera:
+    """Build a named truth camera (`CAMERA_FACTORIES`), e.g. from a simulated rig's config."""
+    if model not in CAMERA_FACTORIES:
+        raise ValueError(
+            f"camera.model: unknown truth camera {model!r}; "
+            f"choose one of {sorted(CAMERA_FACTORIES)}"
+        )
+    if width <= 0 or height <= 0:
+        raise ValueError(f"camera.width/height: expected positive pixels, got {width}x{height}")
+    try:
+        return CAMERA_FACTORIES[model](width, height, **params)  # type: ignore[operator]
+    except TypeError as exc:
+        raise ValueError(f"camera: bad parameters for {model!r}: {exc}") from None

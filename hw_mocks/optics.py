@@ -5,39 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
-from hw_mocks.scene import ScreenPose, screen_points, screen_points_at, subpixel_offsets
-
-
-@dataclass
-class _Sampler:
-    """Precomputed bilinear taps of every sub-sample into the padded, flattened screen image."""
-
-    index: np.ndarray  # int32/int64 (H*s, W*s): flat index of the top-left tap
-    fx: np.ndarray  # float32 (H*s, W*s): fractional x weight
-    fy: np.ndarray  # float32 (H*s, W*s): fractional y weight
-    padded_width: int
-    zero_start: int  # flat index where a block of zeros begins (for samples off the screen)
-
-
-def _build_sampler(x: np.ndarray, y: np.ndarray, screen: ScreenGeometry) -> _Sampler:
-    """Bilinear taps at exact float64 positions (cv2.remap would quantize them to 1/32 px)."""
-    wp, hp = screen.width_px + 2, screen.height_px + 2
-    ok = np.isfinite(x) & np.isfinite(y)
-    xp = np.where(ok, x, 0.0) + 1.0  # padded coordinates, in [0.5, W + 0.5]
-    yp = np.where(ok, y, 0.0) + 1.0
-    x0 = np.clip(np.floor(xp), 0, wp - 2)
-    y0 = np.clip(np.floor(yp), 0, hp - 2)
-    zero_start = wp * hp
-    dtype = np.int32 if zero_start + wp + 2 < np.iinfo(np.int32).max else np.int64
-    index = np.where(ok, y0 * wp + x0, zero_start).astype(dtype)
-    fx = np.where(ok, xp - x0, 0.0).astype(np.float32)
-    fy = np.where(ok, yp - y0, 0.0).astype(np.float32)
-    return _Sampler(index, fx, fy, wp, zero_start)
+from hw_mocks.optics_sampling import ScreenSampler
+from hw_mocks.scene import ScreenPose, screen_points, subpixel_offsets
 
 
 def vignetting_map(camera: TruthCamera, falloff: float) -> np.ndarray:
@@ -63,9 +36,10 @@ class OpticalSetup:
     irradiance_scale: float = 2.0e5  # electrons/s per pixel for linear light 1.0 at the center
     ambient: float = 0.0  # constant stray light, electrons/s per pixel
     supersample: int = 2  # s x s sub-samples per pixel (pixel-area integration)
-    _sampler: _Sampler | None = field(default=None, init=False, repr=False)
+    _sampler: ScreenSampler | None = field(default=None, init=False, repr=False)
     _gain: np.ndarray | None = field(default=None, init=False, repr=False)
     _visible: np.ndarray | None = field(default=None, init=False, repr=False)
+    _truth: dict[str, Any] | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.blur_sigma_screen_px < 0:
@@ -77,15 +51,14 @@ class OpticalSetup:
         subpixel_offsets(self.supersample)  # validates supersample
         vignetting_map(self.camera, self.vignetting)  # validates vignetting
 
-    def _prepare(self) -> _Sampler:
-        """Compute and cache the sub-sample screen points, taps and per-pixel gain."""
+    def _prepare(self) -> ScreenSampler:
+        """Compute and cache the sub-sample screen points, the sampler and per-pixel gain."""
         if self._sampler is None:
             s = self.supersample
             x, y = screen_points(self.camera, self.pose, self.screen, supersample=s)
-            self._sampler = _build_sampler(x, y, self.screen)
+            self._sampler = ScreenSampler(x, y, self.screen, s, self.blur_sigma_screen_px)
             h, w = self.camera.height, self.camera.width
-            hits = np.isfinite(x).reshape(h, s, w, s)
-            self._visible = hits.all(axis=(1, 3))
+            self._visible = np.isfinite(x).reshape(h, s, w, s).all(axis=(1, 3))
             self._gain = (
                 self.irradiance_scale * vignetting_map(self.camera, self.vignetting)
             ).astype(np.float32)
@@ -93,51 +66,38 @@ class OpticalSetup:
 
     def blurred(self, display_linear: np.ndarray) -> np.ndarray:
         """The screen image after the optical blur (Gaussian of blur_sigma_screen_px), float32."""
-        img = np.asarray(display_linear, dtype=np.float32)
-        expected = (self.screen.height_px, self.screen.width_px)
-        if img.shape != expected:
-            raise ValueError(
-                f"display image: expected shape {expected} (screen height, width), got {img.shape}"
-            )
-        if self.blur_sigma_screen_px > 0:
-            sig = self.blur_sigma_screen_px
-            k = 2 * int(np.ceil(4 * sig)) + 1
-            # Beyond the screen's edge is the dark bezel: blur mixes it in.
-            img = cv2.GaussianBlur(img, (k, k), sig, sigmaY=sig, borderType=cv2.BORDER_CONSTANT)
-        return img
+        return self._prepare().blurred(display_linear)
 
     def render_irradiance(self, display_linear: np.ndarray) -> np.ndarray:
-        """Display linear light (H_s, W_s) in [0, 1] -> (H, W) float32 electrons/s at the sensor."""
-        smp = self._prepare()
-        img = self.blurred(display_linear)
-        padded = cv2.copyMakeBorder(img, 1, 1, 1, 1, cv2.BORDER_REPLICATE)
-        flat = np.concatenate([padded.ravel(), np.zeros(smp.padded_width + 2, np.float32)])
-        i = smp.index
-        top = flat[i] + smp.fx * (flat[i + 1] - flat[i])
-        bottom = flat[i + smp.padded_width] + smp.fx * (
-            flat[i + smp.padded_width + 1] - flat[i + smp.padded_width]
-        )
-        fine = top + smp.fy * (bottom - top)
-        s = self.supersample
-        h, w = self.camera.height, self.camera.width
-        mean = fine.reshape(h, s, w, s).mean(axis=(1, 3), dtype=np.float32)
+        """Display linear light (H_s, W_s) in [0, 1] -> (H, W) float32 electrons/s at the sensor.
+
+        The screen image is blurred (dark beyond its edges), sampled bilinearly at s x s
+        sub-samples per pixel, averaged, scaled by the vignetted gain; plus ambient.
+        """
+        mean = self._prepare().sample(display_linear)
         assert self._gain is not None
         return mean * self._gain + np.float32(self.ambient)
 
     def truth(self) -> dict[str, Any]:
-        """Ground truth of this setup (screen points, visibility, blur, vignetting).
+        """Ground truth of this setup (arrays (H,W); the caller gets its own copies).
 
-        x_true/y_true are the screen px seen by the pixel centers (float64, NaN if none);
-        visible: all sub-samples of the pixel see the screen; edge_distance_px: distance of
-        the seen point from the screen's border (pixels within a few blur widths of it mix
-        in the dark bezel); blur_x/y: optical blur combined with the pixel footprint
-        (sub-sample spread) as one Gaussian-equivalent width in screen px; the bilinear
-        sampling of the screen's pixels adds a bias below 0.004 screen px for periods of
-        16 px and more (smaller for longer periods).
+        x_true/y_true: screen px seen by the pixel centers (float64, NaN if none);
+        visible: all sub-samples of the pixel see the screen (visible_center: the center);
+        edge_distance_px: distance of the seen point from the screen's border (pixels
+        within a few blur widths of it mix in the dark bezel); blur_x/y: Gaussian-equivalent
+        width (screen px) of everything that lowers modulation along that axis, the
+        optical blur, the pixel footprint (sub-sample spread, footprint_sigma_*) and the
+        bilinear interpolation of screen pixels (interpolation_sigma_*). The bilinear
+        sampling also biases positions by less than 0.004 screen px for periods >= 16 px.
         """
+        if self._truth is None:
+            self._truth = self._compute_truth()
+        return {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in self._truth.items()}
+
+    def _compute_truth(self) -> dict[str, Any]:
+        """Build the truth dictionary (see `truth`)."""
         self._prepare()
-        u, v = self.camera.pixel_grid()
-        x, y = screen_points_at(self.camera, self.pose, self.screen, u, v)
+        x, y = screen_points(self.camera, self.pose, self.screen)
         # Footprint of a pixel on the screen: Jacobian of (x, y) over (u, v).
         jxu, jxv = np.gradient(x, axis=1), np.gradient(x, axis=0)
         jyu, jyv = np.gradient(y, axis=1), np.gradient(y, axis=0)
@@ -146,21 +106,24 @@ class OpticalSetup:
         foot_x = np.sqrt(box_var * (jxu**2 + jxv**2))
         foot_y = np.sqrt(box_var * (jyu**2 + jyv**2))
         blur2 = self.blur_sigma_screen_px**2
+        interp_x, interp_y = self._prepare().interpolation_variance()
         w_s, h_s = self.screen.width_px, self.screen.height_px
         edge = np.minimum(np.minimum(x + 0.5, w_s - 0.5 - x), np.minimum(y + 0.5, h_s - 0.5 - y))
         assert self._visible is not None and self._gain is not None
         return {
             "x_true": x,
             "y_true": y,
-            "visible": self._visible.copy(),
+            "visible": self._visible,
             "visible_center": np.isfinite(x),
             "blur_sigma_screen_px": self.blur_sigma_screen_px,
             "footprint_sigma_x": foot_x,
             "footprint_sigma_y": foot_y,
-            "blur_x": np.sqrt(blur2 + foot_x**2),
-            "blur_y": np.sqrt(blur2 + foot_y**2),
+            "interpolation_sigma_x": np.sqrt(interp_x),
+            "interpolation_sigma_y": np.sqrt(interp_y),
+            "blur_x": np.sqrt(blur2 + foot_x**2 + interp_x),
+            "blur_y": np.sqrt(blur2 + foot_y**2 + interp_y),
             "edge_distance_px": edge,
             "vignetting": vignetting_map(self.camera, self.vignetting),
-            "irradiance_gain": self._gain.copy(),
+            "irradiance_gain": self._gain,
             "pose": self.pose,
         }

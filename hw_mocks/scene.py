@@ -10,8 +10,8 @@ import numpy as np
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 
-# Rows of camera pixels intersected per batch: bounds temporary memory on large sensors.
-_ROW_CHUNK_SAMPLES = 1 << 20
+# Samples intersected per batch: small enough for the temporaries to stay in cache.
+_ROW_CHUNK_SAMPLES = 1 << 16
 
 
 @dataclass

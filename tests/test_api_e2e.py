@@ -145,8 +145,8 @@ def test_bad_uploads_are_problems(server: ServerProcess, session: dict, plan: Pl
                  "invalid-frames")
         _problem(h.post(url, files={"files": ("f.npy", _npy_bytes(frames[0]))}), 422,
                  "invalid-frames")
-        _problem(h.post(url, files={"files": ("f.npy", _npy_bytes(frames[:, :9].astype(np.int64)))}),
-                 422, "invalid-frames")
+        wide = _npy_bytes(frames[:, :9].astype(np.int64))
+        _problem(h.post(url, files={"files": ("f.npy", wide)}), 422, "invalid-frames")
         pngs = [("files", (f"img{i}.png", cv2.imencode(".png", f)[1].tobytes()))
                 for i, f in enumerate(frames)]
         _problem(h.post(url, files=pngs), 422, "invalid-frames")

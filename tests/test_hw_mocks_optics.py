@@ -10,8 +10,10 @@ from acquisition.patterns import DisplayResponse, build_plan
 from calibration.maps import load_maps
 from calibration.plan import CosineFrame, Plan, ScreenGeometry
 from hw_mocks.cameras import (
+    EquidistantFisheye,
     PinholeCamera,
     TruthCamera,
+    make_truth_camera,
     mild_pinhole,
     smooth_noncentral,
     wide_fisheye,
@@ -127,6 +129,16 @@ def test_project_rejects_points_not_imaged() -> None:
         cam.project(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="dist"):
         PinholeCamera(W, H, 100, 100, 80, 60, (0.1, 0.2, 0.3))
+
+
+def test_named_truth_cameras() -> None:
+    cam = make_truth_camera("wide_fisheye", 64, 48, fov_deg=120.0)
+    assert isinstance(cam, EquidistantFisheye) and (cam.width, cam.height) == (64, 48)
+    assert make_truth_camera("smooth_noncentral", 64, 48).is_central is False
+    with pytest.raises(ValueError, match="unknown truth camera 'nope'"):
+        make_truth_camera("nope", 64, 48)
+    with pytest.raises(ValueError, match="bad parameters"):
+        make_truth_camera("mild_pinhole", 64, 48, fov_deg=3.0)
 
 
 def test_noncentral_deviates_smoothly_from_its_base() -> None:
@@ -289,6 +301,44 @@ def test_blur_reduces_modulation_as_predicted(period: float) -> None:
     ratio = np.median(mods[1][inner] / mods[0][inner])
     expected = np.exp(-2 * np.pi**2 * blur**2 / period**2)
     assert ratio == pytest.approx(expected, rel=0.03)
+
+
+@pytest.mark.parametrize("distance_mm", [150.0, 450.0])
+def test_truth_blur_width_predicts_modulation_of_the_whole_chain(distance_mm: float) -> None:
+    cam = mild_pinhole(W, H)
+    pose = look_at_pose(SCREEN, distance_mm=distance_mm, tilt_deg=25, tilt_azimuth_deg=30)
+    setup = OpticalSetup(cam, pose, SCREEN, blur_sigma_screen_px=0.8, vignetting=0.0)
+    truth = setup.truth()
+    inner = truth["visible"] & (truth["edge_distance_px"] > 30) & np.isfinite(truth["blur_x"])
+    flat = setup.render_irradiance(np.ones((360, 640)))
+    for period in (12.0, 20.0, 40.0):
+        stack = np.stack(
+            [
+                setup.render_irradiance(np.broadcast_to(_line(period, k, 8), (360, 640)))
+                for k in range(8)
+            ]
+        )
+        mod = _decode(stack.astype(np.float64), 8)[1][inner] / (0.5 * flat[inner])
+        predicted = np.exp(-2 * np.pi**2 * truth["blur_x"][inner] ** 2 / period**2)
+        ratio = mod / predicted
+        assert np.median(ratio) == pytest.approx(1.0, abs=0.015)
+        assert np.percentile(np.abs(ratio - 1), 90) < 0.04
+
+
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_separable_fast_path_equals_general_sampling(axis: str) -> None:
+    cam = mild_pinhole(W, H)
+    pose = look_at_pose(SCREEN, distance_mm=300.0, tilt_deg=15, roll_deg=10)
+    setup = OpticalSetup(cam, pose, SCREEN, blur_sigma_screen_px=1.5, vignetting=0.1)
+    truth = setup.truth()
+    assert np.nanmin(np.hypot(truth["x_true"], truth["y_true"])) > 20  # screen corner unseen
+    line = 0.5 + 0.5 * np.cos(2 * np.pi * np.arange(640 if axis == "x" else 360) / 21.0)
+    img = np.broadcast_to(line if axis == "x" else line[:, None], (360, 640)).copy()
+    fast = setup.render_irradiance(img)
+    img[0, 0] += 1e-3  # not seen, not within blur reach: forces the general path
+    general = setup.render_irradiance(img)
+    np.testing.assert_allclose(fast, general, rtol=2e-6, atol=1e-6 * setup.irradiance_scale)
+    assert fast.std() > 0.1 * fast.mean()
 
 
 def test_vignetting_and_ambient() -> None:

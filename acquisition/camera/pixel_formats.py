@@ -6,8 +6,10 @@ significant bit (uint8 for 8-bit data, uint16 otherwise). All functions are vect
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from acquisition.errors import DeviceSettingsError
@@ -174,19 +176,36 @@ def pack_mono12(values: np.ndarray, layout: str = "mono12packed") -> bytes:
     return out.astype(np.uint8).tobytes()
 
 
+_BOX3 = np.ones((3, 3), np.float32)
+
+
 def _box3(a: np.ndarray) -> np.ndarray:
-    """3x3 sum with zero padding (vectorized, no OpenCV border conventions to worry about)."""
-    p = np.pad(a, 1)
-    return sum(p[i : i + a.shape[0], j : j + a.shape[1]] for i in range(3) for j in range(3))
+    """3x3 sum with zero padding outside the image (float32, exact for 16-bit sums)."""
+    return cv2.filter2D(a, -1, _BOX3, borderType=cv2.BORDER_CONSTANT)
 
 
 def bayer_channel_masks(pattern: str, height: int, width: int) -> dict[str, np.ndarray]:
     """Boolean masks of the R, G and B sites of a Bayer mosaic (pattern read row-major)."""
     if len(pattern) != 4 or sorted(pattern) != ["B", "G", "G", "R"]:
         raise ValueError(f"bayer pattern must be a 2x2 arrangement like 'RGGB', got {pattern!r}")
+    return _masks(pattern, height, width)
+
+
+@functools.lru_cache(maxsize=8)
+def _masks(pattern: str, height: int, width: int) -> dict[str, np.ndarray]:
     yy, xx = np.mgrid[0:height, 0:width]
     site = (yy % 2) * 2 + (xx % 2)
     return {c: np.isin(site, [i for i, p in enumerate(pattern) if p == c]) for c in "RGB"}
+
+
+@functools.lru_cache(maxsize=8)
+def _interp_weights(pattern: str, height: int, width: int) -> tuple[np.ndarray, ...]:
+    """Per channel: (mask as float32, luma weight / number of same-colour neighbours)."""
+    out = []
+    for weight, c in zip(LUMA_RGB, "RGB", strict=True):
+        m = _masks(pattern, height, width)[c].astype(np.float32)
+        out += [m, np.float32(weight) / _box3(m)]
+    return tuple(out)
 
 
 def bayer_to_grey(raw: np.ndarray, pattern: str, method: str = "demosaic") -> np.ndarray:
@@ -203,13 +222,14 @@ def bayer_to_grey(raw: np.ndarray, pattern: str, method: str = "demosaic") -> np
     if method != "demosaic":
         raise DeviceSettingsError(f"bayer: method must be 'demosaic' or 'raw', got {method!r}")
     h, w = raw.shape
-    masks = bayer_channel_masks(pattern, h, w)
-    x = raw.astype(np.float64)
-    grey = np.zeros((h, w), np.float64)
-    for weight, c in zip(LUMA_RGB, "RGB", strict=True):
-        m = masks[c].astype(np.float64)
-        plane = np.where(masks[c], x, _box3(x * m) / _box3(m))
-        grey += weight * plane
+    bayer_channel_masks(pattern, h, w)  # validates the pattern
+    weights = _interp_weights(pattern, h, w)
+    x = raw.astype(np.float32)
+    grey = np.zeros((h, w), np.float32)
+    for i, luma in enumerate(LUMA_RGB):
+        m, scale = weights[2 * i], weights[2 * i + 1]
+        # Own sites keep their value; others take the mean of same-colour neighbours.
+        grey += np.where(m > 0, np.float32(luma) * x, _box3(x * m) * scale)
     top = np.iinfo(raw.dtype).max
     return np.clip(np.rint(grey), 0, top).astype(raw.dtype)
 

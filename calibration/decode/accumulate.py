@@ -11,7 +11,7 @@ bright/dark flats complete the state.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any
 
@@ -27,9 +27,22 @@ except ImportError:  # pragma: no cover - opencv is a project dependency
 ACCEPTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
 
 
-# With this many steps the residual-noise estimate also fits the second harmonic (display
-# gamma puts ~30 % of the fundamental there) and still keeps >= 1 residual degree of freedom.
-HARMONIC_MIN_STEPS = 6
+
+
+def harmonic_orders(steps: int, residual_noise: bool) -> tuple[int, ...]:
+    """Harmonics above the fundamental that the per-period fit also models.
+
+    Display gamma puts ~30 % of the fundamental into harmonic 2 and ~1 % into harmonic 3.
+    They are orthogonal to the fundamental over all steps, but leak into the phase when
+    clipped steps are excluded and inflate the residual noise estimate. Harmonic 2 is
+    modelled from 6 steps on; harmonic 3 (residual-noise mode only) from 8. Each keeps
+    at least one residual degree of freedom and stays below the Nyquist order.
+    """
+    orders: list[int] = []
+    for k, wanted in ((2, True), (3, residual_noise)):
+        if wanted and 2 * k < steps and 3 + 2 * (len(orders) + 1) < steps:
+            orders.append(k)
+    return tuple(orders)
 
 
 class DecodeError(ValueError):
@@ -56,8 +69,8 @@ class SetSums:
     b: Any
     s0: Any
     excluded: Any | None = None  # per-pixel bit mask of clipped (excluded) steps
-    a2: Any | None = None  # sum v sin(2 psi): second harmonic, residual-noise mode only
-    b2: Any | None = None  # sum v cos(2 psi)
+    harmonics: tuple[int, ...] = ()  # extra harmonic orders k modelled by the fit
+    extra: list[Any] = field(default_factory=list)  # sum v sin(k psi), sum v cos(k psi) per k
     seen: int = 0
 
 
@@ -105,8 +118,8 @@ class FrameAccumulator:
             psi = tuple(2.0 * math.pi * s / ps.steps for s in range(ps.steps))
             layout = SetLayout(ps.axis, ps.period_px, amps.pop(), ps.steps, psi)
             sums = SetSums(layout, *(self._zeros(np.float32) for _ in range(3)))
-            if need_squares and ps.steps >= HARMONIC_MIN_STEPS:
-                sums.a2, sums.b2 = self._zeros(np.float32), self._zeros(np.float32)
+            sums.harmonics = harmonic_orders(ps.steps, need_squares)
+            sums.extra = [self._zeros(np.float32) for _ in range(2 * len(sums.harmonics))]
             self.sets.append(sums)
             for step, idx in enumerate(ps.frame_indices):
                 self._role[idx] = ("cos", k, step)
@@ -122,6 +135,7 @@ class FrameAccumulator:
         self.n_bright = 0
         self.n_dark = 0
         self.squares: Any | None = None
+        self.max_seen = -math.inf  # brightest cosine sample seen (reported: saturation hint)
 
     def _zeros(self, dtype: Any) -> Any:
         """A zeroed array, written now so page faults happen here and not during capture."""
@@ -207,36 +221,43 @@ class FrameAccumulator:
         else:
             total += img
 
-    def _clipped(self, img: Any) -> Any | None:
-        """Boolean map of clipped samples, or None when the frame has none (fast check)."""
+    def _exclude_clipped(self, sums: SetSums, step: int, img: Any) -> Any:
+        """Zero the frame's clipped samples and record their step; fast when there are none."""
         if self.high is None and self.low is None:
-            return None
-        if self.xp is np and cv2 is not None:
-            lo, hi, _, _ = cv2.minMaxLoc(img)
-        else:
-            lo, hi = float(img.min()), float(img.max())
+            return img
+        xp = self.xp
+        fast = xp is np and cv2 is not None
+        lo, hi = cv2.minMaxLoc(img)[:2] if fast else (float(img.min()), float(img.max()))
+        self.max_seen = max(self.max_seen, float(hi))
         hit_hi = self.high is not None and hi >= self.high
         hit_lo = self.low is not None and lo <= self.low
         if not (hit_hi or hit_lo):
-            return None
+            return img
+        if sums.excluded is None:
+            sums.excluded = self._zeros(_bits_dtype(sums.layout.steps))
+        bit = sums.excluded.dtype.type(1 << step)
+        if fast and img.dtype.kind == "u":
+            # One fused range test and one masked copy (OpenCV SIMD) instead of 4 NumPy passes.
+            top = np.iinfo(img.dtype).max
+            lo_keep = int(self.low) + 1 if hit_lo else 0
+            hi_keep = math.ceil(self.high) - 1 if hit_hi else top
+            kept = cv2.inRange(img, lo_keep, hi_keep)
+            np.bitwise_or(sums.excluded, bit, out=sums.excluded, where=kept == 0)
+            return cv2.bitwise_and(img, img, mask=kept)
         clip = img >= self.high if hit_hi else None
         if hit_lo:
             clip = img <= self.low if clip is None else clip | (img <= self.low)
-        return clip
+        sums.excluded |= clip.astype(sums.excluded.dtype) * bit
+        return xp.where(clip, xp.zeros((), dtype=img.dtype), img)
 
     def _add_cosine(self, sums: SetSums, step: int, img: Any) -> None:
         """a += v sin(psi), b += v cos(psi), s0 += v, squares += v^2 over the kept samples."""
-        clip = self._clipped(img)
-        if clip is not None:
-            img = self.xp.where(clip, self.xp.zeros((), dtype=img.dtype), img)
-            if sums.excluded is None:
-                sums.excluded = self._zeros(_bits_dtype(sums.layout.steps))
-            bit = sums.excluded.dtype.type(1 << step)
-            sums.excluded |= clip.astype(sums.excluded.dtype) * bit
+        img = self._exclude_clipped(sums, step, img)
         psi = sums.layout.psi[step]
         pairs = [(sums.a, math.sin(psi)), (sums.b, math.cos(psi))]
-        if sums.a2 is not None:
-            pairs += [(sums.a2, math.sin(2 * psi)), (sums.b2, math.cos(2 * psi))]
+        for j, k in enumerate(sums.harmonics):
+            pairs.append((sums.extra[2 * j], math.sin(k * psi)))
+            pairs.append((sums.extra[2 * j + 1], math.cos(k * psi)))
         pairs = [(acc, w) for acc, w in pairs if abs(w) > 1e-12]
         if self.xp is np and cv2 is not None:
             for acc, w in pairs:

@@ -147,6 +147,7 @@ class StreamingDecoder:
             "decoder": {
                 "noise": self._noise_kind,
                 "saturation_dn": acc.high,
+                "max_sample_dn": acc.max_seen if math.isfinite(acc.max_seen) else None,
                 "frame_dtype": str(acc.dtype),
                 "options": asdict(self.options),
             },
@@ -239,7 +240,7 @@ class StreamingDecoder:
         limit = xp.asarray(_chi2_tail(int(to_host(dof).max()) if dof.size else 0))
         excess = own > ptc(xp.maximum(fits[0].mean, 0.0)) * limit[dof.astype(xp.int64)]
         per_set = [xp.where(excess, own, ptc(xp.maximum(f.mean, 0.0))) for f in fits]
-        return per_set, lambda level: xp.where(excess, own, ptc(level))
+        return per_set, ptc  # the flats are not subject to the cosine-fit model error
 
     def _finish_chunk(self, sl: slice, axes: list[str], out: dict, reason: np.ndarray) -> None:
         """Decode one flattened pixel range into `out` and `reason`."""

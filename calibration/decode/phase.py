@@ -62,35 +62,44 @@ class SetFit:
         return xp.mod(phi * (period / (2.0 * math.pi)), period)
 
 
-def _normal_inverse(steps: int, excluded_mask: int, columns: int) -> tuple[np.ndarray, int]:
-    """Inverse normal matrix of the kept steps (NaN if too few or degenerate), and their count.
+def _normal_inverse(
+    steps: int, excluded_mask: int, harmonics: tuple[int, ...]
+) -> tuple[np.ndarray, int, int]:
+    """Inverse normal matrix of the kept steps, their count and the columns used.
 
-    Columns: 1, sin(psi), cos(psi) and, when `columns` is 5, sin(2 psi), cos(2 psi).
+    Columns: 1, sin(psi), cos(psi), then sin(k psi), cos(k psi) for each extra harmonic k.
+    When too few steps are kept for all of them, the highest harmonics are dropped (their
+    rows and columns of the returned, full-size matrix are zero); NaN when even the
+    fundamental cannot be fitted.
     """
     psi = 2.0 * np.pi * np.arange(steps) / steps
-    kept = [(excluded_mask >> i) & 1 == 0 for i in range(steps)]
-    basis = [np.ones(steps), np.sin(psi), np.cos(psi), np.sin(2 * psi), np.cos(2 * psi)]
-    rows = np.stack(basis[:columns], axis=1)[kept]
+    kept = np.array([(excluded_mask >> i) & 1 == 0 for i in range(steps)])
+    basis = [np.ones(steps)]
+    for k in (1, *harmonics):
+        basis += [np.sin(k * psi), np.cos(k * psi)]
+    full = len(basis)
+    rows = np.stack(basis, axis=1)[kept]
     n = int(rows.shape[0])
-    m = rows.T @ rows
-    if n < columns or np.linalg.cond(m) > _MAX_CONDITION:
-        return np.full((columns, columns), np.nan), n
-    return np.linalg.inv(m), n
+    for columns in range(full, 2, -2):
+        m = rows[:, :columns].T @ rows[:, :columns]
+        if n >= columns and np.linalg.cond(m) <= _MAX_CONDITION:
+            out = np.zeros((full, full))
+            out[:columns, :columns] = np.linalg.inv(m)
+            return out, n, columns
+    return np.full((full, full), np.nan), n, full
 
 
 def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     """Fit the cosine model of one period group on the flattened pixel range `sl`.
 
-    When the second-harmonic sums exist (residual-noise mode) the model includes the
-    second harmonic, so display gamma does not inflate the residual noise estimate; for
-    all steps kept it is orthogonal to the fundamental and leaves the phase unchanged.
+    The model also includes the set's extra harmonics (`harmonic_orders`): with all steps
+    kept they are orthogonal to the fundamental (phase unchanged), but they keep display
+    gamma out of the residual noise and, with clipped steps excluded, out of the phase.
     """
     n = sums.layout.steps
     flat = [x.reshape(-1)[sl].astype(xp.float64) for x in (sums.s0, sums.a, sums.b)]
-    if sums.a2 is not None:
-        flat += [x.reshape(-1)[sl].astype(xp.float64) for x in (sums.a2, sums.b2)]
+    flat += [x.reshape(-1)[sl].astype(xp.float64) for x in sums.extra]
     s0, a, b = flat[:3]
-    columns = len(flat)
     size = a.shape[0]
     full = xp.full(size, 2.0 / n)
     explained = s0**2 / n
@@ -104,7 +113,7 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
         c_bb=full.copy(),
         c_ab=xp.zeros(size),
         explained=explained,
-        dof=xp.full(size, float(n - columns)),
+        dof=xp.full(size, float(n - len(flat))),
         ok=xp.ones(size, dtype=bool),
     )
     if sums.excluded is None:
@@ -114,9 +123,10 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     if idx.shape[0] == 0:
         return fit
     uniq, inv = xp.unique(bits[idx], return_inverse=True)
-    tables = [_normal_inverse(n, int(u), columns) for u in to_host(uniq)]
+    tables = [_normal_inverse(n, int(u), sums.harmonics) for u in to_host(uniq)]
     minv = xp.asarray(np.stack([t[0] for t in tables]))[inv.reshape(-1)]  # (P, k, k)
-    kept = xp.asarray(np.array([t[1] for t in tables], dtype=np.float64))[inv.reshape(-1)]
+    counts = np.array([(t[1], t[2]) for t in tables], dtype=np.float64)
+    kept, used = (xp.asarray(c)[inv.reshape(-1)] for c in counts.T)
     rhs = xp.stack([f[idx] for f in flat], axis=1)
     p = xp.einsum("pij,pj->pi", minv, rhs)
     good = xp.isfinite(p).all(axis=1)
@@ -128,6 +138,6 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     fit.c_bb[idx] = xp.where(good, minv[:, 2, 2], 0.0)
     fit.c_ab[idx] = xp.where(good, minv[:, 1, 2], 0.0)
     fit.explained[idx] = (p * rhs).sum(axis=1)
-    fit.dof[idx] = xp.maximum(kept - columns, 0.0)
+    fit.dof[idx] = xp.maximum(kept - used, 0.0)
     fit.ok[idx] = good
     return fit

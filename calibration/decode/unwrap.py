@@ -20,9 +20,9 @@ from calibration.decode.arrays import special
 
 # Components closer than this many posterior sigmas form one peak.
 _MERGE_SIGMA = 2.0
-# Candidate orders around the nearest one (finer periods). Where an order two away would
-# still carry weight, the adjacent ones already carry far more than any ambiguity limit.
-_NEIGHBOURS = (-1, 0, 1)
+# Finer periods: the nearest tooth and its two neighbours are weighed. Where a tooth two
+# away would still carry weight, the neighbours already carry far more than any ambiguity
+# limit (or the comb is too wide to matter and all merge into one peak).
 
 
 @dataclass
@@ -63,25 +63,25 @@ def fuse_axis(
     var = sigmas[0] ** 2
     chi2 = xp.zeros_like(mu)
     dof = xp.zeros_like(mu)
-    offsets = xp.asarray(_NEIGHBOURS, dtype=mu.dtype)[:, None]
-    centre = _NEIGHBOURS.index(0)
     for c, sig, period, use in zip(positions[1:], sigmas[1:], periods[1:], usable[1:], strict=True):
         var_k = sig**2
         total = var + var_k
-        m0 = xp.rint((mu - c) / period)
-        d = mu[None, :] - (c[None, :] + (m0[None, :] + offsets) * period)  # (J, P)
-        logw = -0.5 * d**2 / total
-        w = xp.exp(logw - logw[centre])
+        d0 = mu - c - xp.rint((mu - c) / period) * period  # offset to the nearest tooth
         gain = var / total
-        centres = mu[None, :] - d * gain
         post_var = var * var_k / total
-        separated = xp.abs(centres - centres[centre]) > _MERGE_SIGMA * xp.sqrt(post_var)
-        near = xp.where(separated, 0.0, w)
-        amb_k = xp.where(separated, w, 0.0).sum(axis=0) / w.sum(axis=0)
-        norm = near.sum(axis=0)
-        new_mu = (near * centres).sum(axis=0) / norm
-        new_var = post_var + (near * (centres - new_mu) ** 2).sum(axis=0) / norm
-        chi2 = xp.where(use, chi2 + d[centre] ** 2 / total, chi2)
+        # Neighbouring teeth (orders -1, +1): weights relative to the nearest one. Their
+        # posterior centres sit period*gain away: separated peaks, or one merged peak.
+        w_lo = xp.exp(-(period * period + 2.0 * d0 * period) / (2.0 * total))
+        w_hi = xp.exp(-(period * period - 2.0 * d0 * period) / (2.0 * total))
+        norm = 1.0 + w_lo + w_hi
+        separated = period * gain > _MERGE_SIGMA * xp.sqrt(post_var)
+        amb_k = xp.where(separated, (w_lo + w_hi) / norm, 0.0)
+        step = period * gain  # posterior centres of teeth -1, +1 sit -step, +step from tooth 0
+        shift = (w_hi - w_lo) * step / norm
+        spread = (w_lo * (step + shift) ** 2 + w_hi * (step - shift) ** 2 + shift**2) / norm
+        new_mu = mu - d0 * gain + xp.where(separated, 0.0, shift)
+        new_var = post_var + xp.where(separated, 0.0, spread)
+        chi2 = xp.where(use, chi2 + d0**2 / total, chi2)
         dof = xp.where(use, dof + 1.0, dof)
         ambiguity = xp.where(use, ambiguity + amb_k - ambiguity * amb_k, ambiguity)
         mu = xp.where(use, new_mu, mu)

@@ -1,0 +1,193 @@
+"""Calibrate generic camera models (sgcc, sgcc-noncentral) from decoded maps.
+
+Entry point `calibrate_generic`; engineer D's dispatcher forwards these model names here.
+Options (dict, all optional): `cells` [cu, cv] (default 10x10), `max_iterations` (60),
+`huber_k` (3), `cut_sigmas` (8), `smooth` (1e-7, relative weight of the
+second-difference prior that only matters where there are no data).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from calibration.fit.result import CalibrationResult, PoseEstimate
+from calibration.fit.sgcc_init import initial_state, pose_from_model
+from calibration.fit.sgcc_lm import LMOptions, LMResult, LMState, PoseObs, run_lm
+from calibration.maps import DecodedMaps
+from calibration.models.bspline import SplineGrid
+from calibration.models.sgcc import DEFAULT_CELLS, SGCCBase, SGCCModel, SGCCNonCentralModel, expmap_jacobian
+from calibration.plan import ScreenGeometry
+
+GENERIC_MODELS = ("sgcc", "sgcc-noncentral")
+_OPTION_KEYS = {"cells", "max_iterations", "huber_k", "cut_sigmas", "smooth"}
+
+
+def observations(maps: Sequence[DecodedMaps], screen: ScreenGeometry) -> list[PoseObs]:
+    """Valid pixels of each pose with screen points and sigmas converted to mm."""
+    pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
+    out = []
+    for m in maps:
+        pix, scr, sig = m.correspondences()
+        ok = np.all(np.isfinite(scr), axis=1) & np.all(np.isfinite(sig) & (sig > 0), axis=1)
+        out.append(PoseObs(pix[ok], scr[ok] * pitch, sig[ok] * pitch))
+    return out
+
+
+def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMOptions]:
+    """Mesh cells and LM options from the user's dict; one-line errors for bad values."""
+    opts = dict(options or {})
+    unknown = set(opts) - _OPTION_KEYS
+    if unknown:
+        raise ValueError(f"options: unknown key(s) {sorted(unknown)} for generic models; known: {sorted(_OPTION_KEYS)}")
+    cells = opts.pop("cells", DEFAULT_CELLS)
+    if isinstance(cells, int):
+        cells = (cells, cells)
+    if len(cells) != 2 or not all(int(c) >= 1 for c in cells):
+        raise ValueError(f"options.cells: expected [cu, cv] positive integers, got {cells!r}")
+    lm = LMOptions(**{k: (int(v) if k == "max_iterations" else float(v)) for k, v in opts.items()})
+    if lm.max_iterations < 1:
+        raise ValueError(f"options.max_iterations: expected >= 1, got {lm.max_iterations}")
+    return (int(cells[0]), int(cells[1])), lm
+
+
+def pixel_residuals(model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs, res: np.ndarray) -> np.ndarray:
+    """Screen-plane residuals (N,2) mm mapped to camera pixels through the local Jacobian."""
+    comps, du, dv = model.components(ob.pixels, derivatives=True)
+    r, jr = expmap_jacobian(comps[:, :2])
+    o = np.zeros_like(r)
+    if model.n_components == 4:
+        o[:, :2] = comps[:, 2:]
+    o_s, r_s = o @ rc.T + tc, r @ rc.T
+    lam = -o_s[:, 2] / r_s[:, 2]
+    jac = np.empty((len(r), 2, 2))
+    for col, d in enumerate((du, dv)):
+        dr = rc @ np.einsum("nij,nj->ni", jr, d[:, :2]).T
+        dr = dr.T
+        do = np.zeros_like(r)
+        if model.n_components == 4:
+            do[:, :2] = d[:, 2:]
+        do = do @ rc.T
+        dlam = -(do[:, 2] + lam * dr[:, 2]) / r_s[:, 2]
+        jac[:, :, col] = do[:, :2] + lam[:, None] * dr[:, :2] + dlam[:, None] * r_s[:, :2]
+    return -np.linalg.solve(jac, res[..., None])[..., 0]
+
+
+def _fit(
+    cls: type[SGCCBase],
+    obs: list[PoseObs],
+    grid: SplineGrid,
+    init: LMState,
+    lm: LMOptions,
+    progress: Callable[[float, str], None] | None,
+    cancelled: Callable[[], bool] | None,
+) -> tuple[SGCCBase, LMResult]:
+    """Run LM and wrap the converged spline as a model with its covariance."""
+    out = run_lm(grid, cls.n_components, obs, init, lm, progress=progress, cancelled=cancelled)
+    model = cls(grid.image_size, grid.cells, out.state.coeffs)
+    ns = grid.size * cls.n_components
+    model.covariance = out.covariance[:ns, :ns]
+    return model, out
+
+
+def _heldout(model: SGCCBase, obs: list[PoseObs], lm: LMOptions) -> list[dict[str, Any]]:
+    """Pose-only fit of each held-out pose with the model fixed; its residual statistics."""
+    rows = []
+    fixed = LMOptions(max_iterations=lm.max_iterations, huber_k=lm.huber_k, cut_sigmas=lm.cut_sigmas, fix_spline=True)
+    for j, ob in enumerate(obs):
+        rc, tc = pose_from_model(model.unproject, ob)
+        out = run_lm(model.grid, model.n_components, [ob], LMState(model.coeffs, [rc], [tc]), fixed)
+        res, inl = out.residuals[0], out.inliers[0]
+        px = pixel_residuals(model, out.state.rc[0], out.state.tc[0], ob, res)
+        rows.append(
+            {
+                "pose": j,
+                "n_points": int(inl.sum()),
+                "rms_px": float(np.sqrt(np.mean(np.sum(px[inl] ** 2, axis=1)))),
+                "rms_screen_mm": float(np.sqrt(np.mean(np.sum(res[inl] ** 2, axis=1)))),
+                "chi2_dof": out.chi2_dof,
+            }
+        )
+    return rows
+
+
+def uncovered_cells(grid: SplineGrid, obs: list[PoseObs]) -> list[int]:
+    """Flat indices of spline cells that contain no decoded point in any pose."""
+    hit = np.zeros(grid.cells[0] * grid.cells[1], dtype=bool)
+    for ob in obs:
+        hit[grid.cell_of(ob.pixels[:, 0], ob.pixels[:, 1])] = True
+    return np.flatnonzero(~hit).tolist()
+
+
+def calibrate_generic(
+    maps: Sequence[DecodedMaps],
+    screen: ScreenGeometry,
+    model: str,
+    *,
+    options: dict[str, Any] | None = None,
+    heldout: Sequence[DecodedMaps] | None = None,
+    progress: Callable[[float, str], None] | None = None,
+    cancelled: Callable[[], bool] | None = None,
+) -> CalibrationResult:
+    """Fit an sGCC model (central or non-central) and its poses; statistics in `stats`."""
+    if model not in GENERIC_MODELS:
+        raise ValueError(f"model: expected one of {list(GENERIC_MODELS)}, got {model!r}")
+    if len(maps) < 3:
+        raise ValueError(f"maps: generic calibration needs >= 3 poses, got {len(maps)}")
+    shapes = {m.shape for m in maps}
+    if len(shapes) != 1:
+        raise ValueError(f"maps: all poses must have the same image size, got {sorted(shapes)}")
+    t0 = time.perf_counter()
+    cells, lm = _parse_options(options)
+    h, w = maps[0].shape
+    grid = SplineGrid((w, h), cells)
+    obs = observations(maps, screen)
+    for j, ob in enumerate(obs):
+        if len(ob.pixels) < 100:
+            raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
+    central_init = initial_state(obs, grid, 2)
+    fitted, out = _fit(SGCCModel, obs, grid, central_init, lm, progress, cancelled)
+    iterations = out.iterations
+    if model == "sgcc-noncentral":
+        coeffs = np.zeros((grid.size, 4))
+        coeffs[:, :2] = out.state.coeffs
+        init = LMState(coeffs, out.state.rc, out.state.tc)
+        fitted, out = _fit(SGCCNonCentralModel, obs, grid, init, lm, progress, cancelled)
+        iterations += out.iterations
+    poses, per_pose, res_px, pix_out = [], [], {}, {}
+    for j, ob in enumerate(obs):
+        rc, tc = out.state.rc[j], out.state.tc[j]
+        res, inl = out.residuals[j], out.inliers[j]
+        px = pixel_residuals(fitted, rc, tc, ob, res)
+        rms_px = float(np.sqrt(np.mean(np.sum(px[inl] ** 2, axis=1))))
+        rms_scr = float(np.sqrt(np.mean(np.sum((res[inl] / np.asarray(screen.pitch_mm)) ** 2, axis=1))))
+        poses.append(PoseEstimate(rc.T, -rc.T @ tc, rms_px, rms_scr, int(inl.sum())))
+        per_pose.append({"pose": j, "rms_px": rms_px, "rms_screen_px": rms_scr, "n_points": int(inl.sum()), "n_outliers": int((~inl).sum())})
+        res_px[j], pix_out[j] = px[inl], ob.pixels[inl]
+    all_px = np.concatenate([res_px[j] for j in res_px])
+    sample = np.stack(np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 25)), -1).reshape(-1, 2)
+    ang, org = fitted.ray_std(sample)
+    stats: dict[str, Any] = {
+        "model": model,
+        "rms_px": float(np.sqrt(np.mean(np.sum(all_px**2, axis=1)))),
+        "per_pose": per_pose,
+        "iterations": iterations,
+        "converged": out.converged,
+        "cost": out.cost,
+        "chi2_dof": out.chi2_dof,
+        "gauge_min_eig": out.min_eig,
+        "cells": list(grid.cells),
+        "uncovered_cells": uncovered_cells(grid, obs),
+        "ray_std_rad_median": float(np.median(ang)),
+        "ray_std_rad_max": float(np.max(ang)),
+        "origin_std_mm_median": float(np.median(org)),
+        "param_std": {"ray_angle_rad_median": float(np.median(ang))},
+    }
+    if heldout:
+        stats["heldout"] = _heldout(fitted, observations(heldout, screen), lm)
+    stats["wall_s"] = time.perf_counter() - t0
+    fitted.stats = stats
+    return CalibrationResult(fitted, poses, stats, pix_out, res_px)
