@@ -131,6 +131,9 @@ class RigConfig(_Strict):
     format: Literal["phasecal.rig/1"] = RIG_FORMAT
     kind: Literal["simulated", "hardware"] = "simulated"
     name: str | None = None
+    # Simulated rigs run on virtual time by default ("real": wall-clock pacing, e.g. for
+    # watching a demo); hardware rigs always use the real clock.
+    clock: Literal["virtual", "real"] | None = None
     screen: ScreenConfig = Field(default_factory=ScreenConfig)
     display: DisplayConfig = Field(default_factory=SimulatedPart)
     camera: CameraConfig = Field(default_factory=SimulatedPart)
@@ -156,6 +159,9 @@ class RigConfig(_Strict):
         if self.kind == "simulated" and len(sim) != 2:
             raise ValueError("kind 'simulated' uses the simulated display and camera; set "
                              "kind = 'hardware' to use real backends")
+        if self.kind == "hardware" and self.clock == "virtual":
+            raise ValueError("clock 'virtual' is only for simulated rigs (hardware runs in "
+                             "real time)")
         if self.kind == "hardware" and self.screen.pitch_mm is None:
             raise ValueError("screen.pitch_mm is missing: the monitor's pixel pitch in mm "
                              "(panel width in mm / width in px), required for real displays")
@@ -259,7 +265,8 @@ def open_camera(cfg: OpenCvConfig | AravisConfig, clock: Clock) -> Camera:
 def _open_simulated(config: RigConfig, clock: Clock | None) -> Rig:
     from hw_mocks.rig import SimulatedRig
 
-    sim = SimulatedRig.from_config(config.model_dump(mode="json"), clock=clock)
+    sim = SimulatedRig.from_config(config.model_dump(mode="json", exclude_none=True),
+                                   clock=clock)
     settings = config.settings.to_settings() if config.settings else sim.camera_settings
     return Rig(config, sim.display, sim.camera, sim.screen, sim.clock, settings, simulated=sim)
 

@@ -76,6 +76,7 @@ class PinholeCamera(TruthCamera):
     is_central: bool = field(default=True, init=False)
 
     def __post_init__(self) -> None:
+        """Validate and normalize the fields (errors name the field and what was expected)."""
         d = np.zeros(8)
         coeffs = np.asarray(self.dist, dtype=np.float64).ravel()
         if coeffs.size not in (4, 5, 8):
@@ -135,7 +136,9 @@ class PinholeCamera(TruthCamera):
 
     def undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Invert `distort` by vectorized Newton iteration (to ~1e-15 in normalized units)."""
-        x, y = xd.copy(), yd.copy()
+        rad0, _ = self._radial(xd * xd + yd * yd)
+        rad0 = np.where(rad0 > 0.2, rad0, 1.0)  # beyond a sane radial factor: start at xd
+        x, y = xd / rad0, yd / rad0  # one fixed-point step: saves a Newton iteration
         for _ in range(_NEWTON_ITERS):
             fx_, fy_, a, b, d = self._distort_with_jacobian(x, y)
             ex, ey = fx_ - xd, fy_ - yd
@@ -205,6 +208,7 @@ class EquidistantFisheye(TruthCamera):
     is_central: bool = field(default=True, init=False)
 
     def __post_init__(self) -> None:
+        """Validate and normalize the fields (errors name the field and what was expected)."""
         kk = np.asarray(self.k, dtype=np.float64).ravel()
         if kk.size != 4:
             raise ValueError(f"EquidistantFisheye.k: expected 4 coefficients, got {kk.size}")
@@ -227,6 +231,15 @@ class EquidistantFisheye(TruthCamera):
 
     def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coords -> (zero origins, unit directions); NaN outside the lens' FOV."""
+        d, theta = self.directions_unclipped(u, v)
+        d[theta > self._theta_max + 1e-12] = np.nan
+        return np.zeros_like(d), d
+
+    def directions_unclipped(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ray directions (...,3) and angles theta by the lens formula, ignoring the FOV.
+
+        NaN only where theta_d(theta) cannot be inverted (beyond the polynomial's range).
+        """
         du = (np.asarray(u, dtype=np.float64) - self.cx) / self.f
         dv = (np.asarray(v, dtype=np.float64) - self.cy) / self.f
         td = np.hypot(du, dv)
@@ -242,9 +255,9 @@ class EquidistantFisheye(TruthCamera):
             sphi = np.where(td > 0, dv / td, 0.0)
         st = np.sin(theta)
         d = np.stack([st * cphi, st * sphi, np.cos(theta)], axis=-1)
-        solved = np.abs(self._theta_d(theta)[0] - td) < 1e-12
-        d[~solved | (theta > self._theta_max + 1e-12)] = np.nan
-        return np.zeros_like(d), d
+        solved = (np.abs(self._theta_d(theta)[0] - td) < 1e-12) & (theta >= 0) & (theta < np.pi)
+        d[~solved] = np.nan
+        return d, theta
 
     def project_unclipped(self, points: np.ndarray) -> np.ndarray:
         """Projection by the lens formula for any direction, ignoring FOV and sensor limits."""
@@ -292,7 +305,7 @@ class Bump:
 
 @dataclass
 class NonCentralCamera(TruthCamera):
-    """A central base camera plus smooth direction (~1e-3 rad) and origin (~0.1 mm) deviations.
+    """A central base camera plus smooth direction (~1e-3 rad) and origin (~0.3 mm) deviations.
 
     With `bumps`, local Gaussian direction deviations put the ray field outside every
     parametric family (and outside coarse spline meshes).
@@ -305,6 +318,7 @@ class NonCentralCamera(TruthCamera):
     is_central: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
+        """Take the image size from the base camera."""
         self.width = self.base.width
         self.height = self.base.height
 
@@ -337,23 +351,33 @@ class NonCentralCamera(TruthCamera):
 
     def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coords -> (origins, unit directions): base ray tilted and displaced smoothly."""
+        o, d, imaged = self._rays_unclipped(u, v)
+        return np.where(imaged[..., None], o, np.nan), np.where(imaged[..., None], d, np.nan)
+
+    def _rays_unclipped(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(origins, directions, imaged): rays also beyond a fisheye base's FOV, and the mask."""
         u = np.asarray(u, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
-        _, d0 = self.base.rays(u, v)
+        if isinstance(self.base, EquidistantFisheye):
+            d0, theta = self.base.directions_unclipped(u, v)
+            imaged = theta <= np.radians(self.base.fov_deg) / 2 + 1e-12
+        else:
+            d0 = self.base.rays(u, v)[1]
+            imaged = np.isfinite(d0[..., 0])
         a, b = self._deviation(u, v)
-        # Tangent basis of the base direction: e1 ~ x, e2 = d0 x e1.
-        ex = np.zeros_like(d0)
-        ex[..., 0] = 1.0
-        e1 = _normalize(ex - np.sum(ex * d0, axis=-1, keepdims=True) * d0)
-        e2 = np.cross(d0, e1)
+        # Tangent basis of d0: the camera's x and y axes carried along the great circle
+        # from the optical axis to d0 (smooth everywhere except straight backwards).
+        dx, dy, dz = d0[..., 0], d0[..., 1], d0[..., 2]
+        c = 1.0 / (1.0 + dz)
+        e1 = np.stack([1 - dx * dx * c, -dx * dy * c, -dx], axis=-1)
+        e2 = np.stack([-dx * dy * c, 1 - dy * dy * c, -dy], axis=-1)
         d = _normalize(d0 + a[..., None] * e1 + b[..., None] * e2)
-        o = self._origin(u, v)
-        o = np.where(np.isnan(d), np.nan, o)
-        return o, d
+        o = np.where(np.isnan(d), np.nan, self._origin(u, v))
+        return o, d, imaged & np.isfinite(d[..., 0])
 
     def _residual(self, uv: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Base-pixel difference between the ray direction at uv and the direction to p."""
-        o, d = self.rays(uv[:, 0], uv[:, 1])
+        o, d, _ = self._rays_unclipped(uv[:, 0], uv[:, 1])
         base_proj = self._base_unclipped
         return base_proj(d) - base_proj(p - o)
 

@@ -26,7 +26,11 @@ def vignetting_map(camera: TruthCamera, falloff: float) -> np.ndarray:
 
 @dataclass
 class OpticalSetup:
-    """A camera looking at a screen: blur, pixel-area integration, vignetting, stray light."""
+    """A camera looking at a screen: blur, pixel-area integration, vignetting, stray light.
+
+    Ray casting is done once and cached; assigning a field resets the cache (replace a
+    pose rather than editing its arrays in place).
+    """
 
     camera: TruthCamera
     pose: ScreenPose
@@ -42,6 +46,7 @@ class OpticalSetup:
     _truth: dict[str, Any] | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
+        """Validate and normalize the fields (errors name the field and what was expected)."""
         if self.blur_sigma_screen_px < 0:
             raise ValueError(
                 f"blur_sigma_screen_px: expected >= 0, got {self.blur_sigma_screen_px}"
@@ -50,6 +55,12 @@ class OpticalSetup:
             raise ValueError("irradiance_scale must be > 0 and ambient >= 0 (electrons/s)")
         subpixel_offsets(self.supersample)  # validates supersample
         vignetting_map(self.camera, self.vignetting)  # validates vignetting
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Set a field; changing a public one (blur, pose, ...) drops the cached rendering state."""
+        super().__setattr__(name, value)
+        if not name.startswith("_") and getattr(self, "_sampler", None) is not None:
+            self._sampler = self._gain = self._visible = self._truth = None
 
     def _prepare(self) -> ScreenSampler:
         """Compute and cache the sub-sample screen points, the sampler and per-pixel gain."""

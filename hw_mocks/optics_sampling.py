@@ -28,7 +28,9 @@ def _blur_line(line: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """1-D blur with a dark (zero) surround beyond the screen's edge."""
     if kernel.size == 1:
         return line.astype(np.float32)
-    return np.convolve(line.astype(np.float64), kernel, mode="same").astype(np.float32)
+    half = kernel.size // 2  # "full" then slice: also right when the kernel outgrows the line
+    full = np.convolve(line.astype(np.float64), kernel, mode="full")
+    return full[half : half + line.size].astype(np.float32)
 
 
 def _padded_line(line: np.ndarray) -> np.ndarray:
@@ -78,9 +80,19 @@ class ScreenSampler:
         a = np.take(padded, i0)
         return a + f * (np.take(padded[1:], i0) - a)
 
+    def _checked(self, image: np.ndarray) -> np.ndarray:
+        """The image as float32, after checking it has the screen's shape."""
+        img = np.asarray(image, dtype=np.float32)
+        expected = (self.screen.height_px, self.screen.width_px)
+        if img.shape != expected:
+            raise ValueError(
+                f"display image: expected shape {expected} (screen height, width), got {img.shape}"
+            )
+        return img
+
     def blurred(self, image: np.ndarray) -> np.ndarray:
         """The full screen image after the optical blur (float32, dark beyond the edges)."""
-        img = np.asarray(image, dtype=np.float32)
+        img = self._checked(image)
         if self.kernel.size == 1:
             return img
         k = self.kernel.astype(np.float32)
@@ -88,12 +100,7 @@ class ScreenSampler:
 
     def _fine(self, image: np.ndarray) -> np.ndarray:
         """Blurred image sampled at every sub-sample (H*s, W*s) float32."""
-        img = np.asarray(image, dtype=np.float32)
-        expected = (self.screen.height_px, self.screen.width_px)
-        if img.shape != expected:
-            raise ValueError(
-                f"display image: expected shape {expected} (screen height, width), got {img.shape}"
-            )
+        img = self._checked(image)
         if np.array_equal(img[-1], img[0]) and np.array_equal(
             img, np.broadcast_to(img[0], img.shape)
         ):

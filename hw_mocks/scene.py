@@ -22,6 +22,7 @@ class ScreenPose:
     translation: np.ndarray
 
     def __post_init__(self) -> None:
+        """Validate and normalize the fields (errors name the field and what was expected)."""
         r = np.asarray(self.rotation, dtype=np.float64)
         t = np.asarray(self.translation, dtype=np.float64).ravel()
         if r.shape != (3, 3) or t.shape != (3,):

@@ -21,6 +21,7 @@ class SensorModel:
     exact_poisson: bool = True  # False: Gaussian approximation of shot noise (faster)
 
     def __post_init__(self) -> None:
+        """Validate and normalize the fields (errors name the field and what was expected)."""
         if self.bit_depth not in _BIT_DEPTHS:
             raise ValueError(f"bit_depth: expected one of {_BIT_DEPTHS}, got {self.bit_depth}")
         if self.full_well_e <= 0 or self.read_noise_e < 0:

@@ -97,7 +97,8 @@ def render_plan_frames(
     The display turns codes (from `render_frame`, pre-compensated by `lut` if given)
     into linear light as (code/top)**display_gamma (None: a linear display). truth adds
     to `setup.truth()` the noise-free mean DN and the sensor's noise sigma per frame
-    (float32 (F,H,W)) and `saturated`, pixels reaching the full well or top DN in any frame.
+    (float32 (F,H,W)) and `saturated`, pixels whose mean comes within 3 sigma of the
+    full well or the top DN in some frame (their samples may be clipped).
     """
     plan_size = (plan.screen.width_px, plan.screen.height_px)
     if plan_size != (setup.screen.width_px, setup.screen.height_px):
@@ -114,7 +115,7 @@ def render_plan_frames(
     means = np.empty((n, h, w), dtype=np.float32)
     sigmas = np.empty((n, h, w), dtype=np.float32)
     saturated = np.zeros((h, w), dtype=bool)
-    full_well_dn = sensor.mean_dn(np.array(sensor.full_well_e), 1.0, gain_db)
+    clip_dn = min(float(sensor.mean_dn(np.array(sensor.full_well_e), 1.0, gain_db)), sensor.max_dn)
     for i in range(n):
         codes = render_frame(
             plan, i, bit_depth=bit_depth_display, response=lut, dither=dither, rng=rng
@@ -127,7 +128,7 @@ def render_plan_frames(
         frames[i] = sensor.expose(irradiance, exposure_s, gain_db, rng)
         means[i] = mean
         sigmas[i] = sensor.noise_sigma_dn(mean, gain_db)
-        saturated |= mean >= min(float(full_well_dn), sensor.max_dn - 0.5)
+        saturated |= mean + 3.0 * sigmas[i] >= clip_dn
     truth = setup.truth()
     truth.update(
         {

@@ -26,12 +26,17 @@ W, H = 160, 120
 SCREEN = ScreenGeometry(320, 240, (0.5, 0.5))
 
 
-def small_rig(real_time: bool = False) -> dict:
-    """A simulated rig with a small mild-pinhole camera and a small screen."""
-    cfg = demo_rig_config(W, H, camera="mild_pinhole", screen=SCREEN)
-    if real_time:
-        cfg["clock"] = "real"
-    return cfg
+def small_rig(slow: bool = False) -> dict:
+    """A simulated rig with a small mild-pinhole camera and a small screen.
+
+    `slow`: 640x480 with 4x4 supersampled rendering (~0.1-0.2 s a frame), so that a
+    capture runs long enough to be cancelled or killed mid-sequence.
+    """
+    if slow:
+        cfg = demo_rig_config(640, 480, camera="mild_pinhole", screen=SCREEN)
+        cfg["camera"]["supersample"] = 4
+        return cfg
+    return demo_rig_config(W, H, camera="mild_pinhole", screen=SCREEN)
 
 
 def truth_camera():
@@ -73,7 +78,7 @@ def captured(client: PhasecalClient, session: dict) -> list[str]:
     for pose in screen_poses(4, seed=11):
         job = client.wait(client.post(f"/sessions/{session['id']}/poses",
                                       {"screen_pose": pose}), timeout_s=300)
-        assert job["status"] == "succeeded", job
+        assert job["status"] == "succeeded", job["error"]
         ids.append(job["resource"].rsplit("/", 1)[-1])
     return ids
 
@@ -83,7 +88,7 @@ def test_capture_poses(client: PhasecalClient, session: dict, captured: list[str
     assert [p["id"] for p in poses] == captured
     for p in poses:
         assert p["status"] == "ready" and p["source"] == "capture"
-        assert (p["width"], p["height"]) == (W, H) and p["valid_pixels"] > 0.2 * W * H
+        assert (p["width"], p["height"]) == (W, H) and p["valid_pixels"] > 0.1 * W * H
         assert p["frames_done"] == session["frame_count"]
     data = client.request("GET", f"/sessions/{session['id']}/poses/{captured[0]}/maps.npz")
     maps = load_maps(data.content)
@@ -96,7 +101,7 @@ def test_calibrate_export_project(client: PhasecalClient, session: dict,
                       {"model": "opencv5", "pose_ids": captured[:3],
                        "heldout_pose_ids": captured[3:]})
     final = client.wait(job, timeout_s=300)
-    assert final["status"] == "succeeded", final
+    assert final["status"] == "succeeded", final["error"]
     cal = client.get(final["resource"])
     assert cal["stats"]["rms_px"] < 0.5
     for name in ("model.json", "result.json", "opencv.yaml", "camera_info.yaml", "residuals.png"):
@@ -119,7 +124,7 @@ def test_calibrate_export_project(client: PhasecalClient, session: dict,
 
 
 def test_cancel_and_resume(client: PhasecalClient, server: ServerProcess) -> None:
-    rig = client.post("/rigs", {"name": "slow", "config": small_rig(real_time=True)})
+    rig = client.post("/rigs", {"name": "slow", "config": small_rig(slow=True)})
     sess = client.post("/sessions", {"rig_id": rig["id"], "preset": "fast"})
     job = client.post(f"/sessions/{sess['id']}/poses", {"screen_pose": screen_poses(1, 5)[0]})
     _wait_until(client, job["id"], lambda j: j["stage"] == "capture" and j["done"] >= 3)
@@ -129,7 +134,7 @@ def test_cancel_and_resume(client: PhasecalClient, server: ServerProcess) -> Non
     pose = client.get(final["resource"])
     assert pose["status"] == "cancelled"
     again = client.wait(client.post(f"{final['resource']}/resume"), timeout_s=300)
-    assert again["status"] == "succeeded", again
+    assert again["status"] == "succeeded", again["error"]
     assert again["result"]["capture"]["resumed_from"] >= 3
     assert client.get(final["resource"])["status"] == "ready"
 
@@ -150,7 +155,7 @@ def test_restart_recovery(tmp_path) -> None:
     srv.start()
     c = PhasecalClient(srv.url)
     try:
-        rig = c.post("/rigs", {"name": "rt", "config": small_rig(real_time=True)})
+        rig = c.post("/rigs", {"name": "rt", "config": small_rig(slow=True)})
         sess = c.post("/sessions", {"rig_id": rig["id"], "preset": "fast"})
         done = c.wait(c.post(f"/sessions/{sess['id']}/poses",
                              {"screen_pose": screen_poses(2, 9)[0]}), timeout_s=300)
@@ -172,7 +177,7 @@ def test_restart_recovery(tmp_path) -> None:
         with pytest.raises(ServiceError, match="409"):
             c.post(f"{done['resource']}/resume")
         resumed = c.wait(c.post(f"{j['resource']}/resume"), timeout_s=300)
-        assert resumed["status"] == "succeeded", resumed
+        assert resumed["status"] == "succeeded", resumed["error"]
         assert resumed["result"]["capture"]["resumed_from"] >= 3
         assert c.get(j["resource"])["status"] == "ready"
     finally:

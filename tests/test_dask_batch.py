@@ -3,6 +3,7 @@ as in-process, failed items recorded, cancel, and the `phasecal batch` command."
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import sys
@@ -47,6 +48,19 @@ def fake_calibrate(ctx: TaskContext, plan_path: str, maps_paths: list[str], mode
     np.save(tmp, coef)
     os.replace(tmp, Path(out_dir) / "coef.npy")
     return {"pid": os.getpid(), "rms": float(np.std(data[:, 1] - np.polyval(coef, data[:, 0])))}
+
+
+def json_numbers_close(a: object, b: object, rtol: float = 1e-9) -> bool:
+    """Same JSON tree with numbers equal to `rtol` (worker processes may round the last
+    bit differently, e.g. through array alignment in SIMD reductions)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(json_numbers_close(a[k], b[k], rtol) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(
+            json_numbers_close(x, y, rtol) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float | int) and isinstance(b, float | int) and not isinstance(a, bool):
+        return bool(np.isclose(a, b, rtol=rtol, atol=0.0, equal_nan=True))
+    return a == b
 
 
 def _write_sessions(root: Path, n_sessions: int) -> Path:
@@ -170,3 +184,37 @@ def test_cli_rejects_mixed_arguments(tmp_path, capsys):
     rc = cli_main(["batch", "--manifest", "m.json", "--plan", "p.json", "-o", str(tmp_path)])
     assert rc == 1
     assert "either --manifest or --plan" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(
+    any(importlib.util.find_spec(m) is None
+        for m in ("calibration.fit.dispatch", "calibration.export", "calibration.report")),
+    reason="the calibration pipeline (fit.dispatch, export, report) is not complete yet")
+def test_cli_batch_on_local_cluster_matches_in_process(tmp_path, capsys):
+    from acquisition.patterns import build_plan
+    from calibration.maps import save_maps
+    from calibration.plan import write_plan
+    from hw_mocks.cameras import mild_pinhole
+    from hw_mocks.poses import random_poses
+    from hw_mocks.synthetic import synthetic_maps
+
+    plan = build_plan(1920, 1080, 0.2745)
+    write_plan(plan, tmp_path / "plan.json")
+    camera = mild_pinhole(320, 240)
+    rng = np.random.default_rng(5)
+    maps = []
+    for k, pose in enumerate(random_poses(camera, plan.screen, 4, rng)):
+        m, _ = synthetic_maps(camera, pose, plan.screen, sigma_px=0.05, rng=rng)
+        save_maps(m, tmp_path / f"pose{k}.npz")
+        maps.append(str(tmp_path / f"pose{k}.npz"))
+    common = ["batch", "--plan", str(tmp_path / "plan.json"), "--maps", *maps,
+              "--model", "opencv5", "opencv-rational"]
+    assert cli_main([*common, "--executor", "inprocess", "-o", str(tmp_path / "a")]) == 0
+    assert cli_main([*common, "--executor", "local:2", "-o", str(tmp_path / "b")]) == 0
+    assert "2 succeeded, 0 failed" in capsys.readouterr().out
+    for model in ("opencv5", "opencv-rational"):
+        a = json.loads((tmp_path / "a" / "session" / model / "model.json").read_text())
+        b = json.loads((tmp_path / "b" / "session" / model / "model.json").read_text())
+        assert json_numbers_close(a, b), model
+    summary = json.loads((tmp_path / "b" / "batch.json").read_text())
+    assert [i["status"] for i in summary["items"]] == ["succeeded", "succeeded"]

@@ -28,6 +28,7 @@ SCENES = {
     "fisheye": ("fisheye", 1.0, 0.03, SENSOR12, None, False, 4),
     "gamma_nolut": ("pinhole", 0.0, 0.04, SENSOR12, 2.2, False, 5),
     "gamma_lut": ("pinhole", 0.0, 0.04, SENSOR12, 2.2, True, 6),
+    "overexposed": ("pinhole", 0.0, 0.07, SENSOR12, None, False, 7),
 }
 HONEST = ("sharp_bright", "blur3_dim", "blur6_8bit", "fisheye")
 
@@ -118,6 +119,19 @@ def test_display_gamma_phase_error_near_noise_floor(name, limit):
         assert 0.8 <= (err / sig).std() <= 1.25
     for model_noise in (True, False):
         assert decoded(name, model_noise).mask.sum() > 0.9 * scene(name)[1]["visible"].sum()
+
+
+def test_overexposed_samples_excluded_with_sensor_model():
+    """Bright pixels clip at the full well (read noise spreads them just below 4095)."""
+    stack, truth, sensor = scene("overexposed")
+    assert (stack >= 0.98 * sensor.max_dn).mean() > 0.05
+    maps = decoded("overexposed", True)
+    assert maps.mask.sum() > 0.9 * truth["visible"].sum()
+    assert truth["saturated"][maps.mask].mean() > 0.3
+    for err, sig in errors("overexposed", True):
+        z = err / sig
+        assert 0.8 <= z.std() <= 1.25 and abs(z.mean()) <= 0.1
+        assert np.sum(np.abs(z) > 5) / z.size < 1e-4
 
 
 @pytest.mark.parametrize("name", ["blur3_dim", "blur6_8bit"])

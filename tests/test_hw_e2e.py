@@ -1,8 +1,8 @@
-"""Whole pose sequences through real stacks, decoded and compared with the simulated path.
+"""Whole pose sequences through real stacks, run by the controller, decoded and compared.
 
-Aravis: patterns go to a file-backed framebuffer (the real mmap path); the GigE Vision
-fake camera (real Aravis stack on loopback) renders what that framebuffer holds through
-the hw_mocks optics and sensor; the camera backend triggers, grabs and decodes.
+Aravis: the controller shows patterns on a file-backed framebuffer (the real mmap path);
+the GigE Vision fake camera (real Aravis stack on loopback) renders what that framebuffer
+holds through the hw_mocks optics and sensor; latency is measured by the setup helper.
 OpenCV: the simulated frames recorded as 16-bit PNGs replay through cv2.VideoCapture.
 Both are decoded and compared with the simulated path and with ground truth.
 """
@@ -10,12 +10,14 @@ Both are decoded and compared with the simulated path and with ground truth.
 from __future__ import annotations
 
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from acquisition.clock import RealClock
+from acquisition.controller import ControllerOptions, capture_pose
 from acquisition.display.framebuffer import FramebufferDisplay, FramebufferGeometry
 from acquisition.patterns import build_plan, render_frame
 from acquisition.protocols import CameraSettings
@@ -27,11 +29,11 @@ from hw_mocks.poses import look_at_pose
 from hw_mocks.sensor import SensorModel
 from hw_mocks.synthetic import render_plan_frames
 from tests.hw_aravis_support import fake_camera_lock, require_aravis
-from tests.hw_sequence import run_sequence
 
 CAM_W, CAM_H = 80, 60
 SCREEN_W, SCREEN_H, PITCH = 160, 120, 0.5
 EXPOSURE_S = 0.02
+FAKE_TRIGGER_LATENCY_S = 0.045
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +46,26 @@ def world():
                          irradiance_scale=1.5e6)
     sensor = SensorModel(bit_depth=16, full_well_e=60000.0, read_noise_e=4.0)
     return plan, setup, sensor
+
+
+def run_pose(plan, display, camera, settings: CameraSettings, options: ControllerOptions):
+    """The controller captures one pose on these devices; returns the frame stack."""
+    rig = Rig(display=display, camera=camera, clock=RealClock(), settings=settings)
+    store = MemoryFrameStore()
+    result = capture_pose(rig, plan, store, options=options)
+    assert result.status == "complete", result.reason
+    return store.stack(len(plan.frames)), result
+
+
+@dataclass
+class Rig:
+    """The parts of a rig the controller uses."""
+
+    display: object
+    camera: object
+    clock: object
+    settings: CameraSettings
+    trigger: object = None
 
 
 def simulated_maps(world, seed: int):
@@ -82,12 +104,14 @@ def test_opencv_replay_of_recorded_frames_decodes_like_the_simulation(world, tmp
     fb.write_bytes(bytes(geo.size_bytes))
     display = FramebufferDisplay(fb, geometry=geo)
     try:
-        store = run_sequence(plan, display, cam, CameraSettings(pixel_format="Mono16"))
+        settings = CameraSettings(pixel_format="Mono16", trigger_mode="software")
+        # A recording has no display latency to measure and cannot re-capture references.
+        replayed, _ = run_pose(plan, display, cam, settings,
+                               ControllerOptions(latency_s=0.0, integrity=False, dither=None))
     finally:
         cam.close()
         display.close()
         fb.unlink()
-    replayed = store.stack(len(plan.frames))
     np.testing.assert_array_equal(replayed, frames)  # bit-exact through cv2.VideoCapture
     maps = decode_stack(plan, replayed, noise=sensor)
     np.testing.assert_array_equal(maps.mask, maps_sim.mask)
@@ -121,14 +145,19 @@ def test_aravis_fake_camera_sequence_decodes_like_the_simulation(world):
             cam._cam.set_region(0, 0, CAM_W, CAM_H)
             settings = CameraSettings(exposure_s=EXPOSURE_S, pixel_format="Mono16",
                                       trigger_mode="software")
-            store = run_sequence(plan, display, cam, settings)
+            # Latency measured by the setup helper; integrity references re-captured. The
+            # fake polls for software triggers once per frame period (40 ms at its 25 Hz),
+            # so an exposure can start that long after the trigger.
+            options = ControllerOptions(dither=None, grab_timeout_s=2.0,
+                                        trigger_overhead_s=FAKE_TRIGGER_LATENCY_S)
+            stack, result = run_pose(plan, display, cam, settings, options)
         finally:
             cam.close()
             display.close()
             fake.stop()
             fb.unlink()
     assert fake.last_error is None
-    stack = store.stack(len(plan.frames))
+    assert result.latency_s == 0.0  # the fake sees the framebuffer memory at once
     maps = decode_stack(plan, stack, noise=sensor)
     _, maps_sim = simulated_maps(world, seed=4)
     assert_maps_agree(maps, maps_sim, setup.truth())
@@ -147,3 +176,50 @@ def test_render_frame_reaches_the_framebuffer_bytes(world):
     fb.unlink()
     np.testing.assert_array_equal(mem[:, :, 1], img)
     assert MemoryFrameStore  # the sink type the sequences fill
+
+
+def test_check_command_on_the_aravis_rig(world, capsys):
+    """`phasecal check`'s checks (the controller's setup helpers) through the real stack."""
+    require_aravis()
+    from acquisition.camera.aravis_camera import AravisCamera
+    from acquisition.camera.aravis_fake import FakeGigECamera
+    from api.commands.check import _print, check_rig
+
+    plan, setup, sensor = world
+    geo = FramebufferGeometry.standard(SCREEN_W, SCREEN_H, 32, refresh_hz=120.0)
+    fb = Path(tempfile.mktemp(prefix="phasecal-fb-", dir="/dev/shm"))
+    fb.write_bytes(bytes(geo.size_bytes))
+    screen_memory = np.memmap(fb, np.uint8, "r", shape=(SCREEN_H, SCREEN_W, 4))
+    gamma = 2.2  # the "monitor" of this rig is non-linear: check must find it
+    rng = np.random.default_rng(6)
+
+    def light_from_screen(req):
+        linear = (screen_memory[:, :, 0].astype(np.float32) / 255.0) ** gamma
+        irradiance = setup.render_irradiance(linear)
+        return sensor.expose(irradiance, req.exposure_us * 1e-6, float(req.gain), rng)
+
+    with fake_camera_lock():
+        fake = FakeGigECamera("PHASECAL-CHECK", light_from_screen)
+        display = FramebufferDisplay(fb, geometry=geo, clock=RealClock())
+        cam = AravisCamera("127.0.0.1", clock=RealClock())
+        try:
+            cam._cam.set_region(0, 0, CAM_W, CAM_H)
+            settings = CameraSettings(exposure_s=0.005, pixel_format="Mono16",
+                                      trigger_mode="software")
+            found = check_rig(Rig(display, cam, RealClock(), settings), target=0.7)
+        finally:
+            cam.close()
+            display.close()
+            fake.stop()
+            fb.unlink()
+    assert found["latency"]["periods"] == 0 and found["latency"]["violations"] == 0
+    assert abs(found["exposure"]["fraction_of_max"] - 0.7) <= 0.05 * 0.7
+    flats = found["flats"]
+    visible = setup.truth()["visible"].mean()
+    assert abs(flats["screen_fraction"] - visible) < 0.05
+    assert flats["saturated_fraction"] == 0.0
+    assert "error" not in found["display_response"], found["display_response"]
+    assert found["display_response"]["gamma"] == pytest.approx(gamma, abs=0.15)
+    _print(found)
+    out = capsys.readouterr().out
+    assert "latency: 0 refresh periods" in out and "gamma ~2." in out

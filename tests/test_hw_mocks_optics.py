@@ -11,6 +11,7 @@ from calibration.maps import load_maps
 from calibration.plan import CosineFrame, Plan, ScreenGeometry
 from hw_mocks.cameras import (
     EquidistantFisheye,
+    NonCentralCamera,
     PinholeCamera,
     TruthCamera,
     make_truth_camera,
@@ -35,6 +36,7 @@ CAMERAS = {
     "fisheye": lambda: wide_fisheye(W, H),
     "noncentral": lambda: smooth_noncentral(W, H),
     "noncentral_bumps": lambda: smooth_noncentral(W, H, bumps=True),
+    "noncentral_fisheye": lambda: NonCentralCamera(wide_fisheye(W, H, fov_deg=170.0)),
 }
 
 
@@ -80,7 +82,7 @@ def test_rays_project_round_trip(name: str) -> None:
         err = np.hypot(uv[:, 0] - u[ok], uv[:, 1] - v[ok])
         assert np.all(np.isfinite(err))
         assert err.max() < 1e-8
-    assert cam.is_central == (name not in ("noncentral", "noncentral_bumps"))
+    assert cam.is_central == (not name.startswith("noncentral"))
 
 
 def test_pinhole_matches_opencv_projection() -> None:
@@ -269,11 +271,12 @@ def test_rendered_cosine_decodes_to_truth_without_bias() -> None:
     )
     nphase, nmod = _decode(frames.astype(np.float64), steps)
     err = _wrap_px(nphase, truth["x_true"], period)[inner]
-    sigma_v = ft["noise_sigma_dn"].mean(axis=0)[inner]
+    # Shot noise varies with the pattern; the phase error sees the RMS over the steps.
+    sigma_v = np.sqrt(np.mean(ft["noise_sigma_dn"].astype(np.float64) ** 2, axis=0))[inner]
     predicted = period / (2 * np.pi) * np.sqrt(2 / steps) * sigma_v / nmod[inner]
     assert np.abs(bias).max() < 0.1 * np.median(predicted)
     assert abs(np.mean(err)) < 0.1 * np.median(predicted)
-    assert np.std(err / predicted) == pytest.approx(1.0, abs=0.1)
+    assert np.std(err / predicted) == pytest.approx(1.0, abs=0.06)
 
 
 def _line(period: float, step: int, steps: int) -> np.ndarray:
@@ -452,6 +455,7 @@ def test_render_plan_frames_with_gamma_and_lut() -> None:
     ok = truth["edge_distance_px"] > 2 * finest.period_px
 
     def phase_error(stack: np.ndarray) -> float:
+        """RMS decoded-minus-true position (screen px) of the finest x period."""
         sub = stack[list(finest.frame_indices)].astype(np.float64)
         phase, _ = _decode(sub, finest.steps)
         return float(np.sqrt(np.mean(_wrap_px(phase, truth["x_true"], finest.period_px)[ok] ** 2)))
@@ -462,3 +466,28 @@ def test_render_plan_frames_with_gamma_and_lut() -> None:
     assert phase_error(fixed["mean_dn"]) < 0.3 * phase_error(truth["mean_dn"])
     with pytest.raises(ValueError, match="screen"):
         render_plan_frames(plan, _frontal_setup(cam), sensor, **kw)
+
+
+def test_render_plan_frames_flags_saturation() -> None:
+    small = ScreenGeometry(320, 180, (1.6, 1.6))
+    plan = build_plan(320, 180, 1.6, preset="fast")
+    setup = OpticalSetup(mild_pinhole(40, 30), look_at_pose(small, distance_mm=250.0), small)
+    sensor = SensorModel(bit_depth=8, full_well_e=5000)
+    frames, truth = render_plan_frames(
+        plan, setup, sensor, exposure_s=0.2, rng=np.random.default_rng(0)
+    )
+    white = plan.flat_indices(1.0)[0]
+    assert truth["saturated"].all() and (frames[white] == 255).all()
+    _, ok = render_plan_frames(plan, setup, sensor, exposure_s=0.005, rng=np.random.default_rng(0))
+    assert not ok["saturated"].any()
+
+
+def test_changing_a_setup_field_resets_its_cache() -> None:
+    setup = _frontal_setup(mild_pinhole(40, 30), vignetting=0.0)
+    img = np.broadcast_to(_line(8.0, 0, 4), (360, 640))
+    sharp = setup.render_irradiance(img)
+    setup.blur_sigma_screen_px = 4.0
+    soft = setup.render_irradiance(img)
+    assert soft.std() < 0.5 * sharp.std()
+    setup.pose = look_at_pose(SCREEN, distance_mm=5000.0)
+    assert not setup.truth()["visible"].all()

@@ -52,13 +52,20 @@ def test_png_sequence_16bit_replays_exactly(tmp_path: Path) -> None:
     frames = _frames(4, 12, 10, np.uint16)
     cam = OpenCvCamera(write_sequence(tmp_path / "seq", frames))
     assert cam.info.bit_depth == 16 and cam.info.pixel_formats == ("Mono16",)
-    assert cam.configure(CameraSettings(pixel_format="Mono16")).pixel_format == "Mono16"
+    applied = cam.configure(CameraSettings(pixel_format="Mono16", trigger_mode="software"))
+    assert applied.pixel_format == "Mono16"
     cam.start()
-    got = [cam.grab(1.0) for _ in range(4)]
+    got = []
+    for _ in range(4):
+        cam.trigger()
+        got.append(cam.grab(1.0))
     for f, want in zip(got, frames, strict=True):
         assert f.image.dtype == np.uint16
         np.testing.assert_array_equal(f.image, want)
     assert [f.sequence for f in got] == [1, 2, 3, 4]
+    with pytest.raises(CameraTimeout, match="one frame per software trigger"):
+        cam.grab(0.1)  # nothing triggered
+    cam.trigger()
     with pytest.raises(CameraTimeout, match="recording exhausted after 4 frames"):
         cam.grab(0.1)
     cam.close()
@@ -68,7 +75,11 @@ def test_ffv1_video_replays_exactly_as_grey(tmp_path: Path) -> None:
     frames = _frames(5, 16, 24, np.uint8)
     cam = OpenCvCamera(write_ffv1(tmp_path / "rec.mkv", frames))
     cam.start()
-    for want in frames:
+    cam.trigger()
+    cam.trigger()
+    assert cam.flush() == 2  # triggered but never grabbed: dropped, never returned later
+    for want in frames[2:]:
+        cam.trigger()
         img = cam.grab(1.0).image
         assert img.ndim == 2 and img.dtype == np.uint8
         np.testing.assert_array_equal(img, want)
@@ -77,10 +88,11 @@ def test_ffv1_video_replays_exactly_as_grey(tmp_path: Path) -> None:
 
 def test_recording_settings_are_checked(tmp_path: Path) -> None:
     cam = OpenCvCamera(write_sequence(tmp_path / "s", _frames(1, 4, 4, np.uint8)))
-    with pytest.raises(DeviceSettingsError, match="trigger_mode 'software'"):
-        cam.configure(CameraSettings(trigger_mode="software"))
+    assert cam.info.trigger_modes == ("software",)
+    with pytest.raises(DeviceSettingsError, match="trigger_mode 'free-running'"):
+        cam.configure(CameraSettings(trigger_mode="free-running"))
     with pytest.raises(DeviceSettingsError, match="holds Mono8"):
-        cam.configure(CameraSettings(pixel_format="Mono16"))
+        cam.configure(CameraSettings(pixel_format="Mono16", trigger_mode="software"))
     cam.close()
     with pytest.raises(CameraDisconnected, match="does not exist"):
         OpenCvCamera(str(tmp_path / "missing.mkv"))
@@ -90,6 +102,7 @@ def test_free_running_replay_flush_and_timeout(tmp_path: Path) -> None:
     frames = _frames(40, 8, 8, np.uint8)
     cam = OpenCvCamera(write_ffv1(tmp_path / "r.mkv", frames), replay_rate_hz=100.0,
                        buffers=2, clock=RealClock())
+    assert cam.info.trigger_modes == ("free-running",)
     cam.configure(CameraSettings(exposure_s=0.001))
     cam.start()
     first = cam.grab(1.0)

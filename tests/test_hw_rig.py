@@ -9,7 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.rig import RigConfig, RigConfigError, load_rig_config, open_rig
+from acquisition.rig import (
+    RigConfig,
+    RigConfigError,
+    load_rig_config,
+    open_rig,
+    parse_rig_config,
+)
 from api.cli import main
 from tests.test_hw_opencv import write_sequence
 
@@ -42,6 +48,7 @@ source = "{frames}"
 [settings]
 exposure_s = 0.005
 pixel_format = "Mono16"
+trigger_mode = "software"
 {extra}
 """
 
@@ -72,6 +79,7 @@ def test_open_hardware_rig_from_toml(tmp_path: Path, fb_path: Path) -> None:
         rig.display.show(np.full((24, 32), 77, np.uint8))
         assert np.fromfile(fb_path, np.uint8)[:4].tolist() == [77, 77, 77, 0]
         rig.camera.start()
+        rig.camera.trigger()
         np.testing.assert_array_equal(rig.camera.grab(1.0).image, frames[0])
     finally:
         rig.close()
@@ -166,3 +174,28 @@ def test_devices_command_json(capsys, monkeypatch) -> None:
     assert data[0]["backend"] == "simulated" and data[0]["config"] == {"kind": "simulated"}
     assert main(["devices"]) == 0
     assert "simulated" in capsys.readouterr().out
+
+
+def test_simulated_rig_is_the_default() -> None:
+    rig = open_rig(RigConfig())
+    try:
+        assert rig.simulated is not None and rig.camera is rig.simulated.camera
+        assert rig.screen == rig.simulated.screen
+        assert rig.display.info.width_px == rig.screen.width_px
+    finally:
+        rig.close()
+    cfg = parse_rig_config({"kind": "simulated", "clock": "real",
+                            "camera": {"model": "wide_fisheye", "width": 64, "height": 48},
+                            "settings": {"exposure_s": 0.01, "pixel_format": "Mono12",
+                                         "trigger_mode": "software"}})
+    rig = open_rig(cfg)
+    try:
+        assert (rig.camera.info.width, rig.camera.info.height) == (64, 48)
+        assert rig.settings.exposure_s == 0.01
+        assert type(rig.clock).__name__ == "RealClock"
+    finally:
+        rig.close()
+    with pytest.raises(RigConfigError, match="clock 'virtual' is only for simulated"):
+        parse_rig_config({"kind": "hardware", "clock": "virtual", "screen": {"pitch_mm": 0.3},
+                          "display": {"backend": "sdl"},
+                          "camera": {"backend": "aravis", "device": "x"}})

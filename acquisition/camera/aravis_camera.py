@@ -5,7 +5,8 @@ Open by device id or address (never by discovery here), choose the pixel format
 modes off and read back, frame rate, software or hardware trigger. Frames come from a
 pool of stream buffers; incomplete or lost buffers are counted and recycled, every wait
 has a timeout, frames exposed before the last trigger or flush are dropped (never
-returned stale), and a lost control channel surfaces as `CameraDisconnected` so that
+returned stale), software triggers sent while a frame is still due are held back and
+sent when it arrives (cameras ignore overlapping triggers), and a lost control channel surfaces as `CameraDisconnected` so that
 `reconnect()` can reopen the device with the same settings.
 
 Device timestamps (ns, start of frame) are mapped to the controller's clock by the
@@ -68,6 +69,8 @@ class AravisCamera:
         self._running = False
         self.incomplete_buffers = 0
         self.stale_frames = 0
+        self._awaiting = False  # a software trigger is out and its frame has not come yet
+        self._deferred = 0  # software triggers held back until that frame arrives
         self._open()
         self._settings = self._read_settings()
 
@@ -141,6 +144,11 @@ class AravisCamera:
                 f"Aravis camera {self.device}: exposure_s {want} did not take effect "
                 f"(device reports {got:.6f} s; bounds {self._cam.get_exposure_time_bounds()} us)"
             )
+        if applied.trigger_mode != settings.trigger_mode:
+            raise DeviceSettingsError(
+                f"Aravis camera {self.device}: trigger_mode {settings.trigger_mode!r} did not "
+                f"take effect (device reports {applied.trigger_mode!r})"
+            )
         self._settings = applied
         fmt = pixel_format(applied.pixel_format)
         self._info = replace(self._info, bit_depth=fmt.bit_depth)
@@ -179,6 +187,11 @@ class AravisCamera:
                     f"Aravis camera {self.device}: gain_db {s.gain_db} outside [{glo}, {ghi}]"
                 )
             c.set_gain(s.gain_db)
+        if s.frame_rate_hz and c.is_frame_rate_available():
+            # Free-running: the rate; triggered: the cap on the trigger rate (and the
+            # polling rate of simple devices such as Aravis' fake camera). Set before the
+            # trigger: Aravis turns TriggerMode off when setting a generic frame rate.
+            c.set_frame_rate(s.frame_rate_hz)
         if s.trigger_mode == "software":
             c.set_trigger("Software")
         elif s.trigger_mode == "hardware":
@@ -186,8 +199,6 @@ class AravisCamera:
         else:
             c.clear_triggers()
             c.set_acquisition_mode(self._Aravis.AcquisitionMode.CONTINUOUS)
-            if s.frame_rate_hz and c.is_frame_rate_available():
-                c.set_frame_rate(s.frame_rate_hz)
 
     # -- streaming ------------------------------------------------------------------
     def start(self) -> None:
@@ -228,10 +239,19 @@ class AravisCamera:
             return
         if self._lost.is_set():
             raise CameraDisconnected(f"Aravis camera {self.device}: control channel lost")
+        if self._awaiting:
+            # Cameras ignore triggers while exposing or reading out (trigger overlap):
+            # hold this one back and send it when the previous frame has arrived.
+            self._deferred += 1
+            return
+        self._send_trigger()
+
+    def _send_trigger(self) -> None:
         try:
             self._cam.software_trigger()
         except GLib.Error as exc:
             raise self._error("software trigger", exc) from exc
+        self._awaiting = True
 
     def _to_clock(self, device_ns: int, system_ns: int, popped: float) -> float:
         """Device time -> clock time; `system_ns` (host wall time at reception) dates the
@@ -252,6 +272,7 @@ class AravisCamera:
         while True:
             remaining = deadline - self._clock.now()
             if remaining <= 0:
+                self._awaiting, self._deferred = False, 0
                 self._check_alive()
                 raise CameraTimeout(
                     f"Aravis camera {self.device}: no frame within {timeout_s:.3f} s "
@@ -269,6 +290,10 @@ class AravisCamera:
 
     def _accept(self, buf: Any) -> Frame | None:
         arrived = self._clock.now()
+        self._awaiting = False
+        if self._deferred and self._settings.trigger_mode == "software":
+            self._deferred -= 1
+            self._send_trigger()
         try:
             if buf.get_status() != self._Aravis.BufferStatus.SUCCESS:
                 self.incomplete_buffers += 1
@@ -293,6 +318,7 @@ class AravisCamera:
         while (buf := self._stream.try_pop_buffer()) is not None:
             self._stream.push_buffer(buf)
             n += 1
+        self._deferred = 0  # triggers asked for before the flush are void
         self._not_before = max(self._not_before, self._clock.now())
         return n
 

@@ -5,9 +5,10 @@ thread keeps at most `buffers` frames (oldest dropped), so `grab` never blocks l
 than its timeout and `flush` guarantees the next frame started exposing after the call.
 Exposure and gain are set with auto modes off and read back (V4L2 controls directly
 when the device file is known). Recordings (`frame_%04d.png` with `CAP_IMAGES`, or a
-lossless FFV1 `.mkv`) replay one frame per `grab`, in order, exactly; set
-`replay_rate_hz` to replay them as a free-running camera instead. Grey conversion keeps
-16-bit data.
+lossless FFV1 `.mkv`) replay exactly, in order, as a software-triggered camera: each
+`trigger()` "exposes" the next recorded frame at the trigger time, so the controller's
+timing checks hold; set `replay_rate_hz` to replay them as a free-running camera
+instead. Grey conversion keeps 16-bit data.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 from acquisition.camera.v4l2_controls import V4l2Controls
 from acquisition.clock import Clock, RealClock
 from acquisition.errors import CameraDisconnected, CameraError, CameraTimeout, DeviceSettingsError
-from acquisition.protocols import CameraInfo, CameraSettings, Frame
+from acquisition.protocols import CameraInfo, CameraSettings, Frame, TriggerMode
 
 # Camera pixel format -> V4L2 fourcc requested from the driver.
 FOURCC = {"Mono8": "GREY", "Mono16": "Y16 ", "YUYV": "YUYV", "MJPG": "MJPG"}
@@ -98,8 +99,9 @@ class OpenCvCamera:
         h, w = self._pending.shape
         depth = 16 if self._pending.dtype == np.uint16 else 8
         fmt = "Mono16" if depth == 16 else "Mono8"
-        self._info = CameraInfo(self._name, str(source), w, h, depth, (fmt,), ("free-running",))
-        self._settings = CameraSettings(pixel_format=fmt)
+        mode: TriggerMode = "free-running" if self._free_running else "software"
+        self._info = CameraInfo(self._name, str(source), w, h, depth, (fmt,), (mode,))
+        self._settings = CameraSettings(pixel_format=fmt, trigger_mode=mode)
 
     # -- opening -------------------------------------------------------------------
     def _api(self) -> int:
@@ -147,10 +149,11 @@ class OpenCvCamera:
     # -- settings -------------------------------------------------------------------
     def configure(self, settings: CameraSettings) -> CameraSettings:
         """Apply settings; returns what the device reports (recordings: what they hold)."""
-        if settings.trigger_mode != "free-running":
+        if settings.trigger_mode not in self._info.trigger_modes:
             raise DeviceSettingsError(
                 f"OpenCV camera {self.source}: trigger_mode {settings.trigger_mode!r} not "
-                "supported (V4L2/UVC cameras are free-running)"
+                f"supported; this source is {self._info.trigger_modes[0]} (V4L2/UVC cameras "
+                "free-running, recordings software-triggered unless replay_rate_hz is set)"
             )
         if settings.pixel_format not in self._info.pixel_formats and self._recording:
             raise DeviceSettingsError(
@@ -226,7 +229,19 @@ class OpenCvCamera:
             self._thread = None
 
     def trigger(self) -> None:
-        """Free-running camera: nothing to trigger (frames arrive on their own)."""
+        """Recording replay: expose the next recorded frame now; free-running: nothing."""
+        if self._free_running:
+            return
+        if not self._running:
+            raise CameraError(f"OpenCV camera {self.source}: trigger() before start()")
+        img = self._next_image()
+        with self._lock:
+            if img is None:
+                self._lost = f"recording exhausted after {self._seq} frames"
+                return
+            self._seq += 1
+            self._queue.append(Frame(img, self._clock.now(), self._settings.exposure_s,
+                                     self._seq))
 
     def _frame_period(self) -> float:
         if self._replay_rate:
@@ -242,7 +257,8 @@ class OpenCvCamera:
         return to_grey(img) if ok and img is not None else None
 
     def _make_frame(self, img: np.ndarray, arrived: float) -> Frame:
-        # Exposure started about one exposure plus one frame transfer before arrival.
+        # Exposure started about one exposure (plus one frame transfer for a live device)
+        # before arrival.
         start = arrived - self._settings.exposure_s - (0.0 if self._recording else
                                                        self._frame_period())
         self._seq += 1
@@ -277,12 +293,15 @@ class OpenCvCamera:
         if not self._running:
             raise CameraError(f"OpenCV camera {self.source}: grab() before start()")
         if not self._free_running:
-            img = self._next_image()
-            if img is None:
-                raise CameraTimeout(
-                    f"OpenCV camera {self.source}: recording exhausted after {self._seq} frames"
-                )
-            return self._make_frame(img, self._clock.now())
+            with self._lock:
+                if self._queue:
+                    return self._queue.popleft()
+            if self._lost is not None:
+                raise CameraTimeout(f"OpenCV camera {self.source}: {self._lost}")
+            raise CameraTimeout(
+                f"OpenCV camera {self.source}: no frame (a recording replays one frame per "
+                "software trigger)"
+            )
         deadline = self._clock.now() + timeout_s
         with self._lock:
             while True:
@@ -303,8 +322,6 @@ class OpenCvCamera:
 
     def flush(self) -> int:
         """Drop queued frames; later frames must have started exposing after this call."""
-        if not self._free_running:
-            return 0
         with self._lock:
             n = len(self._queue)
             self._queue.clear()

@@ -126,11 +126,11 @@ def _set_pose_status(svc: Services, pose_id: str, status: str) -> None:
 
 
 def _decode(svc: Services, ctx: TaskContext, session_dir: Path, frames: Path, pose_dir: Path,
-            meta: dict[str, Any], noise_dn: float | None) -> dict[str, Any]:
+            meta: dict[str, Any], noise: Any) -> dict[str, Any]:
     """Run the decode task on the executor and wait for it (cancel propagates)."""
     fut = svc.executor.run_task(decode_task, str(session_dir / "plan.json"), str(frames),
                                 str(pose_dir / "maps.npz"), job_id=ctx.job_id,
-                                on_progress=ctx.progress, noise_dn=noise_dn, meta=meta)
+                                on_progress=ctx.progress, noise=noise, meta=meta)
     return fut.result()
 
 
@@ -152,7 +152,9 @@ def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, pl
         _set_pose_status(svc, pose_id, "decoding")
         meta = {"pose_id": pose_id, "session_id": session_id, "plan_digest": plan.digest(),
                 "camera": _camera_name(handle.rig)}
-        dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, None)
+        # a simulated rig knows its sensor's noise model (a real one: estimated per pixel)
+        noise = getattr(handle.simulated, "sensor", None)
+        dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, noise)
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(frames))}
 
     ok, fail = _pose_hooks(pose_id)

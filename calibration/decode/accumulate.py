@@ -91,6 +91,7 @@ class FrameAccumulator:
         shape: tuple[int, int],
         *,
         saturation_dn: float | None,
+        saturation_margin: float = 0.0,
         need_squares: bool,
         xp: ModuleType = np,
     ) -> None:
@@ -100,6 +101,7 @@ class FrameAccumulator:
         self.shape = (int(shape[0]), int(shape[1]))
         self.xp = xp
         self.saturation_dn = saturation_dn
+        self.saturation_margin = saturation_margin
         self.need_squares = need_squares
         self.dtype: np.dtype | None = None
         self.high: float | None = None
@@ -187,10 +189,16 @@ class FrameAccumulator:
         self.dtype = dt
         if dt.kind == "u":
             top = float(np.iinfo(dt).max)
-            self.high = top if self.saturation_dn is None else float(self.saturation_dn)
+            level = top if self.saturation_dn is None else float(self.saturation_dn)
+            # Read noise added after the full well spreads saturated pixels just below it.
+            self.high = level * (1.0 - self.saturation_margin)
             self.low = 0.0  # an integer 0 is a clipped reading, not a measurement
         else:
-            self.high = None if self.saturation_dn is None else float(self.saturation_dn)
+            self.high = (
+                None
+                if self.saturation_dn is None
+                else float(self.saturation_dn) * (1.0 - self.saturation_margin)
+            )
             self.low = None
         if self.need_squares:
             # uint8 squares summed in float32 stay exact integers (< 2**24 for <= 258 frames).

@@ -40,6 +40,8 @@ from calibration.plan import Plan
 # Periods finer than the coarsest enter the fusion and the blur fit only above this
 # modulation SNR: below it the phase noise is no longer Gaussian (the linearized sigma lies).
 MIN_PERIOD_SNR = 4.0
+# The photon-transfer fit uses only pixels without clipped steps when at least this many exist.
+_MIN_CLEAN_PIXELS = 2000
 
 
 @functools.lru_cache(maxsize=8)
@@ -68,7 +70,8 @@ class StreamingDecoder:
     Implements `acquisition.sinks.FrameSink`. `noise` is the per-frame camera noise: a
     `NoiseModel`, any object with `noise_sigma_dn(mean)` (e.g. a sensor model), a constant
     sigma in DN, or None to estimate it per pixel from the cosine-fit residuals.
-    `saturation_dn` is the clipping level (default: the dtype maximum for integer frames).
+    `saturation_dn` is the clipping level (default: the dtype maximum for integer frames);
+    samples within `options.saturation_margin` of it are excluded as clipped.
     """
 
     def __init__(
@@ -91,6 +94,7 @@ class StreamingDecoder:
             plan,
             shape,
             saturation_dn=saturation_dn,
+            saturation_margin=self.options.saturation_margin,
             need_squares=self._variance is None,
             xp=self.xp,
         )
@@ -146,7 +150,8 @@ class StreamingDecoder:
             "software": f"phasecal {_software_version()}",
             "decoder": {
                 "noise": self._noise_kind,
-                "saturation_dn": acc.high,
+                "photon_transfer": asdict(self._ptc) if self._ptc is not None else None,
+                "clip_threshold_dn": acc.high,
                 "max_sample_dn": acc.max_seen if math.isfinite(acc.max_seen) else None,
                 "frame_dtype": str(acc.dtype),
                 "options": asdict(self.options),
@@ -155,7 +160,6 @@ class StreamingDecoder:
         }
         info.update(meta or {})
         shaped = {k: v.reshape(h, w) for k, v in out.items()}
-        has_blur = len(axes) > 0
         return DecodedMaps(
             x=shaped["x"],
             y=shaped["y"],
@@ -164,8 +168,8 @@ class StreamingDecoder:
             mask=mask.reshape(h, w),
             modulation_x=shaped["modulation_x"],
             modulation_y=shaped["modulation_y"],
-            blur_x=shaped["blur_x"] if has_blur and "x" in axes else None,
-            blur_y=shaped["blur_y"] if has_blur and "y" in axes else None,
+            blur_x=shaped["blur_x"] if "x" in axes else None,
+            blur_y=shaped["blur_y"] if "y" in axes else None,
             meta=info,
         )
 
@@ -190,7 +194,11 @@ class StreamingDecoder:
         return f"frames: no pixel could be decoded; most common reason: {worst} ({counts})"
 
     def _residuals(self, fits: list[SetFit], sl: slice) -> tuple[Any, Any, Any]:
-        """Per-pixel residual sum of squares, its degrees of freedom and mean level."""
+        """Per-pixel residual sum of squares, its degrees of freedom and the kept samples' level.
+
+        The level is the average of the samples the residuals come from (clipped ones
+        excluded), so the photon-transfer fit pairs each variance with its own level.
+        """
         xp = self.xp
         rss = self._acc.squares.reshape(-1)[sl].astype(xp.float64)
         dof = xp.zeros_like(rss)
@@ -198,22 +206,32 @@ class StreamingDecoder:
         for f in fits:
             rss = rss - xp.where(f.ok, f.explained, 0.0)
             dof = dof + xp.where(f.ok, f.dof, 0.0)
-            level = level + xp.where(f.ok, f.mean, 0.0)
+            level = level + xp.where(f.ok, f.level, 0.0)
         used = sum(xp.where(f.ok, 1.0, 0.0) for f in fits)
         return xp.maximum(rss, 0.0), dof, level / xp.maximum(used, 1.0)
 
     def _estimate_noise(self, npix: int) -> None:
-        """Residual mode: fit a photon-transfer line to all pixels' residuals (first pass)."""
+        """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass).
+
+        Pixels with clipped steps are left out when enough others exist: excluding the
+        clipped samples truncates the noise of those near the clip level (censoring), so
+        their residuals understate the noise.
+        """
         acc, step = self._acc, self.options.chunk_pixels
         mean, rss, dof = (np.empty(npix, dtype=np.float32) for _ in range(3))
+        clean = np.empty(npix, dtype=bool)
 
         def one(sl: slice) -> None:
             fits = [fit_set(self.xp, s, sl) for s in acc.sets]
             r, d, m = self._residuals(fits, sl)
             rss[sl], dof[sl], mean[sl] = to_host(r), to_host(d), to_host(m)
+            clean[sl] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
 
         self._map(one, [slice(s, min(s + step, npix)) for s in range(0, npix, step)])
-        self._ptc = fit_photon_transfer(mean, rss, dof, self._floor)
+        use = clean & (dof >= 1)
+        if use.sum() < _MIN_CLEAN_PIXELS:
+            use = dof >= 1
+        self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor)
 
     @property
     def _floor(self) -> float:

@@ -20,6 +20,8 @@ class DecodeOptions:
       screen are invalid (off-screen).
     - `edge_margin_blur`: decoded points closer to the screen edge than this many blur
       widths are invalid (the blur kernel reaches past the edge and biases them).
+    - `saturation_margin`: samples at or above `saturation_dn * (1 - margin)` count as
+      clipped (a saturated pixel's read noise spreads its values just below the maximum).
     - `chunk_pixels`: pixels processed at once when finishing (bounds temporary memory).
     """
 
@@ -30,13 +32,14 @@ class DecodeOptions:
     consistency_p: float = 1e-6
     screen_margin_sigma: float = 3.0
     edge_margin_blur: float = 3.0
+    saturation_margin: float = 0.02
     chunk_pixels: int = 1 << 18
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if not value > 0:
+            if not (value > 0 or (f.name == "saturation_margin" and value == 0)):
                 raise ValueError(f"DecodeOptions.{f.name}: must be > 0, got {value!r}")
-        for name in ("max_ambiguity", "consistency_p"):
+        for name in ("max_ambiguity", "consistency_p", "saturation_margin"):
             if getattr(self, name) >= 1:
                 raise ValueError(f"DecodeOptions.{name}: must be < 1, got {getattr(self, name)!r}")

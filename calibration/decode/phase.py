@@ -27,6 +27,7 @@ class SetFit:
     """Fit of one (axis, period) group over a chunk of pixels (1-D arrays)."""
 
     mean: Any  # C, DN
+    level: Any  # average of the kept samples (DN): where their noise is evaluated
     alpha: Any
     beta: Any
     c_aa: Any  # covariance of (alpha, beta) per unit sample variance
@@ -35,6 +36,7 @@ class SetFit:
     explained: Any  # p . rhs: the part of sum v^2 the fit explains
     dof: Any  # kept samples - 3
     ok: Any  # enough kept samples, well-conditioned
+    clipped: Any  # some steps were excluded as clipped
 
     @property
     def modulation(self) -> Any:
@@ -107,6 +109,7 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
         explained = explained + extra**2 * (2.0 / n)
     fit = SetFit(
         mean=s0 / n,
+        level=s0 / n,
         alpha=a * (2.0 / n),
         beta=b * (2.0 / n),
         c_aa=full,
@@ -115,6 +118,7 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
         explained=explained,
         dof=xp.full(size, float(n - len(flat))),
         ok=xp.ones(size, dtype=bool),
+        clipped=xp.zeros(size, dtype=bool),
     )
     if sums.excluded is None:
         return fit
@@ -132,6 +136,7 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     good = xp.isfinite(p).all(axis=1)
     p = xp.where(good[:, None], p, 0.0)
     fit.mean[idx] = p[:, 0]
+    fit.level[idx] = s0[idx] / xp.maximum(kept, 1.0)
     fit.alpha[idx] = p[:, 1]
     fit.beta[idx] = p[:, 2]
     fit.c_aa[idx] = xp.where(good, minv[:, 1, 1], 0.0)
@@ -140,4 +145,5 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     fit.explained[idx] = (p * rhs).sum(axis=1)
     fit.dof[idx] = xp.maximum(kept - used, 0.0)
     fit.ok[idx] = good
+    fit.clipped[idx] = True
     return fit

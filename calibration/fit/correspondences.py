@@ -35,10 +35,53 @@ class PointSet:
         return PointSet(self.pixels[keep], self.screen_px[keep], self.sigma_px[keep], self.pitch_mm)
 
 
-def point_set(maps: DecodedMaps, screen: ScreenGeometry) -> PointSet:
-    """All trusted, finite correspondences of one pose."""
-    pixels, scr, sig = maps.correspondences()
-    ok = np.all(np.isfinite(scr), axis=1) & np.all(np.isfinite(sig), axis=1) & np.all(sig > 0, 1)
+# A decoded value this many sigmas (plus half the local spread) from its 3x3 median is an outlier.
+_OUTLIER_SIGMAS = 6.0
+
+
+def _neighbourhood(a: np.ndarray) -> np.ndarray:
+    """(9, H, W) stack of each pixel's 3x3 neighbourhood (NaN outside the image)."""
+    p = np.pad(a, 1, constant_values=np.nan)
+    h, w = a.shape
+    return np.stack([p[dv:dv + h, du:du + w] for dv in range(3) for du in range(3)])
+
+
+def local_outliers(values: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Pixels whose decoded value disagrees with the median of their 3x3 neighbourhood.
+
+    The decoded screen coordinate is a smooth function of the pixel, so the neighbourhood
+    median predicts it (exactly where it is locally linear); a gross decoding error
+    (wrong period, reflection) stands out by far more than its sigma.
+    """
+    stack = _neighbourhood(values)
+    med = _nanmedian0(stack)
+    spread = _nanmedian0(np.abs(stack - med))
+    with np.errstate(invalid="ignore"):
+        return np.abs(values - med) > _OUTLIER_SIGMAS * sigma + 0.5 * spread
+
+
+def _nanmedian0(stack: np.ndarray) -> np.ndarray:
+    """Median over axis 0 ignoring NaN (sort-based; much faster than np.nanmedian)."""
+    srt = np.sort(stack, axis=0)  # NaN sorts last
+    n = np.sum(np.isfinite(stack), axis=0)
+    lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[None], axis=0)[0]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+
+
+def point_set(maps: DecodedMaps, screen: ScreenGeometry, *, reject_outliers: bool = True
+              ) -> PointSet:
+    """All trusted, finite correspondences of one pose, minus local decoding outliers."""
+    keep = maps.mask & np.isfinite(maps.x) & np.isfinite(maps.y)
+    if reject_outliers:
+        x = np.where(keep, maps.x, np.nan)
+        y = np.where(keep, maps.y, np.nan)
+        keep &= ~local_outliers(x, maps.sigma_x) & ~local_outliers(y, maps.sigma_y)
+    v, u = np.nonzero(keep)
+    pixels = np.stack([u, v], axis=1).astype(np.float64)
+    scr = np.stack([maps.x[v, u], maps.y[v, u]], axis=1)
+    sig = np.stack([maps.sigma_x[v, u], maps.sigma_y[v, u]], axis=1).astype(np.float64)
+    ok = np.all(np.isfinite(sig), axis=1) & np.all(sig > 0, axis=1)
     return PointSet(pixels[ok], scr[ok], sig[ok], screen.pitch_mm)
 
 

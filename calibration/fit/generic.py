@@ -177,6 +177,7 @@ def calibrate_generic(
         "iterations": iterations,
         "converged": out.converged,
         "cost": out.cost,
+        "cost_history": out.history,
         "chi2_dof": out.chi2_dof,
         "gauge_min_eig": out.min_eig,
         "cells": list(grid.cells),

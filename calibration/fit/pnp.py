@@ -38,7 +38,10 @@ def estimate_pose(
     if ok.sum() < 8:
         raise DegenerateError(f"pose: only {int(ok.sum())} usable points (need >= 8)")
     norm = d[ok, :2] / d[ok, 2:]
-    obj = points.screen_mm[ok]
+    # Centered screen coordinates: the plane's origin is then in front of the camera, which
+    # fixes the sign of the homography decomposition even for wide-angle views.
+    center = points.screen_mm[ok].mean(axis=0)
+    obj = points.screen_mm[ok] - center
     thr = threshold_px * pixel_angle(model)
     h, inl = ransac_homography(obj[:, :2], norm, thr, rng, iterations=iterations)
     r, t = pose_from_homography(np.eye(3), h)
@@ -46,6 +49,7 @@ def estimate_pose(
     _, rvec, tvec = cv2.solvePnP(obj[inl], norm[inl], np.eye(3), None, rvec, t.reshape(3, 1),
                                  useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
     r, _ = cv2.Rodrigues(rvec)
+    t = tvec.ravel() - r @ center
     inliers = np.zeros(len(points), dtype=bool)
     inliers[np.flatnonzero(ok)[inl]] = True
-    return r, tvec.ravel(), inliers
+    return r, t, inliers

@@ -101,6 +101,8 @@ class _Problem:
         self.screen = np.concatenate([o.screen_mm for o in obs])
         self.sigma = np.concatenate([o.sigma_mm for o in obs])
         self.counts = np.array([len(o.pixels) for o in obs])
+        ends = np.cumsum(self.counts)
+        self.slices = [slice(int(e - n), int(e)) for e, n in zip(ends, self.counts, strict=True)]
 
     def evaluate(self, st: LMState, jacobian: bool) -> tuple[np.ndarray, ...]:
         """Residuals (Q-S) mm, ok mask [, G (N,2,C), pose Jacobian (N,2,6)]."""
@@ -109,10 +111,10 @@ class _Problem:
         o = np.zeros_like(r)
         if self.c == 4:
             o[:, :2] = comps[:, 2:4]
-        rc = np.stack(st.rc)[self.pose_of]
-        tc = np.stack(st.tc)[self.pose_of]
-        o_s = np.einsum("nij,nj->ni", rc, o) + tc
-        r_s = np.einsum("nij,nj->ni", rc, r)
+        o_s, r_s = np.empty_like(o), np.empty_like(r)
+        for sl, rc_j, tc_j in zip(self.slices, st.rc, st.tc, strict=True):
+            o_s[sl] = o[sl] @ rc_j.T + tc_j
+            r_s[sl] = r[sl] @ rc_j.T
         ok = r_s[:, 2] * o_s[:, 2] < 0  # the ray moves towards the plane
         rz = np.where(ok, r_s[:, 2], 1.0)
         lam = -o_s[:, 2] / rz
@@ -123,7 +125,9 @@ class _Problem:
         proj = np.zeros((len(q), 2, 3))
         proj[:, 0, 0] = proj[:, 1, 1] = 1.0
         proj[:, :, 2] = -r_s[:, :2] / rz[:, None]
-        prc = proj @ rc  # (N,2,3)
+        prc = np.empty_like(proj)
+        for sl, rc_j in zip(self.slices, st.rc, strict=True):
+            prc[sl] = proj[sl] @ rc_j  # (n,2,3)
         g = np.empty((len(q), 2, self.c))
         g[:, :, :2] = lam[:, None, None] * (prc @ jr)
         if self.c == 4:
@@ -152,8 +156,7 @@ class _Problem:
         pw = jp * ws[:, :, None]
         idx_sorted = self.idx[self.order]
         pose_sorted = self.pose_of[self.order]
-        for j in range(self.n_pose):
-            sel = self.pose_of == j
+        for j, sel in enumerate(self.slices):
             sl = slice(ns + 6 * j, ns + 6 * j + 6)
             h[sl, sl] += np.einsum("nra,nrb->ab", pw[sel], jp[sel])
             grad[sl] += np.einsum("nra,nr->a", pw[sel], e[sel])

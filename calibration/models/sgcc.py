@@ -183,8 +183,8 @@ class SGCCBase(CameraModel):
         (comps,) = self.components(p)
         _, jac = expmap_jacobian(comps[:, :2])
         cdir = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
-        ang = np.sqrt(np.trace(cdir, axis1=1, axis2=2))
-        org = np.sqrt(np.trace(cov[:, 2:, 2:], axis1=1, axis2=2)) if self.n_components == 4 else np.zeros(len(p))
+        ang = np.sqrt(np.maximum(np.trace(cdir, axis1=1, axis2=2), 0.0))
+        org = np.sqrt(np.maximum(np.trace(cov[:, 2:, 2:], axis1=1, axis2=2), 0.0)) if self.n_components == 4 else np.zeros(len(p))
         return ang, org
 
     def component_covariance(self, pixels: np.ndarray) -> np.ndarray:

@@ -162,16 +162,21 @@ class DaskExecutor:
         job.future.set_running_or_notify_cancel()
         name = getattr(task_fn, "__name__", "task")
         options = {"cancel_poll_s": self.cancel_poll_s, "progress_s": self.progress_interval_s}
-        job.dask_future = self.client.submit(
-            run_in_worker,
-            task_fn,
-            job_id,
-            args,
-            kwargs,
-            options,
-            key=f"phasecal-{name}-{job_id}-{uuid.uuid4().hex[:8]}",
-            pure=False,
-        )
+        try:
+            job.dask_future = self.client.submit(
+                run_in_worker,
+                task_fn,
+                job_id,
+                args,
+                kwargs,
+                options,
+                key=f"phasecal-{name}-{job_id}-{uuid.uuid4().hex[:8]}",
+                pure=False,
+            )
+        except BaseException:
+            with self._lock:
+                self._jobs.pop(job_id, None)
+            raise
         job.dask_future.add_done_callback(lambda f: self._finish(job, f, name))
         return job.future
 

@@ -38,10 +38,14 @@ def decode_task(
     frames_path: str,
     out_path: str,
     *,
-    noise_dn: float | None = None,
+    noise: Any = None,
     meta: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Decode captured frames (`.npy` stack or image folder) to a maps NPZ at `out_path`."""
+    """Decode captured frames (`.npy` stack or image folder) to a maps NPZ at `out_path`.
+
+    `noise` is the camera's per-frame noise: sigma in DN, a sensor noise model (anything
+    with `noise_sigma_dn(mean)`), or None to estimate it from the fit residuals.
+    """
     from calibration.decode import DecodeError, StreamingDecoder, read_frames
     from calibration.maps import save_maps
     from calibration.plan import read_plan
@@ -52,7 +56,7 @@ def decode_task(
     total = len(plan.frames)
     if source.count != total:
         raise DecodeError(f"{frames_path}: {source.count} frames but the plan has {total}")
-    decoder = StreamingDecoder(plan, source.shape, noise=noise_dn)
+    decoder = StreamingDecoder(plan, source.shape, noise=noise)
     for index, image in enumerate(source):
         ctx.check_cancelled()
         decoder.add(index, image)
@@ -94,7 +98,8 @@ def calibrate_task(
         ctx.check_cancelled()
         maps_list.append(load_maps(p))
         ctx.progress(i + 1, len(maps_paths), "load")
-    heldout = [load_maps(p) for p in heldout_paths] if heldout_paths else None
+    heldout = list(range(len(maps_list), len(maps_list) + len(heldout_paths or [])))
+    maps_list += [load_maps(p) for p in heldout_paths or []]
     result = calibrate(
         maps_list,
         plan.screen,
@@ -126,21 +131,29 @@ def calibrate_task(
 
 
 def _write_exports(result: Any, out: Path) -> list[str]:
-    """OpenCV YAML, ROS camera_info and the residual plot, where the model supports them."""
+    """OpenCV YAML and ROS camera_info (pinhole-family models) and the residual plot.
+
+    Each file is written under a temporary name with the same extension (the writers
+    pick the format from it) and renamed into place.
+    """
     from calibration import export, report
+    from calibration.models.base import ModelError
 
     written: list[str] = []
-    for name, fn in (
-        ("opencv.yaml", export.write_opencv_yaml),
-        ("camera_info.yaml", export.write_ros_camera_info),
-    ):
+    jobs = (
+        ("opencv.yaml", export.export_opencv_yaml),
+        ("camera_info.yaml", export.export_ros_yaml),
+        ("residuals.png", report.write_residual_report),
+    )
+    for name, fn in jobs:
+        tmp = out / f"tmp-{name}"
         try:
-            fn(result.model, out / name)
-        except export.ExportNotSupported:
-            continue
+            fn(result if name == "residuals.png" else result.model, tmp)
+        except ModelError:
+            tmp.unlink(missing_ok=True)
+            continue  # this model has no such form (e.g. generic models and OpenCV YAML)
+        os.replace(tmp, out / name)
         written.append(name)
-    report.write_residual_plot(result, out / "residuals.png")
-    written.append("residuals.png")
     return written
 
 

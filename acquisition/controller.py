@@ -1,0 +1,390 @@
+"""Acquisition controller: run one pose's pattern sequence, pipelined, with verified frames.
+
+Sync method: every frame is checked by TIME, on the shared clock. `Display.show`
+returns the flip time F; with the measured flip-to-panel latency L (setup helper) and
+the scan-out period P, a pattern is fully on the panel from F + L + P until the next
+pattern's flip F' + L. A frame is accepted only if its exposure [t, t + e] (camera
+timestamp = start of exposure) lies inside [F + L + P + m, F' + L - m], m = timestamp
+uncertainty margin. Frames starting earlier are stale (dropped silently); frames ending
+later are torn (the pattern is re-shown and re-captured). A consistency check rejects
+frames whose sequence number does not increase (re-delivered buffers). Timing is used
+rather than image content because content checks cannot tell adjacent phase steps of
+a low-contrast pattern apart reliably and cost a full image comparison per frame,
+whereas timestamps decide exactly and for free; the end-of-pose reference repeats
+(`acquisition.integrity`) catch what timing cannot (motion, flicker, drift).
+
+Pipelining: the next pattern is submitted so that it reaches the panel right after the
+current exposure is predicted to end (triggered: trigger time + exposure; free-running:
+the camera's frame grid predicted from the last timestamp), so per pattern the sequence
+costs about ceil((P + e + 2m) / P) refresh periods instead of latency + P + e + readout.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from acquisition.clock import Clock
+from acquisition.errors import (
+    AcquisitionCancelled,
+    AcquisitionError,
+    CameraDisconnected,
+    CameraTimeout,
+)
+from acquisition.integrity import (
+    IntegrityReport,
+    IntegrityThresholds,
+    compare_references,
+    reference_indices,
+)
+from acquisition.patterns import DisplayResponse, render_frame
+from acquisition.protocols import Camera, CameraSettings, Display, Frame
+from acquisition.sinks import FrameSink
+from calibration.plan import Plan
+
+Status = Literal["complete", "cancelled", "failed", "flagged"]
+
+
+@dataclass(frozen=True)
+class ControllerOptions:
+    """How to run a pose; `latency_s` None means measure it first (setup helper)."""
+
+    latency_s: float | None = None
+    average: int = 1  # frames averaged per pattern (float32 mean when > 1)
+    margin_s: float = 1e-3  # timestamp uncertainty allowed on each side of the window
+    trigger_overhead_s: float = 1e-3  # trigger latency + gap between triggered exposures
+    grab_timeout_s: float = 1.0
+    max_attempts: int = 6  # captures tried per pattern before failing
+    max_reconnects: int = 5
+    backoff_s: float = 0.1  # first reconnect delay, doubled each failure
+    response: DisplayResponse | None = None  # gamma pre-compensation for the patterns
+    dither: str | None = "ordered"
+    integrity: bool = True
+    thresholds: IntegrityThresholds = field(default_factory=IntegrityThresholds)
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Progress report: frames done of total, estimated seconds left, stage name."""
+
+    done: int
+    total: int
+    eta_s: float | None
+    stage: str
+
+
+@dataclass(frozen=True)
+class Recapture:
+    """One rejected capture attempt of a plan frame and why."""
+
+    index: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class AcceptedFrame:
+    """Timing of an accepted frame (first one if averaged)."""
+
+    sequence: int
+    timestamp_s: float
+    flip_s: float
+
+
+@dataclass
+class PoseCapture:
+    """Result of one pose: which plan frames were accepted, recaptures, timing, integrity."""
+
+    status: Status
+    reason: str
+    total: int
+    accepted: list[int]
+    frames: dict[int, AcceptedFrame]
+    recaptures: list[Recapture]
+    stale_dropped: int
+    reconnects: int
+    latency_s: float
+    started_s: float
+    finished_s: float
+    integrity: IntegrityReport | None = None
+
+    @property
+    def accepted_count(self) -> int:
+        """Number of plan frames handed to the sink."""
+        return len(self.accepted)
+
+    @property
+    def duration_s(self) -> float:
+        """Clock time the sequence took (virtual or real)."""
+        return self.finished_s - self.started_s
+
+
+class _Failed(AcquisitionError):
+    """Internal: the pose cannot be completed (message is the reason)."""
+
+
+Cancel = threading.Event | Callable[[], bool] | None
+
+
+def _is_cancelled(cancel: Cancel) -> bool:
+    if cancel is None:
+        return False
+    if isinstance(cancel, threading.Event):
+        return cancel.is_set()
+    return bool(cancel())
+
+
+class _Runner:
+    """State of one pose capture (devices, timing estimates, counters)."""
+
+    def __init__(self, display: Display, camera: Camera, clock: Clock, settings: CameraSettings,
+                 plan: Plan, opts: ControllerOptions, latency_s: float, trigger: Any,
+                 cancel: Cancel) -> None:
+        self.display, self.camera, self.clock, self.plan = display, camera, clock, plan
+        self.settings, self.opts, self.lat, self.trigger_box = settings, opts, latency_s, trigger
+        self.cancel = cancel
+        self.period = 1.0 / display.info.refresh_hz
+        fps = settings.frame_rate_hz or 30.0
+        self.frame_period = 1.0 / fps
+        self.triggered = settings.trigger_mode in ("software", "hardware")
+        self.recaptures: list[Recapture] = []
+        self.stale = 0
+        self.reconnects = 0
+        self.last_seq = -1
+        self.fr_ref: tuple[float, int] | None = None  # (timestamp, sequence) of a recent frame
+        self._codes: dict[int, np.ndarray] = {}
+
+    # -- devices ----------------------------------------------------------------------
+    def codes(self, index: int) -> np.ndarray:
+        if index not in self._codes:
+            self._codes = {index: render_frame(self.plan, index,
+                                               bit_depth=self.display.info.bit_depth,
+                                               response=self.opts.response,
+                                               dither=self.opts.dither)}
+        return self._codes[index]
+
+    def show(self, index: int) -> float:
+        return self.display.show(self.codes(index))
+
+    def check_cancel(self) -> None:
+        if _is_cancelled(self.cancel):
+            raise AcquisitionCancelled("cancelled by the user")
+
+    def fire(self) -> None:
+        if self.settings.trigger_mode == "hardware" and self.trigger_box is not None:
+            self.trigger_box.fire()
+        else:
+            self.camera.trigger()
+
+    def restart(self) -> None:
+        """Restart the stream after a timeout (drops whatever the driver holds)."""
+        self.camera.stop()
+        self.camera.start()
+        self.last_seq = -1
+        self.fr_ref = None
+
+    def reconnect(self, error: CameraDisconnected) -> None:
+        """Reconnect with exponential back-off; `_Failed` after `max_reconnects` tries."""
+        delay = self.opts.backoff_s
+        last: Exception = error
+        for _ in range(self.opts.max_reconnects):
+            self.check_cancel()
+            self.clock.sleep_until(self.clock.now() + delay)
+            delay *= 2
+            try:
+                self.camera.reconnect()
+                self.camera.configure(self.settings)
+                self.camera.start()
+            except CameraDisconnected as exc:
+                last = exc
+                continue
+            self.reconnects += 1
+            self.last_seq, self.fr_ref = -1, None
+            return
+        raise _Failed(f"camera disconnected and {self.opts.max_reconnects} reconnect attempts "
+                      f"failed: {last}")
+
+    # -- one pattern ------------------------------------------------------------------
+    def begin_exposures(self, on: float) -> float:
+        """Start the exposures of a pattern visible from `on`; returns their predicted end."""
+        k, e = self.opts.average, self.settings.exposure_s
+        if self.clock.now() < on:
+            self.clock.sleep_until(on)
+            self.camera.flush()
+        if self.triggered:
+            for _ in range(k):
+                self.fire()
+            return max(self.clock.now(), on) + k * (e + self.opts.trigger_overhead_s)
+        if self.fr_ref is None:
+            return on + k * self.frame_period + e
+        ts, _ = self.fr_ref
+        first = ts + math.ceil((on - ts) / self.frame_period) * self.frame_period
+        return first + (k - 1) * self.frame_period + e
+
+    def next_flip_target(self, flip: float, end: float) -> float:
+        """Earliest vsync (on the grid of `flip`) at which the next pattern may flip."""
+        need = end + self.opts.margin_s - self.lat
+        return flip + max(1, math.ceil((need - flip) / self.period - 1e-9)) * self.period
+
+    def collect(self, on: float, off: float) -> tuple[list[Frame], str]:
+        """Grab `average` frames exposed inside [on, off]; ([], reason) if one is torn."""
+        frames: list[Frame] = []
+        while len(frames) < self.opts.average:
+            self.check_cancel()
+            fr = self.camera.grab(self.opts.grab_timeout_s)
+            if fr.sequence <= self.last_seq:
+                self.stale += 1  # re-delivered buffer: inconsistent, never accepted
+                continue
+            self.last_seq = fr.sequence
+            self.fr_ref = (fr.timestamp_s, fr.sequence)
+            if fr.timestamp_s < on:
+                self.stale += 1
+                continue
+            if fr.timestamp_s + fr.exposure_s > off:
+                return [], (f"torn: exposure {fr.timestamp_s:.4f}+{fr.exposure_s:.4f} s ran past "
+                            f"the next pattern at {off + self.opts.margin_s:.4f} s")
+            frames.append(fr)
+        return frames, ""
+
+    def run(self, order: Sequence[int], accept: Callable[[int, np.ndarray, AcceptedFrame], None]
+            ) -> None:
+        """Capture `order` in sequence, each accepted frame handed to `accept` exactly once."""
+        m = self.opts.margin_s
+        attempts: dict[int, int] = {}
+        pos, pre_flip = 0, None
+        while pos < len(order):
+            self.check_cancel()
+            i = order[pos]
+            attempts[i] = attempts.get(i, 0) + 1
+            if attempts[i] > self.opts.max_attempts:
+                last = [r.reason for r in self.recaptures if r.index == i][-1]
+                raise _Failed(f"plan frame {i}: no valid frame after {self.opts.max_attempts} "
+                              f"attempts (last: {last})")
+            flip = pre_flip if pre_flip is not None else self.show(i)
+            pre_flip = None
+            on = flip + self.lat + self.period + m
+            try:
+                end = self.begin_exposures(on)
+                off = math.inf
+                if pos + 1 < len(order):
+                    target = self.next_flip_target(flip, end)
+                    self.clock.sleep_until(target - self.period / 2)
+                    pre_flip = self.show(order[pos + 1])
+                    off = pre_flip + self.lat - m
+                frames, reason = self.collect(on, off)
+            except CameraTimeout as exc:
+                frames, reason = [], f"timeout: {exc}"
+                self.restart()
+            except CameraDisconnected as exc:
+                frames, reason = [], f"disconnected: {exc}"
+                self.reconnect(exc)
+            if not frames:
+                self.recaptures.append(Recapture(i, reason))
+                pre_flip = None
+                continue
+            if len(frames) == 1:
+                image = frames[0].image
+            else:
+                image = np.mean([f.image for f in frames], axis=0, dtype=np.float32)
+            accept(i, image, AcceptedFrame(frames[0].sequence, frames[0].timestamp_s, flip))
+            pos += 1
+
+
+def capture_pose(
+    rig: Any,
+    plan: Plan,
+    sink: FrameSink,
+    *,
+    indices: Sequence[int] | None = None,
+    options: ControllerOptions | None = None,
+    settings: CameraSettings | None = None,
+    progress: Callable[[Progress], None] | None = None,
+    cancelled: Cancel = None,
+) -> PoseCapture:
+    """Capture plan frames `indices` (default all) of one pose on `rig` into `sink`.
+
+    `rig` has `display`, `camera`, `clock` and `settings` (or `camera_settings`), and
+    optionally `trigger` (a trigger box for 'hardware' trigger mode). Never raises for
+    camera faults, cancel or integrity problems: see `PoseCapture.status`/`reason`.
+    """
+    opts = options or ControllerOptions()
+    display, camera, clock = rig.display, rig.camera, rig.clock
+    settings = settings or getattr(rig, "settings", None) or rig.camera_settings
+    order = list(range(len(plan.frames))) if indices is None else [int(i) for i in indices]
+    if len(set(order)) != len(order) or any(not 0 <= i < len(plan.frames) for i in order):
+        raise ValueError(f"indices: expected distinct plan frame indices 0..{len(plan.frames) - 1}")
+    applied = camera.configure(settings)
+    latency = _latency(rig, opts, display, camera, clock, applied)
+    started = clock.now()
+    wall0 = time.monotonic()
+    runner = _Runner(display, camera, clock, applied, plan, opts, latency,
+                     getattr(rig, "trigger", None), cancelled)
+    refs = reference_indices(plan) if opts.integrity else None
+    originals: dict[int, np.ndarray] = {}
+    accepted: list[int] = []
+    frames: dict[int, AcceptedFrame] = {}
+
+    def accept(i: int, image: np.ndarray, info: AcceptedFrame) -> None:
+        sink.add(i, image)
+        accepted.append(i)
+        frames[i] = info
+        if refs is not None and i in refs:
+            originals[i] = np.array(image, copy=True)
+        if progress is not None:
+            done = len(accepted)
+            eta = (time.monotonic() - wall0) / done * (len(order) - done)
+            progress(Progress(done, len(order), eta, "capture"))
+
+    def result(status: Status, reason: str, report: IntegrityReport | None = None) -> PoseCapture:
+        return PoseCapture(status, reason, len(order), accepted, frames, runner.recaptures,
+                           runner.stale, runner.reconnects, latency, started, clock.now(), report)
+
+    camera.start()
+    try:
+        runner.run(order, accept)
+        report = None
+        if refs is not None and all(r in originals for r in refs):
+            if progress is not None:
+                progress(Progress(len(accepted), len(order), None, "integrity"))
+            repeats: dict[int, np.ndarray] = {}
+            runner.run(list(refs), lambda i, img, _info: repeats.__setitem__(i, img))
+            report = compare_references(tuple(originals[r] for r in refs),  # type: ignore[arg-type]
+                                        tuple(repeats[r] for r in refs),  # type: ignore[arg-type]
+                                        opts.thresholds)
+            report = IntegrityReport(report.ok, report.reasons, report.metrics, tuple(refs))
+            if not report.ok:
+                return result("flagged", report.reason, report)
+        return result("complete", "", report)
+    except AcquisitionCancelled:
+        return result("cancelled", f"cancelled after {len(accepted)} of {len(order)} frames "
+                                   "(see `accepted` for which)")
+    except _Failed as exc:
+        return result("failed", str(exc))
+    finally:
+        try:
+            camera.stop()
+        except CameraDisconnected:
+            pass
+
+
+def _latency(rig: Any, opts: ControllerOptions, display: Display, camera: Camera, clock: Clock,
+             settings: CameraSettings) -> float:
+    """Flip-to-panel latency: given, cached on the rig, or measured now (and cached)."""
+    if opts.latency_s is not None:
+        return opts.latency_s
+    cached = getattr(rig, "measured_latency_s", None)
+    if cached is not None:
+        return float(cached)
+    from acquisition.setup import measure_latency
+
+    latency = measure_latency(display, camera, clock, settings).latency_s
+    try:
+        rig.measured_latency_s = latency
+    except AttributeError:
+        pass
+    return latency

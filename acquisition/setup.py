@@ -1,0 +1,235 @@
+"""Setup helpers: display->camera latency, exposure choice, display response (gamma) curve.
+
+All of them only show flats and grab frames through the `Display`/`Camera` protocols,
+so they work on simulated and real rigs alike (`phasecal check` reuses them).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from acquisition.clock import Clock
+from acquisition.errors import AcquisitionError
+from acquisition.patterns import DisplayResponse
+from acquisition.protocols import Camera, CameraSettings, Display, Frame
+
+WHITE_FRACTION = 0.97  # a frame at least this bright (relative) saw only the new image
+DARK_FRACTION = 0.03  # ... at most this bright: saw only the old image
+
+
+@dataclass(frozen=True)
+class LatencyResult:
+    """Measured flip-to-panel latency (whole refresh periods) and the evidence."""
+
+    latency_s: float
+    periods: int
+    observations: int
+    violations: int  # observations inconsistent with the chosen latency (0 when clean)
+
+
+@dataclass(frozen=True)
+class ExposureResult:
+    """Chosen settings and the white flat's level at the target percentile."""
+
+    settings: CameraSettings
+    level_dn: float
+    fraction_of_max: float
+    iterations: int
+
+
+def _codes(display: Display, level: int) -> np.ndarray:
+    """A flat image of device code `level` for `display`."""
+    info = display.info
+    return np.full((info.height_px, info.width_px), level,
+                   np.uint8 if info.bit_depth == 8 else np.uint16)
+
+
+def _fire(camera: Camera, settings: CameraSettings, trigger_box: Any) -> None:
+    if settings.trigger_mode == "hardware" and trigger_box is not None:
+        trigger_box.fire()
+    else:
+        camera.trigger()
+
+
+def grab_after(camera: Camera, clock: Clock, settings: CameraSettings, on: float, count: int,
+               timeout_s: float = 1.0, trigger_box: Any = None) -> list[Frame]:
+    """`count` frames whose exposure starts at or after `on` (stale ones are skipped)."""
+    if clock.now() < on:
+        clock.sleep_until(on)
+    camera.flush()
+    triggered = settings.trigger_mode != "free-running"
+    for _ in range(count if triggered else 0):
+        _fire(camera, settings, trigger_box)
+    frames: list[Frame] = []
+    while len(frames) < count:
+        fr = camera.grab(timeout_s)
+        if fr.timestamp_s >= on:
+            frames.append(fr)
+    return frames
+
+
+def grab_settled(display: Display, camera: Camera, clock: Clock, settings: CameraSettings,
+                 image: np.ndarray, settle_s: float, average: int = 1,
+                 trigger_box: Any = None) -> np.ndarray:
+    """Show `image`, wait `settle_s` after its flip, return the mean of `average` frames."""
+    flip = display.show(image)
+    frames = grab_after(camera, clock, settings, flip + settle_s, average, trigger_box=trigger_box)
+    return np.mean([f.image for f in frames], axis=0, dtype=np.float64)
+
+
+def _lit_mask(white: np.ndarray, dark: np.ndarray, what: str) -> np.ndarray:
+    """Pixels that see the screen (white clearly above dark); error if the screen is not seen."""
+    contrast = white - dark
+    top = float(np.percentile(contrast, 99))
+    lit = contrast > 0.25 * top
+    if top <= 0 or lit.sum() < 16:
+        raise AcquisitionError(f"{what}: the camera does not see the screen (white-dark "
+                               f"contrast {top:.1f} DN); check the pose, exposure and display")
+    return lit
+
+
+def measure_latency(display: Display, camera: Camera, clock: Clock, settings: CameraSettings,
+                    *, max_periods: int = 8, trials: int = 3, tolerance_s: float = 1e-3,
+                    trigger_box: Any = None) -> LatencyResult:
+    """Latency in whole refresh periods from dark->white flips and frames sampling the switch.
+
+    Each frame's brightness fraction f over the lit pixels is compared with each
+    candidate latency L: f >= 0.97 needs the exposure to start after F + (L+1)P (panel
+    fully scanned), f <= 0.03 needs it to end before F + LP, anything between must
+    overlap [F + LP, F + (L+1)P]. The candidate with fewest contradictions wins.
+    """
+    info = display.info
+    p = 1.0 / info.refresh_hz
+    top = (1 << info.bit_depth) - 1
+    applied = camera.configure(settings)
+    e = applied.exposure_s
+    camera.start()
+    try:
+        settle = (max_periods + 2) * p
+        dark_img = grab_settled(display, camera, clock, applied, _codes(display, 0), settle,
+                                trigger_box=trigger_box)
+        white_img = grab_settled(display, camera, clock, applied, _codes(display, top), settle,
+                                 trigger_box=trigger_box)
+        lit = _lit_mask(white_img, dark_img, "latency measurement")
+        d, w = float(dark_img[lit].mean()), float(white_img[lit].mean())
+        rel, frac = [], []
+        for trial in range(trials):
+            flip = display.show(_codes(display, 0))
+            clock.sleep_until(flip + settle + trial * p / trials)
+            flip = display.show(_codes(display, top))
+            frames = _sample_switch(camera, clock, applied, flip, settle, trigger_box)
+            rel += [f.timestamp_s - flip for f in frames]
+            frac += [(float(f.image[lit].mean()) - d) / (w - d) for f in frames]
+    finally:
+        camera.stop()
+    t, f = np.asarray(rel)[None, :], np.asarray(frac)[None, :]
+    cand = np.arange(max_periods + 1)[:, None]
+    on0, on1 = cand * p, (cand + 1) * p
+    bad_white = (f >= WHITE_FRACTION) & (t < on1 - tolerance_s)
+    bad_dark = (f <= DARK_FRACTION) & (t + e > on0 + tolerance_s)
+    mixed = (f > DARK_FRACTION) & (f < WHITE_FRACTION)
+    bad_mixed = mixed & ((t > on1 + tolerance_s) | (t + e < on0 - tolerance_s))
+    violations = (bad_white | bad_dark | bad_mixed).sum(axis=1)
+    best = int(np.argmin(violations))
+    return LatencyResult(best * p, best, int(t.size), int(violations[best]))
+
+
+def _sample_switch(camera: Camera, clock: Clock, settings: CameraSettings, flip: float,
+                   span_s: float, trigger_box: Any) -> list[Frame]:
+    """Frames exposed from `flip` to `flip + span_s`: triggered every max(P/3, e + 1 ms)."""
+    camera.flush()
+    frames: list[Frame] = []
+    if settings.trigger_mode == "free-running":
+        while True:
+            fr = camera.grab(1.0)
+            if fr.timestamp_s > flip + span_s:
+                return frames
+            if fr.timestamp_s >= flip:
+                frames.append(fr)
+    step = settings.exposure_s + 1e-3
+    n = max(1, math.ceil(span_s / step))
+    for k in range(n):
+        clock.sleep_until(flip + k * step)
+        _fire(camera, settings, trigger_box)
+        frames.append(camera.grab(1.0))
+    return frames
+
+
+def _max_dn(settings: CameraSettings, camera: Camera) -> int:
+    """Top DN of the configured pixel format (Mono12 -> 4095), else the camera's bit depth."""
+    m = re.search(r"(\d+)$", settings.pixel_format)
+    bits = int(m.group(1)) if m else camera.info.bit_depth
+    return (1 << bits) - 1
+
+
+def choose_exposure(display: Display, camera: Camera, clock: Clock, settings: CameraSettings,
+                    *, latency_s: float, target: float = 0.8, percentile: float = 99.9,
+                    tolerance: float = 0.05, max_iterations: int = 8,
+                    trigger_box: Any = None) -> ExposureResult:
+    """Exposure putting the white flat's `percentile` at `target` x max DN (no saturation).
+
+    Saturated frames shrink the exposure 4x; otherwise it is scaled by target/level.
+    Free-running cameras are limited to one frame period.
+    """
+    top = (1 << display.info.bit_depth) - 1
+    settle = latency_s + 2.0 / display.info.refresh_hz
+    s = settings
+    level, frac = 0.0, 0.0
+    for it in range(1, max_iterations + 1):
+        s = camera.configure(s)
+        max_dn = _max_dn(s, camera)
+        camera.start()
+        try:
+            img = grab_settled(display, camera, clock, s, _codes(display, top), settle,
+                               trigger_box=trigger_box)
+        finally:
+            camera.stop()
+        level = float(np.percentile(img, percentile))
+        frac = level / max_dn
+        if abs(frac - target) <= tolerance * target:
+            return ExposureResult(s, level, frac, it)
+        factor = 0.25 if frac >= 0.98 else target / max(frac, 1e-3)
+        limit = 1.0 / s.frame_rate_hz if s.trigger_mode == "free-running" and s.frame_rate_hz \
+            else 10.0
+        new_e = float(np.clip(s.exposure_s * factor, 1e-5, limit))
+        if new_e == s.exposure_s:
+            return ExposureResult(s, level, frac, it)
+        s = replace(s, exposure_s=new_e)
+    raise AcquisitionError(f"exposure: no exposure within {tolerance:.0%} of {target:.0%} of max "
+                           f"DN after {max_iterations} tries (last {s.exposure_s:.5f} s gave "
+                           f"{frac:.1%}); is the scene changing?")
+
+
+def measure_display_response(display: Display, camera: Camera, clock: Clock,
+                             settings: CameraSettings, *, latency_s: float,
+                             levels: np.ndarray | None = None, average: int = 2,
+                             trigger_box: Any = None) -> DisplayResponse:
+    """Display response from flat grey levels: mean over lit pixels, normalized 0..1.
+
+    Use settings whose white flat is not saturated (`choose_exposure`).
+    """
+    top = (1 << display.info.bit_depth) - 1
+    lv = np.unique(np.linspace(0, top, 18).round().astype(int)) if levels is None \
+        else np.unique(np.asarray(levels, int))
+    if lv[0] != 0 or lv[-1] != top:
+        lv = np.unique(np.concatenate([[0], lv, [top]]))
+    settle = latency_s + 2.0 / display.info.refresh_hz
+    applied = camera.configure(settings)
+    camera.start()
+    try:
+        imgs = [grab_settled(display, camera, clock, applied, _codes(display, int(v)), settle,
+                             average, trigger_box) for v in lv]
+    finally:
+        camera.stop()
+    lit = _lit_mask(imgs[-1], imgs[0], "display response")
+    means = np.array([im[lit].mean() for im in imgs])
+    if means[-1] >= 0.98 * _max_dn(applied, camera):
+        raise AcquisitionError("display response: the white flat saturates; reduce the exposure "
+                               "(choose_exposure) first")
+    linear = np.maximum.accumulate(np.clip((means - means[0]) / (means[-1] - means[0]), 0, 1))
+    return DisplayResponse(lv.astype(np.float64), linear)

@@ -1,0 +1,65 @@
+"""Residual plot PNG (matplotlib Agg): vectors, magnitude map and radial profile of a fit.
+
+A wrong model shows as a systematic, radially growing pattern in the map and a rising
+radial profile far above the expected noise-floor line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from calibration.fit.result import CalibrationResult  # noqa: E402
+
+_QUIVER_POINTS = 1500
+
+
+def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
+    """Save a 3-panel PNG of all training-pose residuals (camera px)."""
+    if not result.residuals:
+        raise ValueError("report: the result holds no residuals to plot")
+    pix = np.concatenate([result.residual_pixels[i] for i in sorted(result.residuals)])
+    res = np.concatenate([result.residuals[i] for i in sorted(result.residuals)])
+    ok = np.all(np.isfinite(res), axis=1)
+    pix, res = pix[ok], res[ok]
+    mag = np.linalg.norm(res, axis=1)
+    w, h = result.model.image_size
+    stats = result.stats
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.8))
+    step = max(1, pix.shape[0] // _QUIVER_POINTS)
+    ax = axes[0]
+    ax.quiver(pix[::step, 0], pix[::step, 1], res[::step, 0], -res[::step, 1], mag[::step],
+              angles="xy", cmap="viridis")
+    ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual vectors (camera px)")
+    ax = axes[1]
+    hi = float(np.percentile(mag, 99)) if mag.size else 1.0
+    sc = ax.scatter(pix[:, 0], pix[:, 1], c=mag, s=2, vmin=0, vmax=hi, cmap="magma")
+    fig.colorbar(sc, ax=ax, label="|residual| px")
+    ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude")
+    ax = axes[2]
+    k = result.model.get_params()
+    center = (k[2], k[3]) if k.size >= 4 else ((w - 1) / 2, (h - 1) / 2)
+    rad = np.hypot(pix[:, 0] - center[0], pix[:, 1] - center[1])
+    edges = np.linspace(0, max(float(rad.max(initial=1.0)), 1.0), 21)
+    idx = np.clip(np.digitize(rad, edges) - 1, 0, 19)
+    cnt = np.bincount(idx, minlength=20)
+    rms = np.sqrt(np.bincount(idx, weights=mag**2, minlength=20) / np.maximum(cnt, 1))
+    mids = 0.5 * (edges[1:] + edges[:-1])
+    ax.plot(mids[cnt > 0], rms[cnt > 0], "o-", label="RMS residual")
+    if stats.get("expected_rms_px"):
+        ax.axhline(stats["expected_rms_px"], color="r", ls="--", label="expected (noise floor)")
+    ax.set(xlabel="radius from principal point (px)", ylabel="RMS |residual| (px)",
+           title="radial residual profile")
+    ax.legend()
+    flag = "OK" if stats.get("model_adequate") else "MODEL INADEQUATE"
+    fig.suptitle(f"{result.model.type_name}: RMS {stats.get('rms_px', float('nan')):.4g} px, "
+                 f"noise floor {stats.get('expected_rms_px', float('nan')):.4g} px, "
+                 f"ratio {stats.get('noise_floor_ratio', float('nan')):.3g} -> {flag}")
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=90)
+    plt.close(fig)
