@@ -11,10 +11,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from calibration.fit.result import CalibrationResult  # noqa: E402
+from calibration.fit.result import CalibrationResult
 
 _QUIVER_POINTS = 1500
 

@@ -29,11 +29,11 @@ SCREEN = ScreenGeometry(320, 240, (0.5, 0.5))
 def small_rig(slow: bool = False) -> dict:
     """A simulated rig with a small mild-pinhole camera and a small screen.
 
-    `slow`: 640x480 with 4x4 supersampled rendering (~0.1-0.2 s a frame), so that a
+    `slow`: 320x240 with 4x4 supersampled rendering (~50 ms a frame or more), so that a
     capture runs long enough to be cancelled or killed mid-sequence.
     """
     if slow:
-        cfg = demo_rig_config(640, 480, camera="mild_pinhole", screen=SCREEN)
+        cfg = demo_rig_config(2 * W, 2 * H, camera="mild_pinhole", screen=SCREEN)
         cfg["camera"]["supersample"] = 4
         return cfg
     return demo_rig_config(W, H, camera="mild_pinhole", screen=SCREEN)
@@ -155,11 +155,13 @@ def test_restart_recovery(tmp_path) -> None:
     srv.start()
     c = PhasecalClient(srv.url)
     try:
-        rig = c.post("/rigs", {"name": "rt", "config": small_rig(slow=True)})
-        sess = c.post("/sessions", {"rig_id": rig["id"], "preset": "fast"})
-        done = c.wait(c.post(f"/sessions/{sess['id']}/poses",
+        fast = c.post("/rigs", {"name": "fast", "config": small_rig()})
+        first = c.post("/sessions", {"rig_id": fast["id"], "preset": "fast"})
+        done = c.wait(c.post(f"/sessions/{first['id']}/poses",
                              {"screen_pose": screen_poses(2, 9)[0]}), timeout_s=300)
         assert done["status"] == "succeeded"
+        rig = c.post("/rigs", {"name": "slow", "config": small_rig(slow=True)})
+        sess = c.post("/sessions", {"rig_id": rig["id"], "preset": "fast"})
         job = c.post(f"/sessions/{sess['id']}/poses", {"screen_pose": screen_poses(2, 9)[1]})
         _wait_until(c, job["id"], lambda j: j["stage"] == "capture" and j["done"] >= 3)
         srv.kill()

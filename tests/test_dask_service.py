@@ -51,7 +51,12 @@ def render(plan: Plan, seed: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def cluster():
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+    # Workers keep this process's BLAS threading (Dask would pin it to 1 thread), so both
+    # executors run the same floating-point code path and can be compared bit for bit.
+    env = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
+           if not k.endswith("_NUM_THREADS")}
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1,
+                          "distributed.nanny.pre-spawn-environ": env}):
         lc = start_local_cluster(2)
     yield lc
     lc.close()

@@ -165,3 +165,13 @@ def test_opening_an_absent_camera_is_a_clear_error() -> None:
         AravisCamera("127.0.0.1:1")  # no GigE Vision camera answers on this address form
     with pytest.raises(DeviceSettingsError, match="discovery is never implicit"):
         AravisCamera("")
+
+
+def test_back_to_back_triggers_each_give_a_frame(cam, fake) -> None:
+    scene = fake["scene"]
+    cam.configure(_software("Mono16"))
+    cam.start()
+    for _ in range(3):
+        cam.trigger()  # faster than the camera can expose: held back, not lost
+    counts = [int(cam.grab(2.0).image[0, 0]) for _ in range(3)]
+    assert counts == [1, 2, 3] and scene.count == 3

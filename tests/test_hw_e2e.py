@@ -185,7 +185,7 @@ def test_check_command_on_the_aravis_rig(world, capsys):
     from acquisition.camera.aravis_fake import FakeGigECamera
     from api.commands.check import _print, check_rig
 
-    plan, setup, sensor = world
+    _plan, setup, sensor = world
     geo = FramebufferGeometry.standard(SCREEN_W, SCREEN_H, 32, refresh_hz=120.0)
     fb = Path(tempfile.mktemp(prefix="phasecal-fb-", dir="/dev/shm"))
     fb.write_bytes(bytes(geo.size_bytes))

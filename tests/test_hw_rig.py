@@ -199,3 +199,15 @@ def test_simulated_rig_is_the_default() -> None:
         parse_rig_config({"kind": "hardware", "clock": "virtual", "screen": {"pitch_mm": 0.3},
                           "display": {"backend": "sdl"},
                           "camera": {"backend": "aravis", "device": "x"}})
+
+
+def test_check_command_errors_are_one_line(tmp_path: Path, capsys) -> None:
+    assert main(["check", "--rig", str(tmp_path / "none.toml")]) == 1
+    assert "no such rig config file" in capsys.readouterr().err
+    assert main(["check", "--target", "1.5"]) == 1
+    assert "--target" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text('kind = "hardware"\n')
+    assert main(["check", "--rig", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "kind 'hardware' needs real backends" in err

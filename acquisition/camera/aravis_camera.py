@@ -6,8 +6,9 @@ modes off and read back, frame rate, software or hardware trigger. Frames come f
 pool of stream buffers; incomplete or lost buffers are counted and recycled, every wait
 has a timeout, frames exposed before the last trigger or flush are dropped (never
 returned stale), software triggers sent while a frame is still due are held back and
-sent when it arrives (cameras ignore overlapping triggers), and a lost control channel surfaces as `CameraDisconnected` so that
-`reconnect()` can reopen the device with the same settings.
+sent when it arrives (cameras ignore overlapping triggers), and a lost control channel
+surfaces as `CameraDisconnected` so that `reconnect()` can reopen the device with the
+same settings.
 
 Device timestamps (ns, start of frame) are mapped to the controller's clock by the
 smallest observed (arrival - device time) offset over recent frames, the arrival dated
@@ -216,6 +217,7 @@ class AravisCamera:
         self._payload_fmt = pixel_format(self._settings.pixel_format)
         self._region = self._cam.get_region()
         self._not_before = self._clock.now()
+        self._awaiting, self._deferred = False, 0
         self._running = True
 
     def stop(self) -> None:

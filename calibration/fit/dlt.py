@@ -20,7 +20,7 @@ def _normalizer(p: np.ndarray) -> np.ndarray:
 
 
 def dlt_projection(points: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """P (3x4, ||P|| = 1) with pixels ~ P [X, 1] from N >= 6 non-coplanar points (normalized DLT)."""
+    """P (3x4, ||P|| = 1), pixels ~ P [X, 1], from N >= 6 non-coplanar points (normalized)."""
     x = np.asarray(points, dtype=np.float64)
     u = np.asarray(pixels, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] != 3 or u.shape != (x.shape[0], 2):

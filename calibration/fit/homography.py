@@ -16,12 +16,14 @@ def _normalizer(p: np.ndarray) -> np.ndarray:
     return np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
 
 
-def fit_homography(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+def fit_homography(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
     """H (3x3, H[2,2]=1) with dst ~ H src from N >= 4 point pairs (N, 2), normalized DLT."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 2:
-        raise ValueError(f"fit_homography: expected two (N, 2) arrays, got {src.shape}, {dst.shape}")
+        raise ValueError(f"fit_homography: expected two (N, 2) arrays, got {src.shape} {dst.shape}")
     if src.shape[0] < 4:
         raise DegenerateError(f"homography needs >= 4 points, got {src.shape[0]}")
     ts, td = _normalizer(src), _normalizer(dst)

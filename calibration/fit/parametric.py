@@ -173,7 +173,8 @@ def fit_parametric(
             try:
                 k, d, rv, tv = _run_opencv(model_name, used, image_size, guess, opts)
             except cv2.error as exc:
-                raise DegenerateError(f"{model_name}: OpenCV calibration failed ({exc.err})") from None
+                raise DegenerateError(
+                    f"{model_name}: OpenCV calibration failed ({exc.err})") from None
             model = PARAMETRIC_MODELS[model_name](image_size, k, d)
             poses = _poses(rv, tv)
             if rnd == rounds:

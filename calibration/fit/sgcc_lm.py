@@ -122,23 +122,25 @@ class _Problem:
         res = np.where(ok[:, None], q - self.screen, 0.0)
         if not jacobian:
             return res, ok
-        proj = np.zeros((len(q), 2, 3))
-        proj[:, 0, 0] = proj[:, 1, 1] = 1.0
-        proj[:, :, 2] = -r_s[:, :2] / rz[:, None]
-        prc = np.empty_like(proj)
+        px, py = r_s[:, 0] / rz, r_s[:, 1] / rz  # dQ/d(o_s) = [[1, 0, -px], [0, 1, -py]]
+        prc = np.empty((len(q), 2, 3))
         for sl, rc_j in zip(self.slices, st.rc, strict=True):
-            prc[sl] = proj[sl] @ rc_j  # (n,2,3)
+            prc[sl, 0] = rc_j[0] - px[sl, None] * rc_j[2]
+            prc[sl, 1] = rc_j[1] - py[sl, None] * rc_j[2]
         g = np.empty((len(q), 2, self.c))
-        g[:, :, :2] = lam[:, None, None] * (prc @ jr)
+        g[:, :, :2] = lam[:, None, None] * (
+            prc[:, :, 0, None] * jr[:, None, 0, :]
+            + prc[:, :, 1, None] * jr[:, None, 1, :]
+            + prc[:, :, 2, None] * jr[:, None, 2, :]
+        )
         if self.c == 4:
             g[:, :, 2:] = prc[:, :, :2]
-        x = np.zeros((len(q), 3))
-        x[:, :2] = q
-        skew = np.zeros((len(q), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2] = -x[:, 2], x[:, 1]
-        skew[:, 1, 0], skew[:, 1, 2] = x[:, 2], -x[:, 0]
-        skew[:, 2, 0], skew[:, 2, 1] = -x[:, 1], x[:, 0]
-        jp = np.concatenate([-(proj @ skew), proj], axis=2)
+        qx, qy = q[:, 0], q[:, 1]
+        jp = np.zeros((len(q), 2, 6))  # d/d(omega) = -dQ/d(o_s) [X]x, d/dt = dQ/d(o_s)
+        jp[:, 0, 0], jp[:, 0, 1], jp[:, 0, 2] = -px * qy, px * qx, -qy
+        jp[:, 1, 0], jp[:, 1, 1], jp[:, 1, 2] = -py * qy, py * qx, qx
+        jp[:, 0, 3], jp[:, 1, 4] = 1.0, 1.0
+        jp[:, 0, 5], jp[:, 1, 5] = -px, -py
         return res, ok, g, jp
 
     def normal_equations(

@@ -35,7 +35,7 @@ def vanishing_intrinsics(pairs: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarr
     _, sv, vt = np.linalg.svd(rows_arr)
     if sv[-2] < 1e-9 * sv[0]:
         raise DegenerateError("vanishing points: views are degenerate (too similar orientations)")
-    w11, w13, w23, w33 = vt[-1] / vt[-1][0]
+    _, w13, w23, w33 = vt[-1] / vt[-1][0]
     cx, cy = -w13, -w23
     f2 = w33 - cx * cx - cy * cy
     if not f2 > 0:

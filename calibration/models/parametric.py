@@ -50,7 +50,7 @@ class PinholeFamily(CameraModel):
         super().__init__(image_size)
         k = np.asarray(camera_matrix, dtype=np.float64)
         if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
-            raise ModelError(f"camera_matrix: expected finite 3x3 with fx, fy > 0, got {k.tolist()}")
+            raise ModelError(f"camera_matrix: expected finite 3x3, fx and fy > 0, got {k.tolist()}")
         self.fx, self.fy, self.cx, self.cy = float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(
             k[1, 2]
         )

@@ -1,0 +1,68 @@
+"""`phasecal calibrate`: fit a camera model to the decoded maps of several poses."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "fit a camera model (opencv5, opencv-rational, fisheye, raygrid, sgcc, ...) to maps"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--plan", required=True, help="pattern plan (phasecal.plan/1 JSON)")
+    p.add_argument("--maps", required=True, nargs="+", help="decoded maps, one .npz per pose")
+    p.add_argument("--model", required=True, help="model name, e.g. opencv5")
+    p.add_argument("-o", "--output", required=True, help="output model.json")
+    p.add_argument("--heldout", type=int, nargs="+", default=[], metavar="POSE",
+                   help="pose indices (0-based, --maps order) left out of the fit and validated")
+    p.add_argument("--max-points", type=int, help="points per pose given to the solver")
+    p.add_argument("--report", help="write a residual plot PNG here")
+    p.add_argument("--export-opencv", metavar="YAML", help="also write OpenCV FileStorage YAML")
+    p.add_argument("--export-ros", metavar="YAML", help="also write ROS camera_info YAML")
+
+
+def run(args: argparse.Namespace) -> int:
+    from api.cli import UserError
+    from calibration.fit.dispatch import MODEL_NAMES, calibrate
+    from calibration.fit.homography import DegenerateError
+    from calibration.maps import load_maps
+    from calibration.models.base import save_model
+    from calibration.plan import read_plan
+
+    if args.model not in MODEL_NAMES:
+        raise UserError(f"--model: expected one of {', '.join(MODEL_NAMES)}, got {args.model!r}")
+    plan = read_plan(args.plan)
+    maps = [load_maps(m) for m in args.maps]
+    options = {}
+    if args.max_points is not None:
+        if args.max_points < 50:
+            raise UserError(f"--max-points: expected >= 50, got {args.max_points}")
+        options["max_points_per_pose"] = args.max_points
+    try:
+        result = calibrate(maps, plan.screen, args.model, options=options or None,
+                           heldout=args.heldout)
+    except DegenerateError as exc:
+        raise UserError(f"calibration failed: {exc}") from None
+    save_model(result.model, args.output)
+    st = result.stats
+    print(f"wrote {args.output}: {args.model}, RMS {st['rms_px']:.4g} px "
+          f"(noise floor {st['expected_rms_px']:.4g} px, ratio {st['noise_floor_ratio']:.3g}"
+          f"{'' if st['model_adequate'] else ', MODEL INADEQUATE'})")
+    for pp in st["per_pose"]:
+        print(f"  pose {pp['pose']}: RMS {pp['rms_px']:.4g} px, screen {pp['rms_screen_px']:.4g} "
+              f"px, {pp['n_points']} points")
+    if st.get("heldout"):
+        print(f"  held-out RMS {st['heldout']['rms_px']:.4g} px "
+              f"(ratio {st['heldout']['noise_floor_ratio']:.3g})")
+    if args.report:
+        from calibration.report import write_residual_report
+
+        write_residual_report(result, args.report)
+    if args.export_opencv:
+        from calibration.export import export_opencv_yaml
+
+        export_opencv_yaml(result.model, args.export_opencv)
+    if args.export_ros:
+        from calibration.export import export_ros_yaml
+
+        export_ros_yaml(result.model, args.export_ros)
+    return 0
