@@ -210,21 +210,28 @@ class _Runner:
                       f"failed: {last}")
 
     # -- one pattern ------------------------------------------------------------------
-    def begin_exposures(self, on: float) -> float:
-        """Start the exposures of a pattern visible from `on`; returns their predicted end."""
+    def predicted_end(self, on: float) -> float:
+        """Predicted end of the exposures of a pattern fully visible from `on`."""
         k, e = self.opts.average, self.settings.exposure_s
-        if self.clock.now() < on:
-            self.clock.sleep_until(on)
-            self.camera.flush()
-        if self.triggered:
-            for _ in range(k):
-                self.fire()
-            return max(self.clock.now(), on) + k * (e + self.opts.trigger_overhead_s)
+        if self.triggered:  # triggered one margin after `on`: timestamp jitter stays inside
+            start = max(self.clock.now(), on + self.opts.margin_s)
+            return start + k * (e + self.opts.trigger_overhead_s)
         if self.fr_ref is None:
             return on + k * self.frame_period + e
         ts, _ = self.fr_ref
         first = ts + math.ceil((on - ts) / self.frame_period) * self.frame_period
         return first + (k - 1) * self.frame_period + e
+
+    def begin_exposures(self, on: float, flush: bool) -> None:
+        """Wait until `on`; flush stale frames if allowed; trigger the pattern's exposures."""
+        if self.clock.now() < on:
+            self.clock.sleep_until(on)
+            if flush:
+                self.camera.flush()
+        if self.triggered:
+            self.clock.sleep_until(on + self.opts.margin_s)
+            for _ in range(self.opts.average):
+                self.fire()
 
     def next_flip_target(self, flip: float, end: float) -> float:
         """Earliest vsync (on the grid of `flip`) at which the next pattern may flip."""
@@ -253,30 +260,58 @@ class _Runner:
 
     def run(self, order: Sequence[int], accept: Callable[[int, np.ndarray, AcceptedFrame], None]
             ) -> None:
-        """Capture `order` in sequence, each accepted frame handed to `accept` exactly once."""
+        """Capture `order`, each accepted frame handed to `accept` exactly once.
+
+        Event loop over three kinds of timed actions, earliest first: show the next
+        pattern (so it flips right after the last shown pattern's exposures end), begin
+        the exposures of the oldest shown pattern (at its on-screen time), collect the
+        frames of the oldest begun pattern (once its exposures ended and the next flip,
+        which bounds its window, is known). Several patterns can be in flight when the
+        latency exceeds the exposure.
+        """
         m = self.opts.margin_s
         attempts: dict[int, int] = {}
-        pos, pre_flip = 0, None
-        while pos < len(order):
+        pos = 0  # next position of `order` to show
+        done = 0  # positions accepted
+        inflight: list[dict[str, Any]] = []  # shown, not yet accepted; oldest first
+        while done < len(order):
             self.check_cancel()
-            i = order[pos]
-            attempts[i] = attempts.get(i, 0) + 1
-            if attempts[i] > self.opts.max_attempts:
-                last = [r.reason for r in self.recaptures if r.index == i][-1]
-                raise _Failed(f"plan frame {i}: no valid frame after {self.opts.max_attempts} "
-                              f"attempts (last: {last})")
-            flip = pre_flip if pre_flip is not None else self.show(i)
-            pre_flip = None
-            on = flip + self.lat + self.period + m
+            unbegun = [f for f in inflight if not f["begun"]]
+            t_show = math.inf
+            if pos < len(order):
+                if inflight:
+                    last = inflight[-1]
+                    t_show = self.next_flip_target(last["flip"], last["end"]) - self.period / 2
+                else:
+                    t_show = self.clock.now()
+            t_begin = unbegun[0]["on"] if unbegun else math.inf
+            head = inflight[0] if inflight and inflight[0]["begun"] else None
+            bounded = head is not None and (len(inflight) > 1 or pos >= len(order))
+            t_collect = head["end"] if bounded and head is not None else math.inf
             try:
-                end = self.begin_exposures(on)
-                off = math.inf
-                if pos + 1 < len(order):
-                    target = self.next_flip_target(flip, end)
-                    self.clock.sleep_until(target - self.period / 2)
-                    pre_flip = self.show(order[pos + 1])
-                    off = pre_flip + self.lat - m
-                frames, reason = self.collect(on, off)
+                if t_show <= min(t_begin, t_collect):
+                    self.clock.sleep_until(t_show)
+                    i = order[pos]
+                    attempts[i] = attempts.get(i, 0) + 1
+                    if attempts[i] > self.opts.max_attempts:
+                        last_reason = [r.reason for r in self.recaptures if r.index == i][-1]
+                        raise _Failed(f"plan frame {i}: no valid frame after "
+                                      f"{self.opts.max_attempts} attempts (last: {last_reason})")
+                    flip = self.show(i)
+                    on = flip + self.lat + self.period + m
+                    inflight.append({"index": i, "flip": flip, "on": on, "begun": False,
+                                     "end": self.predicted_end(on)})
+                    pos += 1
+                    continue
+                if t_begin <= t_collect:
+                    entry = unbegun[0]
+                    self.begin_exposures(entry["on"], flush=entry is inflight[0])
+                    entry["end"] = self.predicted_end(entry["on"])
+                    entry["begun"] = True
+                    continue
+                assert head is not None
+                off = inflight[1]["flip"] + self.lat - m if len(inflight) > 1 else math.inf
+                frames, reason = self.collect(head["on"], off)
             except CameraTimeout as exc:
                 frames, reason = [], f"timeout: {exc}"
                 self.restart()
@@ -284,15 +319,17 @@ class _Runner:
                 frames, reason = [], f"disconnected: {exc}"
                 self.reconnect(exc)
             if not frames:
-                self.recaptures.append(Recapture(i, reason))
-                pre_flip = None
+                failed = inflight[0]["index"] if inflight else order[pos]
+                self.recaptures.append(Recapture(failed, reason))
+                pos = done  # re-show the failed pattern; later in-flight flips are wasted
+                inflight = []
                 continue
-            if len(frames) == 1:
-                image = frames[0].image
-            else:
-                image = np.mean([f.image for f in frames], axis=0, dtype=np.float32)
-            accept(i, image, AcceptedFrame(frames[0].sequence, frames[0].timestamp_s, flip))
-            pos += 1
+            image = frames[0].image if len(frames) == 1 else \
+                np.mean([f.image for f in frames], axis=0, dtype=np.float32)
+            accept(head["index"], image,
+                   AcceptedFrame(frames[0].sequence, frames[0].timestamp_s, head["flip"]))
+            inflight.pop(0)
+            done += 1
 
 
 def capture_pose(

@@ -13,6 +13,7 @@ import asyncio
 import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,6 +28,7 @@ from calibration.worker.executor import Executor, JobCancelled, TaskContext
 log = logging.getLogger("phasecal.jobs")
 
 PERSIST_INTERVAL_S = 0.5
+RECENT_CAPACITY = 2048  # finished jobs answered from memory (status polls after the end)
 
 Hook = Callable[[Session, dict[str, Any]], None]
 FailHook = Callable[[Session, str, str], None]
@@ -75,6 +77,7 @@ class JobManager:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._threads: list[threading.Thread] = []
         self._stopping = False
+        self._recent: OrderedDict[str, dict[str, Any]] = OrderedDict()
 
     def bind_loop(self, loop: asyncio.AbstractEventLoop) -> None:
         """The event loop SSE subscribers live on (set at app startup)."""
@@ -156,6 +159,10 @@ class JobManager:
                 self._write(s, job_id, live.record, status="failed",
                             error=f"could not store the job's outcome: {_describe(exc)}",
                             finished_at=time.time(), stage="failed")
+        with self._lock:
+            self._recent[job_id] = dict(live.record, eta_s=None)
+            while len(self._recent) > RECENT_CAPACITY:
+                self._recent.popitem(last=False)
         self._publish(job_id, "end")
         with self._lock:
             self._live.pop(job_id, None)
@@ -201,11 +208,19 @@ class JobManager:
         rec["eta_s"] = _eta(live, rec)
         return rec
 
-    def get(self, job_id: str) -> dict[str, Any] | None:
-        """Live state if running here, else the stored record; None if unknown."""
+    def cached(self, job_id: str) -> dict[str, Any] | None:
+        """The state from memory (live, or finished recently in this process), else None."""
         snap = self.snapshot(job_id)
         if snap is not None:
             return snap
+        done = self._recent.get(job_id)
+        return dict(done) if done is not None else None
+
+    def get(self, job_id: str) -> dict[str, Any] | None:
+        """From memory if possible, else the stored record; None if unknown."""
+        cached = self.cached(job_id)
+        if cached is not None:
+            return cached
         with self.db.session() as s:
             rec = s.get(JobRecord, job_id)
             return job_to_dict(rec) if rec is not None else None

@@ -28,11 +28,13 @@ sys.path.insert(0, str(ROOT))
 from api.inprocess import free_port  # noqa: E402
 
 
-def start_server(data_dir: Path) -> tuple[subprocess.Popen, str]:
+def start_server(data_dir: Path, executor: str) -> tuple[subprocess.Popen, str]:
     """`python -m api.cli serve` on a free port; returns (process, base URL) once healthy."""
     port = free_port()
     env = dict(os.environ, PHASECAL_DATA_DIR=str(data_dir))
-    proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port", str(port)],
+    env.pop("PHASECAL_DASK", None)
+    proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port", str(port),
+                             "--executor", executor],
                             cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 60
@@ -49,11 +51,10 @@ def start_server(data_dir: Path) -> tuple[subprocess.Popen, str]:
 
 def prepare(url: str, n_poses: int, width: int, height: int) -> str:
     """A session whose poses are synthetic maps of a wide-angle camera; returns its id."""
+    from acquisition.patterns import build_plan
     from hw_mocks.cameras import wide_fisheye
     from hw_mocks.poses import random_poses
     from hw_mocks.synthetic import synthetic_maps
-
-    from acquisition.patterns import build_plan
 
     plan = build_plan(1920, 1080, 0.2745, preset="fast")
     with httpx.Client(base_url=url, timeout=60) as c:
@@ -70,36 +71,62 @@ def prepare(url: str, n_poses: int, width: int, height: int) -> str:
     return sess["id"]
 
 
+async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, request: bytes) -> int:
+    """One keep-alive HTTP/1.1 GET on an open connection; returns the status code."""
+    writer.write(request)
+    await writer.drain()
+    status_line = await reader.readline()
+    length = 0
+    while (line := await reader.readline()) not in (b"\r\n", b""):
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"content-length":
+            length = int(value)
+    await reader.readexactly(length)
+    return int(status_line.split()[1])
+
+
 async def poll(url: str, path: str, clients: int, stop: asyncio.Event,
-               min_requests: int = 0) -> list[float]:
-    """Latencies (s) of GET `path` from `clients` concurrent clients until `stop` is set."""
+               min_requests: int = 0, interval_s: float = 0.0) -> list[float]:
+    """Latencies (s) of GET `path` from `clients` concurrent keep-alive connections.
+
+    A minimal raw-socket client keeps the load generator's own CPU use small (it shares
+    the 2 cores with the server), so the numbers are the server's.
+    """
+    host, port = url.removeprefix("http://").split(":")
+    request = f"GET {path} HTTP/1.1\r\nHost: {host}\r\n\r\n".encode()
     lat: list[float] = []
 
     async def one() -> None:
-        async with httpx.AsyncClient(base_url=url, timeout=30) as c:
+        reader, writer = await asyncio.open_connection(host, int(port))
+        try:
             n = 0
             while not stop.is_set() or n < min_requests:
                 t0 = time.perf_counter()
-                r = await c.get(path)
+                status = await _get(reader, writer, request)
                 lat.append(time.perf_counter() - t0)
-                r.raise_for_status()
+                if status != 200:
+                    raise RuntimeError(f"GET {path}: HTTP {status}")
                 n += 1
+                if interval_s:
+                    await asyncio.sleep(interval_s)
+        finally:
+            writer.close()
 
     await asyncio.gather(*(one() for _ in range(clients)))
     return lat
 
 
-async def measure(url: str, session_id: str, clients: int, model: str) -> dict[str, list[float]]:
+async def measure(url: str, session_id: str, clients: int, model: str,
+                  interval_s: float) -> dict[str, list[float]]:
     """Idle baseline, then polling while a calibration job runs."""
     async with httpx.AsyncClient(base_url=url, timeout=60) as c:
         stop = asyncio.Event()
         stop.set()
-        first = (await c.get("/jobs", params={"limit": 1})).json()["items"]
-        idle_path = f"/jobs/{first[0]['id']}" if first else "/health"
-        idle = await poll(url, idle_path, clients, stop, min_requests=20)
+        idle = await poll(url, "/health", clients, stop, min_requests=20, interval_s=interval_s)
         job = (await c.post(f"/sessions/{session_id}/calibrations", json={"model": model})).json()
         stop = asyncio.Event()
-        task = asyncio.create_task(poll(url, f"/jobs/{job['id']}", clients, stop))
+        task = asyncio.create_task(poll(url, f"/jobs/{job['id']}", clients, stop,
+                                        interval_s=interval_s))
         t0 = time.perf_counter()
         while True:
             state = (await c.get(f"/jobs/{job['id']}")).json()
@@ -120,16 +147,20 @@ def main() -> int:
     ap.add_argument("--poses", type=int, default=4)
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--interval", type=float, default=0.1,
+                    help="pause between one client's polls, s (0: back-to-back saturation)")
+    ap.add_argument("--executor", default="threads", help="threads, processes or tcp://...")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="phasecal-bench-") as tmp:
-        proc, url = start_server(Path(tmp))
+        proc, url = start_server(Path(tmp), args.executor)
         try:
             sid = prepare(url, args.poses, args.width, args.height)
-            results = asyncio.run(measure(url, sid, args.clients, args.model))
+            results = asyncio.run(measure(url, sid, args.clients, args.model, args.interval))
         finally:
             proc.terminate()
             proc.wait(30)
-    print(f"\n{args.clients} concurrent clients polling GET /jobs/<id> (cpus: {os.cpu_count()})")
+    print(f"\n{args.clients} concurrent clients polling GET /jobs/<id> every {args.interval} s, "
+          f"executor {args.executor} (cpus: {os.cpu_count()})")
     print(f"{'scenario':<24} {'requests':>9} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
     for name, lat in results.items():
         ms = np.asarray(lat) * 1e3

@@ -17,16 +17,24 @@ def best_rotation(d_from: np.ndarray, d_to: np.ndarray) -> np.ndarray:
 
 
 def ray_angle_difference(
-    rays_a: RayFn, rays_b: RayFn, image_size: tuple[int, int], step_px: float = 4.0
+    rays_a: RayFn,
+    rays_b: RayFn,
+    image_size: tuple[int, int],
+    step_px: float = 4.0,
+    pixels: np.ndarray | None = None,
 ) -> dict[str, np.ndarray | float]:
     """Angle (rad) between two models' rays on a pixel grid, after the best aligning rotation.
 
     Returns the grid `pixels` (N,2), per-pixel `angle_rad` (NaN where either model has no
     ray), `rotation` (b-frame from a-frame), and the `rms_rad` / `max_rad` summary.
+    `pixels` (N,2), if given, replaces the grid (e.g. only pixels that saw the target).
     """
-    w, h = image_size
-    uu, vv = np.meshgrid(np.arange(0, w, step_px), np.arange(0, h, step_px))
-    pix = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(np.float64)
+    if pixels is None:
+        w, h = image_size
+        uu, vv = np.meshgrid(np.arange(0, w, step_px), np.arange(0, h, step_px))
+        pix = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(np.float64)
+    else:
+        pix = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
     _, da = rays_a(pix)
     _, db = rays_b(pix)
     ok = np.all(np.isfinite(da), axis=1) & np.all(np.isfinite(db), axis=1)
@@ -46,7 +54,9 @@ def ray_angle_difference(
     }
 
 
-def sgcc_gauge_transform(rays: RayFn, image_size: tuple[int, int], central: bool) -> tuple[np.ndarray, np.ndarray]:
+def sgcc_gauge_transform(
+    rays: RayFn, image_size: tuple[int, int], central: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """(Q, t) moving a camera's frame into the sGCC gauge (calibration.fit.sgcc_lm docstring).
 
     Q: center ray to +z, its u-derivative into the x-z plane. t (non-central only): after
@@ -55,7 +65,7 @@ def sgcc_gauge_transform(rays: RayFn, image_size: tuple[int, int], central: bool
     """
     w, h = image_size
     c = np.array([(w - 1) / 2, (h - 1) / 2])
-    pts = np.array([c, c + [1, 0], c - [1, 0], c + [0, 1], c - [0, 1]])
+    pts = c + np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.float64)
     o, d = rays(pts)
     e3 = d[0]
     du = (d[1] - d[2]) / 2

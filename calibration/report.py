@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from calibration.fit.result import CalibrationResult
+from calibration.models.parametric import PinholeFamily
 
 _QUIVER_POINTS = 1500
 
@@ -42,8 +43,8 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     fig.colorbar(sc, ax=ax, label="|residual| px")
     ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude")
     ax = axes[2]
-    k = result.model.get_params()
-    center = (k[2], k[3]) if k.size >= 4 else ((w - 1) / 2, (h - 1) / 2)
+    cam = result.model
+    center = (cam.cx, cam.cy) if isinstance(cam, PinholeFamily) else ((w - 1) / 2, (h - 1) / 2)
     rad = np.hypot(pix[:, 0] - center[0], pix[:, 1] - center[1])
     edges = np.linspace(0, max(float(rad.max(initial=1.0)), 1.0), 21)
     idx = np.clip(np.digitize(rad, edges) - 1, 0, 19)
@@ -53,7 +54,7 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     ax.plot(mids[cnt > 0], rms[cnt > 0], "o-", label="RMS residual")
     if stats.get("expected_rms_px"):
         ax.axhline(stats["expected_rms_px"], color="r", ls="--", label="expected (noise floor)")
-    ax.set(xlabel="radius from principal point (px)", ylabel="RMS |residual| (px)",
+    ax.set(xlabel="radius from principal point / image center (px)", ylabel="RMS |residual| (px)",
            title="radial residual profile")
     ax.legend()
     flag = "OK" if stats.get("model_adequate") else "MODEL INADEQUATE"

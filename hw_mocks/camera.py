@@ -275,7 +275,7 @@ class SimulatedCamera:
         arrived: list[_Exposure] = []
         if self._settings.trigger_mode == "free-running":
             last = math.floor((now - self.readout_s - self._settings.exposure_s - self._fr_t0)
-                              * self._fps)
+                              * self._fps + 1e-9)
             first = max(self._fr_next, last - self.buffer_depth + 1)
             self._seq += first - self._fr_next  # frames overwritten in the driver
             arrived = [self._new_exposure(self._fr_t0 + k / self._fps)

@@ -194,3 +194,20 @@ def test_serve_refuses_public_bind_without_token(capsys: pytest.CaptureFixture[s
     monkeypatch.delenv("PHASECAL_TOKEN", raising=False)
     assert main(["serve", "--host", "0.0.0.0", "--port", "1"]) == 1
     assert "requires an API token" in capsys.readouterr().err
+
+
+def test_process_executor_progress_and_cancel() -> None:
+    ex = make_executor("processes")
+    try:
+        seen: list[tuple[int, int, str]] = []
+        fut = ex.run_task(_count_task, 3, 0.0, job_id="p1", on_progress=lambda *a: seen.append(a))
+        assert fut.result(timeout=60) == {"n": 3}
+        _wait(lambda: (3, 3, "count") in seen)
+        slow = ex.run_task(_count_task, 100_000, 0.01, job_id="p2")
+        _wait(lambda: slow.running())
+        time.sleep(0.2)
+        assert ex.cancel("p2")
+        with pytest.raises(JobCancelled):
+            slow.result(timeout=60)
+    finally:
+        ex.shutdown()

@@ -50,17 +50,27 @@ def fake_calibrate(ctx: TaskContext, plan_path: str, maps_paths: list[str], mode
     return {"pid": os.getpid(), "rms": float(np.std(data[:, 1] - np.polyval(coef, data[:, 0])))}
 
 
-def json_numbers_close(a: object, b: object, rtol: float = 1e-9) -> bool:
-    """Same JSON tree with numbers equal to `rtol` (worker processes may round the last
-    bit differently, e.g. through array alignment in SIMD reductions)."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(json_numbers_close(a[k], b[k], rtol) for k in a)
-    if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(
-            json_numbers_close(x, y, rtol) for x, y in zip(a, b, strict=True))
-    if isinstance(a, float | int) and isinstance(b, float | int) and not isinstance(a, bool):
-        return bool(np.isclose(a, b, rtol=rtol, atol=0.0, equal_nan=True))
-    return a == b
+# OpenCV's iterative fits amplify last-bit differences between processes (BLAS threading,
+# array alignment); in the strongly correlated rational distortion terms parameters then
+# differ by ~1e-6 relative while the models agree to micro-pixels. Fitted models are
+# therefore compared by what they predict.
+FIT_AGREE_PX = 1e-4
+
+
+def model_disagreement_px(path_a: Path, path_b: Path) -> float:
+    """Largest pixel distance between two models' projections of rays over model a's image."""
+    from calibration.models.base import load_model
+
+    a, b = load_model(path_a), load_model(path_b)
+    w, h = a.image_size
+    v, u = np.mgrid[0:h:8, 0:w:8].astype(np.float64)
+    pixels = np.column_stack([u.ravel(), v.ravel()])
+    origins, dirs = a.unproject(pixels)
+    points = origins + 1000.0 * dirs
+    pa, pb = a.project(points), b.project(points)
+    ok = np.isfinite(pa).all(axis=1)
+    assert ok.mean() > 0.9 and np.isfinite(pb[ok]).all()
+    return float(np.max(np.linalg.norm(pa[ok] - pb[ok], axis=1)))
 
 
 def _write_sessions(root: Path, n_sessions: int) -> Path:
@@ -209,7 +219,11 @@ def test_cli_batch_on_local_cluster_matches_in_process(tmp_path, capsys):
         maps.append(str(tmp_path / f"pose{k}.npz"))
     common = ["batch", "--plan", str(tmp_path / "plan.json"), "--maps", *maps,
               "--model", "opencv5", "opencv-rational"]
-    assert cli_main([*common, "--executor", "inprocess", "-o", str(tmp_path / "a")]) == 0
+    # in-process reference: one model per run, because concurrent fits in threads of one
+    # process share OpenCV's global thread setting (not repeatable, see FACTS.md)
+    for model in ("opencv5", "opencv-rational"):
+        assert cli_main([*common[:-2], model, "--executor", "inprocess",
+                         "-o", str(tmp_path / "a")]) == 0
     # the private cluster's workers keep this process's BLAS threading (see test_dask_service)
     env = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
            if not k.endswith("_NUM_THREADS")}
@@ -217,8 +231,8 @@ def test_cli_batch_on_local_cluster_matches_in_process(tmp_path, capsys):
         assert cli_main([*common, "--executor", "local:2", "-o", str(tmp_path / "b")]) == 0
     assert "2 succeeded, 0 failed" in capsys.readouterr().out
     for model in ("opencv5", "opencv-rational"):
-        a = json.loads((tmp_path / "a" / "session" / model / "model.json").read_text())
-        b = json.loads((tmp_path / "b" / "session" / model / "model.json").read_text())
-        assert json_numbers_close(a, b), model
+        a = tmp_path / "a" / "session" / model / "model.json"
+        b = tmp_path / "b" / "session" / model / "model.json"
+        assert model_disagreement_px(a, b) < FIT_AGREE_PX, model
     summary = json.loads((tmp_path / "b" / "batch.json").read_text())
     assert [i["status"] for i in summary["items"]] == ["succeeded", "succeeded"]

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import importlib.util
 import io
-import json
 import math
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ from api.routes import batch as batch_routes
 from calibration.maps import load_maps
 from calibration.plan import CosineFrame, FlatFrame, Plan
 from calibration.worker.dask_executor import DaskExecutor, start_local_cluster
-from tests.test_dask_batch import json_numbers_close
+from tests.test_dask_batch import FIT_AGREE_PX, model_disagreement_px
 
 H, W = 96, 128
 TERMINAL = ("succeeded", "failed", "cancelled", "interrupted")
@@ -132,16 +131,20 @@ def test_batch_endpoint_on_cluster_matches_in_process(cluster, tmp_path):
                 r = c.post(f"/sessions/{ses['id']}/poses/import-maps",
                            files={"file": (f.name, f.read_bytes(), "application/octet-stream")})
                 assert r.status_code == 201, r.text
-            r = c.post("/batches/calibrations", json={
-                "session_ids": [ses["id"]],
-                "models": [{"model": "opencv5"}, {"model": "opencv-rational"}]})
-            assert r.status_code == 202, r.text
-            final = _wait(c, r.json())
-            assert final["status"] == "succeeded", final
+            # in-process: one model per batch, because concurrent fits in threads of one
+            # process share OpenCV's global thread setting (not repeatable, see FACTS.md)
+            sweeps = ([["opencv5"], ["opencv-rational"]] if executor is None
+                      else [["opencv5", "opencv-rational"]])
+            for models in sweeps:
+                r = c.post("/batches/calibrations", json={
+                    "session_ids": [ses["id"]], "models": [{"model": m} for m in models]})
+                assert r.status_code == 202, r.text
+                final = _wait(c, r.json())
+                assert final["status"] == "succeeded", final
             cals = c.get("/calibrations", params={"session_id": ses["id"]}).json()
             assert sorted(x["status"] for x in cals) == ["succeeded", "succeeded"]
-            results[label] = {x["model"]: json.loads(store.file(x["id"], "model.json").read_text())
-                              for x in cals}
+            results[label] = {x["model"]: store.file(x["id"], "model.json") for x in cals}
     assert results["dask"].keys() == results["local"].keys()
     for model in results["local"]:
-        assert json_numbers_close(results["dask"][model], results["local"][model]), model
+        assert model_disagreement_px(results["local"][model], results["dask"][model]) < \
+            FIT_AGREE_PX, model

@@ -1,4 +1,4 @@
-"""Closed-form estimators against hw_mocks ground truth: DLT, homography, Zhang, PnP, VP, rotation."""
+"""Closed-form estimators vs hw_mocks truth: DLT, homography, Zhang, PnP, VP, rotation."""
 
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def test_zhang_recovers_k_and_poses() -> None:
     rng = np.random.default_rng(2)
     cam = _ideal()
     poses = random_poses(cam, SCREEN, 5, rng)
-    hs = _homographies(cam, poses, rng, sigma=0.0)
+    hs = _homographies(cam, poses, rng, sigma=1e-9)
     k = zhang_intrinsics(hs)
     np.testing.assert_allclose(k, cam.camera_matrix, rtol=1e-6, atol=1e-4)
     r, t = pose_from_homography(k, hs[0])
@@ -81,7 +81,7 @@ def test_dlt_ransac_pose_with_outliers() -> None:
     out = rng.random(len(pix)) < 0.2
     pix[out] = rng.uniform(0, 640, (int(out.sum()), 2))
     p, inl = ransac_dlt(world, pix, 1.0, rng)
-    assert np.mean(inl[~out]) > 0.95 and not np.any(inl[out & (np.abs(pix[:, 0]) > 0)] & False)
+    assert np.mean(inl[~out]) > 0.95 and np.mean(inl[out]) < 0.05
     k, r, t = decompose_projection(p)
     assert _angle_deg(r, rot.rotation) < 0.1
     np.testing.assert_allclose(k, cam.camera_matrix, rtol=0.01, atol=2.0)
@@ -95,8 +95,8 @@ def test_pnp_ransac_pose_with_20_percent_outliers() -> None:
     cam = mild_pinhole()
     model = OpenCV5Model((cam.width, cam.height), cam.camera_matrix, np.asarray(cam.dist))
     for pose in random_poses(cam, SCREEN, 3, rng):
-        maps, truth = synthetic_maps(cam, pose, SCREEN, sigma_px=0.05, rng=rng,
-                                     outlier_fraction=0.2)
+        maps, _ = synthetic_maps(cam, pose, SCREEN, sigma_px=0.05, rng=rng,
+                                 outlier_fraction=0.2)
         pts = subsample(point_set(maps, SCREEN, reject_outliers=False), 2000)
         r, t, inl = estimate_pose(model, pts, rng)
         assert _angle_deg(r, pose.rotation) < 0.1

@@ -116,11 +116,8 @@ def test_no_stale_frame_after_a_trigger(cam, fake) -> None:
 def test_grab_without_trigger_times_out(cam) -> None:
     cam.configure(_software())
     cam.start()
-    clock = RealClock()
-    t0 = clock.now()
     with pytest.raises(CameraTimeout, match=r"no frame within 0\.300 s"):
         cam.grab(0.3)
-    assert clock.now() - t0 < 1.5
 
 
 def test_free_running_and_bayer(cam, fake) -> None:

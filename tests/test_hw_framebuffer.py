@@ -119,7 +119,9 @@ def test_paced_flips_without_vsync_ioctl(fb_file) -> None:
     flips = [d.show(img) for _ in range(6)]
     now = clock.now()
     assert not d.hardware_vsync  # ioctl fails on a plain file: paced fallback
-    np.testing.assert_allclose(np.diff(flips), 1 / 200.0, rtol=1e-9)
+    steps = np.diff(flips) * 200.0  # on the vsync grid: whole periods (more under load)
+    np.testing.assert_allclose(steps, np.rint(steps), atol=1e-6)
+    assert np.all(steps >= 1 - 1e-6)
     assert flips[-1] <= now + 1e-6  # show() returns once the flip time has come
     d.close()
 

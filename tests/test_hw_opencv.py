@@ -112,9 +112,8 @@ def test_free_running_replay_flush_and_timeout(tmp_path: Path) -> None:
     cam.flush()
     nxt = cam.grab(1.0)
     assert nxt.timestamp_s >= t_flush  # never a frame exposed before the flush
-    assert nxt.sequence - first.sequence >= 8
-    index = next(i for i, f in enumerate(frames) if np.array_equal(f, nxt.image))
-    assert index >= 8
+    assert nxt.sequence > first.sequence + 1  # the queued (stale) ones were dropped
+    np.testing.assert_array_equal(nxt.image, frames[nxt.sequence - 1])  # exact, in order
     with pytest.raises(CameraDisconnected, match="recording exhausted"):
         for _ in range(60):
             cam.grab(0.5)
@@ -189,12 +188,9 @@ def test_live_device_grab_times_out_instead_of_hanging() -> None:
 
     cam = OpenCvCamera(0, capture_factory=lambda s, a: Stuck([np.zeros((4, 4), np.uint8)]))
     cam.start()
-    clock = RealClock()
-    t0 = clock.now()
     cam.grab(0.5)  # the frame read at open
     with pytest.raises(CameraTimeout, match=r"no frame within 0\.200 s"):
         cam.grab(0.2)
-    assert clock.now() - t0 < 3.0
     cam._running = False  # the stuck reader thread is a daemon; do not wait for it
 
 

@@ -41,7 +41,9 @@ def test_headless_driver_exact_pixels_and_paced_flips(driver: str, monkeypatch) 
         for ch in range(3):
             np.testing.assert_array_equal(shown[:, :, ch].T, img)
         assert not d.vsync_granted  # these drivers cannot sync: flips are paced
-        np.testing.assert_allclose(np.diff(flips), 1 / 120.0, rtol=1e-9)
+        steps = np.diff(flips) * 120.0  # whole refresh periods (more if the host is slow)
+        np.testing.assert_allclose(steps, np.rint(steps), atol=1e-6)
+        assert np.all(steps >= 1 - 1e-6)
         with pytest.raises(DisplayError, match="uint8"):
             d.show(img.astype(np.uint16))
         with pytest.raises(DisplayError, match="shape"):

@@ -59,9 +59,9 @@ async def read_job(job_id: str, request: Request) -> dict[str, Any]:
     """One job: status, stage, done/total, ETA (served from memory while it runs)."""
     svc: Services = request.app.state.services
     check_id(job_id, "job", "job")
-    snap = svc.jobs.snapshot(job_id)
-    if snap is not None:
-        return snap
+    cached = svc.jobs.cached(job_id)
+    if cached is not None:
+        return cached
     return await asyncio.to_thread(_job, svc, job_id)
 
 

@@ -194,10 +194,11 @@ class StreamingDecoder:
         return f"frames: no pixel could be decoded; most common reason: {worst} ({counts})"
 
     def _residuals(self, fits: list[SetFit], sl: slice) -> tuple[Any, Any, Any]:
-        """Per-pixel residual sum of squares, its degrees of freedom and the kept samples' level.
+        """Per-pixel residual sum of squares, its degrees of freedom and their noise level.
 
-        The level is the average of the samples the residuals come from (clipped ones
-        excluded), so the photon-transfer fit pairs each variance with its own level.
+        The level is the dof-weighted average of the sets' residual levels (`SetFit.level`),
+        so with variance linear in the level, `E[rss/dof] = offset + slope * level` holds
+        exactly, also for pixels whose bright steps clipped.
         """
         xp = self.xp
         rss = self._acc.squares.reshape(-1)[sl].astype(xp.float64)
@@ -206,31 +207,36 @@ class StreamingDecoder:
         for f in fits:
             rss = rss - xp.where(f.ok, f.explained, 0.0)
             dof = dof + xp.where(f.ok, f.dof, 0.0)
-            level = level + xp.where(f.ok, f.level, 0.0)
-        used = sum(xp.where(f.ok, 1.0, 0.0) for f in fits)
-        return xp.maximum(rss, 0.0), dof, level / xp.maximum(used, 1.0)
+            level = level + xp.where(f.ok, f.dof * f.level, 0.0)
+        return xp.maximum(rss, 0.0), dof, level / xp.maximum(dof, 1.0)
 
     def _estimate_noise(self, npix: int) -> None:
         """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass).
 
         Pixels with clipped steps are left out when enough others exist: excluding the
-        clipped samples truncates the noise of those near the clip level (censoring), so
-        their residuals understate the noise.
+        clipped samples truncates the noise of those near the clip level (censoring). When
+        too few are left (heavy overexposure: every on-screen pixel clips), pixels clipped
+        only at the bright end are used (their residual levels weigh each kept step, so
+        they are unbiased to first order); those clipped at the dark end (0 DN, where a
+        sensor without black offset truncates its read noise) are not.
         """
         acc, step = self._acc, self.options.chunk_pixels
         mean, rss, dof = (np.empty(npix, dtype=np.float32) for _ in range(3))
-        clean = np.empty(npix, dtype=bool)
+        clean, no_dark_clip = np.empty(npix, dtype=bool), np.empty(npix, dtype=bool)
 
         def one(sl: slice) -> None:
             fits = [fit_set(self.xp, s, sl) for s in acc.sets]
             r, d, m = self._residuals(fits, sl)
             rss[sl], dof[sl], mean[sl] = to_host(r), to_host(d), to_host(m)
             clean[sl] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
+            low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
+            no_dark_clip[sl] = to_host(~low)
 
         self._map(one, [slice(s, min(s + step, npix)) for s in range(0, npix, step)])
         use = clean & (dof >= 1)
-        if use.sum() < _MIN_CLEAN_PIXELS:
-            use = dof >= 1
+        for fallback in (no_dark_clip & (dof >= 1), dof >= 1):
+            if use.sum() < _MIN_CLEAN_PIXELS:
+                use = fallback
         self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor)
 
     @property
@@ -249,7 +255,11 @@ class StreamingDecoder:
         xp = self.xp
         if self._variance is not None:
             fn = self._variance
-            return [fn(xp.maximum(f.mean, 0.0)) for f in fits], fn
+            per_set = [fn(xp.maximum(f.mean, 0.0)) for f in fits]
+            everywhere = xp.ones(fits[0].mean.shape, dtype=bool)
+            for f, var in zip(fits, per_set, strict=True):
+                f.use_step_levels(xp, fn, var, everywhere)
+            return per_set, fn
         rss, dof, _ = self._residuals(fits, sl)
         own = xp.where(dof > 0, xp.maximum(rss / xp.maximum(dof, 1.0), self._floor), xp.nan)
         if self._ptc is None:
@@ -258,6 +268,8 @@ class StreamingDecoder:
         limit = xp.asarray(_chi2_tail(int(to_host(dof).max()) if dof.size else 0))
         excess = own > ptc(xp.maximum(fits[0].mean, 0.0)) * limit[dof.astype(xp.int64)]
         per_set = [xp.where(excess, own, ptc(xp.maximum(f.mean, 0.0))) for f in fits]
+        for f, var in zip(fits, per_set, strict=True):
+            f.use_step_levels(xp, ptc, var, ~excess)
         return per_set, ptc  # the flats are not subject to the cosine-fit model error
 
     def _finish_chunk(self, sl: slice, axes: list[str], out: dict, reason: np.ndarray) -> None:

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+from scipy.stats import chi2
 
 
 @runtime_checkable
@@ -93,15 +94,19 @@ def fit_photon_transfer(
     """Fit the sensor's variance-versus-mean line to per-pixel cosine-fit residuals.
 
     Pixels are grouped into mean-level quantile bins; each bin's variance is the median of
-    `rss/dof` corrected to a mean (median of chi2_d/d is about (1 - 2/(9d))^3), which
-    ignores the few pixels with model errors. A straight line through the bins (slope >= 0)
-    gives every pixel a variance estimated from millions of residual degrees of freedom
-    instead of its own handful. None when fewer than 4 bins have data.
+    `rss/dof` over each pixel's chi-square median `chi2.median(dof)/dof` (pixels with
+    clipped steps have fewer dof), which ignores the few pixels with model errors. A straight
+    line through the bins (slope >= 0) gives every pixel a variance estimated from millions
+    of residual degrees of freedom instead of its own handful. None when < 4 bins have data.
     """
     good = np.isfinite(mean) & np.isfinite(rss) & (dof >= 1)
     if good.sum() < 64:
         return None
-    m, ratio, d = mean[good], rss[good] / dof[good], dof[good]
+    m, d = mean[good], dof[good]
+    # Each ratio over its own dof's chi-square median (dof differ between pixels: clipped
+    # steps leave fewer), so every bin's median estimates the variance itself.
+    dofs, which_dof = np.unique(d, return_inverse=True)
+    ratio = rss[good] / d / (chi2.median(dofs) / dofs)[which_dof.reshape(-1)]
     edges = np.unique(np.quantile(m, np.linspace(0.0, 1.0, bins + 1)))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
     xs, ys, ws = [], [], []
@@ -110,9 +115,8 @@ def fit_photon_transfer(
         count = int(sel.sum())
         if count < 16:
             continue
-        dd = float(np.median(d[sel]))
         xs.append(float(np.median(m[sel])))
-        ys.append(float(np.median(ratio[sel])) / (1.0 - 2.0 / (9.0 * dd)) ** 3)
+        ys.append(float(np.median(ratio[sel])))
         ws.append(count)
     if len(xs) < 4:
         return None

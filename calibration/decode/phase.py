@@ -9,9 +9,10 @@ solution over the kept steps, solved per distinct exclusion pattern (a handful),
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -23,11 +24,22 @@ _MAX_CONDITION = 1e6
 
 
 @dataclass
+class _PartialFit:
+    """Pixels of a chunk fitted on their kept steps only: what their noise covariance needs."""
+
+    idx: Any  # (P,) positions in the chunk
+    p: Any  # (P, k) fitted coefficients
+    pattern: Any  # (P,) index into `gains`
+    gains: Any  # (U, 2, steps) d(alpha, beta)/d v_i per exclusion pattern
+    basis: Any  # (steps, k) design matrix
+
+
+@dataclass
 class SetFit:
     """Fit of one (axis, period) group over a chunk of pixels (1-D arrays)."""
 
     mean: Any  # C, DN
-    level: Any  # average of the kept samples (DN): where their noise is evaluated
+    level: Any  # level (DN) whose noise variance is the expected residual variance per dof
     alpha: Any
     beta: Any
     c_aa: Any  # covariance of (alpha, beta) per unit sample variance
@@ -37,6 +49,8 @@ class SetFit:
     dof: Any  # kept samples - 3
     ok: Any  # enough kept samples, well-conditioned
     clipped: Any  # some steps were excluded as clipped
+    low_clipped: Any  # a step below the fitted mean was excluded (clipped at the dark end)
+    partial: _PartialFit | None = None  # the pixels fitted on a subset of steps
 
     @property
     def modulation(self) -> Any:
@@ -58,37 +72,86 @@ class SetFit:
         num = num + self.alpha**2 * self.c_bb
         return num / (b2 * b2 + (b2 == 0)) + (b2 == 0) * 1e30  # no modulation: no phase
 
+    def use_step_levels(self, xp: ModuleType, variance: Callable[[Any], Any], base: Any,
+                        where: Any) -> None:
+        """Give pixels fitted on kept steps each step's own noise variance (in place).
+
+        With all steps kept the (alpha, beta) covariance is `var(C) (X^T X)^-1` exactly (the
+        level's cosine is orthogonal to the products of the basis). With clipped steps the
+        kept ones are the darker ones, so `var(C)` overstates their noise; here
+        `sum_i var(mu_i) g_i g_i^T` (g_i: the step's gains) is stored divided by `base`,
+        the variance the caller multiplies with, at the chunk pixels `where` is true for.
+        """
+        part = self.partial
+        if part is None:
+            return
+        c_aa = c_bb = c_ab = 0.0
+        for i in range(part.basis.shape[0]):  # a loop over the phase steps, not over pixels
+            mu = part.p @ part.basis[i]
+            var = variance(xp.maximum(mu, 0.0))
+            g_a, g_b = part.gains[part.pattern, 0, i], part.gains[part.pattern, 1, i]
+            c_aa = c_aa + var * g_a * g_a
+            c_bb = c_bb + var * g_b * g_b
+            c_ab = c_ab + var * g_a * g_b
+        b = base[part.idx]
+        keep = where[part.idx] & (b > 0)
+        safe = xp.where(keep, b, 1.0)
+        for name, value in (("c_aa", c_aa), ("c_bb", c_bb), ("c_ab", c_ab)):
+            arr = getattr(self, name)
+            arr[part.idx] = xp.where(keep, value / safe, arr[part.idx])
+
     def position(self, xp: ModuleType, period: float) -> Any:
         """Wrapped screen position in [0, period) screen px."""
         phi = xp.arctan2(-self.alpha, self.beta)
         return xp.mod(phi * (period / (2.0 * math.pi)), period)
 
 
-def _normal_inverse(
-    steps: int, excluded_mask: int, harmonics: tuple[int, ...]
-) -> tuple[np.ndarray, int, int]:
-    """Inverse normal matrix of the kept steps, their count and the columns used.
+class _Pattern(NamedTuple):
+    """Least-squares tables of one exclusion pattern (which steps were clipped)."""
 
-    Columns: 1, sin(psi), cos(psi), then sin(k psi), cos(k psi) for each extra harmonic k.
-    When too few steps are kept for all of them, the highest harmonics are dropped (their
-    rows and columns of the returned, full-size matrix are zero); NaN when even the
-    fundamental cannot be fitted.
-    """
+    minv: np.ndarray  # (k, k) inverse normal matrix, zero rows/columns for dropped harmonics
+    kept: int  # steps kept
+    used: int  # columns fitted
+    weights: np.ndarray  # (k,) residual weights sum_i (1 - h_ii) x_i over the kept steps
+    gains: np.ndarray  # (2, steps) d(alpha, beta)/d v_i, zero for excluded steps
+
+
+def _basis(steps: int, harmonics: tuple[int, ...]) -> np.ndarray:
+    """(steps, k) design matrix: 1, sin(psi), cos(psi), then sin(k psi), cos(k psi) per harmonic."""
     psi = 2.0 * np.pi * np.arange(steps) / steps
-    kept = np.array([(excluded_mask >> i) & 1 == 0 for i in range(steps)])
-    basis = [np.ones(steps)]
+    columns = [np.ones(steps)]
     for k in (1, *harmonics):
-        basis += [np.sin(k * psi), np.cos(k * psi)]
-    full = len(basis)
-    rows = np.stack(basis, axis=1)[kept]
+        columns += [np.sin(k * psi), np.cos(k * psi)]
+    return np.stack(columns, axis=1)
+
+
+def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) -> _Pattern:
+    """Least-squares tables of the kept steps of one exclusion pattern.
+
+    When too few steps are kept for all columns, the highest harmonics are dropped (their
+    rows and columns of the full-size inverse are zero); NaN when even the fundamental
+    cannot be fitted. The residual weights `w` give `w . p = sum_i (1 - h_ii) mu_i` (h: the
+    hat matrix, mu: fitted values): with noise variance linear in the level, the expected
+    residual sum of squares is `offset * dof + slope * w . p`. Kept steps are unevenly
+    weighted: when the bright ones clip, the dark ones carry most residual dof, so the kept
+    samples' average level would overstate their noise. The gains let the (alpha, beta)
+    covariance use each kept step's own noise variance.
+    """
+    basis = _basis(steps, harmonics)
+    kept = np.array([(excluded_mask >> i) & 1 == 0 for i in range(steps)])
+    full = basis.shape[1]
+    rows = basis[kept]
     n = int(rows.shape[0])
     for columns in range(full, 2, -2):
         m = rows[:, :columns].T @ rows[:, :columns]
         if n >= columns and np.linalg.cond(m) <= _MAX_CONDITION:
             out = np.zeros((full, full))
             out[:columns, :columns] = np.linalg.inv(m)
-            return out, n, columns
-    return np.full((full, full), np.nan), n, full
+            leverage = np.einsum("ij,jk,ik->i", rows, out, rows)
+            gains = (out @ basis.T)[1:3] * kept
+            return _Pattern(out, n, columns, (1.0 - leverage) @ rows, gains)
+    nan = np.full((full, full), np.nan)
+    return _Pattern(nan, n, full, np.zeros(full), np.zeros((2, steps)))
 
 
 def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
@@ -119,6 +182,7 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
         dof=xp.full(size, float(n - len(flat))),
         ok=xp.ones(size, dtype=bool),
         clipped=xp.zeros(size, dtype=bool),
+        low_clipped=xp.zeros(size, dtype=bool),
     )
     if sums.excluded is None:
         return fit
@@ -128,15 +192,17 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
         return fit
     uniq, inv = xp.unique(bits[idx], return_inverse=True)
     tables = [_normal_inverse(n, int(u), sums.harmonics) for u in to_host(uniq)]
-    minv = xp.asarray(np.stack([t[0] for t in tables]))[inv.reshape(-1)]  # (P, k, k)
-    counts = np.array([(t[1], t[2]) for t in tables], dtype=np.float64)
-    kept, used = (xp.asarray(c)[inv.reshape(-1)] for c in counts.T)
+    inv = inv.reshape(-1)
+    minv = xp.asarray(np.stack([t.minv for t in tables]))[inv]  # (P, k, k)
+    counts = np.array([(t.kept, t.used) for t in tables], dtype=np.float64)
+    weights = xp.asarray(np.stack([t.weights for t in tables]))[inv]  # (P, k)
+    kept, used = (xp.asarray(c)[inv] for c in counts.T)
     rhs = xp.stack([f[idx] for f in flat], axis=1)
     p = xp.einsum("pij,pj->pi", minv, rhs)
     good = xp.isfinite(p).all(axis=1)
     p = xp.where(good[:, None], p, 0.0)
     fit.mean[idx] = p[:, 0]
-    fit.level[idx] = s0[idx] / xp.maximum(kept, 1.0)
+    fit.level[idx] = (weights * p).sum(axis=1) / xp.maximum(kept - used, 1.0)
     fit.alpha[idx] = p[:, 1]
     fit.beta[idx] = p[:, 2]
     fit.c_aa[idx] = xp.where(good, minv[:, 1, 1], 0.0)
@@ -146,4 +212,9 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     fit.dof[idx] = xp.maximum(kept - used, 0.0)
     fit.ok[idx] = good
     fit.clipped[idx] = True
+    basis = _basis(n, sums.harmonics)
+    excluded = xp.asarray((to_host(uniq)[:, None] >> np.arange(n)) & 1 == 1)[inv]  # (P, n)
+    fit.low_clipped[idx] = (excluded & (p @ basis.T.astype(np.float64) < p[:, :1])).any(axis=1)
+    gains = xp.asarray(np.stack([t.gains for t in tables]))
+    fit.partial = _PartialFit(idx, p, inv, gains, xp.asarray(basis))
     return fit

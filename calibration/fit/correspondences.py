@@ -35,7 +35,7 @@ class PointSet:
         return PointSet(self.pixels[keep], self.screen_px[keep], self.sigma_px[keep], self.pitch_mm)
 
 
-# A decoded value this many sigmas (plus half the local spread) from its 3x3 median is an outlier.
+# A decoded value this many sigmas (plus twice the local spread) from its 3x3 median is an outlier.
 _OUTLIER_SIGMAS = 6.0
 
 
@@ -57,7 +57,7 @@ def local_outliers(values: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     med = _nanmedian0(stack)
     spread = _nanmedian0(np.abs(stack - med))
     with np.errstate(invalid="ignore"):
-        return np.abs(values - med) > _OUTLIER_SIGMAS * sigma + 0.5 * spread
+        return np.abs(values - med) > _OUTLIER_SIGMAS * sigma + 2.0 * spread
 
 
 def _nanmedian0(stack: np.ndarray) -> np.ndarray:

@@ -18,10 +18,6 @@ PARAMETRIC = ("opencv5", "opencv-rational", "fisheye")
 MIN_VALID_PIXELS = 100
 
 
-class CalibrationCancelled(RuntimeError):
-    """The caller's `cancelled()` returned True."""
-
-
 def _check_inputs(maps: list[DecodedMaps], heldout: list[int]) -> tuple[int, int]:
     """Common checks: same image size, enough valid pixels, held-out indices; returns (W, H)."""
     if not maps:
@@ -69,7 +65,9 @@ def calibrate(
 
     def report(i: int, n: int, msg: str) -> None:
         if cancelled is not None and cancelled():
-            raise CalibrationCancelled(f"{model}: calibration cancelled")
+            from calibration.worker.executor import JobCancelled  # the worker's own signal
+
+            raise JobCancelled(f"{model}: calibration cancelled")
         if progress is not None:
             progress(i, n + 1, msg)
 

@@ -81,6 +81,11 @@ def ransac_dlt(
             best = inl
     if best.sum() < 6:
         raise DegenerateError("RANSAC DLT: no consensus set of >= 6 inliers")
-    p = dlt_projection(points[best], pixels[best])
-    inl = np.linalg.norm(project_with(p, points) - pixels, axis=1) < threshold_px
-    return dlt_projection(points[inl], pixels[inl]), inl
+    inl = best
+    for _ in range(10):  # refit on the consensus set until it is stable
+        p = dlt_projection(points[inl], pixels[inl])
+        new = np.linalg.norm(project_with(p, points) - pixels, axis=1) < threshold_px
+        if new.sum() < 6 or np.array_equal(new, inl):
+            break
+        inl = new
+    return p, inl

@@ -19,7 +19,13 @@ from calibration.fit.sgcc_init import initial_state, pose_from_model
 from calibration.fit.sgcc_lm import LMOptions, LMResult, LMState, PoseObs, run_lm
 from calibration.maps import DecodedMaps
 from calibration.models.bspline import SplineGrid
-from calibration.models.sgcc import DEFAULT_CELLS, SGCCBase, SGCCModel, SGCCNonCentralModel, expmap_jacobian
+from calibration.models.sgcc import (
+    DEFAULT_CELLS,
+    SGCCBase,
+    SGCCModel,
+    SGCCNonCentralModel,
+    expmap_jacobian,
+)
 from calibration.plan import ScreenGeometry
 
 GENERIC_MODELS = ("sgcc", "sgcc-noncentral")
@@ -42,7 +48,10 @@ def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMO
     opts = dict(options or {})
     unknown = set(opts) - _OPTION_KEYS
     if unknown:
-        raise ValueError(f"options: unknown key(s) {sorted(unknown)} for generic models; known: {sorted(_OPTION_KEYS)}")
+        raise ValueError(
+            f"options: unknown key(s) {sorted(unknown)} for generic models; "
+            f"known: {sorted(_OPTION_KEYS)}"
+        )
     cells = opts.pop("cells", DEFAULT_CELLS)
     if isinstance(cells, int):
         cells = (cells, cells)
@@ -54,7 +63,9 @@ def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMO
     return (int(cells[0]), int(cells[1])), lm
 
 
-def pixel_residuals(model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs, res: np.ndarray) -> np.ndarray:
+def pixel_residuals(
+    model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs, res: np.ndarray
+) -> np.ndarray:
     """Screen-plane residuals (N,2) mm mapped to camera pixels through the local Jacobian."""
     comps, du, dv = model.components(ob.pixels, derivatives=True)
     r, jr = expmap_jacobian(comps[:, :2])
@@ -96,7 +107,12 @@ def _fit(
 def _heldout(model: SGCCBase, obs: list[PoseObs], lm: LMOptions) -> list[dict[str, Any]]:
     """Pose-only fit of each held-out pose with the model fixed; its residual statistics."""
     rows = []
-    fixed = LMOptions(max_iterations=lm.max_iterations, huber_k=lm.huber_k, cut_sigmas=lm.cut_sigmas, fix_spline=True)
+    fixed = LMOptions(
+        max_iterations=lm.max_iterations,
+        huber_k=lm.huber_k,
+        cut_sigmas=lm.cut_sigmas,
+        fix_spline=True,
+    )
     for j, ob in enumerate(obs):
         rc, tc = pose_from_model(model.unproject, ob)
         out = run_lm(model.grid, model.n_components, [ob], LMState(model.coeffs, [rc], [tc]), fixed)
@@ -163,12 +179,24 @@ def calibrate_generic(
         res, inl = out.residuals[j], out.inliers[j]
         px = pixel_residuals(fitted, rc, tc, ob, res)
         rms_px = float(np.sqrt(np.mean(np.sum(px[inl] ** 2, axis=1))))
-        rms_scr = float(np.sqrt(np.mean(np.sum((res[inl] / np.asarray(screen.pitch_mm)) ** 2, axis=1))))
+        rms_scr = float(
+            np.sqrt(np.mean(np.sum((res[inl] / np.asarray(screen.pitch_mm)) ** 2, axis=1)))
+        )
         poses.append(PoseEstimate(rc.T, -rc.T @ tc, rms_px, rms_scr, int(inl.sum())))
-        per_pose.append({"pose": j, "rms_px": rms_px, "rms_screen_px": rms_scr, "n_points": int(inl.sum()), "n_outliers": int((~inl).sum())})
+        per_pose.append(
+            {
+                "pose": j,
+                "rms_px": rms_px,
+                "rms_screen_px": rms_scr,
+                "n_points": int(inl.sum()),
+                "n_outliers": int((~inl).sum()),
+            }
+        )
         res_px[j], pix_out[j] = px[inl], ob.pixels[inl]
     all_px = np.concatenate([res_px[j] for j in res_px])
-    sample = np.stack(np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 25)), -1).reshape(-1, 2)
+    sample = np.stack(
+        np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 25)), -1
+    ).reshape(-1, 2)
     ang, org = fitted.ray_std(sample)
     stats: dict[str, Any] = {
         "model": model,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+_REFITS = 10
+
 
 class DegenerateError(ValueError):
     """The data cannot determine the estimate (too few points, collinear or rank-deficient)."""
@@ -39,6 +41,8 @@ def fit_homography(
     if weights is not None:
         w = np.sqrt(np.asarray(weights, dtype=np.float64))
         a *= np.repeat(w, 2)[:, None]
+    if a.shape[0] < 9:  # minimal case: pad so that the null vector is among the 9 of vt
+        a = np.vstack([a, np.zeros((9 - a.shape[0], 9))])
     _, sv, vt = np.linalg.svd(a, full_matrices=False)
     if sv[-2] < 1e-9 * sv[0]:
         raise DegenerateError("homography: points are degenerate (collinear or repeated)")
@@ -74,6 +78,12 @@ def ransac_homography(
             best = inl
     if best.sum() < 4:
         raise DegenerateError("RANSAC homography: no consensus set of >= 4 inliers")
-    h = fit_homography(src[best], dst[best])
-    inl = np.linalg.norm(apply_homography(h, src) - dst, axis=1) < threshold
-    return fit_homography(src[inl], dst[inl]), inl
+    # Refit on the consensus set until it stops growing (minimal samples extrapolate poorly).
+    inl = best
+    for _ in range(_REFITS):
+        h = fit_homography(src[inl], dst[inl])
+        new = np.linalg.norm(apply_homography(h, src) - dst, axis=1) < threshold
+        if new.sum() < 4 or np.array_equal(new, inl):
+            break
+        inl = new
+    return h, inl

@@ -28,6 +28,8 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
 }
 MIN_POSES = 3
+# A fit whose fx (or cx, relative to the image width) is this uncertain is degenerate.
+_MAX_REL_STD = 0.01
 
 
 def _cv_points(points: list[PointSet]) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -114,7 +116,13 @@ def param_std(model: PinholeFamily, poses: list[PoseEstimate], points: list[Poin
     ok = np.isfinite(res) & np.all(np.isfinite(jfull), axis=1)
     jfull, res = jfull[ok], res[ok]
     chi2 = float(res @ res) / max(res.size - jfull.shape[1], 1)
-    cov = np.linalg.pinv(jfull.T @ jfull) * chi2
+    scale = np.linalg.norm(jfull, axis=0)
+    scale[scale == 0] = 1.0
+    jn = jfull / scale
+    try:
+        cov = np.linalg.inv(jn.T @ jn) / np.outer(scale, scale) * chi2
+    except np.linalg.LinAlgError:
+        cov = np.full((jfull.shape[1],) * 2, np.inf)
     std = np.zeros(base.size)
     std[free] = np.sqrt(np.clip(np.diag(cov)[:npar], 0, None))
     return std, chi2
@@ -190,6 +198,12 @@ def fit_parametric(
     if model_name == "opencv-rational" and not opts["thin_prism"]:
         fixed[4 + 8:] = True
     std, chi2 = param_std(model, poses, used, fixed)
+    w = float(image_size[0])
+    if not (std[0] < _MAX_REL_STD * model.fx and std[2] < _MAX_REL_STD * w):
+        raise DegenerateError(
+            f"{model_name}: focal length / principal point not determined by these views "
+            f"(fx = {model.fx:.1f} +- {std[0]:.3g} px, cx = {model.cx:.1f} +- {std[2]:.3g} px); "
+            "the poses are too similar: add views tilted in different directions")
     stats = {"param_std": dict(zip(model.param_names(), std.tolist(), strict=True)),
              "reduced_chi2": chi2, "iterations": rnd + 1, "converged": True,
              "options": opts}

@@ -32,7 +32,9 @@ def _opencv_fit(
         imgs.append(o.pixels[sel].astype(np.float32))
     flags = cv2.CALIB_RATIONAL_MODEL
     for _ in range(2):
-        _, k, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, image_size, None, None, flags=flags)
+        _, k, dist, rvecs, tvecs = cv2.calibrateCamera(
+            objs, imgs, image_size, None, None, flags=flags
+        )
         keep_o, keep_i = [], []
         for obj, img, rv, tv in zip(objs, imgs, rvecs, tvecs, strict=True):
             proj, _ = cv2.projectPoints(obj, rv, tv, k, dist)

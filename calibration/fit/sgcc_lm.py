@@ -226,7 +226,7 @@ def run_lm(
     progress: Callable[[float, str], None] | None = None,
     cancelled: Callable[[], bool] | None = None,
 ) -> LMResult:
-    """Minimize the robust, uncertainty-weighted screen-plane residual; return state + covariance."""
+    """Minimize the robust, uncertainty-weighted screen-plane residual; state and covariance."""
     prob = _Problem(grid, n_comp, obs)
     ns, n = prob.n_spline, prob.n
     if options.fix_spline:
@@ -276,10 +276,12 @@ def run_lm(
         cost0 = total(st, cut, lam_prior)
         accepted = False
         cost1 = cost0
+        jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
+        hs = hr * jac_scale[:, None] * jac_scale[None, :]
         for _ in range(12):
-            a = hr + mu * np.diag(np.diag(hr))
+            a = hs + mu * np.eye(len(hs))
             try:
-                step = z @ cho_solve(cho_factor(a), -gr)
+                step = z @ (jac_scale * cho_solve(cho_factor(a), -gr * jac_scale))
             except np.linalg.LinAlgError:
                 mu *= 10
                 continue
@@ -288,7 +290,7 @@ def run_lm(
             cost1 = total(cand, cut, lam_prior)
             if cost1 <= cost0:
                 st = cand
-                mu = max(mu / 5, 1e-9)
+                mu = max(mu / 10, 1e-15)
                 accepted = True
                 break
             mu *= 10

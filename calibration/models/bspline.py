@@ -16,12 +16,11 @@ import numpy as np
 def _basis_1d(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cubic B-spline weights (N, 4) and their derivatives d/dt at local coordinate t."""
     t2, t3 = t * t, t * t * t
-    w = np.stack(
-        [(1 - t) ** 3, 3 * t3 - 6 * t2 + 4, -3 * t3 + 3 * t2 + 3 * t + 1, t3], axis=-1
-    ) / 6.0
-    dw = np.stack(
-        [-3 * (1 - t) ** 2, 9 * t2 - 12 * t, -9 * t2 + 6 * t + 3, 3 * t2], axis=-1
-    ) / 6.0
+    w = (
+        np.stack([(1 - t) ** 3, 3 * t3 - 6 * t2 + 4, -3 * t3 + 3 * t2 + 3 * t + 1, t3], axis=-1)
+        / 6.0
+    )
+    dw = np.stack([-3 * (1 - t) ** 2, 9 * t2 - 12 * t, -9 * t2 + 6 * t + 3, 3 * t2], axis=-1) / 6.0
     return w, dw
 
 
@@ -98,7 +97,9 @@ class SplineGrid:
         idx, w = self.basis(u, v)
         return (np.einsum("nk,nkc->nc", w, coeffs[idx]),)
 
-    def fit(self, u: np.ndarray, v: np.ndarray, values: np.ndarray, smooth: float = 1e-6) -> np.ndarray:
+    def fit(
+        self, u: np.ndarray, v: np.ndarray, values: np.ndarray, smooth: float = 1e-6
+    ) -> np.ndarray:
         """Least-squares control points (size, C) reproducing `values` (N, C) at (u, v).
 
         A small second-difference penalty (`smooth`, relative) keeps control points without
@@ -120,7 +121,10 @@ def second_differences(grid: SplineGrid) -> np.ndarray:
     nu, nv = grid.n_ctrl
     rows = []
     ids = np.arange(grid.size).reshape(nv, nu)
-    for a, b, c in ((ids[:, :-2], ids[:, 1:-1], ids[:, 2:]), (ids[:-2, :], ids[1:-1, :], ids[2:, :])):
+    for a, b, c in (
+        (ids[:, :-2], ids[:, 1:-1], ids[:, 2:]),
+        (ids[:-2, :], ids[1:-1, :], ids[2:, :]),
+    ):
         a, b, c = a.ravel(), b.ravel(), c.ravel()
         m = np.zeros((a.size, grid.size))
         r = np.arange(a.size)

@@ -168,7 +168,10 @@ class SGCCBase(CameraModel):
         miss = np.linalg.norm(w - along[:, None] * d, axis=1)
         w_img, h_img = self.image_size
         inside = (
-            (uv[:, 0] >= -0.5) & (uv[:, 0] <= w_img - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h_img - 0.5)
+            (uv[:, 0] >= -0.5)
+            & (uv[:, 0] <= w_img - 0.5)
+            & (uv[:, 1] >= -0.5)
+            & (uv[:, 1] <= h_img - 0.5)
         )
         good = finite & inside & (along > 0) & (miss <= 1e-6 * np.maximum(np.abs(along), 1.0))
         uv[~good] = np.nan
@@ -184,7 +187,11 @@ class SGCCBase(CameraModel):
         _, jac = expmap_jacobian(comps[:, :2])
         cdir = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
         ang = np.sqrt(np.maximum(np.trace(cdir, axis1=1, axis2=2), 0.0))
-        org = np.sqrt(np.maximum(np.trace(cov[:, 2:, 2:], axis1=1, axis2=2), 0.0)) if self.n_components == 4 else np.zeros(len(p))
+        org = (
+            np.sqrt(np.maximum(np.trace(cov[:, 2:, 2:], axis1=1, axis2=2), 0.0))
+            if self.n_components == 4
+            else np.zeros(len(p))
+        )
         return ang, org
 
     def component_covariance(self, pixels: np.ndarray) -> np.ndarray:
@@ -219,8 +226,10 @@ class SGCCBase(CameraModel):
     def from_params_json(cls, image_size: tuple[int, int], params: dict[str, Any]) -> CameraModel:
         """Rebuild from `params_to_json()` output."""
         cells = params.get("cells")
-        if not isinstance(cells, list) or len(cells) != 2 or not all(
-            isinstance(c, int) and c >= 1 for c in cells
+        if (
+            not isinstance(cells, list)
+            or len(cells) != 2
+            or not all(isinstance(c, int) and c >= 1 for c in cells)
         ):
             raise ModelError(f"params.cells: expected [cu, cv] positive integers, got {cells!r}")
         cp = np.asarray(params.get("control_points"), dtype=np.float64)

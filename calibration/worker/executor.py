@@ -128,15 +128,123 @@ class InProcessExecutor:
                 del self._cancel[job_id]
 
 
+class _RemoteContext(TaskContext):
+    """A `TaskContext` inside a worker process: progress goes through a queue."""
+
+    def __init__(self, job_id: str, queue: Any, cancel_event: Any) -> None:
+        super().__init__(job_id, None, None)
+        self._queue = queue
+        self._remote_cancel = cancel_event
+
+    def progress(self, done: int, total: int, stage: str) -> None:
+        self._queue.put((self.job_id, int(done), int(total), str(stage)))
+
+    def cancelled(self) -> bool:
+        return bool(self._remote_cancel.is_set())
+
+
+def _run_remote(task_fn: Callable[..., Any], job_id: str, queue: Any, cancel_event: Any,
+                args: tuple[Any, ...], kwargs: dict[str, Any]) -> Any:
+    """Worker-process entry: build the context and run the task."""
+    return task_fn(_RemoteContext(job_id, queue, cancel_event), *args, **kwargs)
+
+
+class ProcessExecutor:
+    """Runs tasks in worker processes (spawned), so GIL-bound numerics never stall the API.
+
+    Progress comes back through a managed queue drained by one thread; cancel flips a
+    managed event the task polls through `TaskContext.cancelled()`.
+    """
+
+    def __init__(self, max_workers: int | None = None) -> None:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        ctx = mp.get_context("spawn")
+        workers = max_workers or max(1, min(2, os.cpu_count() or 1))
+        self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+        self._manager = ctx.Manager()
+        self._queue = self._manager.Queue()
+        self._events: dict[str, Any] = {}
+        self._callbacks: dict[str, ProgressCallback] = {}
+        self._lock = threading.Lock()
+        self._drain = threading.Thread(target=self._forward, name="phasecal-progress",
+                                       daemon=True)
+        self._drain.start()
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
+        """Run a picklable callable in a worker process."""
+        return self._pool.submit(fn, *args, **kwargs)
+
+    def run_task(
+        self,
+        task_fn: Callable[..., Any],
+        /,
+        *args: Any,
+        job_id: str,
+        on_progress: ProgressCallback | None = None,
+        **kwargs: Any,
+    ) -> Future:
+        """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` in a worker."""
+        event = self._manager.Event()
+        with self._lock:
+            self._events[job_id] = event
+            if on_progress is not None:
+                self._callbacks[job_id] = on_progress
+        fut = self._pool.submit(_run_remote, task_fn, job_id, self._queue, event, args, kwargs)
+        fut.add_done_callback(lambda _f: self._forget(job_id))
+        return fut
+
+    def cancel(self, job_id: str) -> bool:
+        """Ask the task of `job_id` to stop; False if it is not queued or running."""
+        with self._lock:
+            event = self._events.get(job_id)
+        if event is None:
+            return False
+        event.set()
+        return True
+
+    def shutdown(self, wait: bool = True) -> None:
+        """Stop the workers (flagging running tasks cancelled when not waiting)."""
+        if not wait:
+            with self._lock:
+                for event in self._events.values():
+                    event.set()
+        self._pool.shutdown(wait=wait, cancel_futures=not wait)
+        self._queue.put(None)
+        self._drain.join(5)
+        self._manager.shutdown()
+
+    def _forward(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            job_id, done, total, stage = item
+            cb = self._callbacks.get(job_id)
+            if cb is not None:
+                cb(done, total, stage)
+
+    def _forget(self, job_id: str) -> None:
+        with self._lock:
+            self._events.pop(job_id, None)
+            self._callbacks.pop(job_id, None)
+
+
 def make_executor(address: str | None = None) -> Executor:
-    """In-process executor, or the Dask one for `tcp://...` (argument or env PHASECAL_DASK)."""
+    """Threads (default), worker processes ("processes"), or Dask for `tcp://...`.
+
+    The address comes from the argument or env PHASECAL_DASK.
+    """
     address = address or os.environ.get(DASK_ENV) or None
     if address is None or address in ("inprocess", "threads"):
         return InProcessExecutor()
+    if address == "processes":
+        return ProcessExecutor()
     if not address.startswith(("tcp://", "tls://", "inproc://", "local")):
         raise ValueError(
-            f"executor address {address!r}: expected 'tcp://host:port' of a Dask scheduler "
-            f"(or unset {DASK_ENV} for the in-process executor)"
+            f"executor address {address!r}: expected 'tcp://host:port' of a Dask scheduler, "
+            f"'processes', or unset {DASK_ENV} for the in-process threads"
         )
     from calibration.worker.dask_executor import DaskExecutor
 

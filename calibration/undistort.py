@@ -1,0 +1,103 @@
+"""Downstream use of any model: cv2.remap maps to a virtual pinhole, undistorted points,
+and the best-fitting OpenCV model with the residual it leaves per pixel."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from calibration.models.base import CameraModel
+
+# Distance (mm) at which rays of a non-central model are sampled for the virtual camera.
+DEFAULT_DEPTH_MM = 1000.0
+_OPENCV_DIST_SIZES = {"opencv5": 5, "opencv-rational": 8}
+
+
+def rectify_maps(
+    model: CameraModel,
+    k_virtual: np.ndarray,
+    size: tuple[int, int],
+    *,
+    rotation: np.ndarray | None = None,
+    depth_mm: float = DEFAULT_DEPTH_MM,
+) -> tuple[np.ndarray, np.ndarray]:
+    """float32 (map_x, map_y) of shape (H, W) for `cv2.remap` to a virtual pinhole camera.
+
+    Virtual pixel (u, v) looks along R^T K^-1 [u, v, 1] (R: `rotation`, virtual from model
+    frame); the model pixel seeing the point at `depth_mm` on that ray is where the map
+    samples. NaN (cv2.remap: border) where the model does not see it.
+    """
+    w, h = int(size[0]), int(size[1])
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    homog = np.stack([uu.ravel(), vv.ravel(), np.ones(w * h)], axis=1)
+    rays = homog @ np.linalg.inv(np.asarray(k_virtual, dtype=np.float64)).T
+    if rotation is not None:
+        rays = rays @ np.asarray(rotation, dtype=np.float64)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    pix = model.project(depth_mm * rays)
+    return (
+        pix[:, 0].reshape(h, w).astype(np.float32),
+        pix[:, 1].reshape(h, w).astype(np.float32),
+    )
+
+
+def undistort_points(model: CameraModel, pixels: np.ndarray, k_virtual: np.ndarray) -> np.ndarray:
+    """Model pixels (N,2) -> virtual-pinhole pixels (N,2) (like cv2.undistortPoints with P)."""
+    _, d = model.unproject(np.asarray(pixels, dtype=np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy1 = d / d[:, 2:3]
+    out = xy1 @ np.asarray(k_virtual, dtype=np.float64).T
+    out = out[:, :2]
+    out[~(d[:, 2] > 0)] = np.nan
+    return out
+
+
+def best_opencv_model(
+    model: CameraModel, kind: str = "opencv-rational", step_px: float = 8.0
+) -> dict[str, Any]:
+    """Pinhole K and distortion of `kind` closest to the model's directions, with residuals.
+
+    Fits projected ray directions to their pixels on a grid (reprojection error in model
+    pixels, robust soft-L1). Returns `K` (3x3), `dist` (OpenCV order), `pixels` (N,2),
+    `residual_px` (N,) and `rms_px`.
+    """
+    if kind not in _OPENCV_DIST_SIZES:
+        raise ValueError(f"kind: expected one of {sorted(_OPENCV_DIST_SIZES)}, got {kind!r}")
+    w, h = model.image_size
+    uu, vv = np.meshgrid(np.arange(0, w, step_px), np.arange(0, h, step_px))
+    pix = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(np.float64)
+    _, d = model.unproject(pix)
+    ok = np.all(np.isfinite(d), axis=1) & (d[:, 2] > 1e-3)
+    pix, d = pix[ok], d[ok]
+    if len(pix) < 20:
+        raise ValueError("best_opencv_model: fewer than 20 pixels with forward-looking rays")
+    x, y = d[:, 0] / d[:, 2], d[:, 1] / d[:, 2]
+    a = np.stack([x, np.ones_like(x)], axis=1)
+    fx, cx = np.linalg.lstsq(a, pix[:, 0], rcond=None)[0]
+    fy, cy = np.linalg.lstsq(np.stack([y, np.ones_like(y)], axis=1), pix[:, 1], rcond=None)[0]
+    nd = _OPENCV_DIST_SIZES[kind]
+    obj = d.reshape(-1, 1, 3)
+    zero = np.zeros(3)
+
+    def project(p: np.ndarray) -> np.ndarray:
+        k = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
+        img, _ = cv2.projectPoints(obj, zero, zero, k, p[4:])
+        return img[:, 0, :]
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        return (project(p) - pix).ravel()
+
+    p0 = np.concatenate([[fx, fy, cx, cy], np.zeros(nd)])
+    sol = least_squares(resid, p0, loss="soft_l1", f_scale=0.5, x_scale="jac")
+    r = np.linalg.norm(project(sol.x) - pix, axis=1)
+    k = np.array([[sol.x[0], 0, sol.x[2]], [0, sol.x[1], sol.x[3]], [0, 0, 1.0]])
+    return {
+        "K": k,
+        "dist": sol.x[4:],
+        "pixels": pix,
+        "residual_px": r,
+        "rms_px": float(np.sqrt(np.mean(r**2))),
+    }

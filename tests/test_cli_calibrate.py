@@ -1,0 +1,87 @@
+"""`phasecal calibrate / project / unproject` end to end on synthetic maps (FORMATS.md contract)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from acquisition.patterns import build_plan
+from api.cli import main
+from calibration.export import read_opencv_yaml
+from calibration.maps import save_maps
+from calibration.models.base import save_model
+from calibration.models.parametric import OpenCV5Model
+from calibration.plan import write_plan
+from hw_mocks.cameras import mild_pinhole
+from hw_mocks.poses import random_poses
+from hw_mocks.synthetic import synthetic_maps
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    plan = build_plan(1920, 1080, 0.2745)
+    write_plan(plan, d / "plan.json")
+    cam = mild_pinhole()
+    rng = np.random.default_rng(21)
+    for i, pose in enumerate(random_poses(cam, plan.screen, 5, rng)):
+        maps, _ = synthetic_maps(cam, pose, plan.screen, sigma_px=0.05, rng=rng)
+        save_maps(maps, d / f"pose{i}.npz")
+    return d
+
+
+def test_calibrate_project_unproject(workdir, capsys) -> None:
+    d = workdir
+    args = ["calibrate", "--plan", str(d / "plan.json"), "--maps",
+            *[str(d / f"pose{i}.npz") for i in range(5)], "--model", "opencv5",
+            "-o", str(d / "model.json"), "--heldout", "4", "--max-points", "800",
+            "--report", str(d / "res.png"), "--export-opencv", str(d / "cam.yaml"),
+            "--export-ros", str(d / "ros.yaml")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "held-out RMS" in out and "MODEL INADEQUATE" not in out
+    doc = json.loads((d / "model.json").read_text())
+    assert doc["format"] == "phasecal.model/1" and doc["type"] == "opencv5"
+    assert doc["stats"]["heldout"]["per_pose"][0]["pose"] == 4
+    cam = mild_pinhole()
+    k, _, size = read_opencv_yaml(d / "cam.yaml")
+    assert size == (640, 480) and abs(k[0, 0] / cam.fx - 1) < 2e-3
+    assert "plumb_bob" in (d / "ros.yaml").read_text()
+    assert (d / "res.png").stat().st_size > 0
+
+    pix = np.array([[0.0, 0.0], [320.5, 240.25], [639.0, 479.0]])
+    np.save(d / "pixels.npy", pix)
+    assert main(["unproject", "--model", str(d / "model.json"), "--pixels",
+                 str(d / "pixels.npy"), "-o", str(d / "rays.npz")]) == 0
+    rays = np.load(d / "rays.npz")
+    assert rays["origins"].shape == (3, 3) and rays["directions"].dtype == np.float64
+    np.save(d / "points.npy", rays["directions"] * 750.0)
+    assert main(["project", "--model", str(d / "model.json"), "--points",
+                 str(d / "points.npy"), "-o", str(d / "back.npy")]) == 0
+    np.testing.assert_allclose(np.load(d / "back.npy"), pix, atol=1e-6)
+
+
+def test_cli_errors(workdir, capsys) -> None:
+    d = workdir
+    base = ["calibrate", "--plan", str(d / "plan.json"), "-o", str(d / "m2.json")]
+    assert main([*base, "--maps", str(d / "pose0.npz"), str(d / "nope.npz"),
+                 "--model", "opencv5"]) == 1
+    assert "nope.npz" in capsys.readouterr().err
+    assert main([*base, "--maps", str(d / "pose0.npz"), str(d / "pose1.npz"),
+                 "--model", "opencv5"]) == 1
+    assert "needs >= 3" in capsys.readouterr().err
+    assert main([*base, "--maps", str(d / "pose0.npz"), "--model", "pinhole9"]) == 1
+    assert "--model" in capsys.readouterr().err
+    (d / "corrupt.json").write_text('{"format": "phasecal.model/1", "type": "opencv5"}')
+    np.save(d / "p.npy", np.zeros((2, 2)))
+    assert main(["unproject", "--model", str(d / "corrupt.json"), "--pixels", str(d / "p.npy"),
+                 "-o", str(d / "r.npz")]) == 1
+    assert "image_size" in capsys.readouterr().err
+    cam = mild_pinhole()
+    save_model(OpenCV5Model((640, 480), cam.camera_matrix, np.asarray(cam.dist)), d / "ok.json")
+    np.save(d / "bad.npy", np.zeros((4, 2)))
+    assert main(["project", "--model", str(d / "ok.json"), "--points", str(d / "bad.npy"),
+                 "-o", str(d / "o.npy")]) == 1
+    assert "expected a numeric (N, 3)" in capsys.readouterr().err

@@ -1,0 +1,180 @@
+"""Acquisition controller on the simulated rig, checked against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from acquisition.controller import ControllerOptions, capture_pose
+from acquisition.patterns import build_plan
+from acquisition.setup import choose_exposure, measure_display_response, measure_latency
+from acquisition.sinks import MemoryFrameStore
+from calibration.plan import ScreenGeometry
+from hw_mocks.camera import CameraFaults
+from hw_mocks.cameras import mild_pinhole
+from hw_mocks.rig import SimulatedRig
+
+SCREEN = ScreenGeometry(320, 200, (0.5, 0.5))
+PLAN = build_plan(320, 200, 0.5)  # default preset
+
+
+def make_rig(latency: int = 2, faults: CameraFaults | None = None, **camera) -> SimulatedRig:
+    cam = {"timestamp_jitter_s": 2e-4, "buffer_depth": 4, **camera}
+    return SimulatedRig(mild_pinhole(80, 60), SCREEN, display={"latency_periods": latency,
+                                                               "history_s": 1e9},
+                        camera=cam, faults=faults)
+
+
+def settings(r: SimulatedRig, mode: str):
+    fps = 30.0 if mode == "free-running" else None
+    return r.with_settings(exposure_s=0.012, trigger_mode=mode, frame_rate_hz=fps)
+
+
+def mis_synced(r: SimulatedRig, res) -> list[int]:
+    """Accepted plan frames whose exposure did not see exactly the image flipped for them."""
+    flips = {h.image_id: h.flip_s for h in r.display.history()}
+    bad = []
+    for i, info in res.frames.items():
+        truth = r.camera.truth[info.sequence]
+        if not truth.pure or flips[truth.image_ids[0]] != info.flip_s:
+            bad.append(i)
+    return bad
+
+
+def shown_codes_match(r: SimulatedRig, res) -> bool:
+    """The image on screen for each accepted frame holds that plan frame's codes."""
+    hist = {h.flip_s: h.codes for h in r.display.history()}
+    from acquisition.patterns import render_frame
+    return all(np.array_equal(hist[info.flip_s], render_frame(PLAN, i))
+               for i, info in res.frames.items())
+
+
+@pytest.mark.parametrize("mode", ["software", "free-running"])
+@pytest.mark.parametrize("latency", [1, 2, 3, 4])
+def test_full_sequence_zero_missync(mode, latency):
+    r = make_rig(latency)
+    store = MemoryFrameStore()
+    res = capture_pose(r, PLAN, store, settings=settings(r, mode))
+    assert res.status == "complete", res.reason
+    assert res.latency_s == pytest.approx(latency / 60)
+    assert sorted(store.frames) == list(range(len(PLAN.frames)))
+    assert mis_synced(r, res) == []
+    assert shown_codes_match(r, res)
+    assert res.integrity is not None and res.integrity.ok
+
+
+def test_dropped_frames_and_jitter_free_running():
+    r = make_rig(2, CameraFaults(drop_probability=0.2), timestamp_jitter_s=3e-4)
+    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "free-running"))
+    assert res.status == "complete" and mis_synced(r, res) == []
+
+
+def test_late_trigger_straddles_and_is_recaptured():
+    r = make_rig(2, CameraFaults(late_triggers={5: 0.02, 9: 0.03}))
+    store = MemoryFrameStore()
+    res = capture_pose(r, PLAN, store, settings=settings(r, "software"),
+                       options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete"
+    assert any(rc.reason.startswith("torn") for rc in res.recaptures)
+    assert mis_synced(r, res) == [] and len(store.frames) == len(PLAN.frames)
+
+
+@pytest.mark.parametrize("mode", ["software", "free-running"])
+def test_unplug_mid_sequence_recovers_exactly_once(mode):
+    r = make_rig(2, CameraFaults(unplug_after_frames=60, reconnect_failures=2))
+    store = MemoryFrameStore()  # raises on a duplicate hand-off
+    res = capture_pose(r, PLAN, store, settings=settings(r, mode),
+                       options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete", res.reason
+    assert res.reconnects == 1 and any("disconnected" in x.reason for x in res.recaptures)
+    assert sorted(store.frames) == list(range(len(PLAN.frames)))
+    assert mis_synced(r, res) == []
+
+
+def test_unplug_gives_clear_error_after_max_retries():
+    r = make_rig(2, CameraFaults(unplug_after_frames=10, reconnect_failures=99))
+    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
+                       options=ControllerOptions(latency_s=2 / 60, max_reconnects=3))
+    assert res.status == "failed" and "3 reconnect attempts failed" in res.reason
+    assert 0 < res.accepted_count < len(PLAN.frames)
+
+
+def test_timeouts_are_recaptured():
+    r = make_rig(2, CameraFaults(timeout_grabs=frozenset({7, 20})))
+    store = MemoryFrameStore()
+    res = capture_pose(r, PLAN, store, settings=settings(r, "software"),
+                       options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete"
+    assert sum("timeout" in x.reason for x in res.recaptures) == 2
+    assert mis_synced(r, res) == [] and len(store.frames) == len(PLAN.frames)
+
+
+def test_persistent_timeouts_fail_clearly():
+    r = make_rig(2, CameraFaults(timeout_grabs=frozenset(range(5, 100))))
+    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
+                       options=ControllerOptions(latency_s=2 / 60, max_attempts=3))
+    assert res.status == "failed" and "after 3 attempts" in res.reason and "timeout" in res.reason
+
+
+def test_cancel_leaves_marked_partial_result():
+    r = make_rig(2)
+    ev = threading.Event()
+    seen = []
+
+    def progress(p):
+        seen.append(p)
+        if p.done == 10:
+            ev.set()
+
+    store = MemoryFrameStore()
+    res = capture_pose(r, PLAN, store, settings=settings(r, "software"), progress=progress,
+                       cancelled=ev, options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "cancelled" and res.accepted == list(range(10))
+    assert sorted(store.frames) == list(range(10))
+    assert seen[-1].total == len(PLAN.frames) and seen[-1].eta_s is not None
+
+
+def test_resume_with_indices():
+    r = make_rig(2)
+    store = MemoryFrameStore()
+    res = capture_pose(r, PLAN, store, settings=settings(r, "software"), indices=[5, 6, 7])
+    assert res.status == "complete" and sorted(store.frames) == [5, 6, 7]
+
+
+def _flagged(inject) -> str:
+    r = make_rig(2)
+    inject(r)
+    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
+                       options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "flagged", res.integrity
+    return res.reason
+
+
+def test_integrity_flags_motion():
+    def move(r):
+        rot, t = r.pose.rotation, r.pose.translation + np.array([1.5, 0.0, 0.0])
+        r.at_frame(30, lambda: r.set_pose(rot, t))
+    assert "motion" in _flagged(move)
+
+
+def test_integrity_flags_ambient_flicker():
+    assert "ambient" in _flagged(lambda r: r.at_frame(30, lambda: r.set_ambient(2e4)))
+
+
+def test_integrity_flags_gain_drift():
+    assert "brightness drift" in _flagged(lambda r: r.at_frame(30, lambda: r.set_gain_drift(0.5)))
+
+
+def test_setup_helpers():
+    r = make_rig(3)
+    s = settings(r, "software")
+    lat = measure_latency(r.display, r.camera, r.clock, s)
+    assert lat.periods == 3 and lat.violations == 0
+    exp = choose_exposure(r.display, r.camera, r.clock, s, latency_s=lat.latency_s)
+    assert abs(exp.fraction_of_max - 0.8) < 0.05
+    resp = measure_display_response(r.display, r.camera, r.clock, exp.settings,
+                                    latency_s=lat.latency_s, average=4)
+    truth = (resp.levels / 255) ** 2.2
+    assert np.max(np.abs(resp.linear - truth)) < 0.02

@@ -1,0 +1,214 @@
+"""sGCC calibration against hw_mocks ground truth: accuracy, predicted uncertainty, gauge, I/O."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.compare import best_rotation, in_gauge, ray_angle_difference, sgcc_gauge_transform
+from calibration.fit.generic import calibrate_generic
+from calibration.models.base import model_from_dict
+from calibration.models.sgcc import logmap
+from calibration.plan import ScreenGeometry
+from hw_mocks import cameras, poses, synthetic
+
+W, H = 160, 120
+SCREEN = ScreenGeometry(1920, 1080, (0.2745, 0.2745))
+OPTS = {"cells": [8, 8]}
+
+
+def _data(cam, n, seed, **kw):
+    """n random poses of `cam` and their noisy decoded maps."""
+    rng = np.random.default_rng(seed)
+    ps = poses.random_poses(cam, SCREEN, n, rng)
+    return [synthetic.synthetic_maps(cam, p, SCREEN, rng=rng, **kw)[0] for p in ps]
+
+
+def _truth_fn(cam):
+    """Ground-truth ray function of a hw_mocks camera on (N,2) pixels."""
+    return lambda p: cam.rays(p[:, 0], p[:, 1])
+
+
+def _grid(step=6.0):
+    """Sample pixels away from the border."""
+    uu, vv = np.meshgrid(np.arange(4, W - 4, step), np.arange(4, H - 4, step))
+    return np.stack([uu.ravel(), vv.ravel()], axis=1)
+
+
+def _zscores(model, cam, central):
+    """Direction (rad) and origin (mm) errors against truth in the sGCC gauge, and z-scores."""
+    q, t = sgcc_gauge_transform(_truth_fn(cam), (W, H), central=central)
+    pix = _grid()
+    o, d = in_gauge(_truth_fn(cam), q, t)(pix)
+    (comps,) = model.components(pix)
+    cov = model.component_covariance(pix)
+    std = np.sqrt(np.einsum("nii->ni", cov))
+    err = comps.copy()
+    err[:, :2] -= logmap(d)
+    if comps.shape[1] == 4:
+        err[:, 2:] -= o[:, :2]
+    return err, err / std
+
+
+def _opencv_ray_rms(maps, cam, flags):
+    """RMS ray-angle error (rad) of an OpenCV model fitted to the same maps."""
+    objs, imgs = [], []
+    for m in maps:
+        pix, scr, _ = m.correspondences()
+        sel = np.linspace(0, len(pix) - 1, 3000).astype(int)
+        obj = np.zeros((sel.size, 3), np.float32)
+        obj[:, :2] = scr[sel] * np.asarray(SCREEN.pitch_mm)
+        objs.append(obj)
+        imgs.append(pix[sel].astype(np.float32))
+    _, k, dist, _, _ = cv2.calibrateCamera(objs, imgs, (W, H), None, None, flags=flags)
+
+    def rays(p):
+        xy = cv2.undistortPoints(
+            p.reshape(-1, 1, 2),
+            k,
+            dist,
+            None,
+            None,
+            None,
+            (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14),
+        )
+        d = np.concatenate([xy[:, 0], np.ones((len(p), 1))], axis=1)
+        return np.zeros_like(d), d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    return ray_angle_difference(rays, _truth_fn(cam), (W, H), step_px=6.0)["rms_rad"]
+
+
+@pytest.fixture(scope="module")
+def pinhole_fit():
+    """sgcc on a mild pinhole (inside the OpenCV 5-coefficient family)."""
+    cam = cameras.mild_pinhole(W, H)
+    maps = _data(cam, 4, 11)
+    return cam, maps, calibrate_generic(maps[:3], SCREEN, "sgcc", options=OPTS, heldout=maps[3:])
+
+
+def test_sgcc_pinhole_consistent_with_predicted_uncertainty(pinhole_fit):
+    cam, _, res = pinhole_fit
+    _, z = _zscores(res.model, cam, central=True)
+    assert 0.7 <= float(np.std(z)) <= 1.4
+    assert res.stats["converged"]
+    assert 0.8 < res.stats["chi2_dof"] < 1.2
+
+
+def test_sgcc_within_1p5x_of_true_parametric_family(pinhole_fit):
+    cam, maps, res = pinhole_fit
+    model = res.model
+    sgcc_rms = ray_angle_difference(model.unproject, _truth_fn(cam), (W, H), step_px=6.0)["rms_rad"]
+    cv_rms = _opencv_ray_rms(maps[:3], cam, 0)
+    assert sgcc_rms <= 1.5 * cv_rms, (sgcc_rms, cv_rms)
+
+
+def test_gauge_nonsingular_and_frame_is_truth_up_to_gauge_rotation(pinhole_fit):
+    cam, _, res = pinhole_fit
+    assert res.stats["gauge_min_eig"] > 1e-10
+    pix = _grid()
+    _, d_fit = res.model.unproject(pix)
+    _, d_true = cam.rays(pix[:, 0], pix[:, 1])
+    rot = best_rotation(d_true, d_fit)
+    q, _ = sgcc_gauge_transform(_truth_fn(cam), (W, H), central=True)
+    angle = np.arccos(np.clip((np.trace(rot @ q.T) - 1) / 2, -1, 1))
+    assert angle < 1e-4
+    # Poses: the fitted screen pose is the truth pose moved by the same rotation.
+    assert len(res.poses) == 3
+
+
+def test_project_inverts_unproject_and_json_roundtrip(pinhole_fit):
+    _, _, res = pinhole_fit
+    model = res.model
+    pix = _grid(7.3) + 0.25
+    o, d = model.unproject(pix)
+    back = model.project(o + 400.0 * d)
+    assert np.nanmax(np.abs(back - pix)) < 1e-6
+    assert np.isnan(model.project(np.array([[0.0, 0.0, -100.0]]))).all()
+    again = model_from_dict(model.to_dict())
+    assert np.allclose(again.unproject(pix)[1], d, atol=1e-15)
+
+
+def test_heldout_pose_and_statistics(pinhole_fit):
+    _, _, res = pinhole_fit
+    held = res.stats["heldout"][0]
+    assert held["rms_px"] < 3 * res.stats["rms_px"] + 1e-3
+    assert 0.7 < held["chi2_dof"] < 1.5
+    assert len(res.stats["per_pose"]) == 3
+    assert res.stats["uncovered_cells"] == [] or isinstance(res.stats["uncovered_cells"], list)
+
+
+def test_outliers_and_partial_validity_are_tolerated():
+    cam = cameras.mild_pinhole(W, H)
+    maps = _data(cam, 3, 5, outlier_fraction=0.02, valid_fraction=0.6)
+    res = calibrate_generic(maps, SCREEN, "sgcc", options=OPTS)
+    err, z = _zscores(res.model, cam, central=True)
+    assert float(np.std(z)) < 2.0
+    # rad (exp-map coordinates ~ angle); median: uncovered corners are uncertain, see z
+    assert float(np.median(np.abs(err))) < 1e-5
+    flagged = sum(p["n_outliers"] for p in res.stats["per_pose"])
+    valid = sum(m.valid_count() for m in maps)
+    assert 0.01 * valid < flagged < 0.03 * valid
+
+
+def test_noncentral_rays_consistent_with_uncertainty():
+    cam = cameras.smooth_noncentral(W, H)
+    rng = np.random.default_rng(3)
+    ps = poses.random_poses(cam, SCREEN, 4, rng, distance_mm=(150.0, 450.0), min_coverage=0.2)
+    maps = [synthetic.synthetic_maps(cam, p, SCREEN, rng=rng, sigma_px=0.01)[0] for p in ps]
+    res = calibrate_generic(maps, SCREEN, "sgcc-noncentral", options={**OPTS, "smooth": 1e-10})
+    err, z = _zscores(res.model, cam, central=False)
+    # Units: directions rad, origins mm; sigma 0.01 screen px = 2.7 um on the screen.
+    assert float(np.sqrt(np.mean(err[:, :2] ** 2))) < 2e-5
+    assert float(np.sqrt(np.mean(err[:, 2:] ** 2))) < 1e-2
+    assert 0.7 <= float(np.std(z[:, :2])) <= 1.4
+    assert 0.7 <= float(np.std(z[:, 2:])) <= 1.4
+
+
+def test_bad_inputs_raise_clear_errors(pinhole_fit):
+    _, maps, _ = pinhole_fit
+    with pytest.raises(ValueError, match="model"):
+        calibrate_generic(maps, SCREEN, "nonsense")
+    with pytest.raises(ValueError, match=">= 3 poses"):
+        calibrate_generic(maps[:2], SCREEN, "sgcc")
+    with pytest.raises(ValueError, match="unknown key"):
+        calibrate_generic(maps, SCREEN, "sgcc", options={"mesh": 3})
+
+
+def _fisheye_ray_rms(maps, cam, pix):
+    """RMS ray-angle error (rad) on `pix` of OpenCV's fisheye model fitted to the same maps."""
+    objs, imgs = [], []
+    for m in maps:
+        p, scr, _ = m.correspondences()
+        sel = np.linspace(0, len(p) - 1, 3000).astype(int)
+        obj = np.zeros((1, sel.size, 3))
+        obj[0, :, :2] = scr[sel] * np.asarray(SCREEN.pitch_mm)
+        objs.append(obj)
+        imgs.append(p[sel][None].astype(np.float64))
+    k0 = np.array([[W / 2.6, 0, W / 2], [0, W / 2.6, H / 2], [0, 0, 1.0]])
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    _, k, dist, _, _ = cv2.fisheye.calibrate(
+        objs, imgs, (W, H), k0, np.zeros(4), flags=flags, criteria=crit
+    )
+
+    def rays(p):
+        xy = cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), k, dist)
+        d = np.concatenate([xy[:, 0], np.ones((len(p), 1))], axis=1)
+        return np.zeros_like(d), d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    return ray_angle_difference(rays, _truth_fn(cam), (W, H), pixels=pix)["rms_rad"]
+
+
+def test_sgcc_on_150_degree_fisheye_within_1p5x_of_fisheye_model():
+    cam = cameras.wide_fisheye(W, H, fov_deg=150)
+    maps = _data(cam, 3, 21)
+    res = calibrate_generic(maps, SCREEN, "sgcc", options={"cells": [6, 6]})
+    seen = np.zeros((H, W), dtype=bool)
+    for m in maps:
+        seen |= m.mask
+    v, u = np.nonzero(seen[::3, ::3])
+    pix = np.stack([u * 3, v * 3], axis=1).astype(np.float64)
+    sgcc_rms = ray_angle_difference(res.model.unproject, _truth_fn(cam), (W, H), pixels=pix)
+    fish_rms = _fisheye_ray_rms(maps, cam, pix)
+    assert sgcc_rms["rms_rad"] <= 1.5 * fish_rms, (sgcc_rms["rms_rad"], fish_rms)

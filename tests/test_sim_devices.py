@@ -1,0 +1,146 @@
+"""Simulated display, camera and rig: timing, mixing, queues, faults, settings errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError
+from acquisition.protocols import CameraSettings
+from calibration.plan import ScreenGeometry
+from hw_mocks.camera import CameraFaults
+from hw_mocks.cameras import mild_pinhole
+from hw_mocks.clock import VirtualClock
+from hw_mocks.display import SimulatedDisplay
+from hw_mocks.rig import SimulatedRig
+from tests.device_protocol import check_camera, check_display
+
+SCREEN = ScreenGeometry(160, 100, (1.0, 1.0))
+
+
+def rig(**kw) -> SimulatedRig:
+    return SimulatedRig(mild_pinhole(80, 60), SCREEN, **kw)
+
+
+def test_display_passes_protocol():
+    clock = VirtualClock()
+    check_display(SimulatedDisplay(64, 48, clock), clock)
+
+
+@pytest.mark.parametrize("mode", ["software", "free-running"])
+def test_camera_passes_protocol(mode):
+    r = rig()
+    check_camera(r.camera, r.clock, r.with_settings(trigger_mode=mode, exposure_s=0.01))
+
+
+def test_scanout_latency_and_row_mix():
+    clock = VirtualClock()
+    d = SimulatedDisplay(8, 10, clock, refresh_hz=50.0, latency_periods=2)
+    p = 0.02
+    f1 = d.show(np.full((10, 8), 255, np.uint8))
+    assert f1 == pytest.approx(p)
+    shown, w = d.row_weights(f1 + 2 * p, f1 + 2 * p + p)  # during scan-out of image 1
+    assert [s.image_id for s in shown] == [0, 1]
+    # row r switches at flip + 2P + (r/H) P: its weight of image 1 is 1 - r/H.
+    np.testing.assert_allclose(w[1], 1 - np.arange(10) / 10)
+    np.testing.assert_allclose(d.emitted(f1 + 3 * p, f1 + 4 * p), 1.0)
+    np.testing.assert_allclose(d.emitted(0.0, f1 + 2 * p), 0.0)
+
+
+def test_gamma_response():
+    clock = VirtualClock()
+    d = SimulatedDisplay(4, 4, clock, gamma=2.2, latency_periods=0)
+    f = d.show(np.full((4, 4), 128, np.uint8))
+    lin = d.emitted(f + 1 / 60, f + 2 / 60)
+    np.testing.assert_allclose(lin, (128 / 255) ** 2.2, rtol=1e-5)
+
+
+def test_free_running_queue_drops_oldest_and_flush():
+    r = rig(camera={"buffer_depth": 4, "default_frame_rate_hz": 30.0})
+    cam = r.camera
+    cam.configure(r.with_settings(trigger_mode="free-running", exposure_s=0.01))
+    cam.start()
+    r.clock.sleep_until(1.0)  # ~30 frames produced, only the newest 4 kept
+    seqs = [cam.grab(0.1).sequence for _ in range(4)]
+    assert seqs == sorted(seqs) and seqs[-1] - seqs[0] == 3 and seqs[0] > 20
+    t = r.clock.now()
+    cam.flush()
+    assert cam.grab(0.1).timestamp_s >= t - 1e-3
+
+
+def test_frame_straddling_a_change_is_mixed_in_truth():
+    r = rig(display={"latency_periods": 1})
+    cam, d = r.camera, r.display
+    cam.configure(r.with_settings(exposure_s=0.01))
+    cam.start()
+    flip = d.show(np.zeros((100, 160), np.uint8))
+    flip2 = d.show(np.full((100, 160), 255, np.uint8))
+    r.clock.sleep_until(flip2 + 1 / 60 + 0.5 / 60 - 0.005)  # mid scan-out of the white image
+    cam.trigger()
+    fr = cam.grab(1.0)
+    truth = cam.truth[fr.sequence]
+    assert not truth.pure and len(truth.image_ids) == 2 and flip < flip2
+
+
+def test_unplug_and_failed_reconnects():
+    r = rig(faults=CameraFaults(unplug_after_frames=2, reconnect_failures=2))
+    cam = r.camera
+    cam.configure(r.camera_settings)
+    cam.start()
+    for _ in range(2):
+        cam.trigger()
+        cam.grab(1.0)
+    with pytest.raises(CameraDisconnected):
+        cam.trigger()
+    for _ in range(2):
+        with pytest.raises(CameraDisconnected, match="reconnect failed"):
+            cam.reconnect()
+    cam.reconnect()
+    cam.start()
+    cam.trigger()
+    assert cam.grab(1.0).image.shape == (60, 80)
+
+
+def test_injected_timeout():
+    r = rig(faults=CameraFaults(timeout_grabs=frozenset({1})))
+    cam = r.camera
+    cam.configure(r.camera_settings)
+    cam.start()
+    cam.trigger()
+    with pytest.raises(CameraTimeout):
+        cam.grab(0.5)
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"exposure_s": -0.01}, "exposure_s"),
+    ({"pixel_format": "RGB8"}, "pixel_format"),
+    ({"pixel_format": "Mono16"}, "pixel_format"),  # 12-bit sensor: no 16-bit format
+    ({"trigger_mode": "hardware"}, "trigger_mode"),
+    ({"trigger_mode": "free-running", "frame_rate_hz": 60.0, "exposure_s": 0.05}, "too high"),
+    ({"gain_db": -3.0}, "gain_db"),
+])
+def test_bad_settings(change, match):
+    r = rig()
+    base = CameraSettings(exposure_s=0.01, pixel_format="Mono12", trigger_mode="software")
+    with pytest.raises(DeviceSettingsError, match=match):
+        r.camera.configure(CameraSettings(**{**base.__dict__, **change}))
+
+
+def test_bit_depths():
+    r = rig(sensor={"bit_depth": 16})
+    for fmt, dtype, top in (("Mono8", np.uint8, 255), ("Mono16", np.uint16, 65535)):
+        r.camera.configure(r.with_settings(pixel_format=fmt, exposure_s=0.2))
+        r.camera.start()
+        r.display.show(np.full((100, 160), 255, np.uint8))
+        r.clock.sleep_until(r.clock.now() + 0.1)
+        r.camera.trigger()
+        img = r.camera.grab(1.0).image
+        assert img.dtype == dtype and img.max() == top  # saturated at the format's top
+
+
+def test_rig_from_config_and_unknown_key():
+    sim = SimulatedRig.from_config({"kind": "simulated", "camera": {"model": "mild_pinhole",
+                                                                    "width": 40, "height": 30}})
+    assert sim.camera.info.width == 40
+    with pytest.raises(DeviceSettingsError, match="latency_frames"):
+        SimulatedRig.from_config({"display": {"latency_frames": 2}})
