@@ -25,7 +25,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -292,11 +292,6 @@ class _Runner:
                 if t_show <= min(t_begin, t_collect):
                     self.clock.sleep_until(t_show)
                     i = order[pos]
-                    attempts[i] = attempts.get(i, 0) + 1
-                    if attempts[i] > self.opts.max_attempts:
-                        last_reason = [r.reason for r in self.recaptures if r.index == i][-1]
-                        raise _Failed(f"plan frame {i}: no valid frame after "
-                                      f"{self.opts.max_attempts} attempts (last: {last_reason})")
                     flip = self.show(i)
                     on = flip + self.lat + self.period + m
                     inflight.append({"index": i, "flip": flip, "on": on, "begun": False,
@@ -319,8 +314,12 @@ class _Runner:
                 frames, reason = [], f"disconnected: {exc}"
                 self.reconnect(exc)
             if not frames:
-                failed = inflight[0]["index"] if inflight else order[pos]
+                failed = order[done]  # the oldest pattern not yet accepted
                 self.recaptures.append(Recapture(failed, reason))
+                attempts[failed] = attempts.get(failed, 0) + 1
+                if attempts[failed] >= self.opts.max_attempts:
+                    raise _Failed(f"plan frame {failed}: no valid frame after "
+                                  f"{self.opts.max_attempts} attempts (last: {reason})")
                 pos = done  # re-show the failed pattern; later in-flight flips are wasted
                 inflight = []
                 continue
@@ -346,10 +345,13 @@ def capture_pose(
     """Capture plan frames `indices` (default all) of one pose on `rig` into `sink`.
 
     `rig` has `display`, `camera`, `clock` and `settings` (or `camera_settings`), and
-    optionally `trigger` (a trigger box for 'hardware' trigger mode). Never raises for
-    camera faults, cancel or integrity problems: see `PoseCapture.status`/`reason`.
+    optionally `trigger` (a trigger box for 'hardware' trigger mode), `display_response`
+    (gamma LUT from `measure_display_response`) and `measured_latency_s` (cached here).
+    Never raises for camera faults, cancel or integrity problems: see `status`/`reason`.
     """
     opts = options or ControllerOptions()
+    if opts.response is None and getattr(rig, "display_response", None) is not None:
+        opts = replace(opts, response=rig.display_response)  # measured once per rig
     display, camera, clock = rig.display, rig.camera, rig.clock
     settings = settings or getattr(rig, "settings", None) or rig.camera_settings
     order = list(range(len(plan.frames))) if indices is None else [int(i) for i in indices]

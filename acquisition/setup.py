@@ -19,7 +19,6 @@ from acquisition.patterns import DisplayResponse
 from acquisition.protocols import Camera, CameraSettings, Display, Frame
 
 
-
 @dataclass(frozen=True)
 class LatencyResult:
     """Measured flip-to-panel latency (whole refresh periods) and the evidence."""
@@ -55,12 +54,15 @@ def _fire(camera: Camera, settings: CameraSettings, trigger_box: Any) -> None:
 
 
 def grab_after(camera: Camera, clock: Clock, settings: CameraSettings, on: float, count: int,
-               timeout_s: float = 1.0, trigger_box: Any = None) -> list[Frame]:
+               timeout_s: float = 1.0, trigger_box: Any = None,
+               margin_s: float = 1e-3) -> list[Frame]:
     """`count` frames whose exposure starts at or after `on` (stale ones are skipped)."""
     if clock.now() < on:
         clock.sleep_until(on)
     camera.flush()
     triggered = settings.trigger_mode != "free-running"
+    if triggered:  # one margin later, so timestamp jitter cannot look earlier than `on`
+        clock.sleep_until(on + margin_s)
     for _ in range(count if triggered else 0):
         _fire(camera, settings, trigger_box)
     frames: list[Frame] = []

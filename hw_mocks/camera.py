@@ -130,15 +130,19 @@ class SimulatedCamera:
         """Validate and apply settings; one `DeviceSettingsError` naming the bad setting."""
         s = settings
         if not 0 < s.exposure_s <= 10.0:
-            raise DeviceSettingsError(f"exposure_s: expected 0 < exposure <= 10 s, got {s.exposure_s}")
+            raise DeviceSettingsError(
+                f"exposure_s: expected 0 < exposure <= 10 s, got {s.exposure_s}")
         if not 0.0 <= s.gain_db <= self.max_gain_db:
-            raise DeviceSettingsError(f"gain_db: expected 0..{self.max_gain_db} dB, got {s.gain_db}")
+            raise DeviceSettingsError(
+                f"gain_db: expected 0..{self.max_gain_db} dB, got {s.gain_db}")
         if s.pixel_format not in self._info.pixel_formats:
-            raise DeviceSettingsError(f"pixel_format: {s.pixel_format!r} not supported by "
-                                      f"{self._info.name}; choose one of {self._info.pixel_formats}")
+            raise DeviceSettingsError(
+                f"pixel_format: {s.pixel_format!r} not supported by {self._info.name}; "
+                f"choose one of {self._info.pixel_formats}")
         if s.trigger_mode not in self._info.trigger_modes:
-            raise DeviceSettingsError(f"trigger_mode: {s.trigger_mode!r} not supported by "
-                                      f"{self._info.name}; choose one of {self._info.trigger_modes}")
+            raise DeviceSettingsError(
+                f"trigger_mode: {s.trigger_mode!r} not supported by {self._info.name}; "
+                f"choose one of {self._info.trigger_modes}")
         fps = s.frame_rate_hz if s.frame_rate_hz is not None else self.default_frame_rate_hz
         if not 0 < fps <= self.max_frame_rate_hz:
             raise DeviceSettingsError(f"frame_rate_hz: expected 0 < rate <= "
@@ -228,7 +232,7 @@ class SimulatedCamera:
 
     # -- simulation controls ----------------------------------------------------------
     def at_frame(self, n: int, action: Callable[[], None]) -> None:
-        """Run `action` just before the n-th delivered frame (1-based, counted from now on) renders."""
+        """Run `action` just before the n-th frame delivered from now on (1-based) renders."""
         self._events.append((self.delivered + n, action))
 
     def unplug(self) -> None:
@@ -291,7 +295,7 @@ class SimulatedCamera:
     def _deliver(self, exp: _Exposure) -> Frame:
         """Render a frame, record its truth, fire due events and the unplug fault."""
         self.delivered += 1
-        for due, action in [e for e in self._events if e[0] == self.delivered]:
+        for _, action in [e for e in self._events if e[0] == self.delivered]:
             action()
         self._events = [e for e in self._events if e[0] > self.delivered]
         e = self._settings.exposure_s
@@ -299,7 +303,8 @@ class SimulatedCamera:
         self.truth[exp.sequence] = FrameTruth(
             exp.sequence, exp.start_s, exp.start_s + e, exp.timestamp_s,
             tuple(s.image_id for s in shown), tuple(float(w) for w in weights.mean(axis=1)))
-        irradiance = self.optics.render_irradiance(self.display.emitted(exp.start_s, exp.start_s + e))
+        light = self.display.emitted(exp.start_s, exp.start_s + e)
+        irradiance = self.optics.render_irradiance(light)
         image = self._sensor.expose(irradiance, e, self._settings.gain_db + self.gain_drift_db,
                                     self._rng)
         unplug = self.faults.unplug_after_frames

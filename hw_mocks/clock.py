@@ -1,4 +1,4 @@
-"""Virtual time for simulated rigs: `sleep_until` jumps ahead instantly, so tests take no real seconds."""
+"""Virtual time for simulated rigs: `sleep_until` jumps ahead at once (tests take no real time)."""
 
 from __future__ import annotations
 

@@ -46,7 +46,8 @@ class SimulatedDisplay:
         name: str = "simulated display",
     ) -> None:
         if width_px <= 0 or height_px <= 0:
-            raise DeviceSettingsError(f"display size: expected positive, got {width_px}x{height_px}")
+            raise DeviceSettingsError(
+                f"display size: expected positive, got {width_px}x{height_px}")
         if not 1.0 <= refresh_hz <= 1000.0:
             raise DeviceSettingsError(f"refresh_hz: expected 1..1000 Hz, got {refresh_hz}")
         if latency_periods < 0:

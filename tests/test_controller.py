@@ -83,7 +83,7 @@ def test_late_trigger_straddles_and_is_recaptured():
 
 @pytest.mark.parametrize("mode", ["software", "free-running"])
 def test_unplug_mid_sequence_recovers_exactly_once(mode):
-    r = make_rig(2, CameraFaults(unplug_after_frames=60, reconnect_failures=2))
+    r = make_rig(2, CameraFaults(unplug_after_frames=25, reconnect_failures=2))
     store = MemoryFrameStore()  # raises on a duplicate hand-off
     res = capture_pose(r, PLAN, store, settings=settings(r, mode),
                        options=ControllerOptions(latency_s=2 / 60))
@@ -178,3 +178,18 @@ def test_setup_helpers():
                                     latency_s=lat.latency_s, average=4)
     truth = (resp.levels / 255) ** 2.2
     assert np.max(np.abs(resp.linear - truth)) < 0.02
+
+
+@pytest.mark.parametrize("mode", ["software", "free-running"])
+def test_averaging_two_frames(mode):
+    r = make_rig(2)
+    store = MemoryFrameStore()
+    res = capture_pose(r, PLAN, store, settings=settings(r, mode), indices=range(6),
+                       options=ControllerOptions(latency_s=2 / 60, average=2, integrity=False))
+    assert res.status == "complete" and mis_synced(r, res) == []
+    assert all(img.dtype == np.float32 for img in store.frames.values())
+    truth = r.camera.truth
+    for info in res.frames.values():  # the second averaged exposure saw the same image
+        first = truth[info.sequence]
+        second = truth[min(s for s in truth if s > info.sequence)]
+        assert second.pure and second.image_ids == first.image_ids

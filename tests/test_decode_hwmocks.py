@@ -143,3 +143,17 @@ def test_blur_estimate_within_10_percent(name):
         rel = getattr(maps, f"blur_{ax}")[ok] / truth[f"blur_{ax}"][ok] - 1.0
         assert abs(np.median(rel)) < 0.05
         assert np.percentile(np.abs(rel), 90) < 0.10
+
+
+def test_overexposed_residual_noise_is_honest():
+    """Every on-screen pixel clips: the noise comes from bright-clipped residuals, still honest."""
+    _, truth, _ = scene("overexposed")
+    assert truth["saturated"][truth["visible"]].mean() > 0.9
+    maps = decoded("overexposed", False)
+    assert maps.meta["decoder"]["noise"] == "residual"
+    assert maps.mask.sum() > 0.9 * truth["visible"].sum()
+    for err, sig in errors("overexposed", False):
+        z = err / sig
+        assert 0.8 <= z.std() <= 1.25, z.std()
+        assert abs(z.mean()) <= 0.1, z.mean()
+        assert np.sum(np.abs(z) > 5) / z.size < 1e-4

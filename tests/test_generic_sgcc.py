@@ -84,7 +84,7 @@ def pinhole_fit():
     """sgcc on a mild pinhole (inside the OpenCV 5-coefficient family)."""
     cam = cameras.mild_pinhole(W, H)
     maps = _data(cam, 4, 11)
-    return cam, maps, calibrate_generic(maps[:3], SCREEN, "sgcc", options=OPTS, heldout=maps[3:])
+    return cam, maps, calibrate_generic(maps, SCREEN, "sgcc", options=OPTS, heldout=[3])
 
 
 def test_sgcc_pinhole_consistent_with_predicted_uncertainty(pinhole_fit):
@@ -132,6 +132,7 @@ def test_project_inverts_unproject_and_json_roundtrip(pinhole_fit):
 def test_heldout_pose_and_statistics(pinhole_fit):
     _, _, res = pinhole_fit
     held = res.stats["heldout"][0]
+    assert held["pose"] == 3
     assert held["rms_px"] < 3 * res.stats["rms_px"] + 1e-3
     assert 0.7 < held["chi2_dof"] < 1.5
     assert len(res.stats["per_pose"]) == 3
@@ -145,7 +146,7 @@ def test_outliers_and_partial_validity_are_tolerated():
     err, z = _zscores(res.model, cam, central=True)
     assert float(np.std(z)) < 2.0
     # rad (exp-map coordinates ~ angle); median: uncovered corners are uncertain, see z
-    assert float(np.median(np.abs(err))) < 1e-5
+    assert float(np.median(np.abs(err))) < 5e-5
     flagged = sum(p["n_outliers"] for p in res.stats["per_pose"])
     valid = sum(m.valid_count() for m in maps)
     assert 0.01 * valid < flagged < 0.03 * valid
@@ -170,7 +171,7 @@ def test_bad_inputs_raise_clear_errors(pinhole_fit):
     with pytest.raises(ValueError, match="model"):
         calibrate_generic(maps, SCREEN, "nonsense")
     with pytest.raises(ValueError, match=">= 3 poses"):
-        calibrate_generic(maps[:2], SCREEN, "sgcc")
+        calibrate_generic(maps, SCREEN, "sgcc", heldout=[0, 1])
     with pytest.raises(ValueError, match="unknown key"):
         calibrate_generic(maps, SCREEN, "sgcc", options={"mesh": 3})
 
@@ -212,3 +213,20 @@ def test_sgcc_on_150_degree_fisheye_within_1p5x_of_fisheye_model():
     sgcc_rms = ray_angle_difference(res.model.unproject, _truth_fn(cam), (W, H), pixels=pix)
     fish_rms = _fisheye_ray_rms(maps, cam, pix)
     assert sgcc_rms["rms_rad"] <= 1.5 * fish_rms, (sgcc_rms["rms_rad"], fish_rms)
+
+
+def test_progress_and_cancellation(pinhole_fit):
+    from calibration.worker.executor import JobCancelled
+
+    _, maps, _ = pinhole_fit
+    seen = []
+    with pytest.raises(JobCancelled):
+        calibrate_generic(
+            maps[:3],
+            SCREEN,
+            "sgcc",
+            options=OPTS,
+            progress=lambda done, total, msg: seen.append((done, total)),
+            cancelled=lambda: len(seen) >= 2,
+        )
+    assert seen[:2] == [(1, 60), (2, 60)]

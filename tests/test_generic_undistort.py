@@ -40,7 +40,7 @@ def test_remap_maps_and_undistorted_points_agree(fitted):
 def test_best_opencv_model_of_a_pinhole_leaves_tiny_residual(fitted):
     _, model = fitted
     best = best_opencv_model(model, "opencv5")
-    assert best["rms_px"] < 0.05
+    assert best["rms_px"] < 0.2  # includes extrapolated corners of the spline
     assert best["residual_px"].shape == (len(best["pixels"]),)
     with pytest.raises(ValueError, match="kind"):
         best_opencv_model(model, "nonsense")

@@ -93,7 +93,7 @@ def _fit(
     grid: SplineGrid,
     init: LMState,
     lm: LMOptions,
-    progress: Callable[[float, str], None] | None,
+    progress: Callable[[int, int, str], None] | None,
     cancelled: Callable[[], bool] | None,
 ) -> tuple[SGCCBase, LMResult]:
     """Run LM and wrap the converged spline as a model with its covariance."""
@@ -144,16 +144,25 @@ def calibrate_generic(
     model: str,
     *,
     options: dict[str, Any] | None = None,
-    heldout: Sequence[DecodedMaps] | None = None,
-    progress: Callable[[float, str], None] | None = None,
+    heldout: Sequence[int] | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
     cancelled: Callable[[], bool] | None = None,
 ) -> CalibrationResult:
-    """Fit an sGCC model (central or non-central) and its poses; statistics in `stats`."""
+    """Fit an sGCC model to the poses not in `heldout` (indices); held-out poses are validated.
+
+    `progress(done, total, message)` is called once per LM iteration; `cancelled()`
+    returning True aborts with the worker's `JobCancelled`.
+    """
     if model not in GENERIC_MODELS:
         raise ValueError(f"model: expected one of {list(GENERIC_MODELS)}, got {model!r}")
+    held = sorted(set(heldout or []))
+    if any(not 0 <= i < len(maps) for i in held):
+        raise ValueError(f"heldout: expected pose indices in [0, {len(maps) - 1}], got {held}")
+    held_maps = [maps[i] for i in held]
+    maps = [m for i, m in enumerate(maps) if i not in held]
     if len(maps) < 3:
         raise ValueError(f"maps: generic calibration needs >= 3 poses, got {len(maps)}")
-    shapes = {m.shape for m in maps}
+    shapes = {m.shape for m in (*maps, *held_maps)}
     if len(shapes) != 1:
         raise ValueError(f"maps: all poses must have the same image size, got {sorted(shapes)}")
     t0 = time.perf_counter()
@@ -215,8 +224,10 @@ def calibrate_generic(
         "origin_std_mm_median": float(np.median(org)),
         "param_std": {"ray_angle_rad_median": float(np.median(ang))},
     }
-    if heldout:
-        stats["heldout"] = _heldout(fitted, observations(heldout, screen), lm)
+    if held_maps:
+        stats["heldout"] = _heldout(fitted, observations(held_maps, screen), lm)
+        for row, index in zip(stats["heldout"], held, strict=True):
+            row["pose"] = index
     stats["wall_s"] = time.perf_counter() - t0
     fitted.stats = stats
     return CalibrationResult(fitted, poses, stats, pix_out, res_px)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -89,7 +91,9 @@ def initial_state(obs: list[PoseObs], grid: SplineGrid, n_comp: int) -> LMState:
     return LMState(x.reshape(grid.size, n_comp), rcs, tcs)
 
 
-def pose_from_model(model_unproject, ob: PoseObs) -> tuple[np.ndarray, np.ndarray]:
+def pose_from_model(
+    model_unproject: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], ob: PoseObs
+) -> tuple[np.ndarray, np.ndarray]:
     """Camera->screen (Rc, tc) of one pose from a fitted model's rays, by PnP on normalized rays."""
     _, d = model_unproject(ob.pixels)
     ok = d[:, 2] > 1e-6

@@ -30,10 +30,6 @@ from calibration.models.bspline import SplineGrid, second_differences
 from calibration.models.sgcc import expmap_jacobian
 
 
-class FitCancelled(RuntimeError):
-    """The caller's `cancelled()` returned True during the fit."""
-
-
 @dataclass
 class PoseObs:
     """The decoded points of one pose: pixels (N,2), screen mm (N,2), sigma mm (N,2)."""
@@ -223,7 +219,7 @@ def run_lm(
     init: LMState,
     options: LMOptions,
     *,
-    progress: Callable[[float, str], None] | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
     cancelled: Callable[[], bool] | None = None,
 ) -> LMResult:
     """Minimize the robust, uncertainty-weighted screen-plane residual; state and covariance."""
@@ -257,7 +253,9 @@ def run_lm(
     cut = np.inf
     for it in range(1, options.max_iterations + 1):
         if cancelled is not None and cancelled():
-            raise FitCancelled("sgcc fit cancelled")
+            from calibration.worker.executor import JobCancelled  # the worker's own signal
+
+            raise JobCancelled("sgcc: calibration cancelled")
         res, ok, g, jp = prob.evaluate(st, jacobian=True)
         s = sigma_norm(res)
         med = float(np.median(s[ok])) if ok.any() else 1.0
@@ -296,7 +294,7 @@ def run_lm(
             mu *= 10
         history.append(cost1 if accepted else cost0)
         if progress is not None:
-            progress(it / options.max_iterations, f"LM iteration {it}, cost {history[-1]:.6g}")
+            progress(it, options.max_iterations, f"LM iteration {it}, cost {history[-1]:.6g}")
         if not accepted or (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300):
             converged = True
             break

@@ -128,6 +128,9 @@ class InProcessExecutor:
                 del self._cancel[job_id]
 
 
+_FORGET = "__forget__"
+
+
 class _RemoteContext(TaskContext):
     """A `TaskContext` inside a worker process: progress goes through a queue."""
 
@@ -216,19 +219,25 @@ class ProcessExecutor:
         self._manager.shutdown()
 
     def _forward(self) -> None:
+        """Deliver progress in order; a job's callback is dropped after its last report."""
         while True:
             item = self._queue.get()
             if item is None:
                 return
+            if item[0] == _FORGET:
+                with self._lock:
+                    self._callbacks.pop(item[1], None)
+                continue
             job_id, done, total, stage = item
             cb = self._callbacks.get(job_id)
             if cb is not None:
                 cb(done, total, stage)
 
     def _forget(self, job_id: str) -> None:
+        # The worker queued all its progress before returning, so this marker comes last.
         with self._lock:
             self._events.pop(job_id, None)
-            self._callbacks.pop(job_id, None)
+        self._queue.put((_FORGET, job_id))
 
 
 def make_executor(address: str | None = None) -> Executor:
