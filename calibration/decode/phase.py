@@ -8,6 +8,7 @@ solution over the kept steps, solved per distinct exclusion pattern (a handful),
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -45,21 +46,33 @@ class SetFit:
     c_aa: Any  # covariance of (alpha, beta) per unit sample variance
     c_bb: Any
     c_ab: Any
-    explained: Any  # p . rhs: the part of sum v^2 the fit explains
+    explained: Any  # p . rhs: the part of sum v^2 the fit explains (None unless asked)
     dof: Any  # kept samples - 3
     ok: Any  # enough kept samples, well-conditioned
     clipped: Any  # some steps were excluded as clipped
     low_clipped: Any  # a step below the fitted mean was excluded (clipped at the dark end)
     partial: _PartialFit | None = None  # the pixels fitted on a subset of steps
 
+    @functools.cached_property
+    def b2(self) -> Any:
+        """Squared modulation alpha^2 + beta^2 (DN^2)."""
+        return self.alpha**2 + self.beta**2
+
     @property
     def modulation(self) -> Any:
         """Observed modulation amplitude B* (DN)."""
-        return (self.alpha**2 + self.beta**2) ** 0.5
+        return self.b2**0.5
+
+    @property
+    def _isotropic(self) -> bool:
+        """True when the covariance factors are the all-steps-kept scalars c I."""
+        return isinstance(self.c_aa, float) and self.c_ab == 0.0 and self.c_aa == self.c_bb
 
     def modulation_var(self) -> Any:
         """Variance of B* per unit sample variance (linearized)."""
-        b2 = self.alpha**2 + self.beta**2
+        if self._isotropic:
+            return self.c_aa
+        b2 = self.b2
         num = self.alpha**2 * self.c_aa + 2 * self.alpha * self.beta * self.c_ab
         num = num + self.beta**2 * self.c_bb
         isotropic = 0.5 * (self.c_aa + self.c_bb)
@@ -67,10 +80,13 @@ class SetFit:
 
     def phase_var(self) -> Any:
         """Variance of the phase (rad^2) per unit sample variance (linearized)."""
-        b2 = self.alpha**2 + self.beta**2
+        b2 = self.b2
+        none = b2 == 0  # no modulation: no phase
+        if self._isotropic:
+            return self.c_aa / (b2 + none) + none * 1e30
         num = self.beta**2 * self.c_aa - 2 * self.alpha * self.beta * self.c_ab
         num = num + self.alpha**2 * self.c_bb
-        return num / (b2 * b2 + (b2 == 0)) + (b2 == 0) * 1e30  # no modulation: no phase
+        return num / (b2 * b2 + none) + none * 1e30
 
     def use_step_levels(self, xp: ModuleType, variance: Callable[[Any], Any], base: Any,
                         where: Any) -> None:
@@ -154,32 +170,37 @@ def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) 
     return _Pattern(nan, n, full, np.zeros(full), np.zeros((2, steps)))
 
 
-def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
+def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False) -> SetFit:
     """Fit the cosine model of one period group on the flattened pixel range `sl`.
 
     The model also includes the set's extra harmonics (`harmonic_orders`): with all steps
     kept they are orthogonal to the fundamental (phase unchanged), but they keep display
     gamma out of the residual noise and, with clipped steps excluded, out of the phase.
+    Results are float32 (the sums are float32); `residuals` also computes, in float64,
+    the part of `sum v^2` the fit explains (the residual is a small difference of large
+    sums). The covariance factors are scalars unless some pixel has clipped steps.
     """
     n = sums.layout.steps
-    flat = [x.reshape(-1)[sl].astype(xp.float64) for x in (sums.s0, sums.a, sums.b)]
-    flat += [x.reshape(-1)[sl].astype(xp.float64) for x in sums.extra]
-    s0, a, b = flat[:3]
+    count = 3 + len(sums.extra)
+    s0, a, b = (x.reshape(-1)[sl] for x in (sums.s0, sums.a, sums.b))
     size = a.shape[0]
-    full = xp.full(size, 2.0 / n)
-    explained = s0**2 / n
-    for extra in flat[1:]:
-        explained = explained + extra**2 * (2.0 / n)
+    explained = None
+    if residuals:
+        wide = [x.reshape(-1)[sl].astype(xp.float64) for x in (sums.a, sums.b, *sums.extra)]
+        explained = s0.astype(xp.float64) ** 2 / n
+        for extra in wide:
+            explained = explained + extra**2 * (2.0 / n)
+    scale = xp.float32(2.0 / n)
     fit = SetFit(
-        mean=s0 / n,
-        level=s0 / n,
-        alpha=a * (2.0 / n),
-        beta=b * (2.0 / n),
-        c_aa=full,
-        c_bb=full.copy(),
-        c_ab=xp.zeros(size),
+        mean=s0 * xp.float32(1.0 / n),
+        level=s0 * xp.float32(1.0 / n),
+        alpha=a * scale,
+        beta=b * scale,
+        c_aa=2.0 / n,
+        c_bb=2.0 / n,
+        c_ab=0.0,
         explained=explained,
-        dof=xp.full(size, float(n - len(flat))),
+        dof=xp.full(size, float(n - count), dtype=xp.float32),
         ok=xp.ones(size, dtype=bool),
         clipped=xp.zeros(size, dtype=bool),
         low_clipped=xp.zeros(size, dtype=bool),
@@ -197,7 +218,10 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     counts = np.array([(t.kept, t.used) for t in tables], dtype=np.float64)
     weights = xp.asarray(np.stack([t.weights for t in tables]))[inv]  # (P, k)
     kept, used = (xp.asarray(c)[inv] for c in counts.T)
-    rhs = xp.stack([f[idx] for f in flat], axis=1)
+    rhs = xp.stack(
+        [x.reshape(-1)[sl][idx].astype(xp.float64) for x in (sums.s0, sums.a, sums.b, *sums.extra)],
+        axis=1,
+    )
     p = xp.einsum("pij,pj->pi", minv, rhs)
     good = xp.isfinite(p).all(axis=1)
     p = xp.where(good[:, None], p, 0.0)
@@ -205,10 +229,12 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice) -> SetFit:
     fit.level[idx] = (weights * p).sum(axis=1) / xp.maximum(kept - used, 1.0)
     fit.alpha[idx] = p[:, 1]
     fit.beta[idx] = p[:, 2]
-    fit.c_aa[idx] = xp.where(good, minv[:, 1, 1], 0.0)
-    fit.c_bb[idx] = xp.where(good, minv[:, 2, 2], 0.0)
-    fit.c_ab[idx] = xp.where(good, minv[:, 1, 2], 0.0)
-    fit.explained[idx] = (p * rhs).sum(axis=1)
+    for name, (i, j) in (("c_aa", (1, 1)), ("c_bb", (2, 2)), ("c_ab", (1, 2))):
+        arr = xp.full(size, getattr(fit, name), dtype=xp.float32)
+        arr[idx] = xp.where(good, minv[:, i, j], 0.0)
+        setattr(fit, name, arr)
+    if explained is not None:
+        explained[idx] = (p * rhs).sum(axis=1)
     fit.dof[idx] = xp.maximum(kept - used, 0.0)
     fit.ok[idx] = good
     fit.clipped[idx] = True

@@ -9,7 +9,9 @@ model and pose parameters, weights from the decoded sigmas).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import cv2
@@ -151,6 +153,25 @@ def _pose_jac(model: PinholeFamily, pose: PoseEstimate, pts: PointSet) -> np.nda
     return np.stack(cols, axis=1)
 
 
+_SINGLE_THREAD_LOCK = threading.Lock()
+
+
+@contextmanager
+def _opencv_single_threaded() -> Iterator[None]:
+    """Run OpenCV's solver on one thread (repeatable results, FACTS.md).
+
+    `cv2.setNumThreads` is process-wide, so concurrent fits in one process take turns
+    here instead of resetting each other's thread count mid-solve.
+    """
+    with _SINGLE_THREAD_LOCK:
+        prev = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            yield
+        finally:
+            cv2.setNumThreads(prev)
+
+
 def fit_parametric(
     points: list[PointSet], image_size: tuple[int, int], model_name: str,
     options: dict[str, Any] | None = None,
@@ -167,9 +188,7 @@ def fit_parametric(
         raise DegenerateError(f"{model_name}: needs >= {MIN_POSES} poses, got {len(points)}")
     used = [subsample(p, int(opts["max_points_per_pose"])) for p in points]
     rounds = int(opts["outlier_rounds"])
-    prev = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    with _opencv_single_threaded():
         # OpenCV's planar (Zhang-style) init is robust for the pinhole models; the fisheye
         # solver's own init is not, so it starts from a rational fit (same f at the center).
         guess = None
@@ -192,8 +211,6 @@ def fit_parametric(
             if all(k_.all() for k_ in keep):
                 break
             used = [p.subset(k_) for p, k_ in zip(used, keep, strict=True)]
-    finally:
-        cv2.setNumThreads(prev)
     fixed = np.zeros(model.get_params().size, dtype=bool)
     if model_name == "opencv-rational" and not opts["thin_prism"]:
         fixed[4 + 8:] = True
