@@ -132,6 +132,7 @@ Cancel = threading.Event | Callable[[], bool] | None
 
 
 def _is_cancelled(cancel: Cancel) -> bool:
+    """Whether a threading.Event is set or a callable returns True."""
     if cancel is None:
         return False
     if isinstance(cancel, threading.Event):
@@ -161,6 +162,7 @@ class _Runner:
 
     # -- devices ----------------------------------------------------------------------
     def codes(self, index: int) -> np.ndarray:
+        """Device codes of plan frame `index` (the last one rendered is kept)."""
         if index not in self._codes:
             self._codes = {index: render_frame(self.plan, index,
                                                bit_depth=self.display.info.bit_depth,
@@ -169,13 +171,16 @@ class _Runner:
         return self._codes[index]
 
     def show(self, index: int) -> float:
+        """Show plan frame `index`; returns its flip time."""
         return self.display.show(self.codes(index))
 
     def check_cancel(self) -> None:
+        """Raise `AcquisitionCancelled` once the user asked to stop."""
         if _is_cancelled(self.cancel):
             raise AcquisitionCancelled("cancelled by the user")
 
     def fire(self) -> None:
+        """One trigger: the trigger box in 'hardware' mode when present, else software."""
         if self.settings.trigger_mode == "hardware" and self.trigger_box is not None:
             self.trigger_box.fire()
         else:

@@ -91,6 +91,7 @@ class AravisConfig(_Strict):
     buffers: int = Field(default=8, ge=2)
     bayer: Literal["demosaic", "raw"] = "demosaic"
     trigger_line: str = "Line0"
+    region: tuple[int, int, int, int] | None = None  # x, y, width, height on the sensor
 
 
 DisplayConfig = Annotated[FramebufferConfig | SdlConfig | SimulatedPart,
@@ -259,7 +260,7 @@ def open_camera(cfg: OpenCvConfig | AravisConfig, clock: Clock) -> Camera:
     from acquisition.camera.aravis_camera import AravisCamera
 
     return AravisCamera(cfg.device, buffers=cfg.buffers, bayer=cfg.bayer,
-                        trigger_line=cfg.trigger_line, clock=clock)
+                        trigger_line=cfg.trigger_line, region=cfg.region, clock=clock)
 
 
 def _open_simulated(config: RigConfig, clock: Clock | None) -> Rig:

@@ -79,8 +79,7 @@ def aravis_rows(frames: int = 30) -> list[tuple[str, float]]:
         fake = FakeGigECamera("PHASECAL-BENCH", lambda r: np.zeros((r.height, r.width),
                                                                     np.uint8))
         for w, h in ((64, 48), (640, 480)):
-            cam = AravisCamera("127.0.0.1")
-            cam._cam.set_region(0, 0, w, h)
+            cam = AravisCamera("127.0.0.1", region=(0, 0, w, h))
             cam.configure(CameraSettings(exposure_s=0.001, trigger_mode="software"))
             cam.start()
 

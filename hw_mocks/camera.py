@@ -243,29 +243,35 @@ class SimulatedCamera:
     # -- internals --------------------------------------------------------------------
     @property
     def _fps(self) -> float:
+        """Applied free-running frame rate."""
         assert self._settings.frame_rate_hz is not None
         return self._settings.frame_rate_hz
 
     def _check_connected(self) -> None:
+        """Raise `CameraDisconnected` while unplugged."""
         if not self._connected:
             raise CameraDisconnected(f"{self._info.name} ({self._info.serial}) is disconnected; "
                                      "call reconnect()")
 
     def _reset_stream(self) -> None:
+        """Forget queued and pending exposures."""
         self._queue.clear()
         self._pending.clear()
         self._fr_next = 0
         self._busy_until = -math.inf
 
     def _new_exposure(self, start: float) -> _Exposure:
+        """Next sequence number and a jittered timestamp for an exposure starting at `start`."""
         self._seq += 1
         ts = start + float(self._rng.normal(0.0, self.timestamp_jitter_s))
         return _Exposure(self._seq, start, ts)
 
     def _arrival(self, start: float) -> float:
+        """When an exposure starting at `start` reaches the driver queue."""
         return start + self._settings.exposure_s + self.readout_s
 
     def _next_delivery(self) -> float | None:
+        """Arrival time of the next frame, or None if none is coming."""
         if not self._running:
             return None
         if self._settings.trigger_mode == "free-running":

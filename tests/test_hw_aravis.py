@@ -47,8 +47,7 @@ def cam(fake):
     from acquisition.camera.aravis_camera import AravisCamera
 
     fake["scene"].__init__()
-    c = AravisCamera("127.0.0.1", clock=RealClock(), bayer="raw")
-    c._cam.set_region(0, 0, W, H)
+    c = AravisCamera("127.0.0.1", clock=RealClock(), bayer="raw", region=(0, 0, W, H))
     yield c
     c.close()
 
@@ -147,9 +146,7 @@ def test_unplug_is_detected_and_reconnect_recovers(cam, fake) -> None:
         cam.grab(1.0)
     fake["fake"] = FakeGigECamera(SERIAL, fake["scene"])  # plugged back in
     cam.reconnect()
-    cam._cam.set_region(0, 0, W, H)
-    cam.stop()
-    cam.start()
+    assert (cam.info.width, cam.info.height) == (W, H)  # the region is restored too
     cam.trigger()
     assert cam.grab(2.0).image.shape == (H, W)
 

@@ -141,9 +141,8 @@ def test_aravis_fake_camera_sequence_decodes_like_the_simulation(world):
     with fake_camera_lock():
         fake = FakeGigECamera("PHASECAL-E2E", light_from_screen)
         display = FramebufferDisplay(fb, geometry=geo, clock=RealClock())
-        cam = AravisCamera("127.0.0.1", clock=RealClock())
+        cam = AravisCamera("127.0.0.1", clock=RealClock(), region=(0, 0, CAM_W, CAM_H))
         try:
-            cam._cam.set_region(0, 0, CAM_W, CAM_H)
             settings = CameraSettings(exposure_s=EXPOSURE_S, pixel_format="Mono16",
                                       trigger_mode="software")
             # Latency measured by the setup helper; integrity references re-captured. The
@@ -204,9 +203,8 @@ def test_check_command_on_the_aravis_rig(world, capsys):
     with fake_camera_lock():
         fake = FakeGigECamera("PHASECAL-CHECK", light_from_screen)
         display = FramebufferDisplay(fb, geometry=geo, clock=RealClock())
-        cam = AravisCamera("127.0.0.1", clock=RealClock())
+        cam = AravisCamera("127.0.0.1", clock=RealClock(), region=(0, 0, CAM_W, CAM_H))
         try:
-            cam._cam.set_region(0, 0, CAM_W, CAM_H)
             settings = CameraSettings(exposure_s=0.005, pixel_format="Mono16",
                                       trigger_mode="software")
             found = check_rig(Rig(display, cam, RealClock(), settings), target=0.7)

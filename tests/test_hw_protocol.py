@@ -66,9 +66,8 @@ def test_aravis_camera() -> None:
     with fake_camera_lock():
         fake = FakeGigECamera("PHASECAL-PROTO",
                               lambda r: np.full((r.height, r.width), 100, np.uint8))
-        cam = AravisCamera("127.0.0.1", clock=clock)
+        cam = AravisCamera("127.0.0.1", clock=clock, region=(0, 0, 64, 48))
         try:
-            cam._cam.set_region(0, 0, 64, 48)
             protocol.check_camera(cam, clock)
         finally:
             cam.close()

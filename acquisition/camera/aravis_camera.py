@@ -49,6 +49,7 @@ class AravisCamera:
         buffers: int = 8,
         bayer: str = "demosaic",
         trigger_line: str = "Line0",
+        region: tuple[int, int, int, int] | None = None,
         clock: Clock | None = None,
     ) -> None:
         if not device:
@@ -62,6 +63,7 @@ class AravisCamera:
         self._buffers = buffers
         self._bayer = bayer
         self._trigger_line = trigger_line
+        self._region = region  # (x, y, width, height) of the sensor to read; None: as is
         self._clock = clock if clock is not None else RealClock()
         self._lost = threading.Event()
         self._offsets: collections.deque[float] = collections.deque(maxlen=OFFSET_WINDOW)
@@ -87,7 +89,19 @@ class AravisCamera:
         self._lost.clear()
         dev = self._cam.get_device()
         dev.connect("control-lost", lambda *_: self._lost.set())
+        if self._region is not None:
+            try:
+                self._cam.set_region(*self._region)
+            except GLib.Error as exc:
+                raise DeviceSettingsError(
+                    f"Aravis camera {self.device}: region {self._region} rejected ({exc.message})"
+                ) from exc
         _, _, w, h = self._cam.get_region()
+        if self._region is not None and (w, h) != tuple(self._region[2:]):
+            raise DeviceSettingsError(
+                f"Aravis camera {self.device}: region {self._region} gives {w}x{h} "
+                f"(sensor {self._cam.get_sensor_size()}, size increments apply)"
+            )
         formats = tuple(
             f for f in (self._cam.dup_available_pixel_formats_as_strings() or [])
             if f in PIXEL_FORMATS
@@ -214,8 +228,6 @@ class AravisCamera:
             self._cam.start_acquisition()
         except GLib.Error as exc:
             raise self._error("start", exc) from exc
-        self._payload_fmt = pixel_format(self._settings.pixel_format)
-        self._region = self._cam.get_region()
         self._not_before = self._clock.now()
         self._awaiting, self._deferred = False, 0
         self._running = True

@@ -149,6 +149,10 @@ class OpenCvCamera:
     # -- settings -------------------------------------------------------------------
     def configure(self, settings: CameraSettings) -> CameraSettings:
         """Apply settings; returns what the device reports (recordings: what they hold)."""
+        if not (np.isfinite(settings.exposure_s) and settings.exposure_s > 0):
+            raise DeviceSettingsError(
+                f"OpenCV camera {self.source}: exposure_s must be > 0 s, got {settings.exposure_s}"
+            )
         if settings.trigger_mode not in self._info.trigger_modes:
             raise DeviceSettingsError(
                 f"OpenCV camera {self.source}: trigger_mode {settings.trigger_mode!r} not "

@@ -15,8 +15,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "or PHASECAL_DATA_DIR)")
     p.add_argument("--token", default=None, help="API token (or PHASECAL_TOKEN); required for "
                    "non-loopback hosts")
-    p.add_argument("--executor", default=None, help="Dask scheduler tcp://host:port "
-                   "(or PHASECAL_DASK); default: in-process threads")
+    p.add_argument("--executor", default=None, help="'processes' (worker processes), a Dask "
+                   "scheduler tcp://host:port (or PHASECAL_DASK); default: in-process threads")
 
 
 def run(args: argparse.Namespace) -> int:

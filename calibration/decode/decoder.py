@@ -100,6 +100,7 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
+        self._own: tuple[np.ndarray, np.ndarray] = (np.empty(0), np.empty(0))  # rss, dof
 
     @property
     def missing(self) -> list[int]:
@@ -225,7 +226,7 @@ class StreamingDecoder:
         clean, no_dark_clip = np.empty(npix, dtype=bool), np.empty(npix, dtype=bool)
 
         def one(sl: slice) -> None:
-            fits = [fit_set(self.xp, s, sl) for s in acc.sets]
+            fits = [fit_set(self.xp, s, sl, residuals=True) for s in acc.sets]
             r, d, m = self._residuals(fits, sl)
             rss[sl], dof[sl], mean[sl] = to_host(r), to_host(d), to_host(m)
             clean[sl] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
@@ -238,6 +239,7 @@ class StreamingDecoder:
             if use.sum() < _MIN_CLEAN_PIXELS:
                 use = fallback
         self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor)
+        self._own = (rss, dof)
 
     @property
     def _floor(self) -> float:
@@ -260,7 +262,7 @@ class StreamingDecoder:
             for f, var in zip(fits, per_set, strict=True):
                 f.use_step_levels(xp, fn, var, everywhere)
             return per_set, fn
-        rss, dof, _ = self._residuals(fits, sl)
+        rss, dof = (xp.asarray(arr[sl]) for arr in self._own)
         own = xp.where(dof > 0, xp.maximum(rss / xp.maximum(dof, 1.0), self._floor), xp.nan)
         if self._ptc is None:
             return [own] * len(fits), lambda level: own

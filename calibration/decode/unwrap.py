@@ -18,6 +18,9 @@ from typing import Any
 
 from calibration.decode.arrays import special
 
+# Coarsest-period candidates further than this many sigmas from the screen ends have
+# Gaussian masses of exactly 0 or 1 to < 1e-17: no need to evaluate them.
+_FAR_SIGMA = 8.5
 # Components closer than this many posterior sigmas form one peak.
 _MERGE_SIGMA = 2.0
 # Finer periods: the nearest tooth and its two neighbours are weighed. Where a tooth two
@@ -37,15 +40,34 @@ class AxisPosterior:
 
 
 def _coarsest(xp: ModuleType, c: Any, sigma: Any, period: float, lo: float, hi: float):
-    """Order of the coarsest period under a uniform prior on [lo, hi]: (mu, ambiguity)."""
+    """Order of the coarsest period under a uniform prior on [lo, hi]: (mu, ambiguity).
+
+    The period exceeds the extent, so at most one candidate lies inside. Pixels whose
+    candidates are all further than `_FAR_SIGMA` sigmas from both ends get it (or the
+    least-outside one) with zero ambiguity; only the others evaluate the Gaussian masses.
+    """
+    c = c.astype(xp.float64)
+    # How far inside [lo, hi] each candidate c - period, c, c + period lies (< 0: outside).
+    in_lo = xp.minimum(hi - c + period, c - period - lo)
+    in_0 = xp.minimum(hi - c, c - lo)
+    in_hi = xp.minimum(hi - c - period, c + period - lo)
+    mu = xp.where(in_0 >= in_lo, c, c - period)
+    mu = xp.where(in_hi > xp.maximum(in_0, in_lo), c + period, mu)
+    ambiguity = xp.zeros(c.shape, dtype=sigma.dtype)
+    reach = _FAR_SIGMA * sigma
+    near = (xp.abs(in_lo) < reach) | (xp.abs(in_0) < reach) | (xp.abs(in_hi) < reach)
+    near = xp.nonzero(near)[0]
+    if near.shape[0] == 0:
+        return mu, ambiguity
     ndtr = special(xp).ndtr
-    cand = c[None, :] + period * xp.asarray([-1.0, 0.0, 1.0])[:, None]
-    mass = ndtr((hi - cand) / sigma) - ndtr((lo - cand) / sigma)
-    best = xp.argmax(mass, axis=0)
-    mu = xp.take_along_axis(cand, best[None, :], axis=0)[0]
-    top = xp.take_along_axis(mass, best[None, :], axis=0)[0]
+    sub = c[near][None, :] + period * xp.asarray([-1.0, 0.0, 1.0])[:, None]
+    s = sigma[near]
+    mass = ndtr((hi - sub) / s) - ndtr((lo - sub) / s)
+    top_i = xp.argmax(mass, axis=0)
+    mu[near] = xp.take_along_axis(sub, top_i[None, :], axis=0)[0]
+    top = xp.take_along_axis(mass, top_i[None, :], axis=0)[0]
     total = mass.sum(axis=0)
-    ambiguity = xp.where(total > 0, 1.0 - top / xp.where(total > 0, total, 1.0), 1.0)
+    ambiguity[near] = xp.where(total > 0, 1.0 - top / xp.where(total > 0, total, 1.0), 1.0)
     return mu, ambiguity
 
 
@@ -57,31 +79,44 @@ def fuse_axis(
     usable: list[Any],
     extent_px: int,
 ) -> AxisPosterior:
-    """Fuse wrapped positions (coarsest first) into one position and sigma per pixel."""
+    """Fuse wrapped positions (coarsest first) into one position and sigma per pixel.
+
+    The position stays float64 (screen px to ~1e-4 px over a few thousand px); variances,
+    weights and chi-squares follow the sigmas' dtype (float32 from the decoder).
+    """
     lo, hi = -0.5, extent_px - 0.5
     mu, ambiguity = _coarsest(xp, positions[0], sigmas[0], periods[0], lo, hi)
     var = sigmas[0] ** 2
-    chi2 = xp.zeros_like(mu)
-    dof = xp.zeros_like(mu)
+    chi2 = xp.zeros_like(var)
+    dof = xp.zeros_like(var)
     for c, sig, period, use in zip(positions[1:], sigmas[1:], periods[1:], usable[1:], strict=True):
-        var_k = sig**2
-        total = var + var_k
-        d0 = mu - c - xp.rint((mu - c) / period) * period  # offset to the nearest tooth
-        gain = var / total
-        post_var = var * var_k / total
+        var_k = sig * sig
+        inv_total = 1.0 / (var + var_k)
+        wide = mu - c
+        wide -= xp.rint(wide * (1.0 / period)) * period  # offset to the nearest tooth
+        d0 = wide.astype(var.dtype)
+        gain = var * inv_total
+        post_var = gain * var_k
         # Neighbouring teeth (orders -1, +1): weights relative to the nearest one. Their
-        # posterior centres sit period*gain away: separated peaks, or one merged peak.
-        w_lo = xp.exp(-(period * period + 2.0 * d0 * period) / (2.0 * total))
-        w_hi = xp.exp(-(period * period - 2.0 * d0 * period) / (2.0 * total))
-        norm = 1.0 + w_lo + w_hi
-        separated = period * gain > _MERGE_SIGMA * xp.sqrt(post_var)
-        amb_k = xp.where(separated, (w_lo + w_hi) / norm, 0.0)
-        step = period * gain  # posterior centres of teeth -1, +1 sit -step, +step from tooth 0
-        shift = (w_hi - w_lo) * step / norm
-        spread = (w_lo * (step + shift) ** 2 + w_hi * (step - shift) ** 2 + shift**2) / norm
-        new_mu = mu - d0 * gain + xp.where(separated, 0.0, shift)
-        new_var = post_var + xp.where(separated, 0.0, spread)
-        chi2 = xp.where(use, chi2 + d0**2 / total, chi2)
+        # posterior centres sit `step` = period*gain away: separated peaks, or one merged peak.
+        half = (0.5 * period * period) * inv_total
+        tilt = (d0 * period) * inv_total
+        w_lo = xp.exp(-(half + tilt))
+        w_hi = xp.exp(tilt - half)
+        step = period * gain
+        separated = step * step > (_MERGE_SIGMA * _MERGE_SIGMA) * post_var
+        amb_k = xp.where(separated, (w_lo + w_hi) / (1.0 + w_lo + w_hi), 0.0)
+        new_mu = mu - d0 * gain
+        new_var = post_var
+        merged = xp.nonzero(~separated & use)[0]
+        if merged.shape[0]:  # one merged peak: moment-match the three components
+            lo_m, hi_m, st = w_lo[merged], w_hi[merged], step[merged]
+            norm = 1.0 + lo_m + hi_m
+            shift = (hi_m - lo_m) * st / norm
+            spread = (lo_m * (st + shift) ** 2 + hi_m * (st - shift) ** 2 + shift**2) / norm
+            new_mu[merged] += shift
+            new_var[merged] += spread
+        chi2 = xp.where(use, chi2 + d0 * d0 * inv_total, chi2)
         dof = xp.where(use, dof + 1.0, dof)
         ambiguity = xp.where(use, ambiguity + amb_k - ambiguity * amb_k, ambiguity)
         mu = xp.where(use, new_mu, mu)
