@@ -6,6 +6,7 @@ import io
 import json
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -87,7 +88,7 @@ class DecodedMaps:
             arrays["blur_x"] = self.blur_x.astype(np.float32)
         if self.blur_y is not None:
             arrays["blur_y"] = self.blur_y.astype(np.float32)
-        meta = {"format": MAPS_FORMAT, **self.meta}
+        meta = {**self.meta, "format": MAPS_FORMAT}
         arrays["meta"] = np.array(json.dumps(meta))
         np.savez_compressed(buf, **arrays)
         return buf.getvalue()
@@ -117,6 +118,10 @@ def load_maps(source: str | Path | bytes) -> DecodedMaps:
     except FileNotFoundError:
         raise MapsError(f"{name}: maps file not found") from None
     try:
+        if fh.read(4) != b"PK\x03\x04":
+            fh.close()
+            raise MapsError(f"{name}: not an NPZ file (expected a zip archive of .npy arrays)")
+        fh.seek(0)
         with fh, np.load(fh, allow_pickle=False) as npz:
             keys = set(npz.files)
             required = ("x", "y", "sigma_x", "sigma_y", "mask", "modulation_x", "modulation_y")
@@ -141,7 +146,7 @@ def load_maps(source: str | Path | bytes) -> DecodedMaps:
             )
     except MapsError:
         raise
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise MapsError(f"{name}: not a readable NPZ file ({exc})") from None
     maps.validate(name)
     return maps
