@@ -72,8 +72,8 @@ class AravisCamera:
         self._running = False
         self.incomplete_buffers = 0
         self.stale_frames = 0
-        self._awaiting = False  # a software trigger is out and its frame has not come yet
-        self._deferred = 0  # software triggers held back until that frame arrives
+        self._outstanding = 0  # software triggers sent whose frames have not arrived yet
+        self._deferred = 0  # software triggers held back until those frames arrive
         self._open()
         self._settings = self._read_settings()
 
@@ -229,7 +229,7 @@ class AravisCamera:
         except GLib.Error as exc:
             raise self._error("start", exc) from exc
         self._not_before = self._clock.now()
-        self._awaiting, self._deferred = False, 0
+        self._outstanding, self._deferred = 0, 0
         self._running = True
 
     def stop(self) -> None:
@@ -253,9 +253,9 @@ class AravisCamera:
             return
         if self._lost.is_set():
             raise CameraDisconnected(f"Aravis camera {self.device}: control channel lost")
-        if self._awaiting:
+        if self._outstanding:
             # Cameras ignore triggers while exposing or reading out (trigger overlap):
-            # hold this one back and send it when the previous frame has arrived.
+            # hold this one back and send it when the pending frame has arrived.
             self._deferred += 1
             return
         self._send_trigger()
@@ -265,7 +265,7 @@ class AravisCamera:
             self._cam.software_trigger()
         except GLib.Error as exc:
             raise self._error("software trigger", exc) from exc
-        self._awaiting = True
+        self._outstanding += 1
 
     def _to_clock(self, device_ns: int, system_ns: int, popped: float) -> float:
         """Device time -> clock time; `system_ns` (host wall time at reception) dates the
@@ -286,7 +286,7 @@ class AravisCamera:
         while True:
             remaining = deadline - self._clock.now()
             if remaining <= 0:
-                self._awaiting, self._deferred = False, 0
+                self._outstanding, self._deferred = 0, 0  # lost triggers: start afresh
                 self._check_alive()
                 raise CameraTimeout(
                     f"Aravis camera {self.device}: no frame within {timeout_s:.3f} s "
@@ -304,8 +304,8 @@ class AravisCamera:
 
     def _accept(self, buf: Any) -> Frame | None:
         arrived = self._clock.now()
-        self._awaiting = False
-        if self._deferred and self._settings.trigger_mode == "software":
+        self._outstanding = max(0, self._outstanding - 1)  # stale or not, it answered one
+        if self._deferred and not self._outstanding:
             self._deferred -= 1
             self._send_trigger()
         try:

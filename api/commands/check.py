@@ -101,8 +101,10 @@ def check_rig(rig: Any, *, target: float = 0.8, response: bool = True) -> dict[s
                                                                    camera.info.bit_depth)))
     if response:
         try:
+            # One frame per level: the mean over all lit pixels already averages the noise.
             resp = measure_display_response(display, camera, clock, settings,
-                                            latency_s=lat.latency_s, trigger_box=trig)
+                                            latency_s=lat.latency_s, average=1,
+                                            trigger_box=trig)
             found["display_response"] = {
                 "levels": resp.levels.tolist(), "linear": resp.linear.tolist(),
                 "gamma": _gamma(resp.levels, resp.linear, top)}

@@ -33,7 +33,7 @@ class DecodeOptions:
     screen_margin_sigma: float = 3.0
     edge_margin_blur: float = 3.0
     saturation_margin: float = 0.02
-    chunk_pixels: int = 1 << 18
+    chunk_pixels: int = 1 << 16
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -101,18 +101,19 @@ class SetFit:
         part = self.partial
         if part is None:
             return
-        c_aa = c_bb = c_ab = 0.0
-        for i in range(part.basis.shape[0]):  # a loop over the phase steps, not over pixels
-            mu = part.p @ part.basis[i]
-            var = variance(xp.maximum(mu, 0.0))
-            g_a, g_b = part.gains[part.pattern, 0, i], part.gains[part.pattern, 1, i]
-            c_aa = c_aa + var * g_a * g_a
-            c_bb = c_bb + var * g_b * g_b
-            c_ab = c_ab + var * g_a * g_b
+        mu = part.p @ part.basis.T  # (P, steps) fitted value of every step
+        var = variance(xp.maximum(mu, 0.0))
+        gains = part.gains[part.pattern]  # (P, 2, steps)
+        g_a, g_b = gains[:, 0, :], gains[:, 1, :]
+        values = {
+            "c_aa": (var * g_a * g_a).sum(axis=1),
+            "c_bb": (var * g_b * g_b).sum(axis=1),
+            "c_ab": (var * g_a * g_b).sum(axis=1),
+        }
         b = base[part.idx]
         keep = where[part.idx] & (b > 0)
         safe = xp.where(keep, b, 1.0)
-        for name, value in (("c_aa", c_aa), ("c_bb", c_bb), ("c_ab", c_ab)):
+        for name, value in values.items():
             arr = getattr(self, name)
             arr[part.idx] = xp.where(keep, value / safe, arr[part.idx])
 
@@ -242,5 +243,6 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False
     excluded = xp.asarray((to_host(uniq)[:, None] >> np.arange(n)) & 1 == 1)[inv]  # (P, n)
     fit.low_clipped[idx] = (excluded & (p @ basis.T.astype(np.float64) < p[:, :1])).any(axis=1)
     gains = xp.asarray(np.stack([t.gains for t in tables]))
-    fit.partial = _PartialFit(idx, p, inv, gains, xp.asarray(basis))
+    fitted = xp.nonzero(good)[0]  # pixels without a fit keep no covariance to refine
+    fit.partial = _PartialFit(idx[fitted], p[fitted], inv[fitted], gains, xp.asarray(basis))
     return fit

@@ -116,9 +116,15 @@ def fuse_axis(
             spread = (lo_m * (st + shift) ** 2 + hi_m * (st - shift) ** 2 + shift**2) / norm
             new_mu[merged] += shift
             new_var[merged] += spread
-        chi2 = xp.where(use, chi2 + d0 * d0 * inv_total, chi2)
-        dof = xp.where(use, dof + 1.0, dof)
-        ambiguity = xp.where(use, ambiguity + amb_k - ambiguity * amb_k, ambiguity)
-        mu = xp.where(use, new_mu, mu)
-        var = xp.where(use, new_var, var)
+        # Unusable periods (few pixels) leave their pixels' state unchanged.
+        skip = xp.nonzero(~use)[0]
+        innovation = d0 * d0 * inv_total
+        innovation[skip] = 0.0
+        amb_k[skip] = 0.0
+        new_mu[skip] = mu[skip]
+        new_var[skip] = var[skip]
+        chi2 += innovation
+        dof += use
+        ambiguity += amb_k * (1.0 - ambiguity)
+        mu, var = new_mu, new_var
     return AxisPosterior(mu, xp.sqrt(var), ambiguity, chi2, dof)
