@@ -20,9 +20,12 @@ setup: $(STAMP)
 demo: setup
 	$(VENV)/bin/phasecal demo
 
+# One BLAS/OpenMP thread per pytest worker: the workers already fill the cores, and
+# oversubscribed BLAS threads made dense solves several times slower on 2 cores.
 test: setup
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -n $(PYTEST_WORKERS) tests
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+		$(PY) -m pytest -n $(PYTEST_WORKERS) tests
 
 lint: setup
 	$(VENV)/bin/ruff check .

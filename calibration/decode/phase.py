@@ -86,7 +86,9 @@ class SetFit:
             return self.c_aa / (b2 + none) + none * 1e30
         num = self.beta**2 * self.c_aa - 2 * self.alpha * self.beta * self.c_ab
         num = num + self.alpha**2 * self.c_bb
-        return num / (b2 * b2 + none) + none * 1e30
+        b4 = b2 * b2
+        none = b4 == 0  # also where float32 b2^2 underflows
+        return num / (b4 + none) + none * 1e30
 
     def use_step_levels(self, xp: ModuleType, variance: Callable[[Any], Any], base: Any,
                         where: Any) -> None:
