@@ -89,7 +89,12 @@ class LinearVariance:
 
 
 def fit_photon_transfer(
-    mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, floor: float, bins: int = 16
+    mean: np.ndarray,
+    rss: np.ndarray,
+    dof: np.ndarray,
+    floor: float,
+    bins: int = 16,
+    max_pixels: int = 1 << 19,
 ) -> LinearVariance | None:
     """Fit the sensor's variance-versus-mean line to per-pixel cosine-fit residuals.
 
@@ -99,14 +104,15 @@ def fit_photon_transfer(
     line through the bins (slope >= 0) gives every pixel a variance estimated from millions
     of residual degrees of freedom instead of its own handful. None when < 4 bins have data.
     """
-    good = np.isfinite(mean) & np.isfinite(rss) & (dof >= 1)
-    if good.sum() < 64:
+    good = np.flatnonzero(np.isfinite(mean) & np.isfinite(rss) & (dof >= 1))
+    if good.size < 64:
         return None
-    m, d = mean[good], dof[good]
+    good = good[:: max(1, good.size // max_pixels)]  # an even subsample bounds the work
+    m, d = mean[good], np.rint(dof[good]).astype(np.int64)
     # Each ratio over its own dof's chi-square median (dof differ between pixels: clipped
     # steps leave fewer), so every bin's median estimates the variance itself.
-    dofs, which_dof = np.unique(d, return_inverse=True)
-    ratio = rss[good] / d / (chi2.median(dofs) / dofs)[which_dof.reshape(-1)]
+    dofs = np.arange(1, int(d.max()) + 1)
+    ratio = rss[good] / d / (chi2.median(dofs) / dofs)[d - 1]
     edges = np.unique(np.quantile(m, np.linspace(0.0, 1.0, bins + 1)))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
     xs, ys, ws = [], [], []

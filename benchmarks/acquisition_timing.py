@@ -8,28 +8,23 @@ latency L, camera frame period T (free-running):
 Flips happen only at vsyncs, so the vsync floor is the real lower bound. The free-running
 time depends on the camera's frame phase against the vsyncs: it is averaged over phases.
 Virtual clock: only the simulated timing is measured. Run:
-  .venv/bin/python benchmarks/acquisition.py
+  .venv/bin/python benchmarks/acquisition_timing.py
+(Named so it does not shadow the `acquisition` package for scripts run from benchmarks/.)
 """
 
 from __future__ import annotations
 
 import math
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-# This file's name equals the `acquisition` package: put the repo root first, drop this dir.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [str(_HERE.parent)] + [q for q in sys.path if Path(q or ".").resolve() != _HERE]
-
-from acquisition.controller import ControllerOptions, capture_pose  # noqa: E402
-from acquisition.patterns import build_plan  # noqa: E402
-from acquisition.sinks import MemoryFrameStore  # noqa: E402
-from calibration.plan import ScreenGeometry  # noqa: E402
-from hw_mocks.cameras import mild_pinhole  # noqa: E402
-from hw_mocks.rig import SimulatedRig  # noqa: E402
+from acquisition.controller import ControllerOptions, capture_pose
+from acquisition.patterns import build_plan
+from acquisition.sinks import MemoryFrameStore
+from calibration.plan import ScreenGeometry
+from hw_mocks.cameras import mild_pinhole
+from hw_mocks.rig import SimulatedRig
 
 SCREEN = ScreenGeometry(320, 200, (0.5, 0.5))
 REFRESH = 60.0
