@@ -102,7 +102,8 @@ def fit_photon_transfer(
     `rss/dof` over each pixel's chi-square median `chi2.median(dof)/dof` (pixels with
     clipped steps have fewer dof), which ignores the few pixels with model errors. A straight
     line through the bins (slope >= 0) gives every pixel a variance estimated from millions
-    of residual degrees of freedom instead of its own handful. None when < 4 bins have data.
+    of residual degrees of freedom instead of its own handful; an even subsample of at most
+    ~2 `max_pixels` pixels (~30000 per bin) is plenty. None when < 4 bins have data.
     """
     good = np.flatnonzero(np.isfinite(mean) & np.isfinite(rss) & (dof >= 1))
     if good.size < 64:
