@@ -11,7 +11,7 @@ JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "in
 JobKind = Literal["capture", "decode", "calibrate"]
 MAX_POINTS = 200_000
 PoseStatus = Literal[
-    "pending", "capturing", "decoding", "ready", "failed", "cancelled", "interrupted"
+    "pending", "capturing", "decoding", "ready", "flagged", "failed", "cancelled", "interrupted"
 ]
 
 

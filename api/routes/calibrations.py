@@ -55,14 +55,17 @@ def _get_cal(s: Any, cal_id: str) -> CalibrationRecord:
 
 def _check_poses(s: Any, session_id: str, ids: list[str], field: str,
                  sizes: dict[tuple[int | None, int | None], str]) -> None:
-    """Every id is a ready pose of the session; all poses share one image size."""
+    """Every id is a decoded pose of the session; all poses share one image size.
+
+    Poses flagged by the capture integrity check are accepted only when named explicitly.
+    """
     for pid in ids:
         check_id(pid, "pose", "pose")
         p = s.get(PoseRecord, pid)
         if p is None or p.session_id != session_id:
             raise Problem(422, "validation-error",
                           f"{field}: pose {pid!r} is not a pose of session {session_id}")
-        if p.status != "ready":
+        if p.status not in ("ready", "flagged"):
             raise Problem(409, "not-ready", f"{field}: pose {pid} is {p.status}, not ready")
         sizes.setdefault((p.width, p.height), pid)
         if len(sizes) > 1:

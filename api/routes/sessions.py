@@ -107,7 +107,12 @@ def _pose_hooks(pose_id: str) -> tuple[Any, Any]:
     def ok(s: Any, result: dict[str, Any]) -> None:
         p = s.get(PoseRecord, pose_id)
         dec = result.get("decode", {})
-        p.status, p.error = "ready", None
+        flagged = result.get("capture", {}).get("flagged")
+        # a pose that failed its integrity check keeps its maps but is not used by default
+        if flagged:
+            p.status, p.error = "flagged", f"integrity check: {flagged}"
+        else:
+            p.status, p.error = "ready", None
         p.valid_pixels = dec.get("valid_pixels")
         p.width, p.height = dec.get("width"), dec.get("height")
         p.frames_done = result.get("frames", p.frames_done)
@@ -304,7 +309,7 @@ def read_pose(session_id: str, pose_id: str, svc: Svc) -> dict[str, Any]:
 def _ready_maps_path(svc: Services, session_id: str, pose_id: str) -> Path:
     with svc.db.session() as s:
         pose = get_pose(s, session_id, pose_id)
-        if pose.status != "ready":
+        if pose.status not in ("ready", "flagged"):
             raise Problem(409, "not-ready", f"pose {pose_id} is {pose.status}; maps exist once "
                           "it is ready")
     return svc.store.file(pose_id, "maps.npz")
