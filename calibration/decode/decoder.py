@@ -42,6 +42,10 @@ from calibration.plan import Plan
 MIN_PERIOD_SNR = 4.0
 # The photon-transfer fit uses only pixels without clipped steps when at least this many exist.
 _MIN_CLEAN_PIXELS = 2000
+# Larger images fit the photon-transfer line on evenly spread pieces of this many pixels,
+# about _NOISE_SAMPLE in all (the fit needs ~1e5 pixels; the rest only costs time).
+_NOISE_PIECE = 1 << 14
+_NOISE_SAMPLE = 1 << 20
 
 
 @functools.lru_cache(maxsize=8)
@@ -100,7 +104,6 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
-        self._own: tuple[np.ndarray, np.ndarray] = (np.empty(0), np.empty(0))  # rss, dof
 
     @property
     def missing(self) -> list[int]:
@@ -221,25 +224,37 @@ class StreamingDecoder:
         they are unbiased to first order); those clipped at the dark end (0 DN, where a
         sensor without black offset truncates its read noise) are not.
         """
-        acc, step = self._acc, self.options.chunk_pixels
-        mean, rss, dof = (np.empty(npix, dtype=np.float32) for _ in range(3))
-        clean, no_dark_clip = np.empty(npix, dtype=bool), np.empty(npix, dtype=bool)
+        acc = self._acc
+        pieces = self._noise_sample(npix)
+        size = sum(sl.stop - sl.start for sl in pieces)
+        mean, rss, dof = (np.empty(size, dtype=np.float32) for _ in range(3))
+        clean, no_dark_clip = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
+        offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
 
-        def one(sl: slice) -> None:
+        def one(k: int) -> None:
+            sl, to = pieces[k], slice(int(offsets[k]), int(offsets[k + 1]))
             fits = [fit_set(self.xp, s, sl, residuals=True) for s in acc.sets]
             r, d, m = self._residuals(fits, sl)
-            rss[sl], dof[sl], mean[sl] = to_host(r), to_host(d), to_host(m)
-            clean[sl] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
+            rss[to], dof[to], mean[to] = to_host(r), to_host(d), to_host(m)
+            clean[to] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
             low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
-            no_dark_clip[sl] = to_host(~low)
+            no_dark_clip[to] = to_host(~low)
 
-        self._map(one, [slice(s, min(s + step, npix)) for s in range(0, npix, step)])
+        self._map(one, list(range(len(pieces))))
         use = clean & (dof >= 1)
         for fallback in (no_dark_clip & (dof >= 1), dof >= 1):
             if use.sum() < _MIN_CLEAN_PIXELS:
                 use = fallback
         self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor)
-        self._own = (rss, dof)
+
+    def _noise_sample(self, npix: int) -> list[slice]:
+        """Pixel ranges the photon-transfer line is fitted on: all pixels, or evenly spread
+        pieces of `_NOISE_PIECE` pixels totalling about `_NOISE_SAMPLE` on large images."""
+        if npix <= _NOISE_SAMPLE:
+            step = self.options.chunk_pixels
+            return [slice(s, min(s + step, npix)) for s in range(0, npix, step)]
+        starts = np.linspace(0, npix - _NOISE_PIECE, _NOISE_SAMPLE // _NOISE_PIECE)
+        return [slice(int(s), int(s) + _NOISE_PIECE) for s in starts]
 
     @property
     def _floor(self) -> float:
@@ -262,7 +277,7 @@ class StreamingDecoder:
             for f, var in zip(fits, per_set, strict=True):
                 f.use_step_levels(xp, fn, var, everywhere)
             return per_set, fn
-        rss, dof = (xp.asarray(arr[sl]) for arr in self._own)
+        rss, dof, _ = self._residuals(fits, sl)
         own = xp.where(dof > 0, xp.maximum(rss / xp.maximum(dof, 1.0), self._floor), xp.nan)
         if self._ptc is None:
             return [own] * len(fits), lambda level: own
@@ -277,7 +292,7 @@ class StreamingDecoder:
     def _finish_chunk(self, sl: slice, axes: list[str], out: dict, reason: np.ndarray) -> None:
         """Decode one flattened pixel range into `out` and `reason`."""
         xp, acc, opt = self.xp, self._acc, self.options
-        fits = [fit_set(xp, s, sl) for s in acc.sets]
+        fits = [fit_set(xp, s, sl, residuals=self._variance is None) for s in acc.sets]
         variances, level_var = self._noise_variances(fits, sl)
         bright = acc.bright.reshape(-1)[sl] / acc.n_bright
         dark = acc.dark.reshape(-1)[sl] / acc.n_dark
