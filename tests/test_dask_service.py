@@ -20,7 +20,6 @@ pytest.importorskip("distributed")
 from acquisition.patterns import build_plan
 from api.app import create_app
 from api.config import ServiceConfig
-from api.routes import batch as batch_routes
 from calibration.maps import load_maps
 from calibration.plan import CosineFrame, FlatFrame, Plan
 from calibration.worker.dask_executor import DaskExecutor, start_local_cluster
@@ -123,7 +122,6 @@ def test_batch_endpoint_on_cluster_matches_in_process(cluster, tmp_path):
     results = {}
     for label, executor in (("local", None), ("dask", cluster.scheduler_address)):
         app = create_app(ServiceConfig(data_dir=tmp_path / label, executor=executor))
-        app.include_router(batch_routes.router)
         store = app.state.services.store
         with TestClient(app) as c:
             ses = c.post("/sessions", json={"name": label, "plan": plan.to_dict()}).json()
