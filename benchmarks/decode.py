@@ -2,7 +2,8 @@
 
 Run: .venv/bin/python benchmarks/decode.py [--xp numpy|cupy] [--repeats N]
 Prints Mpixel-frames/s for the streaming accumulation (`add`), for `finish`, end to end,
-and the ratio to a NumPy sum over the same uint8 bytes measured on this machine.
+and the ratio to a NumPy sum over the same uint8 bytes measured on this machine; then
+finish alone: Mpixel/s, its share of the pose's decode time and of the capture time.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from calibration.decode import StreamingDecoder
 from calibration.plan import Plan, plan_from_dict
 
 H, W = 2048, 2448
+CAPTURE_HZ = 60.0  # display/camera rate the finish time is compared with
 
 
 def bench_plan() -> Plan:
@@ -70,8 +72,7 @@ def run_numpy(
     plan: Plan, stack: np.ndarray, repeats: int, noise: float | None
 ) -> tuple[float, float, float]:
     """(setup, add, finish) seconds on the CPU; setup allocates the sums before capture."""
-    setup = add = float("inf")
-    dec = None
+    setup = add = finish = float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
         dec = StreamingDecoder(plan, (H, W), noise=noise)
@@ -79,10 +80,10 @@ def run_numpy(
         for i in range(stack.shape[0]):
             dec.add(i, stack[i])
         t2 = time.perf_counter()
-        setup, add = min(setup, t1 - t0), min(add, t2 - t1)
-    t0 = time.perf_counter()
-    dec.finish()
-    return setup, add, time.perf_counter() - t0
+        dec.finish()
+        t3 = time.perf_counter()
+        setup, add, finish = min(setup, t1 - t0), min(add, t2 - t1), min(finish, t3 - t2)
+    return setup, add, finish
 
 
 def run_cupy(plan: Plan, stack: np.ndarray, repeats: int) -> list[tuple[str, float]]:
@@ -119,6 +120,7 @@ def main() -> int:
     plan = bench_plan()
     npf = H * W * len(plan.frames) / 1e6  # Mpixel-frames
     rows: list[tuple[str, float]] = []
+    finishes: list[tuple[str, float, float]] = []  # (config, finish s, end-to-end s)
     floor = 0.0
     for border in (False, True):
         stack = make_stack(plan, border)
@@ -137,6 +139,7 @@ def main() -> int:
                 rows.append((f"add: streaming accumulation ({tag})", t_add))
                 rows.append((f"finish ({tag})", t_fin))
                 rows.append((f"end to end ({tag})", t_setup + t_add + t_fin))
+                finishes.append((tag, t_fin, t_setup + t_add + t_fin))
         else:
             tag = clip
             rows.extend((f"{name} ({tag})", t) for name, t in run_cupy(plan, stack, args.repeats))
@@ -147,6 +150,15 @@ def main() -> int:
     for name, t in rows:
         rate = npf / t
         print(f"{name:66s} {t:9.3f} {rate:14.0f} {rate / floor_rate:9.2f}")
+    if finishes:
+        capture = len(plan.frames) / CAPTURE_HZ
+        print(f"\nfinish alone ({H * W / 1e6:.1f} Mpixel pose; capture of {len(plan.frames)} "
+              f"frames at {CAPTURE_HZ:g} Hz takes {capture:.2f} s)")
+        print(f"{'config':44s} {'finish s':>9s} {'Mpixel/s':>9s} {'of decode':>10s} "
+              f"{'of capture':>11s}")
+        for tag, t_fin, total in finishes:
+            print(f"{tag:44s} {t_fin:9.3f} {H * W / 1e6 / t_fin:9.2f} {t_fin / total:10.0%} "
+                  f"{t_fin / capture:11.0%}")
     return 0
 
 

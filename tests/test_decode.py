@@ -102,6 +102,23 @@ def test_shot_noise_residual_mode_fits_photon_transfer(plan):
     check_honest(decode_stack(plan, stack, noise=model), x, y)
 
 
+def test_photon_transfer_from_spread_sample_matches_full_fit(plan, monkeypatch):
+    """Large images fit the noise line on spread pieces: same line, honest sigma."""
+    import calibration.decode.decoder as decoder_module
+
+    stack, x, y = render(plan, read=1.0, gain_e_per_dn=0.5, white=220.0, seed=4)
+    full = decode_stack(plan, stack).meta["decoder"]["photon_transfer"]
+    monkeypatch.setattr(decoder_module, "_NOISE_PIECE", 1024)
+    monkeypatch.setattr(decoder_module, "_NOISE_SAMPLE", H * W // 3)
+    maps = decode_stack(plan, stack)
+    sampled = maps.meta["decoder"]["photon_transfer"]
+    assert sampled["slope"] == pytest.approx(full["slope"], rel=0.15)
+    assert sampled["offset"] + 100 * sampled["slope"] == pytest.approx(
+        full["offset"] + 100 * full["slope"], rel=0.05
+    )
+    check_honest(maps, x, y)
+
+
 def test_streaming_any_order_matches_stack(plan):
     stack, *_ = render(plan, seed=5)
     ref = decode_stack(plan, stack, noise=1.5)

@@ -135,15 +135,19 @@ class _Pattern(NamedTuple):
     gains: np.ndarray  # (2, steps) d(alpha, beta)/d v_i, zero for excluded steps
 
 
+@functools.lru_cache(maxsize=64)
 def _basis(steps: int, harmonics: tuple[int, ...]) -> np.ndarray:
     """(steps, k) design matrix: 1, sin(psi), cos(psi), then sin(k psi), cos(k psi) per harmonic."""
     psi = 2.0 * np.pi * np.arange(steps) / steps
     columns = [np.ones(steps)]
     for k in (1, *harmonics):
         columns += [np.sin(k * psi), np.cos(k * psi)]
-    return np.stack(columns, axis=1)
+    basis = np.stack(columns, axis=1)
+    basis.setflags(write=False)  # cached and shared
+    return basis
 
 
+@functools.lru_cache(maxsize=4096)
 def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) -> _Pattern:
     """Least-squares tables of the kept steps of one exclusion pattern.
 
@@ -154,7 +158,7 @@ def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) 
     residual sum of squares is `offset * dof + slope * w . p`. Kept steps are unevenly
     weighted: when the bright ones clip, the dark ones carry most residual dof, so the kept
     samples' average level would overstate their noise. The gains let the (alpha, beta)
-    covariance use each kept step's own noise variance.
+    covariance use each kept step's own noise variance. Cached: a pose has few patterns.
     """
     basis = _basis(steps, harmonics)
     kept = np.array([(excluded_mask >> i) & 1 == 0 for i in range(steps)])
@@ -211,7 +215,16 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False
     if sums.excluded is None:
         return fit
     bits = sums.excluded.reshape(-1)[sl]
-    idx = xp.nonzero(bits)[0]
+    every = (1 << n) - 1
+    dead = xp.nonzero(bits == every)[0]  # every step clipped (e.g. a black border): no fit
+    if dead.shape[0]:
+        for arr in (fit.mean, fit.level, fit.alpha, fit.beta, fit.dof):
+            arr[dead] = 0.0
+        if explained is not None:
+            explained[dead] = 0.0
+        fit.ok[dead] = False
+        fit.clipped[dead] = True
+    idx = xp.nonzero((bits != 0) & (bits != every))[0]
     if idx.shape[0] == 0:
         return fit
     uniq, inv = xp.unique(bits[idx], return_inverse=True)

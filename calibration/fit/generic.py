@@ -153,6 +153,12 @@ def calibrate_generic(
     `progress(done, total, message)` is called once per LM iteration; `cancelled()`
     returning True aborts with the worker's `JobCancelled`.
     """
+    if model == "raygrid":
+        from calibration.fit.raygrid_fit import calibrate_raygrid
+
+        return calibrate_raygrid(
+            maps, screen, options=options, heldout=heldout, progress=progress, cancelled=cancelled
+        )
     if model not in GENERIC_MODELS:
         raise ValueError(f"model: expected one of {list(GENERIC_MODELS)}, got {model!r}")
     held = sorted(set(heldout or []))

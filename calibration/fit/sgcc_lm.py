@@ -20,14 +20,20 @@ data; where data exist it is negligible, where they do not its large covariance 
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, null_space
 from scipy.spatial.transform import Rotation
 
-from calibration.models.bspline import SplineGrid, second_differences
-from calibration.models.sgcc import expmap_jacobian
+try:  # optional: keeps numpy's BLAS to one thread during the fit
+    from threadpoolctl import threadpool_limits
+except ImportError:  # pragma: no cover - without it BLAS keeps its default threads
+    threadpool_limits = None
+
+from calibration.models.bspline import SplineGrid, monomial_basis, monomials, second_differences
+from calibration.models.sgcc import expmap, expmap_jacobian
 
 
 @dataclass
@@ -49,6 +55,7 @@ class LMOptions:
     smooth: float = 1e-7
     rel_tol: float = 1e-10
     fix_spline: bool = False
+    subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
 
 
 @dataclass
@@ -76,59 +83,111 @@ class LMResult:
     history: list[float] = field(default_factory=list)
 
 
+_CHUNK = 1 << 16  # pixels per vectorized block: bounded temporaries, few Python-level calls
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """Sorted pixels [a, b) of one pose and its cell groups (start, end relative to a, cell)."""
+
+    a: int
+    b: int
+    pose: int
+    groups: list[tuple[int, int, int]]
+
+
+def _chunks(pose: np.ndarray, cell: np.ndarray) -> list[_Chunk]:
+    """Split pixels sorted by (pose, cell) into per-pose blocks of whole cell groups."""
+    change = np.flatnonzero((pose[1:] != pose[:-1]) | (cell[1:] != cell[:-1])) + 1
+    starts = np.r_[0, change]
+    ends = np.r_[change, len(pose)]
+    out: list[_Chunk] = []
+    cur: list[tuple[int, int, int]] = []
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        if cur and (pose[a] != pose[cur[0][0]] or b - cur[0][0] > _CHUNK):
+            out.append(_Chunk(cur[0][0], cur[-1][1], int(pose[cur[0][0]]), _relative(cur)))
+            cur = []
+        cur.append((a, b, int(cell[a])))
+    if cur:
+        out.append(_Chunk(cur[0][0], cur[-1][1], int(pose[cur[0][0]]), _relative(cur)))
+    return out
+
+
+def _relative(groups: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
+    """Group bounds relative to the first group's start."""
+    a0 = groups[0][0]
+    return [(a - a0, b - a0, c) for a, b, c in groups]
+
+
 class _Problem:
-    """Fixed per-fit geometry: basis weights and (pose, cell) grouping of all residuals."""
+    """Fixed per-fit geometry: pixels sorted by (pose, cell), local cell coordinates, blocks.
+
+    Inside a cell the 16 basis weights are K m(s, t) with m the 16 monomials t^l s^k
+    (`monomial_basis`), so sum_p (w w^T) h_p = K [sum_p m m^T h_p] K^T needs only the 49
+    moments sum_p t^L s^M h_p (L, M <= 6) per cell: one small matrix product per group.
+    """
 
     def __init__(self, grid: SplineGrid, n_comp: int, obs: list[PoseObs]) -> None:
-        self.grid, self.c, self.obs = grid, n_comp, obs
+        self.grid, self.c = grid, n_comp
         self.n_spline = grid.size * n_comp
         self.n_pose = len(obs)
         self.n = self.n_spline + 6 * self.n_pose
+        self.n_cells = grid.cells[0] * grid.cells[1]
         pix = np.concatenate([o.pixels for o in obs])
-        self.pose_of = np.concatenate([np.full(len(o.pixels), j) for j, o in enumerate(obs)])
-        self.idx, self.w = grid.basis(pix[:, 0], pix[:, 1])
-        key = self.pose_of * (grid.cells[0] * grid.cells[1]) + grid.cell_of(pix[:, 0], pix[:, 1])
-        order = np.argsort(key, kind="stable")
-        self.order = order
-        k_sorted = key[order]
-        starts = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
-        self.bounds = np.r_[starts, len(order)]
-        self.w_sorted = self.w[order]
-        self.screen = np.concatenate([o.screen_mm for o in obs])
-        self.sigma = np.concatenate([o.sigma_mm for o in obs])
+        pose_of = np.concatenate([np.full(len(o.pixels), j) for j, o in enumerate(obs)])
+        cell, s, t = grid.local(pix[:, 0], pix[:, 1])
+        order = np.argsort(pose_of * self.n_cells + cell, kind="stable")
+        self.inverse = np.empty_like(order)
+        self.inverse[order] = np.arange(len(order))
+        self.s, self.t = s[order], t[order]
+        self.screen = np.concatenate([o.screen_mm for o in obs])[order]
+        self.sigma = np.concatenate([o.sigma_mm for o in obs])[order]
         self.counts = np.array([len(o.pixels) for o in obs])
-        ends = np.cumsum(self.counts)
-        self.slices = [slice(int(e - n), int(e)) for e, n in zip(ends, self.counts, strict=True)]
+        self.chunks = _chunks(pose_of[order], cell[order])
+        self.kmat = monomial_basis()
+        self.controls = grid.cell_controls()
+        self.cols = (self.controls[:, :, None] * n_comp + np.arange(n_comp)).reshape(
+            self.n_cells, -1
+        )
+        d = np.arange(4)
+        self.pair = (
+            (d[:, None, None, None] + d[None, None, :, None]) * 7
+            + (d[None, :, None, None] + d[None, None, None, :])
+        ).reshape(16, 16)
+        self.tri = np.triu_indices(n_comp)
 
-    def evaluate(self, st: LMState, jacobian: bool) -> tuple[np.ndarray, ...]:
-        """Residuals (Q-S) mm, ok mask [, G (N,2,C), pose Jacobian (N,2,6)]."""
-        comps = np.einsum("nk,nkc->nc", self.w, st.coeffs[self.idx])
-        r, jr = expmap_jacobian(comps[:, :2])
-        o = np.zeros_like(r)
-        if self.c == 4:
-            o[:, :2] = comps[:, 2:4]
-        o_s, r_s = np.empty_like(o), np.empty_like(r)
-        for sl, rc_j, tc_j in zip(self.slices, st.rc, st.tc, strict=True):
-            o_s[sl] = o[sl] @ rc_j.T + tc_j
-            r_s[sl] = r[sl] @ rc_j.T
+    def unsort(self, values: np.ndarray) -> list[np.ndarray]:
+        """Per-pose arrays in the callers' original pixel order."""
+        return np.split(values[self.inverse], np.cumsum(self.counts)[:-1])
+
+    def _chunk(
+        self, st: LMState, poly: np.ndarray, ch: _Chunk, jacobian: bool
+    ) -> tuple[np.ndarray, ...]:
+        """Residuals (Q-S) mm and ok mask of one block [+ monomials, G (n,2,C), pose J (n,2,6)]."""
+        m16 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 3)
+        comps = np.empty((ch.b - ch.a, self.c))
+        for a, b, cell in ch.groups:
+            comps[a:b] = m16[a:b] @ poly[cell]
+        rc, tc = st.rc[ch.pose], st.tc[ch.pose]
+        if jacobian:
+            r, jr = expmap_jacobian(comps[:, :2])
+        else:
+            r = expmap(comps[:, :2])
+        o_s = comps[:, 2:4] @ rc[:, :2].T + tc if self.c == 4 else np.broadcast_to(tc, r.shape)
+        r_s = r @ rc.T
         ok = r_s[:, 2] * o_s[:, 2] < 0  # the ray moves towards the plane
         rz = np.where(ok, r_s[:, 2], 1.0)
         lam = -o_s[:, 2] / rz
         q = o_s[:, :2] + lam[:, None] * r_s[:, :2]
-        res = np.where(ok[:, None], q - self.screen, 0.0)
+        res = np.where(ok[:, None], q - self.screen[ch.a : ch.b], 0.0)
         if not jacobian:
             return res, ok
         px, py = r_s[:, 0] / rz, r_s[:, 1] / rz  # dQ/d(o_s) = [[1, 0, -px], [0, 1, -py]]
         prc = np.empty((len(q), 2, 3))
-        for sl, rc_j in zip(self.slices, st.rc, strict=True):
-            prc[sl, 0] = rc_j[0] - px[sl, None] * rc_j[2]
-            prc[sl, 1] = rc_j[1] - py[sl, None] * rc_j[2]
+        prc[:, 0] = rc[0] - px[:, None] * rc[2]
+        prc[:, 1] = rc[1] - py[:, None] * rc[2]
         g = np.empty((len(q), 2, self.c))
-        g[:, :, :2] = lam[:, None, None] * (
-            prc[:, :, 0, None] * jr[:, None, 0, :]
-            + prc[:, :, 1, None] * jr[:, None, 1, :]
-            + prc[:, :, 2, None] * jr[:, None, 2, :]
-        )
+        g[:, :, :2] = lam[:, None, None] * np.matmul(prc, jr)
         if self.c == 4:
             g[:, :, 2:] = prc[:, :, :2]
         qx, qy = q[:, 0], q[:, 1]
@@ -137,39 +196,73 @@ class _Problem:
         jp[:, 1, 0], jp[:, 1, 1], jp[:, 1, 2] = -py * qy, py * qx, qx
         jp[:, 0, 3], jp[:, 1, 4] = 1.0, 1.0
         jp[:, 0, 5], jp[:, 1, 5] = -px, -py
-        return res, ok, g, jp
+        return res, ok, m16, g, jp
+
+    def polynomials(self, coeffs: np.ndarray) -> np.ndarray:
+        """Monomial coefficients (n_cells, 16, C) of every cell's spline components."""
+        return np.einsum("ka,nkc->nac", self.kmat, coeffs[self.controls])
+
+    def residuals(self, st: LMState) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (Q-S) mm (N,2) and ok mask (N,) of all pixels, sorted order."""
+        n = len(self.s)
+        res, ok = np.empty((n, 2)), np.empty(n, dtype=bool)
+        poly = self.polynomials(st.coeffs)
+        for ch in self.chunks:
+            res[ch.a : ch.b], ok[ch.a : ch.b] = self._chunk(st, poly, ch, jacobian=False)
+        return res, ok
 
     def normal_equations(
-        self, g: np.ndarray, jp: np.ndarray, e: np.ndarray, wt: np.ndarray
+        self, st: LMState, wt: np.ndarray, spline: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
-        """J^T W J and J^T W e, built per (pose, cell) group with batched products."""
-        c, ns = self.c, self.n_spline
-        h = np.zeros((self.n, self.n))
-        grad = np.zeros(self.n)
-        ws = wt[:, None] / self.sigma**2  # (N,2) per-row weights
-        gw = g * ws[:, :, None]
-        hp = np.einsum("nra,nrb->nab", gw, g).reshape(-1, c * c)[self.order]
-        kp = np.einsum("nra,nrb->nab", gw, jp).reshape(-1, c * 6)[self.order]
-        gp = np.einsum("nra,nr->na", gw, e)[self.order]
-        pw = jp * ws[:, :, None]
-        idx_sorted = self.idx[self.order]
-        pose_sorted = self.pose_of[self.order]
-        for j, sel in enumerate(self.slices):
+        """J^T W J and J^T W e from per-cell monomial moments (spline) and per-pose sums."""
+        c, ns, nc, npo = self.c, self.n_spline, self.n_cells, self.n_pose
+        iu, ju = self.tri
+        mom = np.zeros((nc, 49, len(iu)))  # sum m49 * (g^T W g)[upper triangle]
+        cross = np.zeros((npo, nc, 16, 7 * c))  # sum m16 * [g^T W jp | g^T W e]
+        hpp, gpp = np.zeros((npo, 6, 6)), np.zeros((npo, 6))
+        poly = self.polynomials(st.coeffs)
+        for ch in self.chunks:
+            e, _, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
+            ws = wt[ch.a : ch.b, None] / self.sigma[ch.a : ch.b] ** 2
+            pw = jp * ws[:, :, None]
+            hpp[ch.pose] += np.einsum("nra,nrb->ab", pw, jp)
+            gpp[ch.pose] += np.einsum("nra,nr->a", pw, e)
+            if not spline:
+                continue
+            gw = g * ws[:, :, None]
+            hp = np.einsum("nra,nrb->nab", gw, g)[:, iu, ju]
+            xg = np.concatenate(
+                [
+                    np.einsum("nra,nrb->nab", gw, jp).reshape(-1, 6 * c),
+                    np.einsum("nra,nr->na", gw, e),
+                ],
+                axis=1,
+            )
+            m49 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 6)
+            for a, b, cell in ch.groups:
+                mom[cell] += m49[a:b].T @ hp[a:b]
+                cross[ch.pose, cell] += m16[a:b].T @ xg[a:b]
+        h, grad = np.zeros((self.n, self.n)), np.zeros(self.n)
+        for j in range(npo):
             sl = slice(ns + 6 * j, ns + 6 * j + 6)
-            h[sl, sl] += np.einsum("nra,nrb->ab", pw[sel], jp[sel])
-            grad[sl] += np.einsum("nra,nr->a", pw[sel], e[sel])
-        for a, b in zip(self.bounds[:-1], self.bounds[1:], strict=True):
-            w = self.w_sorted[a:b]
-            cols = (idx_sorted[a][:, None] * c + np.arange(c)).ravel()  # (16C,)
-            blk = (w[:, :, None] * hp[a:b, None, :]).reshape(b - a, -1).T @ w  # (16*C*C, 16)
-            blk = blk.reshape(16, c, c, 16).transpose(0, 1, 3, 2).reshape(16 * c, 16 * c)
-            h[np.ix_(cols, cols)] += blk
-            j = pose_sorted[a]
-            sl = slice(ns + 6 * j, ns + 6 * j + 6)
-            cross = (w.T @ kp[a:b]).reshape(16 * c, 6)
-            h[cols, sl] += cross
-            h[sl, cols] += cross.T
-            grad[cols] += (w.T @ gp[a:b]).ravel()
+            h[sl, sl], grad[sl] = hpp[j], gpp[j]
+        if not spline:
+            return h, grad
+        full = np.zeros((nc, 49, c, c))
+        full[:, :, iu, ju] = mom
+        full[:, :, ju, iu] = mom
+        kk = self.kmat
+        blk = np.einsum("ia,nabxy,jb->nixjy", kk, full[:, self.pair], kk, optimize=True)
+        cols = self.cols
+        np.add.at(h, (cols[:, :, None], cols[:, None, :]), blk.reshape(nc, 16 * c, 16 * c))
+        xk = np.einsum("ia,pnaz->pniz", kk, cross)
+        hsp = np.zeros((ns, 6 * npo))
+        for j in range(npo):
+            blk_j = xk[j, :, :, : 6 * c].reshape(nc, 16 * c, 6)
+            np.add.at(hsp, (cols[:, :, None], 6 * j + np.arange(6)), blk_j)
+        h[:ns, ns:] = hsp
+        h[ns:, :ns] = hsp.T
+        np.add.at(grad, cols, xk[:, :, :, 6 * c :].sum(axis=0).reshape(nc, 16 * c))
         return h, grad
 
 
@@ -212,6 +305,108 @@ def _apply_pose_step(st: LMState, dp: np.ndarray) -> tuple[list[np.ndarray], lis
     return rcs, tcs
 
 
+@dataclass
+class _Loop:
+    """LM state carried across iterations and phases."""
+
+    state: LMState
+    z: np.ndarray  # free directions (gauge null space or poses only)
+    prior_base: np.ndarray
+    mu: float = 1e-3
+    it: int = 0
+    history: list[float] = field(default_factory=list)
+    converged: bool = False
+    cut: float = np.inf
+    lam_prior: float = 0.0
+
+
+def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
+    """Every k-th point of each pose (about `target` in all), or None when not worth it."""
+    k = sum(len(o.pixels) for o in obs) // max(target, 1)
+    if k < 4:
+        return None
+    return [PoseObs(o.pixels[::k], o.screen_mm[::k], o.sigma_mm[::k]) for o in obs]
+
+
+def _sigma_norm(prob: _Problem, res: np.ndarray) -> np.ndarray:
+    """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas)."""
+    return np.hypot(res[:, 0] / prob.sigma[:, 0], res[:, 1] / prob.sigma[:, 1])
+
+
+def _cost(
+    prob: _Problem, res: np.ndarray, ok: np.ndarray, x: np.ndarray, lp: _Loop, k: float
+) -> float:
+    """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
+    cost, _ = _robust(_sigma_norm(prob, res), k, lp.cut)
+    cost = np.where(ok, cost, 2 * k * lp.cut)
+    return float(cost.sum() + lp.lam_prior * x @ lp.prior_base @ x)
+
+
+def _iterate(
+    prob: _Problem,
+    lp: _Loop,
+    options: LMOptions,
+    last_it: int,
+    progress: Callable[[int, int, str], None] | None,
+    cancelled: Callable[[], bool] | None,
+) -> None:
+    """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place."""
+    ns = prob.n_spline
+    res, ok = prob.residuals(lp.state)
+    lp.converged = False
+    first = True
+    while lp.it < last_it:
+        lp.it += 1
+        if cancelled is not None and cancelled():
+            from calibration.worker.executor import JobCancelled  # the worker's own signal
+
+            raise JobCancelled("sgcc: calibration cancelled")
+        st = lp.state
+        s = _sigma_norm(prob, res)
+        med = float(np.median(s[ok])) if ok.any() else 1.0
+        lp.cut = max(options.cut_sigmas, 4.0 * 1.4826 * med)
+        _, wt = _robust(s, options.huber_k, lp.cut)
+        h, grad = prob.normal_equations(st, wt * ok, spline=not options.fix_spline)
+        if first:
+            diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
+            lp.lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
+            first = False
+        x = st.coeffs.ravel()
+        h[:ns, :ns] += lp.lam_prior * lp.prior_base
+        grad[:ns] += lp.lam_prior * lp.prior_base @ x
+        hr = lp.z.T @ h @ lp.z
+        gr = lp.z.T @ grad
+        cost0 = _cost(prob, res, ok, x, lp, options.huber_k)
+        accepted = False
+        cost1 = cost0
+        jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
+        hs = hr * jac_scale[:, None] * jac_scale[None, :]
+        for _ in range(12):
+            try:
+                factor = cho_factor(hs + lp.mu * np.eye(len(hs)))
+            except np.linalg.LinAlgError:
+                lp.mu *= 10
+                continue
+            step = lp.z @ (jac_scale * cho_solve(factor, -gr * jac_scale))
+            rcs, tcs = _apply_pose_step(st, step[ns:])
+            cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs)
+            res1, ok1 = prob.residuals(cand)
+            cost1 = _cost(prob, res1, ok1, cand.coeffs.ravel(), lp, options.huber_k)
+            if cost1 <= cost0:
+                lp.state, res, ok = cand, res1, ok1
+                lp.mu = max(lp.mu / 10, 1e-15)
+                accepted = True
+                break
+            lp.mu *= 10
+        lp.history.append(cost1 if accepted else cost0)
+        if progress is not None:
+            msg = f"LM iteration {lp.it}, cost {lp.history[-1]:.6g}"
+            progress(lp.it, options.max_iterations, msg)
+        if not accepted or (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300):
+            lp.converged = True
+            return
+
+
 def run_lm(
     grid: SplineGrid,
     n_comp: int,
@@ -222,88 +417,65 @@ def run_lm(
     progress: Callable[[int, int, str], None] | None = None,
     cancelled: Callable[[], bool] | None = None,
 ) -> LMResult:
-    """Minimize the robust, uncertainty-weighted screen-plane residual; state and covariance."""
+    """Minimize the robust, uncertainty-weighted screen-plane residual; state and covariance.
+
+    Large problems first converge on an even subset of about `options.subset_pixels`
+    points (cheap iterations, at most half of `max_iterations`); the final iterations,
+    the outlier decisions and the covariance always use every point.
+    BLAS runs single-threaded here: the dense solves are small and threads only contend.
+    """
+    with _single_thread_blas():
+        return _run(grid, n_comp, obs, init, options, progress, cancelled)
+
+
+def _single_thread_blas() -> AbstractContextManager[object]:
+    """Limit BLAS to one thread where threadpoolctl is installed (optional speed-up)."""
+    if threadpool_limits is None:
+        return nullcontext()
+    return threadpool_limits(1, user_api="blas")
+
+
+def _run(
+    grid: SplineGrid,
+    n_comp: int,
+    obs: list[PoseObs],
+    init: LMState,
+    options: LMOptions,
+    progress: Callable[[int, int, str], None] | None,
+    cancelled: Callable[[], bool] | None,
+) -> LMResult:
+    """Body of `run_lm`."""
     prob = _Problem(grid, n_comp, obs)
     ns, n = prob.n_spline, prob.n
     if options.fix_spline:
-        free = np.zeros((n, 6 * prob.n_pose))
-        free[ns:, :] = np.eye(6 * prob.n_pose)
-        z = free
+        z = np.zeros((n, 6 * prob.n_pose))
+        z[ns:, :] = np.eye(6 * prob.n_pose)
     else:
         z = null_space(gauge_constraints(grid, n_comp, n))
     dmat = second_differences(grid)
-    prior_base = np.kron(dmat.T @ dmat, np.eye(n_comp))
-    st = LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc])
-
-    def sigma_norm(res: np.ndarray) -> np.ndarray:
-        return np.hypot(res[:, 0] / prob.sigma[:, 0], res[:, 1] / prob.sigma[:, 1])
-
-    def total(s: LMState, cut: float, lam_prior: float) -> float:
-        res, ok = prob.evaluate(s, jacobian=False)
-        cost, _ = _robust(sigma_norm(res), options.huber_k, cut)
-        cost = np.where(ok, cost, 2 * options.huber_k * cut)
-        x = s.coeffs.ravel()
-        return float(cost.sum() + lam_prior * x @ prior_base @ x)
-
-    mu = 1e-3
-    history: list[float] = []
-    converged = False
-    it = 0
-    lam_prior = 0.0
-    cut = np.inf
-    for it in range(1, options.max_iterations + 1):
-        if cancelled is not None and cancelled():
-            from calibration.worker.executor import JobCancelled  # the worker's own signal
-
-            raise JobCancelled("sgcc: calibration cancelled")
-        res, ok, g, jp = prob.evaluate(st, jacobian=True)
-        s = sigma_norm(res)
-        med = float(np.median(s[ok])) if ok.any() else 1.0
-        cut = max(options.cut_sigmas, 4.0 * 1.4826 * med)
-        _, wt = _robust(s, options.huber_k, cut)
-        wt = wt * ok
-        h, grad = prob.normal_equations(g, jp, res, wt)
-        if it == 1:
-            diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
-            lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
-        x = st.coeffs.ravel()
-        h[:ns, :ns] += lam_prior * prior_base
-        grad[:ns] += lam_prior * prior_base @ x
-        hr = z.T @ h @ z
-        gr = z.T @ grad
-        cost0 = total(st, cut, lam_prior)
-        accepted = False
-        cost1 = cost0
-        jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
-        hs = hr * jac_scale[:, None] * jac_scale[None, :]
-        for _ in range(12):
-            a = hs + mu * np.eye(len(hs))
-            try:
-                step = z @ (jac_scale * cho_solve(cho_factor(a), -gr * jac_scale))
-            except np.linalg.LinAlgError:
-                mu *= 10
-                continue
-            rcs, tcs = _apply_pose_step(st, step[ns:])
-            cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs)
-            cost1 = total(cand, cut, lam_prior)
-            if cost1 <= cost0:
-                st = cand
-                mu = max(mu / 10, 1e-15)
-                accepted = True
-                break
-            mu *= 10
-        history.append(cost1 if accepted else cost0)
-        if progress is not None:
-            progress(it, options.max_iterations, f"LM iteration {it}, cost {history[-1]:.6g}")
-        if not accepted or (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300):
-            converged = True
-            break
-    res, ok, g, jp = prob.evaluate(st, jacobian=True)
-    s = sigma_norm(res)
-    cost_terms, wt = _robust(s, options.huber_k, cut)
+    lp = _Loop(
+        LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc]),
+        z,
+        np.kron(dmat.T @ dmat, np.eye(n_comp)),
+    )
+    sub = _subset(obs, options.subset_pixels)
+    if sub is not None:
+        _iterate(
+            _Problem(grid, n_comp, sub),
+            lp,
+            options,
+            options.max_iterations // 2,
+            progress,
+            cancelled,
+        )
+    _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
+    st = lp.state
+    res, ok = prob.residuals(st)
+    s = _sigma_norm(prob, res)
+    cost_terms, wt = _robust(s, options.huber_k, lp.cut)
     wt = wt * ok
-    h, _ = prob.normal_equations(g, jp, res, wt)
-    h[:ns, :ns] += lam_prior * prior_base
+    h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)
+    h[:ns, :ns] += lp.lam_prior * lp.prior_base
     hr = z.T @ h @ z
     dscale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
     min_eig = float(np.linalg.eigvalsh(hr * dscale[:, None] * dscale[None, :])[0])
@@ -311,16 +483,15 @@ def run_lm(
     dof = max(2 * int(inl.sum()) - hr.shape[0], 1)
     chi2_dof = float(np.sum(s[inl] ** 2) / dof)
     cov = z @ np.linalg.inv(hr) @ z.T * max(1.0, chi2_dof)
-    splits = np.cumsum(prob.counts)[:-1]
     return LMResult(
         state=st,
-        iterations=it,
-        converged=converged,
+        iterations=lp.it,
+        converged=lp.converged,
         cost=float(cost_terms[ok].sum()),
         covariance=cov,
         min_eig=min_eig,
-        residuals=np.split(res, splits),
-        inliers=np.split(inl, splits),
+        residuals=prob.unsort(res),
+        inliers=prob.unsort(inl),
         chi2_dof=chi2_dof,
-        history=history,
+        history=lp.history,
     )

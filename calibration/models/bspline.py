@@ -52,11 +52,30 @@ class SplineGrid:
 
     def _axis(self, x: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Cell index, weights (N,4) and d-weights/dpixel (N,4) along one axis."""
-        h = self.cell_px[axis]
-        s = (x + 0.5) / h
+        cell, s = self._local_axis(x, axis)
+        w, dw = _basis_1d(s)
+        return cell, w, dw / self.cell_px[axis]
+
+    def local(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Flat cell index (N,) and local cell coordinates s (along u), t (along v) of pixels."""
+        iu, su = self._local_axis(np.asarray(u, dtype=np.float64).ravel(), 0)
+        iv, tv = self._local_axis(np.asarray(v, dtype=np.float64).ravel(), 1)
+        return iv * self.cells[0] + iu, su, tv
+
+    def _local_axis(self, x: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+        """Cell index and local coordinate (0..1 inside the sensor) along one axis."""
+        s = (x + 0.5) / self.cell_px[axis]
         cell = np.clip(np.floor(s), 0, self.cells[axis] - 1).astype(np.int64)
-        w, dw = _basis_1d(s - cell)
-        return cell, w, dw / h
+        return cell, s - cell
+
+    def cell_controls(self) -> np.ndarray:
+        """Control indices (n_cells, 16) of every cell, in the order `basis` uses."""
+        iv, iu = np.divmod(np.arange(self.cells[0] * self.cells[1]), self.cells[0])
+        offs = np.arange(4)
+        nu = self.n_ctrl[0]
+        return ((iv[:, None] + offs)[:, :, None] * nu + (iu[:, None] + offs)[:, None, :]).reshape(
+            -1, 16
+        )
 
     def cell_of(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Flat cell index (iv * cu + iu) of each point."""
@@ -114,6 +133,37 @@ class SplineGrid:
         d = second_differences(self)
         lam = smooth * max(np.trace(a) / n, 1e-12)
         return np.linalg.solve(a + lam * (d.T @ d), rhs)
+
+
+def monomial_basis() -> np.ndarray:
+    """Matrix K (16,16): the 16 basis weights of a cell are K @ (t^l s^k)[l*4+k], l, k < 4.
+
+    Why: in this form the products of weights become moments of monomials, which is how
+    the sGCC normal equations are accumulated (see calibration/fit/sgcc_lm.py).
+    """
+    t = np.linspace(0.0, 1.0, 4)
+    w, _ = _basis_1d(t)  # (4 points, 4 weights)
+    b = np.linalg.solve(np.vander(t, 4, increasing=True), w).T  # w_i(t) = sum_k b[i,k] t^k
+    return np.kron(b, b)
+
+
+def monomials(s: np.ndarray, t: np.ndarray, degree: int) -> np.ndarray:
+    """Features (N, (degree+1)^2) t^l s^k at index l*(degree+1)+k, for l, k <= degree.
+
+    Returned as a transposed view of a (features, N) array so that per-feature rows are
+    contiguous (cheap to build, and BLAS reads either layout).
+    """
+    ps, pt = _powers(s, degree), _powers(t, degree)
+    return (pt[:, None, :] * ps[None, :, :]).reshape(-1, len(s)).T
+
+
+def _powers(x: np.ndarray, degree: int) -> np.ndarray:
+    """Rows x^0 .. x^degree, shape (degree+1, N)."""
+    out = np.empty((degree + 1, len(x)))
+    out[0] = 1.0
+    for k in range(1, degree + 1):
+        np.multiply(out[k - 1], x, out=out[k])
+    return out
 
 
 def second_differences(grid: SplineGrid) -> np.ndarray:

@@ -79,10 +79,11 @@ class RayGridModel(CameraModel):
         d = np.asarray(directions, dtype=np.float64)
         if d.shape != shape3:
             raise ModelError(f"directions: expected shape {list(shape3)}, got {list(d.shape)}")
-        self.directions = _f32(d / np.linalg.norm(d, axis=2, keepdims=True))
+        self.directions = _f32(d)
         self.central = origins is None
         if origins is not None and np.shape(origins) != shape3:
-            raise ModelError(f"origins: expected shape {list(shape3)}, got {list(np.shape(origins))}")
+            got = list(np.shape(origins))
+            raise ModelError(f"origins: expected shape {list(shape3)}, got {got}")
         self.origins = None if origins is None else _f32(origins)
         self.direction_std = None if direction_std is None else _f32(direction_std)
         self.origin_std = None if origin_std is None else _f32(origin_std)
@@ -143,7 +144,7 @@ class RayGridModel(CameraModel):
         (org,) = self._interp(self.origin_std[..., None], pix)
         return ang[:, 0], org[:, 0]
 
-    def _rays_with_derivatives(self, pix: np.ndarray) -> tuple[np.ndarray, ...]:
+    def rays_with_derivatives(self, pix: np.ndarray) -> tuple[np.ndarray, ...]:
         """Origins, unit directions and their d/du, d/dv at pixels (N, 2)."""
         n, ndu, ndv = self._interp(self.directions, pix, derivatives=True)
         norm = np.linalg.norm(n, axis=1, keepdims=True)
@@ -177,8 +178,9 @@ class RayGridModel(CameraModel):
         qn = q / np.linalg.norm(q, axis=1, keepdims=True)
         good = np.all(np.isfinite(qn), axis=1)
         _, idx = tree.query(np.where(good[:, None], qn, 0.0))
-        uv = nodes[np.minimum(idx, len(nodes) - 1)].copy()
         hi = np.array([(self.table_shape[1] - 1), (self.table_shape[0] - 1)]) * self.grid_step
+        uv = self._seed(nodes[np.minimum(idx, len(nodes) - 1)], p, hi)
+        prev, last = uv.copy(), np.zeros_like(uv)
         active = good.copy()
         for _ in range(_PROJECT_ITERS):
             if not active.any():
@@ -186,13 +188,18 @@ class RayGridModel(CameraModel):
             sel = np.flatnonzero(active)
             res, jac = self._project_residual(uv[sel], p[sel])
             ok = np.all(np.isfinite(res), axis=1) & np.all(np.isfinite(jac), axis=(1, 2))
-            det = np.linalg.det(jac)
-            ok &= np.abs(det) > 1e-300
-            step = np.zeros((len(sel), 2))
-            step[ok] = -np.linalg.solve(jac[ok], res[ok][..., None])[..., 0]
-            uv[sel] = np.clip(uv[sel] + step, 0.0, hi)
-            done = ok & (np.max(np.abs(step), axis=1) < _PROJECT_TOL_PX)
-            active[sel[~ok | done]] = False
+            ok[ok] = np.abs(np.linalg.det(jac[ok])) > 1e-300
+            # A step into a cell without rays is halved (backtracking from the last good point).
+            back = sel[~ok]
+            last[back] *= 0.5
+            uv[back] = prev[back] + last[back]
+            active[back[np.max(np.abs(last[back]), axis=1) < _PROJECT_TOL_PX]] = False
+            fwd = sel[ok]
+            step = -np.linalg.solve(jac[ok], res[ok][..., None])[..., 0]
+            prev[fwd] = uv[fwd]
+            uv[fwd] = np.clip(uv[fwd] + step, 0.0, hi)
+            last[fwd] = uv[fwd] - prev[fwd]
+            active[fwd[np.max(np.abs(step), axis=1) < _PROJECT_TOL_PX]] = False
         res, _ = self._project_residual(uv, p)
         o, d = self.unproject(uv)
         ahead = np.sum((p - o) * d, axis=1) > 0
@@ -200,9 +207,19 @@ class RayGridModel(CameraModel):
         out[fine] = uv[fine]
         return out
 
+    def _seed(self, nodes: np.ndarray, p: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Best start among a node and the centers of its 4 cells (a node may border no ray)."""
+        half = 0.5 * self.grid_step
+        offsets = np.array([[0.0, 0.0], [-half, -half], [half, -half], [-half, half], [half, half]])
+        cand = np.clip(nodes[None] + offsets[:, None], 0.0, hi)  # (5, N, 2)
+        res, _ = self._project_residual(cand.reshape(-1, 2), np.tile(p, (5, 1)))
+        err = np.linalg.norm(res, axis=1).reshape(5, -1)
+        best = np.argmin(np.where(np.isfinite(err), err, np.inf), axis=0)
+        return cand[best, np.arange(len(p))]
+
     def _project_residual(self, uv: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residual (N,2): ray direction minus unit(P - origin), in a basis normal to it."""
-        o, odu, odv, d, ddu, ddv = self._rays_with_derivatives(uv)
+        o, odu, odv, d, ddu, ddv = self.rays_with_derivatives(uv)
         w = p - o
         wn = np.linalg.norm(w, axis=1, keepdims=True)
         wh = w / wn
@@ -225,14 +242,13 @@ class RayGridModel(CameraModel):
         return np.concatenate(parts)
 
     def set_params(self, vector: np.ndarray) -> None:
-        """Set the tables from a `get_params()` vector (directions renormalized)."""
+        """Set the tables from a `get_params()` vector."""
         v = np.asarray(vector, dtype=np.float64).ravel()
         n = self.directions.size
         expected = n * (1 if self.origins is None else 2)
         if v.size != expected:
             raise ModelError(f"params: expected {expected} values, got {v.size}")
-        d = v[:n].reshape(self.directions.shape)
-        self.directions = _f32(d / np.linalg.norm(d, axis=2, keepdims=True))
+        self.directions = _f32(v[:n].reshape(self.directions.shape))
         if self.origins is not None:
             self.origins = _f32(v[n:].reshape(self.origins.shape))
         self._tree = None

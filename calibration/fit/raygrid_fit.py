@@ -1,0 +1,546 @@
+"""Fit the `raygrid` model: per-pixel rays and screen poses jointly (Sturm–Ramalingam).
+
+Poses start from OpenCV's rational model (`sgcc_init.initial_state`); with the poses fixed,
+each table pixel's ray is fitted in closed form to its 3D screen points over the poses
+(weighted total least squares by stacked 3x3 `eigh`; central: through the origin). Then
+Gauss-Newton on all rays and poses together: the per-pixel ray blocks (2 or 4 parameters)
+are eliminated by a Schur complement, leaving a 6J x 6J pose system solved by a Jacobi-scaled
+pseudo-inverse that drops the gauge (rotation; translation too when non-central). A plain
+alternation (rays | poses) converges far too slowly along the joint weak directions, hence
+the joint step. Residual: the ray, moved into the pose's screen frame, meets z = 0 at Q;
+e = (Q - S) / sigma (PHYSICS.md §5). Pixels seen in < 2 poses get NaN rays. Ray covariance
+includes pose uncertainty (gauge projected out), scaled by max(1, chi2/dof).
+Options: `central` (true), `grid_step` (1 up to 640x480, else 2), `max_iterations` (30),
+`tolerance` (1e-9 relative cost change), `cut_sigmas` (8, hard outlier cut in sigmas).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from calibration.evaluate import ADEQUATE_RATIO
+from calibration.fit.generic import observations
+from calibration.fit.result import CalibrationResult, PoseEstimate
+from calibration.fit.sgcc_init import initial_state, pose_from_model
+from calibration.fit.sgcc_lm import PoseObs
+from calibration.maps import DecodedMaps
+from calibration.models.bspline import SplineGrid
+from calibration.models.raygrid import RayGridModel, default_grid_step
+from calibration.plan import ScreenGeometry
+
+_OPTION_KEYS = {"central", "grid_step", "max_iterations", "tolerance", "cut_sigmas"}
+_POSE_GN_STEPS = 3
+_CHUNK = 65536
+_MIN_POSES_PER_RAY = 2
+
+
+@dataclass
+class RaygridOptions:
+    """Parsed user options."""
+
+    central: bool = True
+    grid_step: int | None = None
+    max_iterations: int = 30
+    tolerance: float = 1e-9
+    cut_sigmas: float = 8.0
+
+
+@dataclass
+class Observations:
+    """Table-node data over poses: screen points S (J,M,2) mm, sigmas (J,M,2) mm, valid (J,M)."""
+
+    pixels: np.ndarray  # (M, 2) node pixels (u, v)
+    screen: np.ndarray
+    sigma: np.ndarray
+    valid: np.ndarray
+
+
+def parse_options(options: dict[str, Any] | None) -> RaygridOptions:
+    """Validate the options dict; one-line errors naming the key."""
+    opts = dict(options or {})
+    unknown = set(opts) - _OPTION_KEYS
+    if unknown:
+        raise ValueError(
+            f"options: unknown key(s) {sorted(unknown)} for raygrid; known: {sorted(_OPTION_KEYS)}"
+        )
+    out = RaygridOptions()
+    if "central" in opts:
+        if not isinstance(opts["central"], bool):
+            raise ValueError(f"options.central: expected true/false, got {opts['central']!r}")
+        out.central = opts["central"]
+    if opts.get("grid_step") is not None:
+        step = opts["grid_step"]
+        if not isinstance(step, int) or isinstance(step, bool) or step < 1:
+            raise ValueError(f"options.grid_step: expected a positive integer, got {step!r}")
+        out.grid_step = step
+    out.max_iterations = int(opts.get("max_iterations", out.max_iterations))
+    if out.max_iterations < 1:
+        raise ValueError(f"options.max_iterations: expected >= 1, got {out.max_iterations}")
+    out.tolerance = float(opts.get("tolerance", out.tolerance))
+    out.cut_sigmas = float(opts.get("cut_sigmas", out.cut_sigmas))
+    if out.tolerance <= 0 or out.cut_sigmas <= 0:
+        raise ValueError("options.tolerance and options.cut_sigmas: expected positive numbers")
+    return out
+
+
+def node_observations(
+    maps: Sequence[DecodedMaps], screen: ScreenGeometry, step: int
+) -> Observations:
+    """Screen points (mm) and sigmas of every pose at the table-node pixels."""
+    pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
+    h, w = maps[0].shape
+    vv, uu = np.meshgrid(np.arange(0, h, step), np.arange(0, w, step), indexing="ij")
+    scr = np.stack([np.stack([m.x[::step, ::step], m.y[::step, ::step]], -1) for m in maps])
+    sig = np.stack(
+        [np.stack([m.sigma_x[::step, ::step], m.sigma_y[::step, ::step]], -1) for m in maps]
+    ).astype(np.float64)
+    mask = np.stack([m.mask[::step, ::step] for m in maps])
+    scr = scr.reshape(len(maps), -1, 2) * pitch
+    sig = sig.reshape(len(maps), -1, 2) * pitch
+    valid = mask.reshape(len(maps), -1)
+    valid &= np.all(np.isfinite(scr), axis=2) & np.all(np.isfinite(sig) & (sig > 0), axis=2)
+    scr[~valid] = 0.0
+    sig[~valid] = 1.0
+    pix = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(np.float64)
+    return Observations(pix, scr, sig, valid)
+
+
+def _perp_basis(d: np.ndarray) -> np.ndarray:
+    """Orthonormal basis (M, 3, 2) of the plane perpendicular to each unit vector d (M, 3)."""
+    ref = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(d, ref)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return np.stack([e1, np.cross(d, e1)], axis=2)
+
+
+def _intersect(
+    rc: np.ndarray, tc: np.ndarray, o: np.ndarray, d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rays (M,3) in each pose's screen frame (J,M,3), their z = 0 hits Q, depth λ, d_s."""
+    o_s = np.einsum("jab,mb->jma", rc, o) + tc[:, None, :]
+    d_s = np.einsum("jab,mb->jma", rc, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = -o_s[..., 2] / d_s[..., 2]
+    return o_s + lam[..., None] * d_s, lam, d_s, o_s
+
+
+def _proj_rows(d_s: np.ndarray) -> np.ndarray:
+    """First two rows of P = I - d_s e_z^T / d_sz (J,M,2,3): dQ = P (do_s + λ dd_s)."""
+    p = np.zeros((*d_s.shape[:2], 2, 3))
+    p[..., 0, 0] = 1.0
+    p[..., 1, 1] = 1.0
+    p[..., :, 2] = -d_s[..., :2] / d_s[..., 2:3]
+    return p
+
+
+def _residuals(
+    rc: np.ndarray, tc: np.ndarray, o: np.ndarray, d: np.ndarray, ob: Observations, sl: slice
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Whitened residuals (J,M,2), usable mask, Q, λ and d_s for pixel slice `sl`."""
+    q, lam, d_s, _ = _intersect(rc, tc, o, d)
+    usable = ob.valid[:, sl] & np.isfinite(lam) & (lam > 0)
+    e = np.where(usable[..., None], (q[..., :2] - ob.screen[:, sl]) / ob.sigma[:, sl], 0.0)
+    return e, usable, q, lam, d_s
+
+
+def initial_rays(
+    rc: np.ndarray, tc: np.ndarray, ob: Observations, w: np.ndarray, central: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form (weighted TLS) rays of all nodes from their camera-frame 3D screen points."""
+    r = np.transpose(rc, (0, 2, 1))  # screen -> camera
+    t = -np.einsum("jab,jb->ja", r, tc)
+    w = w / np.mean(ob.sigma**2, axis=2)
+    x = np.einsum("jab,jmb->jma", r[:, :, :2], ob.screen) + t[:, None, :]
+    wsum = np.maximum(w.sum(axis=0), 1e-300)
+    if central:
+        centroid = np.zeros((x.shape[1], 3))
+    else:
+        centroid = np.einsum("jm,jma->ma", w, x) / wsum[:, None]
+    xc = x - centroid
+    scatter = np.einsum("jm,jma,jmb->mab", w, xc, xc)
+    _, vec = np.linalg.eigh(scatter)
+    d = vec[:, :, 2]
+    d *= np.sign(np.einsum("jm,jma,ma->m", w, x, d) + 1e-300)[:, None]
+    o = centroid - np.sum(centroid * d, axis=1, keepdims=True) * d
+    return o, d
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
+    s = np.zeros((*v.shape, 3))
+    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
+    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
+    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
+    return s
+
+
+def refine_poses(
+    rc: np.ndarray, tc: np.ndarray, o: np.ndarray, d: np.ndarray, ob: Observations, w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera->screen poses (J,3,3), (J,3) by Gauss-Newton with the rays fixed."""
+    rc, tc = rc.copy(), tc.copy()
+    covered = np.all(np.isfinite(d), axis=1)
+    o0, d0 = np.where(covered[:, None], o, 0.0), np.where(covered[:, None], d, 1.0)
+    for _ in range(_POSE_GN_STEPS):
+        a = np.zeros((len(rc), 6, 6))
+        b = np.zeros((len(rc), 6))
+        for start in range(0, len(d0), _CHUNK):
+            sl = slice(start, start + _CHUNK)
+            e, usable, q, _, d_s = _residuals(rc, tc, o0[sl], d0[sl], ob, sl)
+            p = _proj_rows(d_s)
+            jac = np.concatenate(
+                [-np.einsum("jmab,jmbc->jmac", p, _skew(q - tc[:, None, :])), p], axis=3
+            )
+            jac = jac / ob.sigma[:, sl, :, None]
+            ww = np.where(usable & covered[sl], w[:, sl], 0.0)
+            a += np.einsum("jm,jmak,jmal->jkl", ww, jac, jac)
+            b += np.einsum("jm,jmak,jma->jk", ww, jac, e)
+        step = -np.linalg.solve(a, b[..., None])[..., 0]
+        for j in range(len(rc)):
+            rc[j] = cv2.Rodrigues(step[j, :3])[0] @ rc[j]
+        tc += step[:, 3:]
+    return rc, tc
+
+
+@dataclass
+class JointSystem:
+    """Normal equations of one pixel chunk: ray blocks, ray-pose coupling, pose blocks."""
+
+    arr: np.ndarray  # (M, k, k)
+    br: np.ndarray  # (M, k)
+    arp: np.ndarray  # (M, k, 6J)
+    app: np.ndarray  # (6J, 6J)
+    bp: np.ndarray  # (6J,)
+
+
+def _joint_chunk(
+    rc: np.ndarray,
+    tc: np.ndarray,
+    o: np.ndarray,
+    d: np.ndarray,
+    ob: Observations,
+    w: np.ndarray,
+    sl: slice,
+    central: bool,
+) -> JointSystem:
+    """Gauss-Newton normal equations of rays (pixel slice `sl`) and all poses jointly."""
+    e, usable, q, lam, d_s = _residuals(rc, tc, o, d, ob, sl)
+    p = _proj_rows(d_s)
+    prce = np.einsum("jmab,jbc,mck->jmak", p, rc, _perp_basis(d))
+    jr = lam[..., None, None] * prce
+    if not central:
+        jr = np.concatenate([jr, prce], axis=3)
+    jp = np.concatenate([-np.einsum("jmab,jmbc->jmac", p, _skew(q - tc[:, None, :])), p], axis=3)
+    sig = ob.sigma[:, sl, :, None]
+    jr, jp = jr / sig, jp / sig
+    ww = np.where(usable, w[:, sl], 0.0)
+    n_pose = len(rc)
+    arp = np.einsum("jm,jmak,jmal->mkjl", ww, jr, jp).reshape(len(d), jr.shape[3], 6 * n_pose)
+    app_blocks = np.einsum("jm,jmak,jmal->jkl", ww, jp, jp)
+    app = np.zeros((6 * n_pose, 6 * n_pose))
+    for j in range(n_pose):
+        app[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = app_blocks[j]
+    return JointSystem(
+        np.einsum("jm,jmak,jmal->mkl", ww, jr, jr),
+        np.einsum("jm,jmak,jma->mk", ww, jr, e),
+        arp,
+        app,
+        np.einsum("jm,jmak,jma->jk", ww, jp, e).ravel(),
+    )
+
+
+def _safe_inv(a: np.ndarray) -> np.ndarray:
+    """Inverses of stacked (M,k,k) matrices; zero where singular (pixels without a ray)."""
+    out = np.zeros_like(a)
+    ok = np.all(np.isfinite(a), axis=(1, 2))
+    ok[ok] = np.abs(np.linalg.det(a[ok])) > 1e-300
+    out[ok] = np.linalg.inv(a[ok])
+    return out
+
+
+def _gauge_pinv(s: np.ndarray, rel: float = 1e-10) -> tuple[np.ndarray, int]:
+    """Pseudo-inverse of the reduced pose system (Jacobi-scaled), dropping gauge directions."""
+    scale = 1.0 / np.sqrt(np.maximum(np.diag(s), 1e-300))
+    val, vec = np.linalg.eigh(s * scale[:, None] * scale[None, :])
+    keep = val > rel * val[-1]
+    inv = (vec[:, keep] / val[keep]) @ vec[:, keep].T
+    return inv * scale[:, None] * scale[None, :], int((~keep).sum())
+
+
+def _reduced(
+    rc: np.ndarray, tc: np.ndarray, o: np.ndarray, d: np.ndarray, ob: Observations,
+    w: np.ndarray, central: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Schur complement (6J,6J) of the ray blocks and its right-hand side."""
+    n = 6 * len(rc)
+    s, rhs = np.zeros((n, n)), np.zeros(n)
+    for start in range(0, len(d), _CHUNK):
+        sl = slice(start, start + _CHUNK)
+        js = _joint_chunk(rc, tc, o[sl], d[sl], ob, w, sl, central)
+        inv = _safe_inv(js.arr)
+        tmp = np.einsum("mkl,mln->mkn", inv, js.arp)
+        s += js.app - np.einsum("mkn,mkp->np", js.arp, tmp)
+        rhs += js.bp - np.einsum("mkn,mk->n", tmp, js.br)
+    return s, rhs
+
+
+def joint_step(
+    rc: np.ndarray, tc: np.ndarray, o: np.ndarray, d: np.ndarray, ob: Observations,
+    w: np.ndarray, central: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One Gauss-Newton step on all rays and poses together (rays eliminated by Schur)."""
+    covered = np.all(np.isfinite(d), axis=1)
+    o0, d0 = np.where(covered[:, None], o, 0.0), np.where(covered[:, None], d, [[0, 0, 1.0]])
+    wc = np.where(covered[None, :], w, 0.0)
+    s, rhs = _reduced(rc, tc, o0, d0, ob, wc, central)
+    sinv, _ = _gauge_pinv(s)
+    dp = -sinv @ rhs
+    o_new, d_new = o0.copy(), d0.copy()
+    for start in range(0, len(d0), _CHUNK):
+        sl = slice(start, start + _CHUNK)
+        js = _joint_chunk(rc, tc, o0[sl], d0[sl], ob, wc, sl, central)
+        dr = -np.einsum("mkl,ml->mk", _safe_inv(js.arr), js.br + js.arp @ dp)
+        basis = _perp_basis(d0[sl])
+        dn = d0[sl] + np.einsum("mak,mk->ma", basis, dr[:, :2])
+        dn /= np.linalg.norm(dn, axis=1, keepdims=True)
+        if not central:
+            on = o0[sl] + np.einsum("mak,mk->ma", basis, dr[:, 2:])
+            o_new[sl] = on - np.sum(on * dn, axis=1, keepdims=True) * dn
+        d_new[sl] = dn
+    rc_new, tc_new = rc.copy(), tc.copy()
+    for j in range(len(rc)):
+        rc_new[j] = cv2.Rodrigues(dp[6 * j : 6 * j + 3])[0] @ rc[j]
+        tc_new[j] = tc[j] + dp[6 * j + 3 : 6 * j + 6]
+    o_new[~covered], d_new[~covered] = np.nan, np.nan
+    return rc_new, tc_new, o_new, d_new
+
+
+def ray_covariance(
+    rc: np.ndarray, tc: np.ndarray, o: np.ndarray, d: np.ndarray, ob: Observations,
+    w: np.ndarray, central: bool,
+) -> tuple[np.ndarray, int]:
+    """Per-pixel ray covariance (M,k,k) including pose uncertainty (gauge projected out)."""
+    covered = np.all(np.isfinite(d), axis=1)
+    o0, d0 = np.where(covered[:, None], o, 0.0), np.where(covered[:, None], d, [[0, 0, 1.0]])
+    wc = np.where(covered[None, :], w, 0.0)
+    s, _ = _reduced(rc, tc, o0, d0, ob, wc, central)
+    sinv, dropped = _gauge_pinv(s)
+    k = 2 if central else 4
+    cov = np.full((len(d0), k, k), np.nan)
+    for start in range(0, len(d0), _CHUNK):
+        sl = slice(start, start + _CHUNK)
+        js = _joint_chunk(rc, tc, o0[sl], d0[sl], ob, wc, sl, central)
+        inv = _safe_inv(js.arr)
+        g = np.einsum("mkl,mln->mkn", inv, js.arp)
+        cov[sl] = inv + np.einsum("mkn,np,mlp->mkl", g, sinv, g)
+    cov[~covered] = np.nan
+    return cov, dropped
+
+
+def _cost_and_inliers(
+    rc: np.ndarray, tc: np.ndarray, o: np.ndarray, d: np.ndarray, ob: Observations, cut: float
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Total whitened cost, inlier mask (J,M) and residuals (J,M,2) mm at the current state."""
+    covered = np.all(np.isfinite(d), axis=1)
+    o0, d0 = np.where(covered[:, None], o, 0.0), np.where(covered[:, None], d, 1.0)
+    e, usable, q, _, _ = _residuals(rc, tc, o0, d0, ob, slice(None))
+    usable &= covered[None, :]
+    norm = np.linalg.norm(e, axis=2)
+    med = float(np.median(norm[usable])) if usable.any() else 0.0
+    inl = usable & (norm <= max(cut, 5.9 * med))
+    return float(np.sum(norm[inl] ** 2)), inl, q[..., :2] - ob.screen
+
+
+def _ray_weights(ob: Observations, inl: np.ndarray) -> np.ndarray:
+    """Per (pose, node) weight of the whitened residuals: 1 for inliers, 0 otherwise."""
+    return np.where(inl & ob.valid, 1.0, 0.0)
+
+
+def _mask_sparse(o: np.ndarray, d: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """NaN rays for nodes with fewer than 2 contributing poses."""
+    few = np.count_nonzero(w > 0, axis=0) < _MIN_POSES_PER_RAY
+    o, d = o.copy(), d.copy()
+    o[few] = np.nan
+    d[few] = np.nan
+    return o, d
+
+
+def pixel_residuals(
+    model: RayGridModel,
+    rc: np.ndarray,
+    tc: np.ndarray,
+    pix: np.ndarray,
+    res_mm: np.ndarray,
+    sigma_mm: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Screen-plane residuals (N,2) mm at pixels in camera px via the local Jacobian, and the
+    expected squared residual (N,) of each point's noise (sigma mm) in camera px."""
+    o, odu, odv, d, ddu, ddv = model.rays_with_derivatives(pix)
+    o_s, d_s = o @ rc.T + tc, d @ rc.T
+    lam = -o_s[:, 2] / d_s[:, 2]
+    p = _proj_rows(d_s[None])[0]
+    cols = [
+        np.einsum("nab,nb->na", p, do @ rc.T + lam[:, None] * (dd @ rc.T))
+        for do, dd in ((odu, ddu), (odv, ddv))
+    ]
+    jinv = _safe_inv(np.stack(cols, axis=2))
+    bad = ~np.any(jinv != 0, axis=(1, 2))
+    px = -np.einsum("nab,nb->na", jinv, res_mm)
+    expected2 = np.einsum("nab,nb->n", jinv**2, sigma_mm**2)
+    px[bad], expected2[bad] = np.nan, np.nan
+    return px, expected2
+
+
+def _heldout(model: RayGridModel, obs: list[PoseObs], cut: float) -> list[dict[str, Any]]:
+    """Pose-only fit of held-out poses with the rays fixed; their residual statistics."""
+    rows = []
+    for ob in obs:
+        rc0, tc0 = pose_from_model(model.unproject, ob)
+        o, d = model.unproject(ob.pixels)
+        one = Observations(ob.pixels, ob.screen_mm[None], ob.sigma_mm[None],
+                           np.ones((1, len(d)), dtype=bool))
+        rc, tc = rc0[None], tc0[None]
+        inl = one.valid & np.all(np.isfinite(d), axis=1)[None]
+        for _ in range(3):
+            rc, tc = refine_poses(rc, tc, o, d, one, _ray_weights(one, inl))
+            _, inl, res = _cost_and_inliers(rc, tc, o, d, one, cut)
+        px, _ = pixel_residuals(model, rc[0], tc[0], ob.pixels, res[0], ob.sigma_mm)
+        ok = inl[0] & np.all(np.isfinite(px), axis=1)
+        rows.append({
+            "n_points": int(inl.sum()),
+            "rms_px": float(np.sqrt(np.mean(np.sum(px[ok] ** 2, axis=1)))),
+            "rms_screen_mm": float(np.sqrt(np.mean(np.sum(res[0][inl[0]] ** 2, axis=1)))),
+            "chi2_dof": float(np.sum((res[0][inl[0]] / ob.sigma_mm[inl[0]]) ** 2)
+                              / max(2 * int(inl.sum()) - 6, 1)),
+        })
+    return rows
+
+
+def calibrate_raygrid(
+    maps: Sequence[DecodedMaps],
+    screen: ScreenGeometry,
+    *,
+    options: dict[str, Any] | None = None,
+    heldout: Sequence[int] | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+    cancelled: Callable[[], bool] | None = None,
+) -> CalibrationResult:
+    """Fit a raygrid model to the poses not in `heldout`; held-out poses are validated."""
+    opts = parse_options(options)
+    held = sorted(set(heldout or []))
+    if any(not 0 <= i < len(maps) for i in held):
+        raise ValueError(f"heldout: expected pose indices in [0, {len(maps) - 1}], got {held}")
+    held_maps = [maps[i] for i in held]
+    maps = [m for i, m in enumerate(maps) if i not in held]
+    if len(maps) < 3:
+        raise ValueError(f"maps: raygrid calibration needs >= 3 poses, got {len(maps)}")
+    shapes = {m.shape for m in (*maps, *held_maps)}
+    if len(shapes) != 1:
+        raise ValueError(f"maps: all poses must have the same image size, got {sorted(shapes)}")
+    t0 = time.perf_counter()
+    h, w = maps[0].shape
+    step = opts.grid_step or default_grid_step((w, h))
+    full = observations(maps, screen)
+    for j, fo in enumerate(full):
+        if len(fo.pixels) < 100:
+            raise ValueError(f"maps[{j}]: only {len(fo.pixels)} valid pixels; need >= 100")
+    init = initial_state(full, SplineGrid((w, h), (4, 4)), 2)
+    rc, tc = np.stack(init.rc), np.stack(init.tc)
+    ob = node_observations(maps, screen, step)
+    inl = ob.valid.copy()
+    history: list[float] = []
+    converged = False
+    iterations = 0
+    wts = _ray_weights(ob, inl)
+    o, d = initial_rays(rc, tc, ob, wts, opts.central)
+    o, d = _mask_sparse(o, d, wts)
+    for iterations in range(1, opts.max_iterations + 1):
+        if cancelled is not None and cancelled():
+            from calibration.worker.executor import JobCancelled  # the worker's own signal
+
+            raise JobCancelled("raygrid: calibration cancelled")
+        rc, tc, o, d = joint_step(rc, tc, o, d, ob, wts, opts.central)
+        cost, inl, _ = _cost_and_inliers(rc, tc, o, d, ob, opts.cut_sigmas)
+        history.append(cost)
+        wts = _ray_weights(ob, inl)
+        if progress is not None:
+            progress(iterations, opts.max_iterations, f"raygrid: cost {cost:.6g}")
+        if len(history) > 1 and abs(history[-2] - cost) <= opts.tolerance * history[-2]:
+            converged = True
+            break
+    o, d = _mask_sparse(o, d, wts)
+    cost, inl, res_mm = _cost_and_inliers(rc, tc, o, d, ob, opts.cut_sigmas)
+    cov_raw, gauge_dims = ray_covariance(rc, tc, o, d, ob, _ray_weights(ob, inl), opts.central)
+    k = 2 if opts.central else 4
+    covered = np.all(np.isfinite(d), axis=1)
+    dof = 2 * int(inl.sum()) - k * int(covered.sum()) - 6 * len(rc)
+    chi2_dof = cost / max(dof, 1)
+    cov = cov_raw * max(1.0, chi2_dof)
+    ang = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
+    org = np.sqrt(cov[:, 2, 2] + cov[:, 3, 3]) if not opts.central else None
+    shape = ((h - 1) // step + 1, (w - 1) // step + 1)
+    model = RayGridModel(
+        (w, h),
+        step,
+        d.reshape(*shape, 3),
+        None if opts.central else o.reshape(*shape, 3),
+        ang.reshape(shape),
+        None if org is None else org.reshape(shape),
+    )
+    poses, per_pose, res_px, pix_out = [], [], {}, {}
+    expected2: list[np.ndarray] = []
+    pitch = np.asarray(screen.pitch_mm)
+    for j in range(len(rc)):
+        px, exp2 = pixel_residuals(model, rc[j], tc[j], ob.pixels, res_mm[j], ob.sigma[j])
+        ok = inl[j] & np.all(np.isfinite(px), axis=1)
+        expected2.append(exp2[ok])
+        rms_px = float(np.sqrt(np.mean(np.sum(px[ok] ** 2, axis=1))))
+        rms_scr = float(np.sqrt(np.mean(np.sum((res_mm[j][inl[j]] / pitch) ** 2, axis=1))))
+        poses.append(PoseEstimate(rc[j].T, -rc[j].T @ tc[j], rms_px, rms_scr, int(inl[j].sum())))
+        per_pose.append({
+            "pose": j,
+            "rms_px": rms_px,
+            "rms_screen_px": rms_scr,
+            "n_points": int(inl[j].sum()),
+            "n_outliers": int((ob.valid[j] & covered & ~inl[j]).sum()),
+        })
+        res_px[j], pix_out[j] = px[ok], ob.pixels[ok]
+    all_px = np.concatenate([res_px[j] for j in res_px])
+    rms_px = float(np.sqrt(np.mean(np.sum(all_px**2, axis=1))))
+    # Training residuals of a per-pixel fit are shrunk by its degrees of freedom.
+    expected_rms = float(np.sqrt(np.mean(np.concatenate(expected2)) * dof / max(2 * inl.sum(), 1)))
+    stats: dict[str, Any] = {
+        "model": "raygrid",
+        "central": opts.central,
+        "grid_step": step,
+        "rms_px": rms_px,
+        "expected_rms_px": expected_rms,
+        "noise_floor_ratio": rms_px / expected_rms,
+        "model_adequate": bool(rms_px / expected_rms <= ADEQUATE_RATIO),
+        "per_pose": per_pose,
+        "iterations": iterations,
+        "converged": converged,
+        "cost": cost,
+        "cost_history": history,
+        "chi2_dof": chi2_dof,
+        "gauge_dims": gauge_dims,
+        "coverage": float(covered.mean()),
+        "ray_std_rad_median": float(np.nanmedian(ang)),
+        "ray_std_rad_max": float(np.nanmax(ang)),
+        "param_std": {"ray_angle_rad_median": float(np.nanmedian(ang))},
+    }
+    if org is not None:
+        stats["origin_std_mm_median"] = float(np.nanmedian(org))
+    if held_maps:
+        stats["heldout"] = _heldout(model, observations(held_maps, screen), opts.cut_sigmas)
+        for row, index in zip(stats["heldout"], held, strict=True):
+            row["pose"] = index
+    stats["wall_s"] = time.perf_counter() - t0
+    model.stats = stats
+    return CalibrationResult(model, poses, stats, pix_out, res_px)
