@@ -53,7 +53,7 @@ def demo_rig_config(width: int, height: int, camera: str = "wide_fisheye",
 
 
 def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, height: int = 480,
-             models: tuple[str, ...] = DEFAULT_MODELS, preset: str = "fast", seed: int = 7,
+             models: tuple[str, ...] = DEFAULT_MODELS, preset: str = "default", seed: int = 7,
              out: TextIO = sys.stdout) -> list[DemoRow]:
     """Run the demo; returns the table rows (also printed to `out`)."""
     root = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="phasecal-demo-"))
@@ -178,7 +178,7 @@ def add_arguments(p: Any) -> None:
     p.add_argument("--height", type=int, default=480, help="camera height px")
     p.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS),
                    help=f"models to compare (default {' '.join(DEFAULT_MODELS)})")
-    p.add_argument("--preset", default="fast", help="pattern plan preset")
+    p.add_argument("--preset", default="default", help="pattern plan preset")
     p.add_argument("--seed", type=int, default=7, help="seed of the screen poses")
 
 
