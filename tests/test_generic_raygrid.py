@@ -1,8 +1,9 @@
 """raygrid (per-pixel ray table) against hw_mocks ground truth: accuracy vs predicted sigma, I/O.
 
 Measured on the pinhole fixture below (3 training poses, sigma 0.05 screen px, 160x120):
-raygrid ray RMS 2.8e-5 rad vs opencv5 (the true family) ~4e-6 rad, a ratio of ~7, printed
-by `test_central_rays_within_predicted_sigma` (seed 001 reports ~7x vs Zhang too).
+raygrid ray RMS 2.83e-5 rad vs opencv5 (the true family, fitted to the same maps) 1.22e-5
+rad, a ratio of 2.3 (printed by `test_central_rays_within_predicted_sigma` with -s; seed 001
+reports ~7x vs Zhang, under other conditions). The ratio is recorded, not asserted.
 """
 
 from __future__ import annotations
@@ -99,10 +100,11 @@ def test_statistics_and_heldout(pinhole_fit):
     st = res.stats
     assert len(res.poses) == 3 and len(st["per_pose"]) == 3
     assert 0.8 < st["noise_floor_ratio"] < 1.25 and st["model_adequate"]
-    held = st["heldout"][0]
+    held = st["heldout"]["per_pose"][0]
     assert held["pose"] == 3
     # Held-out residuals carry the ray noise too (rays from 3 poses): chi2 ~ 1 + 2/3.
     assert 1.0 < held["chi2_dof"] < 2.5
+    assert 1.0 < st["heldout"]["noise_floor_ratio"] < 1.5 and st["heldout"]["model_adequate"]
     for j, pose in enumerate(res.poses):
         assert pose.rms_px == st["per_pose"][j]["rms_px"] > 0
         assert res.residuals[j].shape == res.residual_pixels[j].shape
@@ -149,6 +151,13 @@ def test_pixels_seen_in_fewer_than_two_poses_are_nan(pinhole_fit):
     o, d = res.model.unproject(inner)
     assert np.isnan(d).all() and np.isnan(o).all()
     assert res.stats["coverage"] < 1.0
+    # Integer pixels include the coverage edges (around the hole and the image border).
+    uu, vv = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    pix = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    o, d = res.model.unproject(pix)
+    ok = np.all(np.isfinite(d), axis=1)
+    back = res.model.project(o + 350.0 * d)
+    assert np.max(np.abs(back[ok] - pix[ok])) < 1e-6
 
 
 @pytest.fixture(scope="module")
@@ -197,9 +206,9 @@ def test_bad_options_raise_clear_errors(pinhole_fit):
     _, maps, _ = pinhole_fit
     with pytest.raises(ValueError, match="unknown key"):
         calibrate(maps, SCREEN, "raygrid", options={"cells": 3})
-    with pytest.raises(ValueError, match="options.central"):
+    with pytest.raises(ValueError, match=r"options\.central"):
         calibrate(maps, SCREEN, "raygrid", options={"central": "no"})
-    with pytest.raises(ValueError, match="options.grid_step"):
+    with pytest.raises(ValueError, match=r"options\.grid_step"):
         calibrate(maps, SCREEN, "raygrid", options={"grid_step": 0})
     with pytest.raises(ValueError, match=">= 3 poses"):
         calibrate(maps, SCREEN, "raygrid", heldout=[0, 1])
@@ -214,10 +223,13 @@ def test_cli_calibrate_raygrid(pinhole_fit, tmp_path, capsys):
         names.append(str(tmp_path / f"pose{j}.npz"))
         save_maps(m, names[-1])
     out = tmp_path / "model.json"
+    names.append(str(tmp_path / "pose3.npz"))
+    save_maps(maps[3], names[-1])
     args = ["calibrate", "--plan", str(tmp_path / "plan.json"), "--maps", *names,
-            "--model", "raygrid", "-o", str(out)]
+            "--model", "raygrid", "-o", str(out), "--heldout", "3"]
     assert main(args) == 0
-    assert "raygrid" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "raygrid" in printed and "held-out RMS" in printed and "INADEQUATE" not in printed
     model = load_model(out)
     assert isinstance(model, RayGridModel) and model.stats["converged"]
     pix = _grid(7.0, 0.5)
@@ -225,3 +237,50 @@ def test_cli_calibrate_raygrid(pinhole_fit, tmp_path, capsys):
     ok = np.all(np.isfinite(d), axis=1)
     assert ok.mean() > 0.5
     assert np.max(np.abs(model.project(o + 500.0 * d)[ok] - pix[ok])) < 1e-6
+
+
+def test_progress_and_cancellation(pinhole_fit):
+    from calibration.worker.executor import JobCancelled
+
+    _, maps, _ = pinhole_fit
+    seen = []
+    with pytest.raises(JobCancelled):
+        calibrate(maps[:3], SCREEN, "raygrid",
+                  progress=lambda done, total, msg: seen.append((done, total)),
+                  cancelled=lambda: len(seen) >= 1)
+    assert seen == [(1, 30)]
+
+
+def test_grid_step_two_interpolates_between_nodes(pinhole_fit):
+    cam, maps, _ = pinhole_fit
+    res = calibrate(maps[:3], SCREEN, "raygrid", options={"grid_step": 2})
+    model = res.model
+    assert model.grid_step == 2 and model.directions.shape == (60, 80, 3)
+    pix = _grid(3.3, 0.45)  # mostly between nodes
+    o, d = model.unproject(pix)
+    ok = np.all(np.isfinite(d), axis=1)
+    assert np.max(np.abs(model.project(o[ok] + 450.0 * d[ok]) - pix[ok])) < 1e-6
+    diff = ray_angle_difference(model.unproject, _truth_fn(cam), (W, H), pixels=pix[ok])
+    std, _ = model.ray_std(pix[ok])
+    # Interpolated rays average neighbouring nodes, so they beat the node sigma on average.
+    assert float(np.sqrt(np.mean((diff["angle_rad"] / std) ** 2))) < 1.4
+    assert np.isnan(model.unproject(np.array([[159.0, 60.0]]))[1]).all()  # past the last node
+
+
+def test_gross_outliers_are_rejected():
+    cam = cameras.mild_pinhole(W, H)
+    rng = np.random.default_rng(5)
+    ps = poses.random_poses(cam, SCREEN, 4, rng)
+    out = [synthetic.synthetic_maps(cam, p, SCREEN, rng=rng, outlier_fraction=0.02,
+                                    valid_fraction=0.8) for p in ps]
+    res = calibrate([o[0] for o in out], SCREEN, "raygrid")
+    covered = res.model.covered()
+    truth_out = sum(int((o[1]["outliers"] & covered).sum()) for o in out)
+    flagged = sum(p["n_outliers"] for p in res.stats["per_pose"])
+    # Every outlier in a pixel that kept a ray is flagged (pixels seen twice with one
+    # outlier cannot be resolved and become NaN instead).
+    assert truth_out > 50 and abs(flagged - truth_out) <= 0.05 * truth_out
+    diff = ray_angle_difference(res.model.unproject, _truth_fn(cam), (W, H), step_px=1.0)
+    std, _ = res.model.ray_std(diff["pixels"])
+    z = diff["angle_rad"] / std
+    assert float(np.sqrt(np.nanmean(z**2))) < 1.4 and float(np.nanmax(z)) < 6.0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -180,7 +181,8 @@ def calibrate_generic(
         if len(ob.pixels) < 100:
             raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
     central_init = initial_state(obs, grid, 2)
-    fitted, out = _fit(SGCCModel, obs, grid, central_init, lm, progress, cancelled)
+    central_lm = lm if model == "sgcc" else replace(lm, full_data=False)  # only an init
+    fitted, out = _fit(SGCCModel, obs, grid, central_init, central_lm, progress, cancelled)
     iterations = out.iterations
     if model == "sgcc-noncentral":
         coeffs = np.zeros((grid.size, 4))

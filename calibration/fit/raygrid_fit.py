@@ -17,6 +17,7 @@ Options: `central` (true), `grid_step` (1 up to 640x480, else 2), `max_iteration
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -24,7 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.evaluate import ADEQUATE_RATIO
+from calibration.evaluate import ADEQUATE_RATIO, summarize
 from calibration.fit.generic import observations
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sgcc_init import initial_state, pose_from_model
@@ -149,35 +150,48 @@ def _residuals(
     return e, usable, q, lam, d_s
 
 
+def _consensus(x: np.ndarray, w: np.ndarray, ob: Observations, cut: float) -> np.ndarray:
+    """Weights with gross outliers zeroed: points far from their node's median direction.
+
+    Far = beyond max(5.9 x the median deviation over all points, `cut` x the point's own
+    angular sigma). With 3+ poses one wild point per node is caught; with 2 it cannot be
+    told apart and the later residual cut drops the node.
+    """
+    u = x / np.linalg.norm(x, axis=2, keepdims=True)
+    with warnings.catch_warnings():  # nodes seen in no pose: all-NaN median, NaN is right
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(np.where((w > 0)[..., None], u, np.nan), axis=0)
+    med /= np.linalg.norm(med, axis=1, keepdims=True)
+    ang = np.arccos(np.clip(np.sum(u * med[None], axis=2), -1.0, 1.0))
+    used = (w > 0) & np.isfinite(ang)
+    if not used.any():
+        return w
+    scale = float(np.median(ang[used]))
+    own = cut * np.max(ob.sigma, axis=2) / np.linalg.norm(x, axis=2)
+    return np.where(used & (ang <= np.maximum(5.9 * scale, own)), w, 0.0)
+
+
 def initial_rays(
-    rc: np.ndarray, tc: np.ndarray, ob: Observations, w: np.ndarray, central: bool
+    rc: np.ndarray, tc: np.ndarray, ob: Observations, w: np.ndarray, central: bool, cut: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form (weighted TLS) rays of all nodes from their camera-frame 3D screen points."""
     r = np.transpose(rc, (0, 2, 1))  # screen -> camera
     t = -np.einsum("jab,jb->ja", r, tc)
-    w = w / np.mean(ob.sigma**2, axis=2)
     x = np.einsum("jab,jmb->jma", r[:, :, :2], ob.screen) + t[:, None, :]
+    w = _consensus(x, w, ob, cut) / np.mean(ob.sigma**2, axis=2)
     wsum = np.maximum(w.sum(axis=0), 1e-300)
     if central:
         centroid = np.zeros((x.shape[1], 3))
     else:
         centroid = np.einsum("jm,jma->ma", w, x) / wsum[:, None]
     xc = x - centroid
-    scatter = np.einsum("jm,jma,jmb->mab", w, xc, xc)
+    xm = np.swapaxes(xc, 0, 1)  # (M, J, 3)
+    scatter = np.swapaxes(xm * w.T[..., None], 1, 2) @ xm
     _, vec = np.linalg.eigh(scatter)
     d = vec[:, :, 2]
     d *= np.sign(np.einsum("jm,jma,ma->m", w, x, d) + 1e-300)[:, None]
     o = centroid - np.sum(centroid * d, axis=1, keepdims=True) * d
     return o, d
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
-    s = np.zeros((*v.shape, 3))
-    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
-    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
-    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
-    return s
 
 
 def refine_poses(
@@ -195,7 +209,7 @@ def refine_poses(
             e, usable, q, _, d_s = _residuals(rc, tc, o0[sl], d0[sl], ob, sl)
             p = _proj_rows(d_s)
             jac = np.concatenate(
-                [-np.einsum("jmab,jmbc->jmac", p, _skew(q - tc[:, None, :])), p], axis=3
+                [np.cross((q - tc[:, None, :])[:, :, None, :], p), p], axis=3
             )
             jac = jac / ob.sigma[:, sl, :, None]
             ww = np.where(usable & covered[sl], w[:, sl], 0.0)
@@ -231,27 +245,31 @@ def _joint_chunk(
 ) -> JointSystem:
     """Gauss-Newton normal equations of rays (pixel slice `sl`) and all poses jointly."""
     e, usable, q, lam, d_s = _residuals(rc, tc, o, d, ob, sl)
-    p = _proj_rows(d_s)
-    prce = np.einsum("jmab,jbc,mck->jmak", p, rc, _perp_basis(d))
+    p = _proj_rows(d_s)  # (J, M, 2, 3)
+    prce = p @ (rc[:, None] @ _perp_basis(d)[None])  # (J, M, 2, 2)
     jr = lam[..., None, None] * prce
     if not central:
         jr = np.concatenate([jr, prce], axis=3)
-    jp = np.concatenate([-np.einsum("jmab,jmbc->jmac", p, _skew(q - tc[:, None, :])), p], axis=3)
-    sig = ob.sigma[:, sl, :, None]
-    jr, jp = jr / sig, jp / sig
-    ww = np.where(usable, w[:, sl], 0.0)
-    n_pose = len(rc)
-    arp = np.einsum("jm,jmak,jmal->mkjl", ww, jr, jp).reshape(len(d), jr.shape[3], 6 * n_pose)
-    app_blocks = np.einsum("jm,jmak,jmal->jkl", ww, jp, jp)
+    # d(R^T-row a . Q)/d(omega) = -(p_a x (Q - t))^T: rotation columns by cross products.
+    rot = np.cross((q - tc[:, None, :])[:, :, None, :], p)
+    jp = np.concatenate([rot, p], axis=3)  # (J, M, 2, 6)
+    scale = np.where(usable, w[:, sl], 0.0)[..., None, None] / ob.sigma[:, sl, :, None]
+    jr, jp = jr * scale, jp * scale
+    n_pose, n_pix, k = len(rc), len(d), jr.shape[3]
+    jr_t = np.swapaxes(jr, 2, 3)  # (J, M, k, 2)
+    arp = np.transpose(jr_t @ jp, (1, 2, 0, 3)).reshape(n_pix, k, 6 * n_pose)
+    jp_flat = jp.reshape(n_pose, -1, 6)
+    e_flat = e.reshape(n_pose, -1)
+    app_blocks = np.swapaxes(jp_flat, 1, 2) @ jp_flat
     app = np.zeros((6 * n_pose, 6 * n_pose))
     for j in range(n_pose):
         app[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = app_blocks[j]
     return JointSystem(
-        np.einsum("jm,jmak,jmal->mkl", ww, jr, jr),
-        np.einsum("jm,jmak,jma->mk", ww, jr, e),
+        np.sum(jr_t @ jr, axis=0),
+        np.sum(jr_t @ e[..., None], axis=0)[..., 0],
         arp,
         app,
-        np.einsum("jm,jmak,jma->jk", ww, jp, e).ravel(),
+        (np.swapaxes(jp_flat, 1, 2) @ e_flat[..., None]).ravel(),
     )
 
 
@@ -284,9 +302,9 @@ def _reduced(
         sl = slice(start, start + _CHUNK)
         js = _joint_chunk(rc, tc, o[sl], d[sl], ob, w, sl, central)
         inv = _safe_inv(js.arr)
-        tmp = np.einsum("mkl,mln->mkn", inv, js.arp)
-        s += js.app - np.einsum("mkn,mkp->np", js.arp, tmp)
-        rhs += js.bp - np.einsum("mkn,mk->n", tmp, js.br)
+        tmp = (inv @ js.arp).reshape(-1, n)
+        s += js.app - js.arp.reshape(-1, n).T @ tmp
+        rhs += js.bp - tmp.T @ js.br.ravel()
     return s, rhs
 
 
@@ -337,8 +355,9 @@ def ray_covariance(
         sl = slice(start, start + _CHUNK)
         js = _joint_chunk(rc, tc, o0[sl], d0[sl], ob, wc, sl, central)
         inv = _safe_inv(js.arr)
-        g = np.einsum("mkl,mln->mkn", inv, js.arp)
-        cov[sl] = inv + np.einsum("mkn,np,mlp->mkl", g, sinv, g)
+        g = inv @ js.arp
+        gs = (g.reshape(-1, g.shape[2]) @ sinv).reshape(g.shape)
+        cov[sl] = inv + gs @ np.swapaxes(g, 1, 2)
     cov[~covered] = np.nan
     return cov, dropped
 
@@ -397,10 +416,17 @@ def pixel_residuals(
     return px, expected2
 
 
-def _heldout(model: RayGridModel, obs: list[PoseObs], cut: float) -> list[dict[str, Any]]:
-    """Pose-only fit of held-out poses with the rays fixed; their residual statistics."""
+def _heldout(
+    model: RayGridModel, obs: list[PoseObs], indices: list[int], pitch: np.ndarray, cut: float
+) -> dict[str, Any]:
+    """Pose-only fit of held-out poses with the rays fixed; residual statistics in the
+    parametric models' layout ({per_pose, pooled rms/noise floor}, `evaluate.summarize`).
+
+    The held-out residual also carries the rays' own noise, so its noise-floor ratio sits
+    above 1 (about sqrt(1 + 2/J) for J training poses) for a correct model.
+    """
     rows = []
-    for ob in obs:
+    for ob, index in zip(obs, indices, strict=True):
         rc0, tc0 = pose_from_model(model.unproject, ob)
         o, d = model.unproject(ob.pixels)
         one = Observations(ob.pixels, ob.screen_mm[None], ob.sigma_mm[None],
@@ -410,16 +436,25 @@ def _heldout(model: RayGridModel, obs: list[PoseObs], cut: float) -> list[dict[s
         for _ in range(3):
             rc, tc = refine_poses(rc, tc, o, d, one, _ray_weights(one, inl))
             _, inl, res = _cost_and_inliers(rc, tc, o, d, one, cut)
-        px, _ = pixel_residuals(model, rc[0], tc[0], ob.pixels, res[0], ob.sigma_mm)
+        px, exp2 = pixel_residuals(model, rc[0], tc[0], ob.pixels, res[0], ob.sigma_mm)
         ok = inl[0] & np.all(np.isfinite(px), axis=1)
+        n = int(ok.sum())
+        rms = float(np.sqrt(np.mean(np.sum(px[ok] ** 2, axis=1))))
+        expected = float(np.sqrt(np.mean(exp2[ok])))
         rows.append({
-            "n_points": int(inl.sum()),
-            "rms_px": float(np.sqrt(np.mean(np.sum(px[ok] ** 2, axis=1)))),
-            "rms_screen_mm": float(np.sqrt(np.mean(np.sum(res[0][inl[0]] ** 2, axis=1)))),
-            "chi2_dof": float(np.sum((res[0][inl[0]] / ob.sigma_mm[inl[0]]) ** 2)
-                              / max(2 * int(inl.sum()) - 6, 1)),
+            "pose": index,
+            "n_points": n,
+            "rms_px": rms,
+            "expected_rms_px": expected,
+            "noise_floor_ratio": rms / expected,
+            "rms_screen_px": float(np.sqrt(np.mean(np.sum((res[0][ok] / pitch) ** 2, axis=1)))),
+            "expected_rms_screen_px": float(
+                np.sqrt(np.mean(np.sum((ob.sigma_mm[ok] / pitch) ** 2, axis=1)))
+            ),
+            "chi2_dof": float(np.sum((res[0][ok] / ob.sigma_mm[ok]) ** 2) / max(2 * n - 6, 1)),
+            "outlier_fraction": 1.0 - n / max(len(ob.pixels), 1),
         })
-    return rows
+    return {"per_pose": rows, **summarize(rows)}
 
 
 def calibrate_raygrid(
@@ -457,8 +492,9 @@ def calibrate_raygrid(
     history: list[float] = []
     converged = False
     iterations = 0
+    o, d = initial_rays(rc, tc, ob, _ray_weights(ob, inl), opts.central, opts.cut_sigmas)
+    _, inl, _ = _cost_and_inliers(rc, tc, o, d, ob, opts.cut_sigmas)
     wts = _ray_weights(ob, inl)
-    o, d = initial_rays(rc, tc, ob, wts, opts.central)
     o, d = _mask_sparse(o, d, wts)
     for iterations in range(1, opts.max_iterations + 1):
         if cancelled is not None and cancelled():
@@ -538,9 +574,9 @@ def calibrate_raygrid(
     if org is not None:
         stats["origin_std_mm_median"] = float(np.nanmedian(org))
     if held_maps:
-        stats["heldout"] = _heldout(model, observations(held_maps, screen), opts.cut_sigmas)
-        for row, index in zip(stats["heldout"], held, strict=True):
-            row["pose"] = index
+        stats["heldout"] = _heldout(
+            model, observations(held_maps, screen), held, pitch, opts.cut_sigmas
+        )
     stats["wall_s"] = time.perf_counter() - t0
     model.stats = stats
     return CalibrationResult(model, poses, stats, pix_out, res_px)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from calibration.fit.sgcc_lm import LMState, PoseObs, gauge_constraints
+from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import logmap
 
@@ -34,9 +35,7 @@ def _opencv_fit(
         imgs.append(o.pixels[sel].astype(np.float32))
     flags = cv2.CALIB_RATIONAL_MODEL
     for _ in range(2):
-        _, k, dist, rvecs, tvecs = cv2.calibrateCamera(
-            objs, imgs, image_size, None, None, flags=flags
-        )
+        _, k, dist, rvecs, tvecs = _calibrate_one_thread(objs, imgs, image_size, flags)
         keep_o, keep_i = [], []
         for obj, img, rv, tv in zip(objs, imgs, rvecs, tvecs, strict=True):
             proj, _ = cv2.projectPoints(obj, rv, tv, k, dist)
@@ -46,6 +45,23 @@ def _opencv_fit(
             keep_i.append(img[good])
         objs, imgs = keep_o, keep_i
     return k, dist, list(rvecs), list(tvecs)
+
+
+def _calibrate_one_thread(
+    objs: list[np.ndarray], imgs: list[np.ndarray], image_size: tuple[int, int], flags: int
+) -> tuple:
+    """cv2.calibrateCamera with OpenCV's thread pool and its bundled BLAS at one thread.
+
+    Why: on a loaded 2-core machine their threads contend; two calls took 11-16 s instead
+    of ~1 s in the non-central test under load. The thread count is restored afterwards.
+    """
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with single_thread_blas():
+            return cv2.calibrateCamera(objs, imgs, image_size, None, None, flags=flags)
+    finally:
+        cv2.setNumThreads(before)
 
 
 def _directions(k: np.ndarray, dist: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -73,8 +89,8 @@ def initial_state(obs: list[PoseObs], grid: SplineGrid, n_comp: int) -> LMState:
     c = np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 1.0, (h - 1) / 2]])
     dc = _directions(k, dist, c)
     q = gauge_rotation(dc[0], dc[1] - dc[0])
-    pix = np.concatenate([o.pixels for o in obs])
-    pix = np.unique(pix, axis=0)
+    pix = np.concatenate([o.pixels[_subsample(len(o.pixels), _INIT_FIT_POINTS)] for o in obs])
+    pix = np.unique(pix, axis=0)  # poses overlap: fit each pixel once
     pix = pix[_subsample(len(pix), _INIT_FIT_POINTS)]
     ab = logmap(_directions(k, dist, pix) @ q.T)
     coeffs = np.zeros((grid.size, n_comp))

@@ -4,8 +4,9 @@ Residual of pixel p in pose j: the model ray, moved into the screen frame
 (o_s = Rc o + tc, r_s = Rc r with Rc = R_j^T, tc = -R_j^T t_j), meets the plane z = 0 at
 Q; e = (Q - S_p) / sigma_p (screen mm over screen mm: a Mahalanobis distance).
 Normal equations: every residual touches the 16 control points of its cell and its pose's
-6 parameters, so they are accumulated per (pose, cell) group with one matrix product each
-(no loop over pixels). Robustness: Huber weights (k = 3) with a hard cut at
+6 parameters, so they are accumulated per (pose, cell) group from monomial moments with
+small matrix products (see `_Problem`; no loop over pixels). Large fits converge on an
+even subset first (`run_lm`). Robustness: Huber weights (k = 3) with a hard cut at
 `cut` sigmas (redescending; pixels beyond it are treated as outliers).
 
 Gauge (explicit, linear constraints kept exact by stepping in their null space):
@@ -20,20 +21,21 @@ data; where data exist it is negligible, where they do not its large covariance 
 from __future__ import annotations
 
 from collections.abc import Callable
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, null_space
 from scipy.spatial.transform import Rotation
 
-try:  # optional: keeps numpy's BLAS to one thread during the fit
-    from threadpoolctl import threadpool_limits
-except ImportError:  # pragma: no cover - without it BLAS keeps its default threads
-    threadpool_limits = None
-
-from calibration.models.bspline import SplineGrid, monomial_basis, monomials, second_differences
-from calibration.models.sgcc import expmap, expmap_jacobian
+from calibration.models.blas_threads import single_thread_blas
+from calibration.models.bspline import (
+    SplineGrid,
+    monomial_basis,
+    monomials,
+    radix_keys,
+    second_differences,
+)
+from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
 
 
 @dataclass
@@ -55,6 +57,7 @@ class LMOptions:
     smooth: float = 1e-7
     rel_tol: float = 1e-10
     fix_spline: bool = False
+    full_data: bool = True  # False: stop after the subset phase (fit that only initializes)
     subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
 
 
@@ -83,6 +86,7 @@ class LMResult:
     history: list[float] = field(default_factory=list)
 
 
+_JP_DENSE = [0, 1, 2, 5]  # pose-Jacobian columns that are not constant 0/1
 _CHUNK = 1 << 16  # pixels per vectorized block: bounded temporaries, few Python-level calls
 
 
@@ -122,9 +126,11 @@ def _relative(groups: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
 class _Problem:
     """Fixed per-fit geometry: pixels sorted by (pose, cell), local cell coordinates, blocks.
 
-    Inside a cell the 16 basis weights are K m(s, t) with m the 16 monomials t^l s^k
-    (`monomial_basis`), so sum_p (w w^T) h_p = K [sum_p m m^T h_p] K^T needs only the 49
-    moments sum_p t^L s^M h_p (L, M <= 6) per cell: one small matrix product per group.
+    Per-pixel arrays are feature-major ((k, N), rows contiguous) so every step is a
+    plain vector operation. Inside a cell the 16 basis weights are K m(s, t) with m the
+    16 monomials t^l s^k (`monomial_basis`), so sum_p (w w^T) h_p = K [sum_p m m^T h_p] K^T
+    needs only the 49 moments sum_p t^L s^M h_p (L, M <= 6) per cell: one small matrix
+    product per (pose, cell) group.
     """
 
     def __init__(self, grid: SplineGrid, n_comp: int, obs: list[PoseObs]) -> None:
@@ -136,12 +142,13 @@ class _Problem:
         pix = np.concatenate([o.pixels for o in obs])
         pose_of = np.concatenate([np.full(len(o.pixels), j) for j, o in enumerate(obs)])
         cell, s, t = grid.local(pix[:, 0], pix[:, 1])
-        order = np.argsort(pose_of * self.n_cells + cell, kind="stable")
+        order = np.argsort(radix_keys(pose_of * self.n_cells + cell), kind="stable")
         self.inverse = np.empty_like(order)
         self.inverse[order] = np.arange(len(order))
         self.s, self.t = s[order], t[order]
-        self.screen = np.concatenate([o.screen_mm for o in obs])[order]
-        self.sigma = np.concatenate([o.sigma_mm for o in obs])[order]
+        self.screen = np.ascontiguousarray(np.concatenate([o.screen_mm for o in obs])[order].T)
+        self.sigma = np.ascontiguousarray(np.concatenate([o.sigma_mm for o in obs])[order].T)
+        self.inv_sigma = 1.0 / self.sigma
         self.counts = np.array([len(o.pixels) for o in obs])
         self.chunks = _chunks(pose_of[order], cell[order])
         self.kmat = monomial_basis()
@@ -157,58 +164,61 @@ class _Problem:
         self.tri = np.triu_indices(n_comp)
 
     def unsort(self, values: np.ndarray) -> list[np.ndarray]:
-        """Per-pose arrays in the callers' original pixel order."""
-        return np.split(values[self.inverse], np.cumsum(self.counts)[:-1])
+        """Per-pose arrays (feature-major rows in, pixel-major out) in the callers' order."""
+        return np.split(values.T[self.inverse], np.cumsum(self.counts)[:-1])
 
     def _chunk(
         self, st: LMState, poly: np.ndarray, ch: _Chunk, jacobian: bool
     ) -> tuple[np.ndarray, ...]:
-        """Residuals (Q-S) mm and ok mask of one block [+ monomials, G (n,2,C), pose J (n,2,6)]."""
+        """Residuals (Q-S) mm (2,n) and ok mask of a block [+ monomials, G (2,C,n), J (2,6,n)]."""
         m16 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 3)
-        comps = np.empty((ch.b - ch.a, self.c))
+        comps = np.empty((self.c, ch.b - ch.a))
         for a, b, cell in ch.groups:
-            comps[a:b] = m16[a:b] @ poly[cell]
+            np.matmul(poly[cell], m16[:, a:b], out=comps[:, a:b])
         rc, tc = st.rc[ch.pose], st.tc[ch.pose]
         if jacobian:
-            r, jr = expmap_jacobian(comps[:, :2])
+            r, jr = expmap_jacobian_rows(comps[0], comps[1])
         else:
-            r = expmap(comps[:, :2])
-        o_s = comps[:, 2:4] @ rc[:, :2].T + tc if self.c == 4 else np.broadcast_to(tc, r.shape)
-        r_s = r @ rc.T
-        ok = r_s[:, 2] * o_s[:, 2] < 0  # the ray moves towards the plane
-        rz = np.where(ok, r_s[:, 2], 1.0)
-        lam = -o_s[:, 2] / rz
-        q = o_s[:, :2] + lam[:, None] * r_s[:, :2]
-        res = np.where(ok[:, None], q - self.screen[ch.a : ch.b], 0.0)
+            r = expmap_rows(comps[0], comps[1])
+        r_s = rc @ r
+        o_s = (
+            rc[:, :2] @ comps[2:4] + tc[:, None]
+            if self.c == 4
+            else np.broadcast_to(tc[:, None], r.shape)
+        )
+        ok = r_s[2] * o_s[2] < 0  # the ray moves towards the plane
+        rz = np.where(ok, r_s[2], 1.0)
+        lam = -o_s[2] / rz
+        q = o_s[:2] + lam * r_s[:2]
+        res = np.where(ok, q - self.screen[:, ch.a : ch.b], 0.0)
         if not jacobian:
             return res, ok
-        px, py = r_s[:, 0] / rz, r_s[:, 1] / rz  # dQ/d(o_s) = [[1, 0, -px], [0, 1, -py]]
-        prc = np.empty((len(q), 2, 3))
-        prc[:, 0] = rc[0] - px[:, None] * rc[2]
-        prc[:, 1] = rc[1] - py[:, None] * rc[2]
-        g = np.empty((len(q), 2, self.c))
-        g[:, :, :2] = lam[:, None, None] * np.matmul(prc, jr)
+        p = r_s[:2] / rz  # dQ/d(o_s) = [[1, 0, -px], [0, 1, -py]]
+        prc = rc[:2, :, None] - p[:, None, :] * rc[2][None, :, None]  # (2,3,n): dQ/d(o_s) Rc
+        g = np.empty((2, self.c, len(lam)))
+        g[:, :2] = lam * (prc[:, :, None, :] * jr[None]).sum(axis=1)
         if self.c == 4:
-            g[:, :, 2:] = prc[:, :, :2]
-        qx, qy = q[:, 0], q[:, 1]
-        jp = np.zeros((len(q), 2, 6))  # d/d(omega) = -dQ/d(o_s) [X]x, d/dt = dQ/d(o_s)
-        jp[:, 0, 0], jp[:, 0, 1], jp[:, 0, 2] = -px * qy, px * qx, -qy
-        jp[:, 1, 0], jp[:, 1, 1], jp[:, 1, 2] = -py * qy, py * qx, qx
-        jp[:, 0, 3], jp[:, 1, 4] = 1.0, 1.0
-        jp[:, 0, 5], jp[:, 1, 5] = -px, -py
+            g[:, 2:] = prc[:, :2]
+        qx, qy = q
+        px, py = p
+        jp = np.zeros((2, 6, len(lam)))  # d/d(omega) = -dQ/d(o_s) [X]x, d/dt = dQ/d(o_s)
+        jp[0, 0], jp[0, 1], jp[0, 2] = -px * qy, px * qx, -qy
+        jp[1, 0], jp[1, 1], jp[1, 2] = -py * qy, py * qx, qx
+        jp[0, 3], jp[1, 4] = 1.0, 1.0
+        jp[0, 5], jp[1, 5] = -px, -py
         return res, ok, m16, g, jp
 
     def polynomials(self, coeffs: np.ndarray) -> np.ndarray:
-        """Monomial coefficients (n_cells, 16, C) of every cell's spline components."""
-        return np.einsum("ka,nkc->nac", self.kmat, coeffs[self.controls])
+        """Monomial coefficients (n_cells, C, 16) of every cell's spline components."""
+        return np.einsum("ka,nkc->nca", self.kmat, coeffs[self.controls])
 
     def residuals(self, st: LMState) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (Q-S) mm (N,2) and ok mask (N,) of all pixels, sorted order."""
+        """Residuals (Q-S) mm (2,N) and ok mask (N,) of all pixels, sorted order."""
         n = len(self.s)
-        res, ok = np.empty((n, 2)), np.empty(n, dtype=bool)
+        res, ok = np.empty((2, n)), np.empty(n, dtype=bool)
         poly = self.polynomials(st.coeffs)
         for ch in self.chunks:
-            res[ch.a : ch.b], ok[ch.a : ch.b] = self._chunk(st, poly, ch, jacobian=False)
+            res[:, ch.a : ch.b], ok[ch.a : ch.b] = self._chunk(st, poly, ch, jacobian=False)
         return res, ok
 
     def normal_equations(
@@ -218,30 +228,28 @@ class _Problem:
         c, ns, nc, npo = self.c, self.n_spline, self.n_cells, self.n_pose
         iu, ju = self.tri
         mom = np.zeros((nc, 49, len(iu)))  # sum m49 * (g^T W g)[upper triangle]
-        cross = np.zeros((npo, nc, 16, 7 * c))  # sum m16 * [g^T W jp | g^T W e]
+        cross = np.zeros((npo, nc, 16, 7 * c))  # sum m16 * xg (see below)
         hpp, gpp = np.zeros((npo, 6, 6)), np.zeros((npo, 6))
         poly = self.polynomials(st.coeffs)
         for ch in self.chunks:
             e, _, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
-            ws = wt[ch.a : ch.b, None] / self.sigma[ch.a : ch.b] ** 2
-            pw = jp * ws[:, :, None]
-            hpp[ch.pose] += np.einsum("nra,nrb->ab", pw, jp)
-            gpp[ch.pose] += np.einsum("nra,nr->a", pw, e)
+            ws = wt[ch.a : ch.b] * self.inv_sigma[:, ch.a : ch.b] ** 2  # (2,n)
+            pw = jp * ws[:, None, :]
+            hpp[ch.pose] += pw[0] @ jp[0].T + pw[1] @ jp[1].T
+            gpp[ch.pose] += pw[0] @ e[0] + pw[1] @ e[1]
             if not spline:
                 continue
-            gw = g * ws[:, :, None]
-            hp = np.einsum("nra,nrb->nab", gw, g)[:, iu, ju]
-            xg = np.concatenate(
-                [
-                    np.einsum("nra,nrb->nab", gw, jp).reshape(-1, 6 * c),
-                    np.einsum("nra,nr->na", gw, e),
-                ],
-                axis=1,
-            )
+            gw = g * ws[:, None, :]
+            hp = gw[0, iu] * g[0, ju] + gw[1, iu] * g[1, ju]  # (nt, n)
+            xg = np.empty((c, 7, ch.b - ch.a))  # [a, q]: (g^T W jp)[a, q], q = 6: (g^T W e)[a]
+            xg[:, _JP_DENSE] = gw[0, :, None] * jp[0, _JP_DENSE] + gw[1, :, None] * jp[1, _JP_DENSE]
+            xg[:, 3], xg[:, 4] = gw[0], gw[1]  # jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
+            xg[:, 6] = gw[0] * e[0] + gw[1] * e[1]
+            xg = xg.reshape(7 * c, -1)
             m49 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 6)
             for a, b, cell in ch.groups:
-                mom[cell] += m49[a:b].T @ hp[a:b]
-                cross[ch.pose, cell] += m16[a:b].T @ xg[a:b]
+                mom[cell] += m49[:, a:b] @ hp[:, a:b].T
+                cross[ch.pose, cell] += m16[:, a:b] @ xg[:, a:b].T
         h, grad = np.zeros((self.n, self.n)), np.zeros(self.n)
         for j in range(npo):
             sl = slice(ns + 6 * j, ns + 6 * j + 6)
@@ -258,11 +266,11 @@ class _Problem:
         xk = np.einsum("ia,pnaz->pniz", kk, cross)
         hsp = np.zeros((ns, 6 * npo))
         for j in range(npo):
-            blk_j = xk[j, :, :, : 6 * c].reshape(nc, 16 * c, 6)
+            blk_j = xk[j].reshape(nc, 16, c, 7)[..., :6].reshape(nc, 16 * c, 6)
             np.add.at(hsp, (cols[:, :, None], 6 * j + np.arange(6)), blk_j)
         h[:ns, ns:] = hsp
         h[ns:, :ns] = hsp.T
-        np.add.at(grad, cols, xk[:, :, :, 6 * c :].sum(axis=0).reshape(nc, 16 * c))
+        np.add.at(grad, cols, xk.sum(axis=0).reshape(nc, 16, c, 7)[..., 6].reshape(nc, 16 * c))
         return h, grad
 
 
@@ -318,6 +326,9 @@ class _Loop:
     converged: bool = False
     cut: float = np.inf
     lam_prior: float = 0.0
+    res: np.ndarray | None = None  # residuals (2,N) and ok mask of `state`
+    ok: np.ndarray | None = None
+    hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
 
 
 def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
@@ -330,7 +341,8 @@ def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
 
 def _sigma_norm(prob: _Problem, res: np.ndarray) -> np.ndarray:
     """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas)."""
-    return np.hypot(res[:, 0] / prob.sigma[:, 0], res[:, 1] / prob.sigma[:, 1])
+    r0, r1 = res[0] * prob.inv_sigma[0], res[1] * prob.inv_sigma[1]
+    return np.sqrt(r0 * r0 + r1 * r1)
 
 
 def _cost(
@@ -374,7 +386,7 @@ def _iterate(
         x = st.coeffs.ravel()
         h[:ns, :ns] += lp.lam_prior * lp.prior_base
         grad[:ns] += lp.lam_prior * lp.prior_base @ x
-        hr = lp.z.T @ h @ lp.z
+        hr = lp.hr = lp.z.T @ h @ lp.z
         gr = lp.z.T @ grad
         cost0 = _cost(prob, res, ok, x, lp, options.huber_k)
         accepted = False
@@ -404,7 +416,8 @@ def _iterate(
             progress(lp.it, options.max_iterations, msg)
         if not accepted or (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300):
             lp.converged = True
-            return
+            break
+    lp.res, lp.ok = res, ok
 
 
 def run_lm(
@@ -421,18 +434,14 @@ def run_lm(
 
     Large problems first converge on an even subset of about `options.subset_pixels`
     points (cheap iterations, at most half of `max_iterations`); the final iterations,
-    the outlier decisions and the covariance always use every point.
+    the outlier decisions and the covariance use every point (unless `options.full_data` is
+    False: then the result, statistics included, is that of the subset). At convergence the
+    covariance reuses the last iteration's normal equations: exact when its step was
+    rejected, else evaluated one step (cost change <= rel_tol) before the final state.
     BLAS runs single-threaded here: the dense solves are small and threads only contend.
     """
-    with _single_thread_blas():
+    with single_thread_blas():
         return _run(grid, n_comp, obs, init, options, progress, cancelled)
-
-
-def _single_thread_blas() -> AbstractContextManager[object]:
-    """Limit BLAS to one thread where threadpoolctl is installed (optional speed-up)."""
-    if threadpool_limits is None:
-        return nullcontext()
-    return threadpool_limits(1, user_api="blas")
 
 
 def _run(
@@ -445,11 +454,11 @@ def _run(
     cancelled: Callable[[], bool] | None,
 ) -> LMResult:
     """Body of `run_lm`."""
-    prob = _Problem(grid, n_comp, obs)
-    ns, n = prob.n_spline, prob.n
+    ns = grid.size * n_comp
+    n = ns + 6 * len(obs)
     if options.fix_spline:
-        z = np.zeros((n, 6 * prob.n_pose))
-        z[ns:, :] = np.eye(6 * prob.n_pose)
+        z = np.zeros((n, 6 * len(obs)))
+        z[ns:, :] = np.eye(6 * len(obs))
     else:
         z = null_space(gauge_constraints(grid, n_comp, n))
     dmat = second_differences(grid)
@@ -460,23 +469,21 @@ def _run(
     )
     sub = _subset(obs, options.subset_pixels)
     if sub is not None:
-        _iterate(
-            _Problem(grid, n_comp, sub),
-            lp,
-            options,
-            options.max_iterations // 2,
-            progress,
-            cancelled,
-        )
-    _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
-    st = lp.state
-    res, ok = prob.residuals(st)
+        half = options.max_iterations // 2 if options.full_data else options.max_iterations
+        prob = _Problem(grid, n_comp, sub)
+        _iterate(prob, lp, options, half, progress, cancelled)
+    if options.full_data or sub is None:
+        prob = _Problem(grid, n_comp, obs)
+        _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
+    st, res, ok = lp.state, lp.res, lp.ok
     s = _sigma_norm(prob, res)
     cost_terms, wt = _robust(s, options.huber_k, lp.cut)
     wt = wt * ok
-    h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)
-    h[:ns, :ns] += lp.lam_prior * lp.prior_base
-    hr = z.T @ h @ z
+    hr = lp.hr
+    if not lp.converged or hr is None:  # the last normal equations are not at `st`
+        h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)
+        h[:ns, :ns] += lp.lam_prior * lp.prior_base
+        hr = z.T @ h @ z
     dscale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
     min_eig = float(np.linalg.eigvalsh(hr * dscale[:, None] * dscale[None, :])[0])
     inl = wt > 0

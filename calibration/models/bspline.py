@@ -11,6 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
+
+from calibration.models.blas_threads import single_thread_blas
 
 
 def _basis_1d(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,17 +107,42 @@ class SplineGrid:
     def evaluate(
         self, coeffs: np.ndarray, u: np.ndarray, v: np.ndarray, derivatives: bool = False
     ) -> tuple[np.ndarray, ...]:
-        """Values (N, C) of spline components `coeffs` (size, C) [+ d/du, d/dv (N, C)]."""
-        if derivatives:
-            idx, w, wdu, wdv = self.basis(u, v, derivatives=True)
-            c = coeffs[idx]
-            return (
-                np.einsum("nk,nkc->nc", w, c),
-                np.einsum("nk,nkc->nc", wdu, c),
-                np.einsum("nk,nkc->nc", wdv, c),
-            )
-        idx, w = self.basis(u, v)
-        return (np.einsum("nk,nkc->nc", w, coeffs[idx]),)
+        """Values (N, C) of spline components `coeffs` (size, C) [+ d/du, d/dv (N, C)].
+
+        Pixels are grouped by cell; each cell's bicubic polynomial is applied separably
+        (s first, then t), without a per-pixel gather of the 16 control points.
+        """
+        with single_thread_blas():
+            return self._evaluate(coeffs, u, v, derivatives)
+
+    def _evaluate(
+        self, coeffs: np.ndarray, u: np.ndarray, v: np.ndarray, derivatives: bool
+    ) -> tuple[np.ndarray, ...]:
+        """Body of `evaluate`."""
+        cell, s, t = self.local(u, v)
+        order = np.argsort(radix_keys(cell), kind="stable")
+        cell, s, t = cell[order], s[order], t[order]
+        n_c = coeffs.shape[1]
+        # poly[cell, c, l, k]: coefficient of t^l s^k
+        poly = np.einsum("ka,nkc->nca", monomial_basis(), coeffs[self.cell_controls()])
+        poly = poly.reshape(-1, n_c * 4, 4)
+        k = np.arange(1.0, 4.0)[:, None]
+        outs = [np.empty((n_c, len(cell))) for _ in range(3 if derivatives else 1)]
+        starts = np.flatnonzero(np.diff(cell, prepend=-1))
+        ends = np.append(starts[1:], len(cell)) if starts.size else starts
+        for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+            ps, pt = _powers(s[a:b], 3), _powers(t[a:b], 3)
+            in_s = (poly[cell[a]] @ ps).reshape(n_c, 4, -1)  # sum over k, per (c, l)
+            outs[0][:, a:b] = np.einsum("cln,ln->cn", in_s, pt)
+            if derivatives:
+                d_s = (poly[cell[a]][:, 1:] @ (k * ps[:-1])).reshape(n_c, 4, -1)
+                outs[1][:, a:b] = np.einsum("cln,ln->cn", d_s, pt) / self.cell_px[0]
+                outs[2][:, a:b] = (
+                    np.einsum("cln,ln->cn", in_s[:, 1:], k * pt[:-1]) / self.cell_px[1]
+                )
+        inverse = np.empty_like(order)
+        inverse[order] = np.arange(len(order))
+        return tuple(np.ascontiguousarray(out[:, inverse].T) for out in outs)
 
     def fit(
         self, u: np.ndarray, v: np.ndarray, values: np.ndarray, smooth: float = 1e-6
@@ -126,13 +154,18 @@ class SplineGrid:
         """
         idx, w = self.basis(u, v)
         n = self.size
-        a = np.zeros((n, n))
-        np.add.at(a, (idx[:, :, None], idx[:, None, :]), w[:, :, None] * w[:, None, :])
-        rhs = np.zeros((n, values.shape[1]))
-        np.add.at(rhs, idx, w[:, :, None] * values[:, None, :])
+        rows = np.repeat(np.arange(len(idx)), 16)
+        design = sparse.csr_array((w.ravel(), (rows, idx.ravel())), shape=(len(idx), n))
+        a = (design.T @ design).toarray()
+        rhs = design.T @ values
         d = second_differences(self)
         lam = smooth * max(np.trace(a) / n, 1e-12)
         return np.linalg.solve(a + lam * (d.T @ d), rhs)
+
+
+def radix_keys(keys: np.ndarray) -> np.ndarray:
+    """Keys as uint16 when they fit: numpy's stable argsort is then a radix sort."""
+    return keys.astype(np.uint16) if keys.size and keys.max() < 2**16 else keys
 
 
 def monomial_basis() -> np.ndarray:
@@ -148,13 +181,9 @@ def monomial_basis() -> np.ndarray:
 
 
 def monomials(s: np.ndarray, t: np.ndarray, degree: int) -> np.ndarray:
-    """Features (N, (degree+1)^2) t^l s^k at index l*(degree+1)+k, for l, k <= degree.
-
-    Returned as a transposed view of a (features, N) array so that per-feature rows are
-    contiguous (cheap to build, and BLAS reads either layout).
-    """
+    """Features as rows ((degree+1)^2, N): t^l s^k at row l*(degree+1)+k, for l, k <= degree."""
     ps, pt = _powers(s, degree), _powers(t, degree)
-    return (pt[:, None, :] * ps[None, :, :]).reshape(-1, len(s)).T
+    return (pt[:, None, :] * ps[None, :, :]).reshape(-1, len(s))
 
 
 def _powers(x: np.ndarray, degree: int) -> np.ndarray:

@@ -21,6 +21,7 @@ from calibration.models.base import CameraModel, ModelError, register_model
 _PROJECT_ITERS = 50
 _PROJECT_TOL_PX = 1e-10
 _PROJECT_MAX_ANGLE = 1e-9
+_SNAP_PX = 1e-9
 
 
 def default_grid_step(image_size: tuple[int, int]) -> int:
@@ -88,6 +89,7 @@ class RayGridModel(CameraModel):
         self.direction_std = None if direction_std is None else _f32(direction_std)
         self.origin_std = None if origin_std is None else _f32(origin_std)
         self._tree: tuple[cKDTree, np.ndarray] | None = None
+        self._cells_ok: np.ndarray | None = None
 
     @property
     def is_central(self) -> bool:  # type: ignore[override]
@@ -98,10 +100,12 @@ class RayGridModel(CameraModel):
         """Boolean (H', W') mask of table nodes that have a ray."""
         return np.all(np.isfinite(self.directions), axis=2)
 
-    def _interp(
-        self, table: np.ndarray, pixels: np.ndarray, derivatives: bool = False
-    ) -> tuple[np.ndarray, ...]:
-        """Bilinear values (N, C) of a (H', W', C) table, optionally with d/du, d/dv."""
+    def _cells(self, pixels: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Table cell (i0, j0), fractions (fu, fv) and inside-mask of pixels (N, 2).
+
+        A pixel on a node line belongs to the cell after it unless only the cell before it
+        has rays (so the coverage boundary itself is covered, from either side).
+        """
         s = float(self.grid_step)
         hh, ww = self.table_shape
         gu, gv = pixels[:, 0] / s, pixels[:, 1] / s
@@ -109,8 +113,30 @@ class RayGridModel(CameraModel):
         gu, gv = np.where(inside, gu, 0.0), np.where(inside, gv, 0.0)
         i0 = np.clip(np.floor(gu).astype(np.int64), 0, max(ww - 2, 0))
         j0 = np.clip(np.floor(gv).astype(np.int64), 0, max(hh - 2, 0))
+        if hh > 1 and ww > 1:
+            ok = self._cell_ok()
+            back = ~ok[j0, i0] & (gu == i0) & (i0 > 0)
+            back[back] = ok[j0[back], i0[back] - 1]
+            i0 = i0 - back
+            back = ~ok[j0, i0] & (gv == j0) & (j0 > 0)
+            back[back] = ok[j0[back] - 1, i0[back]]
+            j0 = j0 - back
+        return i0, j0, (gu - i0)[:, None], (gv - j0)[:, None], inside
+
+    def _cell_ok(self) -> np.ndarray:
+        """(H'-1, W'-1) mask of table cells whose four corner nodes all have rays."""
+        if self._cells_ok is None:
+            c = self.covered()
+            self._cells_ok = c[:-1, :-1] & c[:-1, 1:] & c[1:, :-1] & c[1:, 1:]
+        return self._cells_ok
+
+    def _interp(
+        self, table: np.ndarray, pixels: np.ndarray, derivatives: bool = False
+    ) -> tuple[np.ndarray, ...]:
+        """Bilinear values (N, C) of a (H', W', C) table, optionally with d/du, d/dv."""
+        hh, ww = self.table_shape
+        i0, j0, fu, fv, inside = self._cells(pixels)
         i1, j1 = np.minimum(i0 + 1, ww - 1), np.minimum(j0 + 1, hh - 1)
-        fu, fv = (gu - i0)[:, None], (gv - j0)[:, None]
         t00, t01 = table[j0, i0], table[j0, i1]
         t10, t11 = table[j1, i0], table[j1, i1]
         top, bot = t00 + fu * (t01 - t00), t10 + fu * (t11 - t10)
@@ -118,6 +144,7 @@ class RayGridModel(CameraModel):
         val[~inside] = np.nan
         if not derivatives:
             return (val,)
+        s = float(self.grid_step)
         du = ((1 - fv) * (t01 - t00) + fv * (t11 - t10)) / s
         dv = (bot - top) / s
         return val, du, dv
@@ -177,9 +204,12 @@ class RayGridModel(CameraModel):
         q = p - o_mean
         qn = q / np.linalg.norm(q, axis=1, keepdims=True)
         good = np.all(np.isfinite(qn), axis=1)
-        _, idx = tree.query(np.where(good[:, None], qn, 0.0))
+        # Query only real directions: the zero vector is equidistant from every unit vector,
+        # which defeats the tree's pruning.
+        idx = np.zeros(len(p), dtype=np.int64)
+        idx[good] = tree.query(qn[good])[1]
         hi = np.array([(self.table_shape[1] - 1), (self.table_shape[0] - 1)]) * self.grid_step
-        uv = self._seed(nodes[np.minimum(idx, len(nodes) - 1)], p, hi)
+        uv = self._seed(nodes[idx], p, hi)
         prev, last = uv.copy(), np.zeros_like(uv)
         active = good.copy()
         for _ in range(_PROJECT_ITERS):
@@ -192,12 +222,12 @@ class RayGridModel(CameraModel):
             # A step into a cell without rays is halved (backtracking from the last good point).
             back = sel[~ok]
             last[back] *= 0.5
-            uv[back] = prev[back] + last[back]
+            uv[back] = self._snap(prev[back] + last[back])
             active[back[np.max(np.abs(last[back]), axis=1) < _PROJECT_TOL_PX]] = False
             fwd = sel[ok]
             step = -np.linalg.solve(jac[ok], res[ok][..., None])[..., 0]
             prev[fwd] = uv[fwd]
-            uv[fwd] = np.clip(uv[fwd] + step, 0.0, hi)
+            uv[fwd] = self._snap(np.clip(uv[fwd] + step, 0.0, hi))
             last[fwd] = uv[fwd] - prev[fwd]
             active[fwd[np.max(np.abs(step), axis=1) < _PROJECT_TOL_PX]] = False
         res, _ = self._project_residual(uv, p)
@@ -206,6 +236,12 @@ class RayGridModel(CameraModel):
         fine = good & ahead & (np.linalg.norm(res, axis=1) < _PROJECT_MAX_ANGLE)
         out[fine] = uv[fine]
         return out
+
+    def _snap(self, uv: np.ndarray) -> np.ndarray:
+        """Move coordinates within 1e-9 px of a node line onto it (coverage edges are lines)."""
+        s = float(self.grid_step)
+        node = np.round(uv / s) * s
+        return np.where(np.abs(uv - node) < _SNAP_PX, node, uv)
 
     def _seed(self, nodes: np.ndarray, p: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Best start among a node and the centers of its 4 cells (a node may border no ray)."""
@@ -251,7 +287,7 @@ class RayGridModel(CameraModel):
         self.directions = _f32(v[:n].reshape(self.directions.shape))
         if self.origins is not None:
             self.origins = _f32(v[n:].reshape(self.origins.shape))
-        self._tree = None
+        self._tree, self._cells_ok = None, None
 
     def params_to_json(self) -> dict[str, Any]:
         """{central, grid_step, directions, origins?, direction_std?, origin_std?}."""

@@ -32,23 +32,35 @@ def expmap(ab: np.ndarray) -> np.ndarray:
     return np.stack([ab[:, 0] * sinc, ab[:, 1] * sinc, np.cos(rho)], axis=1)
 
 
-def expmap_jacobian(ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Directions (N,3) and d r / d(a, b) (N,3,2) of the exponential map."""
-    a, b = ab[:, 0], ab[:, 1]
-    rho = np.hypot(a, b)
+def expmap_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Directions as rows (3, N) from coordinate rows a, b (N,): the fit's feature-major layout."""
+    rho = np.sqrt(a * a + b * b)
+    sinc = np.sinc(rho / np.pi)
+    return np.stack([a * sinc, b * sinc, np.cos(rho)])
+
+
+def expmap_jacobian_rows(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Directions (3, N) and d r / d(a, b) (3, 2, N), feature-major (rows contiguous)."""
+    rho = np.sqrt(a * a + b * b)
     sinc = np.sinc(rho / np.pi)
     small = rho < 1e-3
     safe = np.where(small, 1.0, rho)
     ds = np.where(small, -1.0 / 3.0 + rho**2 / 30.0, (safe * np.cos(safe) - np.sin(safe)) / safe**3)
-    r = np.stack([a * sinc, b * sinc, np.cos(rho)], axis=1)
-    jac = np.empty((len(a), 3, 2))
-    jac[:, 0, 0] = sinc + a * a * ds
-    jac[:, 0, 1] = a * b * ds
-    jac[:, 1, 0] = a * b * ds
-    jac[:, 1, 1] = sinc + b * b * ds
-    jac[:, 2, 0] = -a * sinc
-    jac[:, 2, 1] = -b * sinc
+    r = np.stack([a * sinc, b * sinc, np.cos(rho)])
+    jac = np.empty((3, 2, len(a)))
+    jac[0, 0] = sinc + a * a * ds
+    jac[0, 1] = a * b * ds
+    jac[1, 0] = jac[0, 1]
+    jac[1, 1] = sinc + b * b * ds
+    jac[2, 0] = -a * sinc
+    jac[2, 1] = -b * sinc
     return r, jac
+
+
+def expmap_jacobian(ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Directions (N,3) and d r / d(a, b) (N,3,2) of the exponential map."""
+    r, jac = expmap_jacobian_rows(ab[:, 0], ab[:, 1])
+    return r.T, jac.transpose(2, 0, 1)
 
 
 def logmap(d: np.ndarray) -> np.ndarray:
