@@ -63,6 +63,25 @@ def test_calibrate_project_unproject(workdir, capsys) -> None:
     np.testing.assert_allclose(np.load(d / "back.npy"), pix, atol=1e-6)
 
 
+@pytest.mark.parametrize("model", ["sgcc", "raygrid"])
+def test_calibrate_generic_with_heldout_and_options(workdir, capsys, model) -> None:
+    d = workdir
+    option = "cells=[6,6]" if model == "sgcc" else "grid_step=16"
+    out_json = d / f"{model}.json"
+    args = ["calibrate", "--plan", str(d / "plan.json"), "--maps",
+            *[str(d / f"pose{i}.npz") for i in range(5)], "--model", model,
+            "-o", str(out_json), "--heldout", "4", "--option", option,
+            "--report", str(d / f"{model}.png")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "held-out RMS" in out and "MODEL INADEQUATE" not in out
+    stats = json.loads(out_json.read_text())["stats"]
+    assert stats["heldout"]["per_pose"][0]["pose"] == 4
+    assert 0.7 < stats["noise_floor_ratio"] < 1.3
+    assert 0.7 < stats["heldout"]["noise_floor_ratio"] < 1.5
+    assert (d / f"{model}.png").stat().st_size > 0
+
+
 def test_cli_errors(workdir, capsys) -> None:
     d = workdir
     base = ["calibrate", "--plan", str(d / "plan.json"), "-o", str(d / "m2.json")]
@@ -74,6 +93,13 @@ def test_cli_errors(workdir, capsys) -> None:
     assert "needs >= 3" in capsys.readouterr().err
     assert main([*base, "--maps", str(d / "pose0.npz"), "--model", "pinhole9"]) == 1
     assert "--model" in capsys.readouterr().err
+    maps3 = ["--maps", *[str(d / f"pose{i}.npz") for i in range(3)]]
+    assert main([*base, *maps3, "--model", "sgcc", "--max-points", "500"]) == 1
+    assert "--max-points: applies to the parametric models" in capsys.readouterr().err
+    assert main([*base, *maps3, "--model", "sgcc", "--option", "cells"]) == 1
+    assert "expected KEY=VALUE" in capsys.readouterr().err
+    assert main([*base, *maps3, "--model", "sgcc", "--option", "knots=3"]) == 1
+    assert "unknown key(s) ['knots']" in capsys.readouterr().err
     (d / "corrupt.json").write_text('{"format": "phasecal.model/1", "type": "opencv5"}')
     np.save(d / "p.npy", np.zeros((2, 2)))
     assert main(["unproject", "--model", str(d / "corrupt.json"), "--pixels", str(d / "p.npy"),

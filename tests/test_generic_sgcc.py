@@ -133,10 +133,15 @@ def test_project_inverts_unproject_and_json_roundtrip(pinhole_fit):
 
 def test_heldout_pose_and_statistics(pinhole_fit):
     _, _, res = pinhole_fit
-    held = res.stats["heldout"][0]
+    held = res.stats["heldout"]["per_pose"][0]
     assert held["pose"] == 3
     assert held["rms_px"] < 3 * res.stats["rms_px"] + 1e-3
     assert 0.7 < held["chi2_dof"] < 1.5
+    # Noise floor mapped to camera px through the model's Jacobian: an adequate model sits at 1.
+    assert 0.8 < res.stats["noise_floor_ratio"] < 1.2 and res.stats["model_adequate"]
+    assert 0.8 < res.stats["heldout"]["noise_floor_ratio"] < 1.5
+    for row in res.stats["per_pose"]:
+        assert abs(row["rms_px"] / row["expected_rms_px"] - row["noise_floor_ratio"]) < 1e-12
     assert len(res.stats["per_pose"]) == 3
     assert res.stats["uncovered_cells"] == [] or isinstance(res.stats["uncovered_cells"], list)
 

@@ -14,7 +14,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="output model.json")
     p.add_argument("--heldout", type=int, nargs="+", default=[], metavar="POSE",
                    help="pose indices (0-based, --maps order) left out of the fit and validated")
-    p.add_argument("--max-points", type=int, help="points per pose given to the solver")
+    p.add_argument("--max-points", type=int,
+                   help="points per pose given to the solver (parametric models only; the "
+                        "generic models use every valid pixel)")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="model option, VALUE as JSON (e.g. cells=[8,8], central=false); "
+                        "repeatable; see docs/calibration.md and docs/generic.md")
     p.add_argument("--report", help="write a residual plot PNG here")
     p.add_argument("--export-opencv", metavar="YAML", help="also write OpenCV FileStorage YAML")
     p.add_argument("--export-ros", metavar="YAML", help="also write ROS camera_info YAML")
@@ -22,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
-    from calibration.fit.dispatch import MODEL_NAMES, calibrate
+    from calibration.fit.dispatch import MODEL_NAMES, PARAMETRIC, calibrate
     from calibration.fit.homography import DegenerateError
     from calibration.maps import load_maps
     from calibration.models.base import save_model
@@ -32,8 +37,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--model: expected one of {', '.join(MODEL_NAMES)}, got {args.model!r}")
     plan = read_plan(args.plan)
     maps = [load_maps(m) for m in args.maps]
-    options = {}
+    options = _parse_options(args.option)
     if args.max_points is not None:
+        if args.model not in PARAMETRIC:
+            raise UserError(f"--max-points: applies to the parametric models "
+                            f"({', '.join(PARAMETRIC)}); {args.model} uses every valid pixel")
         if args.max_points < 50:
             raise UserError(f"--max-points: expected >= 50, got {args.max_points}")
         options["max_points_per_pose"] = args.max_points
@@ -66,3 +74,21 @@ def run(args: argparse.Namespace) -> int:
 
         export_ros_yaml(result.model, args.export_ros)
     return 0
+
+
+def _parse_options(pairs: list[str]) -> dict[str, object]:
+    """`KEY=VALUE` strings to an options dict; VALUE is JSON, or a bare string if not JSON."""
+    import json
+
+    from api.cli import UserError
+
+    options: dict[str, object] = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        if not sep or not key:
+            raise UserError(f"--option: expected KEY=VALUE, got {pair!r}")
+        try:
+            options[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            options[key] = raw
+    return options

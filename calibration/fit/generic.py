@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration.evaluate import summarize
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sgcc_init import initial_state, pose_from_model
 from calibration.fit.sgcc_lm import LMOptions, LMResult, LMState, PoseObs, run_lm
@@ -64,10 +65,8 @@ def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMO
     return (int(cells[0]), int(cells[1])), lm
 
 
-def pixel_residuals(
-    model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs, res: np.ndarray
-) -> np.ndarray:
-    """Screen-plane residuals (N,2) mm mapped to camera pixels through the local Jacobian."""
+def _screen_jacobian(model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs) -> np.ndarray:
+    """(N, 2, 2) derivative of the screen point (mm) w.r.t. the camera pixel at each point."""
     comps, du, dv = model.components(ob.pixels, derivatives=True)
     r, jr = expmap_jacobian(comps[:, :2])
     o = np.zeros_like(r)
@@ -85,7 +84,42 @@ def pixel_residuals(
         do = do @ rc.T
         dlam = -(do[:, 2] + lam * dr[:, 2]) / r_s[:, 2]
         jac[:, :, col] = do[:, :2] + lam[:, None] * dr[:, :2] + dlam[:, None] * r_s[:, :2]
-    return -np.linalg.solve(jac, res[..., None])[..., 0]
+    return jac
+
+
+def pose_statistics(
+    model: SGCCBase,
+    rc: np.ndarray,
+    tc: np.ndarray,
+    ob: PoseObs,
+    res: np.ndarray,
+    inliers: np.ndarray,
+    pitch_mm: np.ndarray,
+    dof_shrink: float = 1.0,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Camera-px residuals of one pose and its statistics in `evaluate.per_pose_stats` layout.
+
+    Screen residuals (mm) and their sigmas are mapped to camera pixels through the local
+    Jacobian; `dof_shrink` (1 - parameters/residuals) scales the expected training residual.
+    """
+    inv = np.linalg.inv(_screen_jacobian(model, rc, tc, ob)[inliers])
+    px = -np.einsum("nij,nj->ni", inv, res[inliers])
+    expected2 = np.sum((inv * ob.sigma_mm[inliers][:, None, :]) ** 2, axis=(1, 2)) * dof_shrink
+    n = int(inliers.sum())
+    rms = float(np.sqrt(np.mean(np.sum(px**2, axis=1))))
+    expected = float(np.sqrt(np.mean(expected2)))
+    return px, {
+        "rms_px": rms,
+        "expected_rms_px": expected,
+        "rms_screen_px": float(np.sqrt(np.mean(np.sum((res[inliers] / pitch_mm) ** 2, axis=1)))),
+        "expected_rms_screen_px": float(
+            np.sqrt(np.mean(np.sum((ob.sigma_mm[inliers] / pitch_mm) ** 2, axis=1)) * dof_shrink)
+        ),
+        "noise_floor_ratio": rms / expected,
+        "n_points": n,
+        "n_outliers": len(inliers) - n,
+        "outlier_fraction": 1.0 - n / max(len(inliers), 1),
+    }
 
 
 def _fit(
@@ -105,8 +139,11 @@ def _fit(
     return model, out
 
 
-def _heldout(model: SGCCBase, obs: list[PoseObs], lm: LMOptions) -> list[dict[str, Any]]:
-    """Pose-only fit of each held-out pose with the model fixed; its residual statistics."""
+def _heldout(
+    model: SGCCBase, obs: list[PoseObs], indices: list[int], lm: LMOptions, pitch_mm: np.ndarray
+) -> dict[str, Any]:
+    """Pose-only fit of each held-out pose with the model fixed; statistics in the parametric
+    models' layout ({per_pose, pooled rms/noise floor}, `evaluate.summarize`)."""
     rows = []
     fixed = LMOptions(
         max_iterations=lm.max_iterations,
@@ -114,21 +151,14 @@ def _heldout(model: SGCCBase, obs: list[PoseObs], lm: LMOptions) -> list[dict[st
         cut_sigmas=lm.cut_sigmas,
         fix_spline=True,
     )
-    for j, ob in enumerate(obs):
+    for ob, index in zip(obs, indices, strict=True):
         rc, tc = pose_from_model(model.unproject, ob)
         out = run_lm(model.grid, model.n_components, [ob], LMState(model.coeffs, [rc], [tc]), fixed)
-        res, inl = out.residuals[0], out.inliers[0]
-        px = pixel_residuals(model, out.state.rc[0], out.state.tc[0], ob, res)
-        rows.append(
-            {
-                "pose": j,
-                "n_points": int(inl.sum()),
-                "rms_px": float(np.sqrt(np.mean(np.sum(px[inl] ** 2, axis=1)))),
-                "rms_screen_mm": float(np.sqrt(np.mean(np.sum(res[inl] ** 2, axis=1)))),
-                "chi2_dof": out.chi2_dof,
-            }
+        _, row = pose_statistics(
+            model, out.state.rc[0], out.state.tc[0], ob, out.residuals[0], out.inliers[0], pitch_mm
         )
-    return rows
+        rows.append({"pose": index, **row, "chi2_dof": out.chi2_dof})
+    return {"per_pose": rows, **summarize(rows)}
 
 
 def uncovered_cells(grid: SplineGrid, obs: list[PoseObs]) -> list[int]:
@@ -190,34 +220,25 @@ def calibrate_generic(
         init = LMState(coeffs, out.state.rc, out.state.tc)
         fitted, out = _fit(SGCCNonCentralModel, obs, grid, init, lm, progress, cancelled)
         iterations += out.iterations
+    pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
+    n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
+    dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)
     poses, per_pose, res_px, pix_out = [], [], {}, {}
     for j, ob in enumerate(obs):
         rc, tc = out.state.rc[j], out.state.tc[j]
-        res, inl = out.residuals[j], out.inliers[j]
-        px = pixel_residuals(fitted, rc, tc, ob, res)
-        rms_px = float(np.sqrt(np.mean(np.sum(px[inl] ** 2, axis=1))))
-        rms_scr = float(
-            np.sqrt(np.mean(np.sum((res[inl] / np.asarray(screen.pitch_mm)) ** 2, axis=1)))
-        )
-        poses.append(PoseEstimate(rc.T, -rc.T @ tc, rms_px, rms_scr, int(inl.sum())))
-        per_pose.append(
-            {
-                "pose": j,
-                "rms_px": rms_px,
-                "rms_screen_px": rms_scr,
-                "n_points": int(inl.sum()),
-                "n_outliers": int((~inl).sum()),
-            }
-        )
-        res_px[j], pix_out[j] = px[inl], ob.pixels[inl]
-    all_px = np.concatenate([res_px[j] for j in res_px])
+        inl = out.inliers[j]
+        px, row = pose_statistics(fitted, rc, tc, ob, out.residuals[j], inl, pitch, dof_shrink)
+        poses.append(PoseEstimate(rc.T, -rc.T @ tc, row["rms_px"], row["rms_screen_px"],
+                                  row["n_points"]))
+        per_pose.append({"pose": j, **row})
+        res_px[j], pix_out[j] = px, ob.pixels[inl]
     sample = np.stack(
         np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 25)), -1
     ).reshape(-1, 2)
     ang, org = fitted.ray_std(sample)
     stats: dict[str, Any] = {
         "model": model,
-        "rms_px": float(np.sqrt(np.mean(np.sum(all_px**2, axis=1)))),
+        **summarize(per_pose),
         "per_pose": per_pose,
         "iterations": iterations,
         "converged": out.converged,
@@ -233,9 +254,7 @@ def calibrate_generic(
         "param_std": {"ray_angle_rad_median": float(np.median(ang))},
     }
     if held_maps:
-        stats["heldout"] = _heldout(fitted, observations(held_maps, screen), lm)
-        for row, index in zip(stats["heldout"], held, strict=True):
-            row["pose"] = index
+        stats["heldout"] = _heldout(fitted, observations(held_maps, screen), held, lm, pitch)
     stats["wall_s"] = time.perf_counter() - t0
     fitted.stats = stats
     return CalibrationResult(fitted, poses, stats, pix_out, res_px)
