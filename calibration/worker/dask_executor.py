@@ -60,7 +60,12 @@ def _parse_local(address: str) -> int | None:
 
 
 def start_local_cluster(n_workers: int = 2) -> Any:
-    """A loopback-only `LocalCluster` of single-threaded worker processes, no dashboard."""
+    """A loopback-only `LocalCluster` of single-threaded worker processes.
+
+    The scheduler always serves HTTP (health, metrics, dashboard when bokeh is installed):
+    bind it to a free loopback port so it neither clashes with a running cluster on 8787
+    nor listens beyond 127.0.0.1.
+    """
     from distributed import LocalCluster
 
     return LocalCluster(
@@ -68,7 +73,7 @@ def start_local_cluster(n_workers: int = 2) -> Any:
         threads_per_worker=1,
         processes=True,
         host="127.0.0.1",
-        dashboard_address=None,
+        dashboard_address="127.0.0.1:0",
     )
 
 
