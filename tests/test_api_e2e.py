@@ -192,6 +192,9 @@ def test_jobs_listing_filters_and_sse(client: PhasecalClient, server: ServerProc
                                       session: dict, plan: Plan, tmp_path: Path) -> None:
     path = tmp_path / "frames.npy"
     np.save(path, render(plan, np.random.default_rng(4)))
+    # Three decode jobs of its own (tests of this module may run on other xdist workers).
+    for _ in range(2):
+        client.import_frames(session["id"], [path])
     job = client.import_frames(session["id"], [path])
     events = []
     with httpx.stream("GET", f"{server.url}/jobs/{job['id']}/events", timeout=120) as r:
