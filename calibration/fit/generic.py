@@ -2,7 +2,7 @@
 
 Entry point `calibrate_generic`; engineer D's dispatcher forwards these model names here.
 Options (dict, all optional): `cells` [cu, cv] (default 10x10), `max_iterations` (60),
-`huber_k` (3), `cut_sigmas` (8), `smooth` (1e-7, relative weight of the
+`huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data).
 """
 

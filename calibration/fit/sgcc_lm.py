@@ -54,7 +54,7 @@ class LMOptions:
     max_iterations: int = 60
     huber_k: float = 3.0
     cut_sigmas: float = 8.0
-    smooth: float = 1e-7
+    smooth: float = 1e-10
     rel_tol: float = 1e-10
     fix_spline: bool = False
     full_data: bool = True  # False: stop after the subset phase (fit that only initializes)
