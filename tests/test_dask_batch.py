@@ -3,7 +3,6 @@ as in-process, failed items recorded, cancel, and the `phasecal batch` command."
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import sys
@@ -14,8 +13,6 @@ import cloudpickle
 import dask
 import numpy as np
 import pytest
-
-pytest.importorskip("distributed")
 
 from api.cli import main as cli_main
 from calibration.worker.dask_batch import (
@@ -196,10 +193,6 @@ def test_cli_rejects_mixed_arguments(tmp_path, capsys):
     assert "either --manifest or --plan" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(
-    any(importlib.util.find_spec(m) is None
-        for m in ("calibration.fit.dispatch", "calibration.export", "calibration.report")),
-    reason="the calibration pipeline (fit.dispatch, export, report) is not complete yet")
 def test_cli_batch_on_local_cluster_matches_in_process(tmp_path, capsys):
     from acquisition.patterns import build_plan
     from calibration.maps import save_maps

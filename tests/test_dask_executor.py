@@ -11,14 +11,13 @@ from pathlib import Path
 
 import cloudpickle
 import dask
+import distributed
 import numpy as np
 import pytest
 
-distributed = pytest.importorskip("distributed")
-
-from calibration.worker.dask_context import cancel_event_name  # noqa: E402
-from calibration.worker.dask_executor import DaskExecutor, WorkerLost  # noqa: E402
-from calibration.worker.executor import (  # noqa: E402
+from calibration.worker.dask_context import cancel_event_name
+from calibration.worker.dask_executor import DaskExecutor, WorkerLost
+from calibration.worker.executor import (
     InProcessExecutor,
     JobCancelled,
     TaskContext,

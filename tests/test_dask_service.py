@@ -4,7 +4,6 @@ calibration fit exists, a batch of calibrations through `/batches/calibrations`.
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import math
 import time
@@ -14,8 +13,6 @@ import dask
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-
-pytest.importorskip("distributed")
 
 from acquisition.patterns import build_plan
 from api.app import create_app
@@ -101,10 +98,6 @@ def test_decode_job_on_cluster_matches_in_process(cluster, plan, tmp_path):
         assert np.array_equal(getattr(a, key), getattr(b, key), equal_nan=key != "mask"), key
 
 
-@pytest.mark.skipif(
-    any(importlib.util.find_spec(m) is None
-        for m in ("calibration.fit.dispatch", "calibration.export", "calibration.report")),
-    reason="the calibration pipeline (fit.dispatch, export, report) is not complete yet")
 def test_batch_endpoint_on_cluster_matches_in_process(cluster, tmp_path):
     from calibration.maps import save_maps
     from hw_mocks.cameras import mild_pinhole

@@ -10,10 +10,8 @@ import pytest
 
 from acquisition.clock import RealClock
 from acquisition.display.framebuffer import FramebufferDisplay, FramebufferGeometry
+from tests import device_protocol as protocol
 from tests.hw_aravis_support import fake_camera_lock, require_aravis
-
-protocol = pytest.importorskip("tests.device_protocol",
-                               reason="the shared protocol suite (engineer B) is not there yet")
 
 
 @pytest.fixture
