@@ -60,19 +60,29 @@ class BodyLimitMiddleware:
                                f"the limit of {self.max_bytes} bytes (PHASECAL_MAX_UPLOAD_BYTES)")
             return
         seen = 0
-        started = False
+        started = False  # a response went out to the client
+        exceeded = False  # the body passed the limit while streaming
+        too_large = f"request body exceeds the limit of {self.max_bytes} bytes"
 
         async def limited_receive() -> dict[str, Any]:
-            nonlocal seen
+            nonlocal seen, exceeded
             msg = await receive()
             if msg["type"] == "http.request":
                 seen += len(msg.get("body", b""))
                 if seen > self.max_bytes:
+                    exceeded = True
                     raise _TooLarge
             return msg
 
         async def tracking_send(msg: dict[str, Any]) -> None:
             nonlocal started
+            if exceeded:
+                # The app caught _TooLarge while parsing (FastAPI turns any form-parsing
+                # error into a 400): answer 413 instead and drop the app's own response.
+                if not started:
+                    started = True
+                    await send_problem(send, 413, "too-large", too_large)
+                return
             if msg["type"] == "http.response.start":
                 started = True
             await send(msg)
@@ -81,8 +91,7 @@ class BodyLimitMiddleware:
             await self.app(scope, limited_receive, tracking_send)
         except _TooLarge:
             if not started:
-                await send_problem(send, 413, "too-large",
-                                   f"request body exceeds the limit of {self.max_bytes} bytes")
+                await send_problem(send, 413, "too-large", too_large)
 
 
 class _TooLarge(Exception):

@@ -172,6 +172,27 @@ def test_problem_json_for_bad_input(client: TestClient) -> None:
     assert cases[7].status_code == 413
 
 
+def test_chunked_upload_over_the_limit_is_413(client: TestClient) -> None:
+    """No Content-Length (chunked): the limit trips while the multipart body streams."""
+    sid = client.post("/sessions", json={"name": "chunked", "plan": PLAN}).json()["id"]
+    head = (b'--B\r\nContent-Disposition: form-data; name="files"; filename="f.npy"\r\n'
+            b"Content-Type: application/octet-stream\r\n\r\n")
+
+    def body():
+        yield head
+        for _ in range(10):
+            yield b"x" * 1000
+        yield b"\r\n--B--\r\n"
+
+    r = client.post(f"/sessions/{sid}/poses/import", content=body(),
+                    headers={"content-type": "multipart/form-data; boundary=B"})
+    assert "content-length" not in r.request.headers
+    assert r.status_code == 413, r.text
+    assert r.headers["content-type"] == "application/problem+json"
+    assert "4096 bytes" in r.json()["detail"]
+    assert client.get(f"/sessions/{sid}/poses").json() == []
+
+
 def test_idempotent_post_replays(client: TestClient) -> None:
     body = {"name": "idem", "plan": PLAN}
     h = {"Idempotency-Key": "k-1"}
