@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -127,8 +129,18 @@ def test_project_inverts_unproject_and_json_roundtrip(pinhole_fit):
     back = model.project(o + 400.0 * d)
     assert np.nanmax(np.abs(back - pix)) < 1e-6
     assert np.isnan(model.project(np.array([[0.0, 0.0, -100.0]]))).all()
-    again = model_from_dict(model.to_dict())
+    doc = model.to_dict()
+    again = model_from_dict(doc)
     assert np.allclose(again.unproject(pix)[1], d, atol=1e-15)
+    # The ray uncertainty survives the file: the full covariance is stored.
+    assert np.array_equal(again.covariance, model.covariance)
+    assert np.array_equal(again.ray_std(pix)[0], model.ray_std(pix)[0])
+    from calibration.models.base import ModelError
+
+    bad = json.loads(json.dumps(doc))
+    bad["params"]["covariance_upper_f64_b64"] = bad["params"]["covariance_upper_f64_b64"][:-8]
+    with pytest.raises(ModelError, match="covariance_upper_f64_b64"):
+        model_from_dict(bad)
 
 
 def test_heldout_pose_and_statistics(pinhole_fit):

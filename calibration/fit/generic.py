@@ -135,7 +135,8 @@ def _fit(
     out = run_lm(grid, cls.n_components, obs, init, lm, progress=progress, cancelled=cancelled)
     model = cls(grid.image_size, grid.cells, out.state.coeffs)
     ns = grid.size * cls.n_components
-    model.covariance = out.covariance[:ns, :ns]
+    cov = out.covariance[:ns, :ns]
+    model.covariance = 0.5 * (cov + cov.T)  # exactly symmetric, as stored in model.json
     return model, out
 
 

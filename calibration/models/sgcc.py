@@ -10,6 +10,8 @@ fixes the slide of o along r. Central models have o = 0.
 
 from __future__ import annotations
 
+import base64
+import binascii
 from typing import Any
 
 import numpy as np
@@ -232,6 +234,7 @@ class SGCCBase(CameraModel):
         }
         if self.covariance is not None:
             out["covariance_diag"] = np.diag(self.covariance).tolist()
+            out["covariance_upper_f64_b64"] = _pack_upper(self.covariance)
         return out
 
     @classmethod
@@ -250,7 +253,35 @@ class SGCCBase(CameraModel):
             raise ModelError(
                 f"params.control_points: expected shape {list(expected)}, got {list(cp.shape)}"
             )
-        return cls(image_size, (cells[0], cells[1]), cp.reshape(-1, cls.n_components))
+        model = cls(image_size, (cells[0], cells[1]), cp.reshape(-1, cls.n_components))
+        packed = params.get("covariance_upper_f64_b64")
+        if packed is not None:
+            model.covariance = _unpack_upper(packed, model.coeffs.size)
+        return model
+
+
+def _pack_upper(cov: np.ndarray) -> str:
+    """Upper triangle (row-major, diagonal included) as base64 little-endian float64."""
+    return base64.b64encode(cov[np.triu_indices(len(cov))].astype("<f8").tobytes()).decode()
+
+
+def _unpack_upper(packed: Any, n: int) -> np.ndarray:
+    """Inverse of `_pack_upper` for an (n, n) covariance; ModelError naming the field."""
+    where = "params.covariance_upper_f64_b64"
+    try:
+        raw = base64.b64decode(packed, validate=True)
+    except (TypeError, ValueError, binascii.Error) as exc:
+        raise ModelError(f"{where}: expected base64 text ({exc})") from None
+    count = n * (n + 1) // 2
+    if len(raw) != 8 * count:
+        raise ModelError(f"{where}: expected {count} float64 values for {n} parameters, "
+                         f"got {len(raw) / 8:g}")
+    upper = np.frombuffer(raw, dtype="<f8")
+    if not np.all(np.isfinite(upper)):
+        raise ModelError(f"{where}: contains non-finite values")
+    cov = np.zeros((n, n))
+    cov[np.triu_indices(n)] = upper
+    return cov + np.triu(cov, 1).T
 
 
 @register_model
