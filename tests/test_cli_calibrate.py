@@ -75,6 +75,7 @@ def test_calibrate_generic_with_heldout_and_options(workdir, capsys, model) -> N
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "held-out RMS" in out and "MODEL INADEQUATE" not in out
+    assert "ray 1-sigma: direction median" in out
     stats = json.loads(out_json.read_text())["stats"]
     assert stats["heldout"]["per_pose"][0]["pose"] == 4
     assert 0.7 < stats["noise_floor_ratio"] < 1.3

@@ -58,6 +58,11 @@ def run(args: argparse.Namespace) -> int:
     for pp in st["per_pose"]:
         print(f"  pose {pp['pose']}: RMS {pp['rms_px']:.4g} px, screen {pp['rms_screen_px']:.4g} "
               f"px, {pp['n_points']} points")
+    if "ray_std_rad_median" in st:
+        origin = (f", origin median {st['origin_std_mm_median'] * 1e3:.3g} um"
+                  if st.get("origin_std_mm_median") else "")
+        print(f"  ray 1-sigma: direction median {st['ray_std_rad_median'] * 1e6:.3g} urad "
+              f"(max {st['ray_std_rad_max'] * 1e6:.3g}){origin}")
     if st.get("heldout"):
         print(f"  held-out RMS {st['heldout']['rms_px']:.4g} px "
               f"(ratio {st['heldout']['noise_floor_ratio']:.3g})")
