@@ -2,13 +2,16 @@
 
 The first answer (status < 500) to `POST path` with `Idempotency-Key: K` is stored in
 SQLite with a hash of the body; a retry with the same key and body replays it without
-running the request again; the same key with another body or path is a 422.
+running the request again; the same key with another body or path is a 422. The body is
+hashed before the request runs, so it is spooled (memory up to 1 MiB, then a temporary
+file) rather than held in memory: uploads may be hundreds of MB.
 """
 
 from __future__ import annotations
 
 import asyncio
 import hashlib
+import tempfile
 import threading
 import time
 from typing import Any
@@ -20,6 +23,8 @@ from api.security import send_problem
 
 MAX_KEY_LEN = 200
 MAX_STORED_BODY = 1 << 20
+SPOOL_IN_MEMORY = 1 << 20  # request bodies above this go to a temporary file
+REPLAY_CHUNK = 1 << 20
 
 
 class IdempotencyMiddleware:
@@ -42,44 +47,45 @@ class IdempotencyMiddleware:
             await send_problem(send, 422, "validation-error",
                                f"Idempotency-Key: expected 1..{MAX_KEY_LEN} printable characters")
             return
-        chunks: list[bytes] = []
-        while True:
-            msg = await receive()
-            if msg["type"] == "http.disconnect":
-                return
-            chunks.append(msg.get("body", b""))
-            if not msg.get("more_body"):
-                break
-        body = b"".join(chunks)
-        digest = hashlib.sha256(body).hexdigest()
+        with tempfile.SpooledTemporaryFile(max_size=SPOOL_IN_MEMORY) as body:
+            digest = await _spool(receive, body)
+            if digest is not None:
+                await self._answer(scope, send, key, digest, body)
+
+    async def _answer(self, scope: dict[str, Any], send: Any, key: str, digest: str,
+                      body: Any) -> None:
+        """Replay the stored answer for `key`, or run the request and store its answer."""
         db: Database = self.db_getter()
         with self._guard:
             lock = self._inflight.setdefault(key, asyncio.Lock())
-        async with lock:
-            stored = await asyncio.to_thread(_lookup, db, key)
-            if stored is not None:
-                if stored.body_sha256 != digest or stored.path != scope["path"]:
+        try:
+            async with lock:
+                stored = await asyncio.to_thread(_lookup, db, key)
+                if stored is None:
+                    await self._run_and_store(scope, send, db, key, digest, body)
+                elif stored.body_sha256 != digest or stored.path != scope["path"]:
                     await send_problem(send, 422, "idempotency-key-reused",
-                                       f"Idempotency-Key {key!r} was used for a different request "
-                                       f"(POST {stored.path}); use a new key")
-                    return
-                await _replay(send, stored)
-                return
-            await self._run_and_store(scope, send, db, key, digest, body)
-        with self._guard:
-            if not lock.locked():
-                self._inflight.pop(key, None)
+                                       f"Idempotency-Key {key!r} was used for a different "
+                                       f"request (POST {stored.path}); use a new key")
+                else:
+                    await _replay(send, stored)
+        finally:
+            with self._guard:
+                if not lock.locked():
+                    self._inflight.pop(key, None)
 
     async def _run_and_store(self, scope: dict[str, Any], send: Any, db: Database, key: str,
-                             digest: str, body: bytes) -> None:
-        delivered = False
+                             digest: str, body: Any) -> None:
+        body.seek(0)
+        finished = False
 
         async def replay_receive() -> dict[str, Any]:
-            nonlocal delivered
-            if delivered:
+            nonlocal finished
+            if finished:
                 return {"type": "http.disconnect"}
-            delivered = True
-            return {"type": "http.request", "body": body, "more_body": False}
+            chunk = body.read(REPLAY_CHUNK)
+            finished = len(chunk) < REPLAY_CHUNK
+            return {"type": "http.request", "body": chunk, "more_body": not finished}
 
         status = 0
         resp_headers: list[tuple[bytes, bytes]] = []
@@ -102,6 +108,20 @@ class IdempotencyMiddleware:
                                     body_sha256=digest, status_code=status, headers=keep,
                                     body=data, created_at=time.time())
             await asyncio.to_thread(_store, db, rec)
+
+
+async def _spool(receive: Any, body: Any) -> str | None:
+    """Copy the request body into `body` (a file); its SHA-256, or None on disconnect."""
+    sha = hashlib.sha256()
+    while True:
+        msg = await receive()
+        if msg["type"] == "http.disconnect":
+            return None
+        chunk = msg.get("body", b"")
+        sha.update(chunk)
+        body.write(chunk)
+        if not msg.get("more_body"):
+            return sha.hexdigest()
 
 
 def _lookup(db: Database, key: str) -> IdempotencyRecord | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -206,6 +207,25 @@ def test_idempotent_post_replays(client: TestClient) -> None:
     assert c.status_code == 422 and "different request" in c.json()["detail"]
     d = client.post("/sessions", json={"name": "other", "plan": PLAN})
     assert d.json()["id"] != a.json()["id"]
+
+
+def test_idempotent_replay_of_a_body_larger_than_the_memory_spool(tmp_path: Path) -> None:
+    """Bodies over 1 MiB are spooled to a temporary file for hashing, then replayed in chunks."""
+    from api.idempotency import REPLAY_CHUNK, SPOOL_IN_MEMORY
+
+    cfg = ServiceConfig(data_dir=tmp_path / "data", max_upload_bytes=16 << 20)
+    payload = json.dumps({"name": "big", "plan": PLAN}).encode()
+    body = payload + b" " * (2 * SPOOL_IN_MEMORY + REPLAY_CHUNK // 3)  # JSON allows whitespace
+    h = {"Idempotency-Key": "big-1", "content-type": "application/json"}
+    with TestClient(create_app(cfg)) as c:
+        a = c.post("/sessions", content=body, headers=h)
+        b = c.post("/sessions", content=body, headers=h)
+        assert a.status_code == b.status_code == 201, a.text
+        assert b.headers.get("idempotent-replayed") == "true"
+        assert a.json()["id"] == b.json()["id"]
+        other = c.post("/sessions", content=body[:-1] + b"\n", headers=h)
+        assert other.status_code == 422 and "different request" in other.json()["detail"]
+        assert len(c.get("/sessions").json()) == 1
 
 
 def test_serve_refuses_public_bind_without_token(capsys: pytest.CaptureFixture[str],
