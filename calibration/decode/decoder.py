@@ -130,10 +130,15 @@ class StreamingDecoder:
         h, w = acc.shape
         npix = h * w
         axes = self.plan.axes()
+        # Chunks write every pixel of the plan's axes: no NaN pre-fill there (first-touch
+        # page faults of ~300 MB of outputs then happen in the worker threads, in parallel).
+        nan_filled = functools.partial(np.full, fill_value=np.nan)
         out = {
-            key: np.full(npix, np.nan, dtype=np.float64 if key in ("x", "y") else np.float32)
-            for key in ("x", "y", "sigma_x", "sigma_y", "modulation_x", "modulation_y",
-                        "blur_x", "blur_y")
+            f"{kind}{axis}": (np.empty if axis in axes else nan_filled)(
+                npix, dtype=np.float64 if kind == "" else np.float32
+            )
+            for axis in ("x", "y")
+            for kind in ("", "sigma_", "modulation_", "blur_")
         }
         reason = np.zeros(npix, dtype=np.uint8)
         step = self.options.chunk_pixels
