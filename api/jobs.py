@@ -145,20 +145,25 @@ class JobManager:
     def _finish(self, job_id: str, status: str, error: str | None, result: dict[str, Any] | None,
                 on_failure: FailHook | None, on_success: Hook | None) -> None:
         live = self._live[job_id]
+        # The in-memory record (what GET /jobs serves) takes the final state only after the
+        # commit: a client seeing "succeeded" must find the resource updated too.
+        final = dict(live.record, status=status, error=error, result=result,
+                     finished_at=time.time(), stage=status)
         try:
             with self.db.session() as s:
                 if on_success is not None:
                     on_success(s, result or {})
                 if on_failure is not None:
                     on_failure(s, status, error or "")
-                self._write(s, job_id, live.record, status=status, error=error,
-                            result=result, finished_at=time.time(), stage=status)
+                self._write(s, job_id, final)
         except Exception as exc:  # a failing hook must still end the job
             log.exception("finishing job %s failed", job_id)
+            final = dict(live.record, status="failed",
+                         error=f"could not store the job's outcome: {_describe(exc)}",
+                         finished_at=time.time(), stage="failed")
             with self.db.session() as s:
-                self._write(s, job_id, live.record, status="failed",
-                            error=f"could not store the job's outcome: {_describe(exc)}",
-                            finished_at=time.time(), stage="failed")
+                self._write(s, job_id, final)
+        live.record.update(final)
         with self._lock:
             self._recent[job_id] = dict(live.record, eta_s=None)
             while len(self._recent) > RECENT_CAPACITY:

@@ -121,6 +121,33 @@ def test_job_manager_states_progress_cancel_recover(tmp_path: Path) -> None:
     jm.executor.shutdown()
 
 
+def test_job_is_reported_finished_only_after_its_outcome_is_committed(tmp_path: Path) -> None:
+    """GET /jobs is served from memory: it must not say 'succeeded' while the transaction
+    holding the outcome (job row, and the hook's resource such as a pose becoming 'ready')
+    is still uncommitted, or a client reads a stale resource."""
+    from contextlib import contextmanager
+
+    from api.db import JobRecord
+
+    class SlowCommitDatabase(Database):
+        @contextmanager
+        def session(self):
+            with super().session() as s:
+                yield s
+                time.sleep(0.05)  # commit happens after this, on leaving super().session()
+
+    db = SlowCommitDatabase(tmp_path / "db.sqlite")
+    jm = JobManager(db, InProcessExecutor(max_workers=1))
+    with db.session() as s:
+        job = jm.create(s, "decode", None, None)
+    jm.start(job.id, lambda ctx: {"n": 1}, lambda s, r: None, lambda s, st, e: None)
+    while jm.get(job.id)["status"] != "succeeded":
+        time.sleep(0.001)
+    with db.session() as s:
+        assert s.get(JobRecord, job.id).status == "succeeded"
+    jm.executor.shutdown()
+
+
 def _wait(cond, timeout: float = 20.0) -> None:
     t0 = time.monotonic()
     while not cond():
