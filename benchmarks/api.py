@@ -1,6 +1,7 @@
 """REST latency under load: 50 concurrent clients poll a job's status while a calibration runs.
 
-Starts `phasecal serve` as a subprocess on a free loopback port (in-process executor),
+Starts `phasecal serve` as a subprocess on a free loopback port (its default executor,
+worker processes, unless --executor says otherwise),
 imports synthetic decoded maps (hw_mocks ground truth) as poses, starts a calibration and
 measures GET /jobs/<id> latency from N concurrent clients until it ends; an idle run of
 the same polling gives the baseline. Prints p50/p99/max latency. Goal: p99 < 50 ms on 2 cores.
@@ -149,7 +150,8 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--interval", type=float, default=0.1,
                     help="pause between one client's polls, s (0: back-to-back saturation)")
-    ap.add_argument("--executor", default="threads", help="threads, processes or tcp://...")
+    ap.add_argument("--executor", default="processes",
+                    help="processes (serve's default), threads or tcp://...")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="phasecal-bench-") as tmp:
         proc, url = start_server(Path(tmp), args.executor)
