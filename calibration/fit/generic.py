@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from calibration.evaluate import summarize
+from calibration.fit.heldout import split_heldout
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sgcc_init import initial_state, pose_from_model
 from calibration.fit.sgcc_lm import LMOptions, LMResult, LMState, PoseObs, run_lm
@@ -193,16 +194,7 @@ def calibrate_generic(
         )
     if model not in GENERIC_MODELS:
         raise ValueError(f"model: expected one of {list(GENERIC_MODELS)}, got {model!r}")
-    held = sorted(set(heldout or []))
-    if any(not 0 <= i < len(maps) for i in held):
-        raise ValueError(f"heldout: expected pose indices in [0, {len(maps) - 1}], got {held}")
-    held_maps = [maps[i] for i in held]
-    maps = [m for i, m in enumerate(maps) if i not in held]
-    if len(maps) < 3:
-        raise ValueError(f"maps: generic calibration needs >= 3 poses, got {len(maps)}")
-    shapes = {m.shape for m in (*maps, *held_maps)}
-    if len(shapes) != 1:
-        raise ValueError(f"maps: all poses must have the same image size, got {sorted(shapes)}")
+    maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
     cells, lm = _parse_options(options)
     h, w = maps[0].shape

@@ -27,6 +27,7 @@ import numpy as np
 
 from calibration.evaluate import ADEQUATE_RATIO, summarize
 from calibration.fit.generic import observations
+from calibration.fit.heldout import split_heldout
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sgcc_init import initial_state, pose_from_model
 from calibration.fit.sgcc_lm import PoseObs
@@ -468,16 +469,7 @@ def calibrate_raygrid(
 ) -> CalibrationResult:
     """Fit a raygrid model to the poses not in `heldout`; held-out poses are validated."""
     opts = parse_options(options)
-    held = sorted(set(heldout or []))
-    if any(not 0 <= i < len(maps) for i in held):
-        raise ValueError(f"heldout: expected pose indices in [0, {len(maps) - 1}], got {held}")
-    held_maps = [maps[i] for i in held]
-    maps = [m for i, m in enumerate(maps) if i not in held]
-    if len(maps) < 3:
-        raise ValueError(f"maps: raygrid calibration needs >= 3 poses, got {len(maps)}")
-    shapes = {m.shape for m in (*maps, *held_maps)}
-    if len(shapes) != 1:
-        raise ValueError(f"maps: all poses must have the same image size, got {sorted(shapes)}")
+    maps, held_maps, held = split_heldout(maps, heldout, "raygrid")
     t0 = time.perf_counter()
     h, w = maps[0].shape
     step = opts.grid_step or default_grid_step((w, h))
