@@ -74,14 +74,47 @@ class Executor(Protocol):
     def shutdown(self, wait: bool = True) -> None: ...
 
 
+class _CancelFlags:
+    """Cancel flags (anything with `.set()`) of the tasks a local executor has in flight."""
+
+    def __init__(self) -> None:
+        self._flags: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    def add(self, job_id: str, flag: Any) -> None:
+        """Track `flag` as job `job_id`'s cancel flag."""
+        with self._lock:
+            self._flags[job_id] = flag
+
+    def cancel(self, job_id: str) -> bool:
+        """Set the job's flag; False if no such task is queued or running."""
+        with self._lock:
+            flag = self._flags.get(job_id)
+        if flag is None:
+            return False
+        flag.set()
+        return True
+
+    def cancel_all(self) -> None:
+        """Set every tracked flag (shutdown without waiting)."""
+        with self._lock:
+            for flag in self._flags.values():
+                flag.set()
+
+    def forget(self, job_id: str, flag: Any) -> None:
+        """Stop tracking the job, unless a newer task with the same id replaced `flag`."""
+        with self._lock:
+            if self._flags.get(job_id) is flag:
+                del self._flags[job_id]
+
+
 class InProcessExecutor:
     """Runs tasks on a thread pool in this process; cancel sets the task's flag."""
 
     def __init__(self, max_workers: int | None = None) -> None:
         workers = max_workers or max(1, min(4, os.cpu_count() or 1))
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="phasecal-task")
-        self._cancel: dict[str, threading.Event] = {}
-        self._lock = threading.Lock()
+        self._flags = _CancelFlags()
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
         """Run a plain callable on the pool."""
@@ -98,34 +131,21 @@ class InProcessExecutor:
     ) -> Future:
         """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id`."""
         event = threading.Event()
-        with self._lock:
-            self._cancel[job_id] = event
+        self._flags.add(job_id, event)
         ctx = TaskContext(job_id, on_progress, event)
         fut = self._pool.submit(task_fn, ctx, *args, **kwargs)
-        fut.add_done_callback(lambda _f: self._forget(job_id, event))
+        fut.add_done_callback(lambda _f: self._flags.forget(job_id, event))
         return fut
 
     def cancel(self, job_id: str) -> bool:
         """Ask the task of `job_id` to stop; False if no such task is queued or running."""
-        with self._lock:
-            event = self._cancel.get(job_id)
-        if event is None:
-            return False
-        event.set()
-        return True
+        return self._flags.cancel(job_id)
 
     def shutdown(self, wait: bool = True) -> None:
         """Stop accepting work; flag every running task as cancelled when not waiting."""
         if not wait:
-            with self._lock:
-                for event in self._cancel.values():
-                    event.set()
+            self._flags.cancel_all()
         self._pool.shutdown(wait=wait, cancel_futures=not wait)
-
-    def _forget(self, job_id: str, event: threading.Event) -> None:
-        with self._lock:
-            if self._cancel.get(job_id) is event:
-                del self._cancel[job_id]
 
 
 _FORGET = "__forget__"
@@ -168,7 +188,7 @@ class ProcessExecutor:
         self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
         self._manager = ctx.Manager()
         self._queue = self._manager.Queue()
-        self._events: dict[str, Any] = {}
+        self._flags = _CancelFlags()
         self._callbacks: dict[str, ProgressCallback] = {}
         self._lock = threading.Lock()
         self._drain = threading.Thread(target=self._forward, name="phasecal-progress",
@@ -190,29 +210,22 @@ class ProcessExecutor:
     ) -> Future:
         """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` in a worker."""
         event = self._manager.Event()
-        with self._lock:
-            self._events[job_id] = event
-            if on_progress is not None:
+        self._flags.add(job_id, event)
+        if on_progress is not None:
+            with self._lock:
                 self._callbacks[job_id] = on_progress
         fut = self._pool.submit(_run_remote, task_fn, job_id, self._queue, event, args, kwargs)
-        fut.add_done_callback(lambda _f: self._forget(job_id))
+        fut.add_done_callback(lambda _f: self._forget(job_id, event))
         return fut
 
     def cancel(self, job_id: str) -> bool:
         """Ask the task of `job_id` to stop; False if it is not queued or running."""
-        with self._lock:
-            event = self._events.get(job_id)
-        if event is None:
-            return False
-        event.set()
-        return True
+        return self._flags.cancel(job_id)
 
     def shutdown(self, wait: bool = True) -> None:
         """Stop the workers (flagging running tasks cancelled when not waiting)."""
         if not wait:
-            with self._lock:
-                for event in self._events.values():
-                    event.set()
+            self._flags.cancel_all()
         self._pool.shutdown(wait=wait, cancel_futures=not wait)
         self._queue.put(None)
         self._drain.join(5)
@@ -233,10 +246,9 @@ class ProcessExecutor:
             if cb is not None:
                 cb(done, total, stage)
 
-    def _forget(self, job_id: str) -> None:
+    def _forget(self, job_id: str, event: Any) -> None:
         # The worker queued all its progress before returning, so this marker comes last.
-        with self._lock:
-            self._events.pop(job_id, None)
+        self._flags.forget(job_id, event)
         self._queue.put((_FORGET, job_id))
 
 
