@@ -1,6 +1,6 @@
 """Calibrate generic camera models (sgcc, sgcc-noncentral) from decoded maps.
 
-Entry point `calibrate_generic`; engineer D's dispatcher forwards these model names here.
+Entry point `calibrate_generic`; `calibration.fit.dispatch` forwards these model names here.
 Options (dict, all optional): `cells` [cu, cv] (default 10x10), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data).
@@ -8,8 +8,10 @@ second-difference prior that only matters where there are no data).
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
 
@@ -88,6 +90,15 @@ def _screen_jacobian(model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseOb
     return jac
 
 
+def _inverse_2x2(m: np.ndarray) -> np.ndarray:
+    """Inverses of (N, 2, 2) matrices in closed form (ten times faster than np.linalg.inv)."""
+    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    out = np.empty_like(m)
+    out[:, 0, 0], out[:, 1, 1] = m[:, 1, 1] / det, m[:, 0, 0] / det
+    out[:, 0, 1], out[:, 1, 0] = -m[:, 0, 1] / det, -m[:, 1, 0] / det
+    return out
+
+
 def pose_statistics(
     model: SGCCBase,
     rc: np.ndarray,
@@ -103,7 +114,7 @@ def pose_statistics(
     Screen residuals (mm) and their sigmas are mapped to camera pixels through the local
     Jacobian; `dof_shrink` (1 - parameters/residuals) scales the expected training residual.
     """
-    inv = np.linalg.inv(_screen_jacobian(model, rc, tc, ob)[inliers])
+    inv = _inverse_2x2(_screen_jacobian(model, rc, tc, ob)[inliers])
     px = -np.einsum("nij,nj->ni", inv, res[inliers])
     expected2 = np.sum((inv * ob.sigma_mm[inliers][:, None, :]) ** 2, axis=(1, 2)) * dof_shrink
     n = int(inliers.sum())
@@ -217,14 +228,18 @@ def calibrate_generic(
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
     dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)
     poses, per_pose, res_px, pix_out = [], [], {}, {}
-    for j, ob in enumerate(obs):
-        rc, tc = out.state.rc[j], out.state.tc[j]
-        inl = out.inliers[j]
-        px, row = pose_statistics(fitted, rc, tc, ob, out.residuals[j], inl, pitch, dof_shrink)
-        poses.append(PoseEstimate(rc.T, -rc.T @ tc, row["rms_px"], row["rms_screen_px"],
-                                  row["n_points"]))
-        per_pose.append({"pose": j, **row})
-        res_px[j], pix_out[j] = px, ob.pixels[inl]
+    with ThreadPoolExecutor(min(len(obs), len(os.sched_getaffinity(0)))) as pool:  # NumPy-bound
+        stats_of = pool.map(
+            lambda j: pose_statistics(fitted, out.state.rc[j], out.state.tc[j], obs[j],
+                                      out.residuals[j], out.inliers[j], pitch, dof_shrink),
+            range(len(obs)),
+        )
+        for j, (px, row) in enumerate(stats_of):
+            rc, tc = out.state.rc[j], out.state.tc[j]
+            poses.append(PoseEstimate(rc.T, -rc.T @ tc, row["rms_px"], row["rms_screen_px"],
+                                      row["n_points"]))
+            per_pose.append({"pose": j, **row})
+            res_px[j], pix_out[j] = px, obs[j].pixels[out.inliers[j]]
     sample = np.stack(
         np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 25)), -1
     ).reshape(-1, 2)

@@ -12,7 +12,7 @@ from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import logmap
 
-_INIT_POINTS_PER_POSE = 3000
+_INIT_POINTS_PER_POSE = 1000  # plenty for 14 + 6/pose parameters; the LM refits everything
 _INIT_FIT_POINTS = 40000
 _REJECT_FACTOR = 5.0
 

@@ -20,7 +20,9 @@ data; where data exist it is negligible, where they do not its large covariance 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +58,10 @@ class LMOptions:
     cut_sigmas: float = 8.0
     smooth: float = 1e-10
     rel_tol: float = 1e-10
+    # Converged when the undamped Gauss-Newton step would lower the chi^2 by at most this:
+    # the state is then within sqrt(chi2_tol) joint standard deviations of the optimum,
+    # and the step taken from there leaves only a second-order remainder.
+    chi2_tol: float = 1.0
     fix_spline: bool = False
     full_data: bool = True  # False: stop after the subset phase (fit that only initializes)
     subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
@@ -88,6 +94,9 @@ class LMResult:
 
 _JP_DENSE = [0, 1, 2, 5]  # pose-Jacobian columns that are not constant 0/1
 _CHUNK = 1 << 16  # pixels per vectorized block: bounded temporaries, few Python-level calls
+_DAMPING_TRIES = 12  # LM damping increases per iteration before giving up
+_GAUSS_NEWTON_BELOW = 1e-6  # Jacobi-scaled damping under which the undamped step goes first
+_MAX_THREADS = 4  # chunk threads: NumPy releases the GIL in its loops; more only contend
 
 
 @dataclass(frozen=True)
@@ -121,6 +130,25 @@ def _relative(groups: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
     """Group bounds relative to the first group's start."""
     a0 = groups[0][0]
     return [(a - a0, b - a0, c) for a, b, c in groups]
+
+
+def _thread_count(n_chunks: int) -> int:
+    """Threads for the chunk loops: the CPUs this process may use, at most one per chunk."""
+    return max(1, min(n_chunks, len(os.sched_getaffinity(0)), _MAX_THREADS))
+
+
+def _over_chunks(chunks: list[_Chunk], work: Callable[[Sequence[_Chunk]], object]) -> list:
+    """`work` on the chunks dealt round-robin to one share per thread; the shares' results.
+
+    The chunk loops are NumPy vector operations that release the GIL, so threads use
+    every core (the fit's dominant cost on multi-million-point problems).
+    """
+    n = _thread_count(len(chunks))
+    shares = [chunks[k::n] for k in range(n)]
+    if n == 1:
+        return [work(shares[0])]
+    with ThreadPoolExecutor(n) as pool:
+        return list(pool.map(work, shares))
 
 
 class _Problem:
@@ -217,26 +245,31 @@ class _Problem:
         n = len(self.s)
         res, ok = np.empty((2, n)), np.empty(n, dtype=bool)
         poly = self.polynomials(st.coeffs)
-        for ch in self.chunks:
-            res[:, ch.a : ch.b], ok[ch.a : ch.b] = self._chunk(st, poly, ch, jacobian=False)
+
+        def fill(share: Sequence[_Chunk]) -> None:
+            """Write the residuals of a share of chunks (disjoint slices)."""
+            for ch in share:
+                res[:, ch.a : ch.b], ok[ch.a : ch.b] = self._chunk(st, poly, ch, jacobian=False)
+
+        _over_chunks(self.chunks, fill)
         return res, ok
 
-    def normal_equations(
-        self, st: LMState, wt: np.ndarray, spline: bool = True
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """J^T W J and J^T W e from per-cell monomial moments (spline) and per-pose sums."""
-        c, ns, nc, npo = self.c, self.n_spline, self.n_cells, self.n_pose
+    def _moments(
+        self, st: LMState, poly: np.ndarray, wt: np.ndarray, share: Sequence[_Chunk], spline: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Normal-equation sums of a share of chunks: per-cell moments, spline-pose cross
+        moments, and the per-pose blocks (see `normal_equations`)."""
+        c, nc, npo = self.c, self.n_cells, self.n_pose
         iu, ju = self.tri
         mom = np.zeros((nc, 49, len(iu)))  # sum m49 * (g^T W g)[upper triangle]
         cross = np.zeros((npo, nc, 16, 7 * c))  # sum m16 * xg (see below)
         hpp, gpp = np.zeros((npo, 6, 6)), np.zeros((npo, 6))
-        poly = self.polynomials(st.coeffs)
-        for ch in self.chunks:
+        for ch in share:
             e, _, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
             ws = wt[ch.a : ch.b] * self.inv_sigma[:, ch.a : ch.b] ** 2  # (2,n)
             pw = jp * ws[:, None, :]
-            hpp[ch.pose] += pw[0] @ jp[0].T + pw[1] @ jp[1].T
-            gpp[ch.pose] += pw[0] @ e[0] + pw[1] @ e[1]
+            hpp[ch.pose] += np.dot(pw[0], jp[0].T) + np.dot(pw[1], jp[1].T)
+            gpp[ch.pose] += np.dot(pw[0], e[0]) + np.dot(pw[1], e[1])
             if not spline:
                 continue
             gw = g * ws[:, None, :]
@@ -247,9 +280,22 @@ class _Problem:
             xg[:, 6] = gw[0] * e[0] + gw[1] * e[1]
             xg = xg.reshape(7 * c, -1)
             m49 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 6)
-            for a, b, cell in ch.groups:
-                mom[cell] += m49[:, a:b] @ hp[:, a:b].T
-                cross[ch.pose, cell] += m16[:, a:b] @ xg[:, a:b].T
+            for a, b, cell in ch.groups:  # np.dot, not @: it releases the GIL for threads
+                mom[cell] += np.dot(m49[:, a:b], hp[:, a:b].T)
+                cross[ch.pose, cell] += np.dot(m16[:, a:b], xg[:, a:b].T)
+        return mom, cross, hpp, gpp
+
+    def normal_equations(
+        self, st: LMState, wt: np.ndarray, spline: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """J^T W J and J^T W e from per-cell monomial moments (spline) and per-pose sums."""
+        c, ns, nc, npo = self.c, self.n_spline, self.n_cells, self.n_pose
+        iu, ju = self.tri
+        poly = self.polynomials(st.coeffs)
+        parts = _over_chunks(
+            self.chunks, lambda share: self._moments(st, poly, wt, share, spline)
+        )
+        mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
         h, grad = np.zeros((self.n, self.n)), np.zeros(self.n)
         for j in range(npo):
             sl = slice(ns + 6 * j, ns + 6 * j + 6)
@@ -354,6 +400,20 @@ def _cost(
     return float(cost.sum() + lp.lam_prior * x @ lp.prior_base @ x)
 
 
+def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
+    """(mu, Cholesky factor of hs + mu I) to try in turn: first the undamped Gauss-Newton
+    system once damping has fallen below `_GAUSS_NEWTON_BELOW` (the quadratic model has
+    proven good: weak modes then converge in one step instead of one decade of mu per
+    iteration), then damping growing tenfold. Non-positive-definite systems are skipped."""
+    mus = [0.0] if mu <= _GAUSS_NEWTON_BELOW else []
+    mus += [mu * 10.0**k for k in range(_DAMPING_TRIES)]
+    for m in mus:
+        try:
+            yield m, cho_factor(hs + m * np.eye(len(hs)))
+        except np.linalg.LinAlgError:
+            continue
+
+
 def _iterate(
     prob: _Problem,
     lp: _Loop,
@@ -393,28 +453,30 @@ def _iterate(
         cost1 = cost0
         jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
         hs = hr * jac_scale[:, None] * jac_scale[None, :]
-        for _ in range(12):
-            try:
-                factor = cho_factor(hs + lp.mu * np.eye(len(hs)))
-            except np.linalg.LinAlgError:
-                lp.mu *= 10
-                continue
-            step = lp.z @ (jac_scale * cho_solve(factor, -gr * jac_scale))
+        gs = gr * jac_scale
+        near_optimum = False
+        for mu, factor in _damped_factors(hs, lp.mu):
+            ds = cho_solve(factor, -gs)
+            if mu == 0.0:  # -g^T dx: the chi^2 drop a full Gauss-Newton step predicts
+                near_optimum = float(-gs @ ds) <= options.chi2_tol
+            step = lp.z @ (jac_scale * ds)
             rcs, tcs = _apply_pose_step(st, step[ns:])
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs)
             res1, ok1 = prob.residuals(cand)
             cost1 = _cost(prob, res1, ok1, cand.coeffs.ravel(), lp, options.huber_k)
             if cost1 <= cost0:
                 lp.state, res, ok = cand, res1, ok1
-                lp.mu = max(lp.mu / 10, 1e-15)
+                lp.mu = max((mu or lp.mu) / 10, 1e-15)
                 accepted = True
                 break
-            lp.mu *= 10
+        else:
+            lp.mu *= 10.0**_DAMPING_TRIES
         lp.history.append(cost1 if accepted else cost0)
         if progress is not None:
             msg = f"LM iteration {lp.it}, cost {lp.history[-1]:.6g}"
             progress(lp.it, options.max_iterations, msg)
-        if not accepted or (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300):
+        small = (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300)
+        if not accepted or small or near_optimum:
             lp.converged = True
             break
     lp.res, lp.ok = res, ok
@@ -437,7 +499,8 @@ def run_lm(
     the outlier decisions and the covariance use every point (unless `options.full_data` is
     False: then the result, statistics included, is that of the subset). At convergence the
     covariance reuses the last iteration's normal equations: exact when its step was
-    rejected, else evaluated one step (cost change <= rel_tol) before the final state.
+    rejected, else evaluated one Gauss-Newton step (chi^2 change <= chi2_tol, well inside
+    the uncertainty) before the final state.
     BLAS runs single-threaded here: the dense solves are small and threads only contend.
     """
     with single_thread_blas():
