@@ -12,7 +12,6 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -214,16 +213,9 @@ def calibrate_generic(
     for j, ob in enumerate(obs):
         if len(ob.pixels) < 100:
             raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
-    central_init = initial_state(obs, grid, 2)
-    central_lm = lm if model == "sgcc" else replace(lm, full_data=False)  # only an init
-    fitted, out = _fit(SGCCModel, obs, grid, central_init, central_lm, progress, cancelled)
-    iterations = out.iterations
-    if model == "sgcc-noncentral":
-        coeffs = np.zeros((grid.size, 4))
-        coeffs[:, :2] = out.state.coeffs
-        init = LMState(coeffs, out.state.rc, out.state.tc)
-        fitted, out = _fit(SGCCNonCentralModel, obs, grid, init, lm, progress, cancelled)
-        iterations += out.iterations
+    cls = SGCCModel if model == "sgcc" else SGCCNonCentralModel
+    init = initial_state(obs, grid, cls.n_components)
+    fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
     pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
     dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)
@@ -248,7 +240,7 @@ def calibrate_generic(
         "model": model,
         **summarize(per_pose),
         "per_pose": per_pose,
-        "iterations": iterations,
+        "iterations": out.iterations,
         "converged": out.converged,
         "cost": out.cost,
         "cost_history": out.history,

@@ -63,7 +63,6 @@ class LMOptions:
     # and the step taken from there leaves only a second-order remainder.
     chi2_tol: float = 1.0
     fix_spline: bool = False
-    full_data: bool = True  # False: stop after the subset phase (fit that only initializes)
     subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
 
 
@@ -496,8 +495,7 @@ def run_lm(
 
     Large problems first converge on an even subset of about `options.subset_pixels`
     points (cheap iterations, at most half of `max_iterations`); the final iterations,
-    the outlier decisions and the covariance use every point (unless `options.full_data` is
-    False: then the result, statistics included, is that of the subset). At convergence the
+    the outlier decisions and the covariance use every point. At convergence the
     covariance reuses the last iteration's normal equations: exact when its step was
     rejected, else evaluated one Gauss-Newton step (chi^2 change <= chi2_tol, well inside
     the uncertainty) before the final state.
@@ -532,12 +530,10 @@ def _run(
     )
     sub = _subset(obs, options.subset_pixels)
     if sub is not None:
-        half = options.max_iterations // 2 if options.full_data else options.max_iterations
-        prob = _Problem(grid, n_comp, sub)
-        _iterate(prob, lp, options, half, progress, cancelled)
-    if options.full_data or sub is None:
-        prob = _Problem(grid, n_comp, obs)
-        _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
+        _iterate(_Problem(grid, n_comp, sub), lp, options, options.max_iterations // 2,
+                 progress, cancelled)
+    prob = _Problem(grid, n_comp, obs)
+    _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
     s = _sigma_norm(prob, res)
     cost_terms, wt = _robust(s, options.huber_k, lp.cut)
