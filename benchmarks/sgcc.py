@@ -10,13 +10,18 @@ then the ray errors against ground truth (in the sGCC gauge) next to the fit's o
 O(1e-6) direction / O(1e-4) origin errors (seed 000 does not state its noise; the errors are
 linear in the noise, so this is the comparable-noise point).
 
-Designs: `seed000` (default) puts 3 tilted screens at 60/110/160 mm so that every pose
-covers the whole image, as seed 000's "1024x1024 data points" per pose; `random` draws
+Designs: `seed000` (default, `hw_mocks.poses.full_view_poses`) puts 3 tilted screens at
+60/110/160 mm so that every pose covers the whole image, as seed 000's "1024x1024 data
+points" per pose; `random` draws
 `--poses` random poses at `--distance-mm` that need cover only 20% of the image. Errors are
 evaluated on pixels seen by every pose. `--repeats N` refits N noise realizations of the same
 poses and compares the empirical spread of the fitted rays with the predicted covariance
 (a Monte Carlo check of the uncertainty that one fit's z-scores cannot give: the error of one
 fit is a smooth field with few degrees of freedom, so its z-score std is itself noisy).
+"whitened z std" is one fit's sharp version of that check: the control-point errors against
+the truth's projection onto the mesh, in the covariance's eigenbasis, divided by the predicted
+std of each direction (`calibration.compare.whitened_coefficient_errors`; in parentheses the
+number of free parameters, each an independent N(0, 1) if the covariance is right).
 """
 
 from __future__ import annotations
@@ -30,18 +35,15 @@ import time
 
 import numpy as np
 
-from calibration.compare import in_gauge, sgcc_gauge_transform
+from calibration.compare import in_gauge, sgcc_gauge_transform, whitened_coefficient_errors
 from calibration.fit.generic import calibrate_generic
 from calibration.models.sgcc import logmap
 from calibration.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
-from hw_mocks.poses import look_at_pose
 
 SEED000_SECONDS = 20 * 60.0
 SEED000_ERRORS = (1e-6, 1e-4)  # reported direction (rad) and origin errors
 SCREEN = ScreenGeometry(1920, 1080, (0.2745, 0.2745))
-# (distance mm, tilt deg, tilt azimuth deg): each screen fills the whole 1024x1024 image.
-SEED000_POSES = ((60.0, 30.0, 0.0), (110.0, 30.0, 120.0), (160.0, 20.0, 240.0))
 COMPONENTS = ("dir a, rad", "dir b, rad", "origin x, mm", "origin y, mm")
 
 
@@ -53,10 +55,7 @@ def _rms(a: np.ndarray) -> float:
 def _design(args: argparse.Namespace, cam: cameras.TruthCamera) -> list:
     """The screen poses of the chosen design."""
     if args.design == "seed000":
-        return [
-            look_at_pose(SCREEN, distance_mm=d, tilt_deg=t, tilt_azimuth_deg=a)
-            for d, t, a in SEED000_POSES
-        ]
+        return poses.full_view_poses(SCREEN)
     rng = np.random.default_rng(0)
     return poses.random_poses(
         cam, SCREEN, args.poses, rng, distance_mm=tuple(args.distance_mm), min_coverage=0.2
@@ -97,8 +96,8 @@ def main() -> None:
     options = {} if args.smooth is None else {"smooth": args.smooth}
     rng = np.random.default_rng(1)
     print("| model | image | design | poses | valid px | iterations | wall s | final cost "
-          "| chi2/dof | ratio to 20 min | dir err rad | origin err mm |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| chi2/dof | ratio to 20 min | dir err rad | origin err mm | whitened z std |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     errors, variances, pix = [], [], None
     for _ in range(args.repeats):
         maps = [
@@ -120,10 +119,11 @@ def main() -> None:
         variances.append(np.einsum("nii->ni", res.model.component_covariance(pix)))
         n_px = sum(m.valid_count() for m in maps)
         org = f"{_rms(err[:, 2:]):.3g}" if not central else "-"
+        zw = whitened_coefficient_errors(res.model, lambda p: cam.rays(p[:, 0], p[:, 1]))
         print(f"| {args.model} | {args.size}x{args.size} | {args.design} | {len(design)} "
               f"| {n_px} | {res.stats['iterations']} | {wall:.2f} | {res.stats['cost']:.6g} "
               f"| {res.stats['chi2_dof']:.4f} | {wall / SEED000_SECONDS:.4f} "
-              f"| {_rms(err[:, :2]):.3g} | {org} |", flush=True)
+              f"| {_rms(err[:, :2]):.3g} | {org} | {np.std(zw):.3f} ({zw.size}) |", flush=True)
 
     err, var = np.array(errors), np.array(variances)
     std = np.sqrt(var)

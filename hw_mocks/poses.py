@@ -198,3 +198,22 @@ def rotation_only_poses(
                 f"coverage >= {min_coverage}; lower max_rotation_deg"
             )
     return poses
+
+
+# (distance mm, tilt deg, tilt azimuth deg): seed 000's setup of 3 poses that each see
+# "1024 x 1024 data points", i.e. fill the whole image of a ~60 deg camera (`mild_pinhole`,
+# `smooth_noncentral`) on the default 1920x1080, 0.2745 mm screen, at a 2.7x depth spread.
+FULL_VIEW_DESIGN = ((60.0, 30.0, 0.0), (110.0, 30.0, 120.0), (160.0, 20.0, 240.0))
+
+
+def full_view_poses(screen: ScreenGeometry) -> list[ScreenPose]:
+    """Three tilted screen poses at different depths, each covering the whole image.
+
+    Every pixel is seen three times at three depths, which is what pins down a non-central
+    camera's ray origins; random poses that each cover part of the image leave edge pixels
+    seen once or twice and the fit's error there several times larger (benchmarks/sgcc.py).
+    """
+    return [
+        look_at_pose(screen, distance_mm=d, tilt_deg=t, tilt_azimuth_deg=a)
+        for d, t, a in FULL_VIEW_DESIGN
+    ]

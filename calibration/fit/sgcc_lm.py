@@ -58,9 +58,10 @@ class LMOptions:
     cut_sigmas: float = 8.0
     smooth: float = 1e-10
     rel_tol: float = 1e-10
-    # Converged when the undamped Gauss-Newton step would lower the chi^2 by at most this:
-    # the state is then within sqrt(chi2_tol) joint standard deviations of the optimum,
-    # and the step taken from there leaves only a second-order remainder.
+    # Converged when the undamped Gauss-Newton step would lower the chi^2 by at most this
+    # (times chi^2/dof where that exceeds 1, as the covariance is): the state is then within
+    # sqrt(chi2_tol) joint standard deviations of the optimum, and the step taken from there
+    # leaves only a second-order remainder.
     chi2_tol: float = 1.0
     fix_spline: bool = False
     subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
@@ -448,6 +449,8 @@ def _iterate(
         hr = lp.hr = lp.z.T @ h @ lp.z
         gr = lp.z.T @ grad
         cost0 = _cost(prob, res, ok, x, lp, options.huber_k)
+        # The covariance is inflated by chi^2/dof when the model misfits; so is the tolerance.
+        chi2_scale = max(1.0, cost0 / max(2 * int(ok.sum()) - len(hr), 1))
         accepted = False
         cost1 = cost0
         jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
@@ -457,7 +460,7 @@ def _iterate(
         for mu, factor in _damped_factors(hs, lp.mu):
             ds = cho_solve(factor, -gs)
             if mu == 0.0:  # -g^T dx: the chi^2 drop a full Gauss-Newton step predicts
-                near_optimum = float(-gs @ ds) <= options.chi2_tol
+                near_optimum = float(-gs @ ds) <= options.chi2_tol * chi2_scale
             step = lp.z @ (jac_scale * ds)
             rcs, tcs = _apply_pose_step(st, step[ns:])
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs)
