@@ -101,6 +101,8 @@ def test_cli_errors(workdir, capsys) -> None:
     assert "expected KEY=VALUE" in capsys.readouterr().err
     assert main([*base, *maps3, "--model", "sgcc", "--option", "knots=3"]) == 1
     assert "unknown key(s) ['knots']" in capsys.readouterr().err
+    assert main([*base, *maps3, "--model", "sgcc", "--option", "xp=torch"]) == 1
+    assert "options.xp: expected 'numpy' or 'cupy', got 'torch'" in capsys.readouterr().err
     (d / "corrupt.json").write_text('{"format": "phasecal.model/1", "type": "opencv5"}')
     np.save(d / "p.npy", np.zeros((2, 2)))
     assert main(["unproject", "--model", str(d / "corrupt.json"), "--pixels", str(d / "p.npy"),

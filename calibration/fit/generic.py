@@ -3,7 +3,8 @@
 Entry point `calibrate_generic`; `calibration.fit.dispatch` forwards these model names here.
 Options (dict, all optional): `cells` [cu, cv] (default 10x10), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
-second-difference prior that only matters where there are no data).
+second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
+CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc_device.py`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration.decode.arrays import array_module
 from calibration.evaluate import summarize
 from calibration.fit.heldout import split_heldout
 from calibration.fit.result import CalibrationResult, PoseEstimate
@@ -33,7 +35,7 @@ from calibration.models.sgcc import (
 from calibration.plan import ScreenGeometry
 
 GENERIC_MODELS = ("sgcc", "sgcc-noncentral")
-_OPTION_KEYS = {"cells", "max_iterations", "huber_k", "cut_sigmas", "smooth"}
+_OPTION_KEYS = {"cells", "max_iterations", "huber_k", "cut_sigmas", "smooth", "xp"}
 
 
 def observations(maps: Sequence[DecodedMaps], screen: ScreenGeometry) -> list[PoseObs]:
@@ -61,7 +63,16 @@ def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMO
         cells = (cells, cells)
     if len(cells) != 2 or not all(int(c) >= 1 for c in cells):
         raise ValueError(f"options.cells: expected [cu, cv] positive integers, got {cells!r}")
-    lm = LMOptions(**{k: (int(v) if k == "max_iterations" else float(v)) for k, v in opts.items()})
+    xp = opts.pop("xp", "numpy")
+    if not isinstance(xp, str):
+        raise ValueError(f"options.xp: expected 'numpy' or 'cupy', got {xp!r}")
+    try:
+        array_module(xp)  # a missing CuPy fails here, before any work
+    except ValueError as exc:
+        raise ValueError(f"options.{exc}") from None
+    lm = LMOptions(
+        **{k: (int(v) if k == "max_iterations" else float(v)) for k, v in opts.items()}, xp=xp
+    )
     if lm.max_iterations < 1:
         raise ValueError(f"options.max_iterations: expected >= 1, got {lm.max_iterations}")
     return (int(cells[0]), int(cells[1])), lm

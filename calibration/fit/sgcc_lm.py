@@ -16,6 +16,7 @@ Gauge (explicit, linear constraints kept exact by stepping in their null space):
 - translation (non-central only): ox(c) = oy(c) = 0 and dox/du(c) + doy/dv(c) = 0.
 A weak second-difference prior (relative weight `smooth`) defines control points without
 data; where data exist it is negligible, where they do not its large covariance shows it.
+`LMOptions.xp = "cupy"` moves the per-pixel work to a GPU (`calibration/fit/sgcc_device.py`).
 """
 
 from __future__ import annotations
@@ -24,11 +25,14 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, null_space
 from scipy.spatial.transform import Rotation
 
+from calibration.decode.arrays import array_module
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import (
     SplineGrid,
@@ -38,6 +42,9 @@ from calibration.models.bspline import (
     second_differences,
 )
 from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
+
+if TYPE_CHECKING:
+    from calibration.fit.sgcc_device import DeviceProblem
 
 
 @dataclass
@@ -65,6 +72,8 @@ class LMOptions:
     chi2_tol: float = 1.0
     fix_spline: bool = False
     subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
+    # Array module of the per-pixel work: "numpy" (threaded CPU) or "cupy" (GPU, sgcc_device).
+    xp: str = "numpy"
 
 
 @dataclass
@@ -100,6 +109,23 @@ _MAX_THREADS = 4  # chunk threads: NumPy releases the GIL in its loops; more onl
 
 
 @dataclass(frozen=True)
+class Segments:
+    """Runs of equal (pose, cell) in pixels sorted by (pose, cell): bounds, pose, cell (S,)."""
+
+    start: np.ndarray
+    end: np.ndarray
+    pose: np.ndarray
+    cell: np.ndarray
+
+
+def _segments(pose: np.ndarray, cell: np.ndarray) -> Segments:
+    """The (pose, cell) runs of sorted pixels."""
+    change = np.flatnonzero((pose[1:] != pose[:-1]) | (cell[1:] != cell[:-1])) + 1
+    start = np.r_[0, change]
+    return Segments(start, np.r_[change, len(pose)], pose[start], cell[start])
+
+
+@dataclass(frozen=True)
 class _Chunk:
     """Sorted pixels [a, b) of one pose and its cell groups (start, end relative to a, cell)."""
 
@@ -109,20 +135,22 @@ class _Chunk:
     groups: list[tuple[int, int, int]]
 
 
-def _chunks(pose: np.ndarray, cell: np.ndarray) -> list[_Chunk]:
-    """Split pixels sorted by (pose, cell) into per-pose blocks of whole cell groups."""
-    change = np.flatnonzero((pose[1:] != pose[:-1]) | (cell[1:] != cell[:-1])) + 1
-    starts = np.r_[0, change]
-    ends = np.r_[change, len(pose)]
+def _chunks(seg: Segments) -> list[_Chunk]:
+    """Split the sorted pixels into per-pose blocks of whole cell groups."""
     out: list[_Chunk] = []
     cur: list[tuple[int, int, int]] = []
-    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
-        if cur and (pose[a] != pose[cur[0][0]] or b - cur[0][0] > _CHUNK):
-            out.append(_Chunk(cur[0][0], cur[-1][1], int(pose[cur[0][0]]), _relative(cur)))
+    pose0 = 0
+    for a, b, pose, cell in zip(
+        seg.start.tolist(), seg.end.tolist(), seg.pose.tolist(), seg.cell.tolist(), strict=True
+    ):
+        if cur and (pose != pose0 or b - cur[0][0] > _CHUNK):
+            out.append(_Chunk(cur[0][0], cur[-1][1], pose0, _relative(cur)))
             cur = []
-        cur.append((a, b, int(cell[a])))
+        if not cur:
+            pose0 = pose
+        cur.append((a, b, cell))
     if cur:
-        out.append(_Chunk(cur[0][0], cur[-1][1], int(pose[cur[0][0]]), _relative(cur)))
+        out.append(_Chunk(cur[0][0], cur[-1][1], pose0, _relative(cur)))
     return out
 
 
@@ -149,6 +177,67 @@ def _over_chunks(chunks: list[_Chunk], work: Callable[[Sequence[_Chunk]], object
         return [work(shares[0])]
     with ThreadPoolExecutor(n) as pool:
         return list(pool.map(work, shares))
+
+
+def ray_terms(
+    xp: ModuleType, comps: Any, rc: Any, tc: Any, screen: Any, jacobian: bool
+) -> tuple[Any, ...]:
+    """Residuals (Q-S) mm (2,n) and ok mask of pixels of one pose with spline components
+    comps (C,n) [+ G = dQ/dcomponents (2,C,n), J = dQ/dpose (2,6,n)]; arrays of module xp."""
+    c = len(comps)
+    if jacobian:
+        r, jr = expmap_jacobian_rows(comps[0], comps[1], xp=xp)
+    else:
+        r = expmap_rows(comps[0], comps[1], xp=xp)
+    r_s = rc @ r
+    o_s = rc[:, :2] @ comps[2:4] + tc[:, None] if c == 4 else xp.broadcast_to(tc[:, None], r.shape)
+    ok = r_s[2] * o_s[2] < 0  # the ray moves towards the plane
+    rz = xp.where(ok, r_s[2], 1.0)
+    lam = -o_s[2] / rz
+    q = o_s[:2] + lam * r_s[:2]
+    res = xp.where(ok, q - screen, 0.0)
+    if not jacobian:
+        return res, ok
+    p = r_s[:2] / rz  # dQ/d(o_s) = [[1, 0, -px], [0, 1, -py]]
+    prc = rc[:2, :, None] - p[:, None, :] * rc[2][None, :, None]  # (2,3,n): dQ/d(o_s) Rc
+    g = xp.empty((2, c, len(lam)))
+    g[:, :2] = lam * (prc[:, :, None, :] * jr[None]).sum(axis=1)
+    if c == 4:
+        g[:, 2:] = prc[:, :2]
+    qx, qy = q
+    px, py = p
+    jp = xp.zeros((2, 6, len(lam)))  # d/d(omega) = -dQ/d(o_s) [X]x, d/dt = dQ/d(o_s)
+    jp[0, 0], jp[0, 1], jp[0, 2] = -px * qy, px * qx, -qy
+    jp[1, 0], jp[1, 1], jp[1, 2] = -py * qy, py * qx, qx
+    jp[0, 3], jp[1, 4] = 1.0, 1.0
+    jp[0, 5], jp[1, 5] = -px, -py
+    return res, ok, g, jp
+
+
+def pose_terms(xp: ModuleType, e: Any, jp: Any, ws: Any) -> tuple[Any, Any]:
+    """A block's pose-pose normal matrix J^T W J (6,6) and gradient J^T W e (6,).
+
+    xp.dot, not @: NumPy's dot releases the GIL for the chunk threads.
+    """
+    pw = jp * ws[:, None, :]
+    hpp = xp.dot(pw[0], jp[0].T) + xp.dot(pw[1], jp[1].T)
+    return hpp, xp.dot(pw[0], e[0]) + xp.dot(pw[1], e[1])
+
+
+def spline_terms(
+    xp: ModuleType, e: Any, g: Any, jp: Any, ws: Any, tri: tuple[Any, Any]
+) -> tuple[Any, Any]:
+    """Per-pixel factors of the spline normal equations: the upper triangle (nt,n) of
+    g^T W g and xg (7C,n), [a, q]: (g^T W jp)[a, q], q = 6: (g^T W e)[a]."""
+    iu, ju = tri
+    c, n = g.shape[1:]
+    gw = g * ws[:, None, :]
+    hp = gw[0, iu] * g[0, ju] + gw[1, iu] * g[1, ju]
+    xg = xp.empty((c, 7, n))
+    xg[:, _JP_DENSE] = gw[0, :, None] * jp[0, _JP_DENSE] + gw[1, :, None] * jp[1, _JP_DENSE]
+    xg[:, 3], xg[:, 4] = gw[0], gw[1]  # jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
+    xg[:, 6] = gw[0] * e[0] + gw[1] * e[1]
+    return hp, xg.reshape(7 * c, n)
 
 
 class _Problem:
@@ -178,7 +267,8 @@ class _Problem:
         self.sigma = np.ascontiguousarray(np.concatenate([o.sigma_mm for o in obs])[order].T)
         self.inv_sigma = 1.0 / self.sigma
         self.counts = np.array([len(o.pixels) for o in obs])
-        self.chunks = _chunks(pose_of[order], cell[order])
+        self.segments = _segments(pose_of[order], cell[order])
+        self.chunks = _chunks(self.segments)
         self.kmat = monomial_basis()
         self.controls = grid.cell_controls()
         self.cols = (self.controls[:, :, None] * n_comp + np.arange(n_comp)).reshape(
@@ -203,37 +293,11 @@ class _Problem:
         comps = np.empty((self.c, ch.b - ch.a))
         for a, b, cell in ch.groups:
             np.matmul(poly[cell], m16[:, a:b], out=comps[:, a:b])
-        rc, tc = st.rc[ch.pose], st.tc[ch.pose]
-        if jacobian:
-            r, jr = expmap_jacobian_rows(comps[0], comps[1])
-        else:
-            r = expmap_rows(comps[0], comps[1])
-        r_s = rc @ r
-        o_s = (
-            rc[:, :2] @ comps[2:4] + tc[:, None]
-            if self.c == 4
-            else np.broadcast_to(tc[:, None], r.shape)
-        )
-        ok = r_s[2] * o_s[2] < 0  # the ray moves towards the plane
-        rz = np.where(ok, r_s[2], 1.0)
-        lam = -o_s[2] / rz
-        q = o_s[:2] + lam * r_s[:2]
-        res = np.where(ok, q - self.screen[:, ch.a : ch.b], 0.0)
+        screen = self.screen[:, ch.a : ch.b]
+        out = ray_terms(np, comps, st.rc[ch.pose], st.tc[ch.pose], screen, jacobian)
         if not jacobian:
-            return res, ok
-        p = r_s[:2] / rz  # dQ/d(o_s) = [[1, 0, -px], [0, 1, -py]]
-        prc = rc[:2, :, None] - p[:, None, :] * rc[2][None, :, None]  # (2,3,n): dQ/d(o_s) Rc
-        g = np.empty((2, self.c, len(lam)))
-        g[:, :2] = lam * (prc[:, :, None, :] * jr[None]).sum(axis=1)
-        if self.c == 4:
-            g[:, 2:] = prc[:, :2]
-        qx, qy = q
-        px, py = p
-        jp = np.zeros((2, 6, len(lam)))  # d/d(omega) = -dQ/d(o_s) [X]x, d/dt = dQ/d(o_s)
-        jp[0, 0], jp[0, 1], jp[0, 2] = -px * qy, px * qx, -qy
-        jp[1, 0], jp[1, 1], jp[1, 2] = -py * qy, py * qx, qx
-        jp[0, 3], jp[1, 4] = 1.0, 1.0
-        jp[0, 5], jp[1, 5] = -px, -py
+            return out
+        res, ok, g, jp = out
         return res, ok, m16, g, jp
 
     def polynomials(self, coeffs: np.ndarray) -> np.ndarray:
@@ -260,25 +324,18 @@ class _Problem:
         """Normal-equation sums of a share of chunks: per-cell moments, spline-pose cross
         moments, and the per-pose blocks (see `normal_equations`)."""
         c, nc, npo = self.c, self.n_cells, self.n_pose
-        iu, ju = self.tri
-        mom = np.zeros((nc, 49, len(iu)))  # sum m49 * (g^T W g)[upper triangle]
-        cross = np.zeros((npo, nc, 16, 7 * c))  # sum m16 * xg (see below)
+        mom = np.zeros((nc, 49, len(self.tri[0])))  # sum m49 * (g^T W g)[upper triangle]
+        cross = np.zeros((npo, nc, 16, 7 * c))  # sum m16 * xg (see `spline_terms`)
         hpp, gpp = np.zeros((npo, 6, 6)), np.zeros((npo, 6))
         for ch in share:
             e, _, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
             ws = wt[ch.a : ch.b] * self.inv_sigma[:, ch.a : ch.b] ** 2  # (2,n)
-            pw = jp * ws[:, None, :]
-            hpp[ch.pose] += np.dot(pw[0], jp[0].T) + np.dot(pw[1], jp[1].T)
-            gpp[ch.pose] += np.dot(pw[0], e[0]) + np.dot(pw[1], e[1])
+            hpp_c, gpp_c = pose_terms(np, e, jp, ws)
+            hpp[ch.pose] += hpp_c
+            gpp[ch.pose] += gpp_c
             if not spline:
                 continue
-            gw = g * ws[:, None, :]
-            hp = gw[0, iu] * g[0, ju] + gw[1, iu] * g[1, ju]  # (nt, n)
-            xg = np.empty((c, 7, ch.b - ch.a))  # [a, q]: (g^T W jp)[a, q], q = 6: (g^T W e)[a]
-            xg[:, _JP_DENSE] = gw[0, :, None] * jp[0, _JP_DENSE] + gw[1, :, None] * jp[1, _JP_DENSE]
-            xg[:, 3], xg[:, 4] = gw[0], gw[1]  # jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
-            xg[:, 6] = gw[0] * e[0] + gw[1] * e[1]
-            xg = xg.reshape(7 * c, -1)
+            hp, xg = spline_terms(np, e, g, jp, ws, self.tri)
             m49 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 6)
             for a, b, cell in ch.groups:  # np.dot, not @: it releases the GIL for threads
                 mom[cell] += np.dot(m49[:, a:b], hp[:, a:b].T)
@@ -289,19 +346,27 @@ class _Problem:
         self, st: LMState, wt: np.ndarray, spline: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
         """J^T W J and J^T W e from per-cell monomial moments (spline) and per-pose sums."""
-        c, ns, nc, npo = self.c, self.n_spline, self.n_cells, self.n_pose
-        iu, ju = self.tri
         poly = self.polynomials(st.coeffs)
         parts = _over_chunks(
             self.chunks, lambda share: self._moments(st, poly, wt, share, spline)
         )
         mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
+        return self.assemble(hpp, gpp, (mom, cross) if spline else None)
+
+    def assemble(
+        self, hpp: np.ndarray, gpp: np.ndarray, moments: tuple[np.ndarray, np.ndarray] | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """J^T W J and J^T W e from the per-pose sums and, unless the spline is fixed (None),
+        the per-cell moments (nc,49,nt) and per-(pose, cell) cross moments (npo,nc,16,7C)."""
+        c, ns, nc, npo = self.c, self.n_spline, self.n_cells, self.n_pose
+        iu, ju = self.tri
         h, grad = np.zeros((self.n, self.n)), np.zeros(self.n)
         for j in range(npo):
             sl = slice(ns + 6 * j, ns + 6 * j + 6)
             h[sl, sl], grad[sl] = hpp[j], gpp[j]
-        if not spline:
+        if moments is None:
             return h, grad
+        mom, cross = moments
         full = np.zeros((nc, 49, c, c))
         full[:, :, iu, ju] = mom
         full[:, :, ju, iu] = mom
@@ -377,6 +442,19 @@ class _Loop:
     hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
 
 
+def _make_problem(
+    grid: SplineGrid, n_comp: int, obs: list[PoseObs], xp: str
+) -> _Problem | DeviceProblem:
+    """The fit's per-pixel problem: threaded NumPy ("numpy") or `DeviceProblem` on the array
+    module named by xp ("cupy"; `array_module` says clearly when it is missing)."""
+    prob = _Problem(grid, n_comp, obs)
+    if xp == "numpy":
+        return prob
+    from calibration.fit.sgcc_device import DeviceProblem  # it imports this module
+
+    return DeviceProblem(prob, array_module(xp))
+
+
 def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
     """Every k-th point of each pose (about `target` in all), or None when not worth it."""
     k = sum(len(o.pixels) for o in obs) // max(target, 1)
@@ -385,14 +463,19 @@ def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
     return [PoseObs(o.pixels[::k], o.screen_mm[::k], o.sigma_mm[::k]) for o in obs]
 
 
-def _sigma_norm(prob: _Problem, res: np.ndarray) -> np.ndarray:
+def _sigma_norm(prob: _Problem | DeviceProblem, res: np.ndarray) -> np.ndarray:
     """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas)."""
     r0, r1 = res[0] * prob.inv_sigma[0], res[1] * prob.inv_sigma[1]
     return np.sqrt(r0 * r0 + r1 * r1)
 
 
 def _cost(
-    prob: _Problem, res: np.ndarray, ok: np.ndarray, x: np.ndarray, lp: _Loop, k: float
+    prob: _Problem | DeviceProblem,
+    res: np.ndarray,
+    ok: np.ndarray,
+    x: np.ndarray,
+    lp: _Loop,
+    k: float,
 ) -> float:
     """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
     cost, _ = _robust(_sigma_norm(prob, res), k, lp.cut)
@@ -415,7 +498,7 @@ def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
 
 
 def _iterate(
-    prob: _Problem,
+    prob: _Problem | DeviceProblem,
     lp: _Loop,
     options: LMOptions,
     last_it: int,
@@ -533,9 +616,9 @@ def _run(
     )
     sub = _subset(obs, options.subset_pixels)
     if sub is not None:
-        _iterate(_Problem(grid, n_comp, sub), lp, options, options.max_iterations // 2,
-                 progress, cancelled)
-    prob = _Problem(grid, n_comp, obs)
+        _iterate(_make_problem(grid, n_comp, sub, options.xp), lp, options,
+                 options.max_iterations // 2, progress, cancelled)
+    prob = _make_problem(grid, n_comp, obs, options.xp)
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
     s = _sigma_norm(prob, res)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -34,22 +35,26 @@ def expmap(ab: np.ndarray) -> np.ndarray:
     return np.stack([ab[:, 0] * sinc, ab[:, 1] * sinc, np.cos(rho)], axis=1)
 
 
-def expmap_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Directions as rows (3, N) from coordinate rows a, b (N,): the fit's feature-major layout."""
-    rho = np.sqrt(a * a + b * b)
-    sinc = np.sinc(rho / np.pi)
-    return np.stack([a * sinc, b * sinc, np.cos(rho)])
+def expmap_rows(a: Any, b: Any, xp: ModuleType = np) -> Any:
+    """Directions as rows (3, N) from coordinate rows a, b (N,): the fit's feature-major layout.
+
+    `xp` is the array module of a and b (NumPy or CuPy: the fit's device path).
+    """
+    rho = xp.sqrt(a * a + b * b)
+    sinc = xp.sinc(rho / np.pi)
+    return xp.stack([a * sinc, b * sinc, xp.cos(rho)])
 
 
-def expmap_jacobian_rows(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Directions (3, N) and d r / d(a, b) (3, 2, N), feature-major (rows contiguous)."""
-    rho = np.sqrt(a * a + b * b)
-    sinc = np.sinc(rho / np.pi)
+def expmap_jacobian_rows(a: Any, b: Any, xp: ModuleType = np) -> tuple[Any, Any]:
+    """Directions (3, N) and d r / d(a, b) (3, 2, N), feature-major (rows contiguous); `xp`
+    is the array module of a and b (NumPy or CuPy)."""
+    rho = xp.sqrt(a * a + b * b)
+    sinc = xp.sinc(rho / np.pi)
     small = rho < 1e-3
-    safe = np.where(small, 1.0, rho)
-    ds = np.where(small, -1.0 / 3.0 + rho**2 / 30.0, (safe * np.cos(safe) - np.sin(safe)) / safe**3)
-    r = np.stack([a * sinc, b * sinc, np.cos(rho)])
-    jac = np.empty((3, 2, len(a)))
+    safe = xp.where(small, 1.0, rho)
+    ds = xp.where(small, -1.0 / 3.0 + rho**2 / 30.0, (safe * xp.cos(safe) - xp.sin(safe)) / safe**3)
+    r = xp.stack([a * sinc, b * sinc, xp.cos(rho)])
+    jac = xp.empty((3, 2, len(a)))
     jac[0, 0] = sinc + a * a * ds
     jac[0, 1] = a * b * ds
     jac[1, 0] = jac[0, 1]
