@@ -15,9 +15,10 @@ from calibration.compare import (
     sgcc_gauge_transform,
     whitened_coefficient_errors,
 )
-from calibration.fit.generic import calibrate_generic
+from calibration.fit.generic import calibrate_generic, fit_warnings
 from calibration.models.base import model_from_dict
 from calibration.models.blas_threads import single_thread_blas
+from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import logmap
 from calibration.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
@@ -190,6 +191,10 @@ def test_noncentral_rays_consistent_with_uncertainty():
     assert float(np.sqrt(np.mean(err[:, 2:] ** 2))) < 1e-2
     assert 0.7 <= float(np.std(z[:, :2])) <= 1.4
     assert 0.7 <= float(np.std(z[:, 2:])) <= 1.4
+    # Random poses that each cover part of the image: many pixels have fewer than 3 views.
+    views = res.stats["views_per_pixel"]
+    assert abs(sum(views) - 1) < 1e-12 and views[3] < 0.9
+    assert any("fewer than 3 poses" in w for w in res.stats["warnings"])
 
 
 def _full_view_fit(size, sigma_px, seed):
@@ -235,6 +240,17 @@ def test_noncentral_covariance_whitens_the_true_errors():
     assert 0.85 <= float(np.std(z)) <= 1.15
     assert abs(float(np.mean(z))) < 0.15
     assert 0.5 < float(np.std(err / std)) < 2.0  # per pixel: the right size (few modes)
+    # Every pixel seen by all 3 poses, no empty cell, residuals at the noise floor.
+    assert res.stats["views_per_pixel"][3] > 0.99
+    assert res.stats["warnings"] == []
+
+
+def test_fit_warnings_name_the_problem_and_the_remedy():
+    grid = SplineGrid((640, 480), (10, 10))
+    (hint,) = fit_warnings("sgcc", [0.0, 0.5, 0.2, 0.3], 0, grid, 1.3)  # central: views fine
+    assert "1.30x the noise floor" in hint and "cells=[20,20]" in hint
+    few, empty = fit_warnings("sgcc-noncentral", [0.5, 0.1, 0.1, 0.3], 4, grid, 1.0)
+    assert few.startswith("40% of the pixels") and "4 of 100 spline cells" in empty
 
 
 def test_bad_inputs_raise_clear_errors(pinhole_fit):

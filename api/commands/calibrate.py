@@ -66,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     if st.get("heldout"):
         print(f"  held-out RMS {st['heldout']['rms_px']:.4g} px "
               f"(ratio {st['heldout']['noise_floor_ratio']:.3g})")
+    for warning in st.get("warnings", []):
+        print(f"  warning: {warning}")
     if args.report:
         from calibration.report import write_residual_report
 

@@ -36,6 +36,8 @@ from calibration.plan import ScreenGeometry
 
 GENERIC_MODELS = ("sgcc", "sgcc-noncentral")
 _OPTION_KEYS = {"cells", "max_iterations", "huber_k", "cut_sigmas", "smooth", "xp"}
+_FEW_VIEWS = 0.1  # warn when more of the seen pixels than this have fewer than 3 views
+_MESH_HINT_RATIO = 1.1  # noise-floor ratio above which a finer mesh is suggested
 
 
 def observations(maps: Sequence[DecodedMaps], screen: ScreenGeometry) -> list[PoseObs]:
@@ -192,6 +194,40 @@ def uncovered_cells(grid: SplineGrid, obs: list[PoseObs]) -> list[int]:
     return np.flatnonzero(~hit).tolist()
 
 
+def views_per_pixel(maps: Sequence[DecodedMaps]) -> list[float]:
+    """Fractions of the image's pixels seen by 0, 1, 2 and >= 3 of the poses."""
+    count = np.sum([m.mask for m in maps], axis=0)
+    return (np.bincount(np.minimum(count, 3).ravel(), minlength=4) / count.size).tolist()
+
+
+def fit_warnings(
+    model: str, views: list[float], n_uncovered: int, grid: SplineGrid, noise_ratio: float
+) -> list[str]:
+    """Plain-language warnings about the pose design and the mesh, for the CLI and reports."""
+    out = []
+    seen = 1.0 - views[0]
+    if model == "sgcc-noncentral" and seen > 0 and (views[1] + views[2]) / seen > _FEW_VIEWS:
+        out.append(
+            f"{100 * (views[1] + views[2]) / seen:.0f}% of the pixels that saw the screen saw it "
+            "in fewer than 3 poses: a non-central ray there trades its origin against its "
+            "direction and is poorly determined (see ray_std); add poses that cover the whole "
+            "image, at different distances (docs/generic.md, pose design)"
+        )
+    if n_uncovered:
+        out.append(
+            f"{n_uncovered} of {grid.cells[0] * grid.cells[1]} spline cells have no data: rays "
+            "there are extrapolated by the smoothness prior (their ray_std is large)"
+        )
+    if noise_ratio > _MESH_HINT_RATIO:
+        cu, cv = grid.cells
+        out.append(
+            f"residuals are {noise_ratio:.2f}x the noise floor: the {cu}x{cv} mesh may be too "
+            f"coarse for this lens (try --option cells=[{2 * cu},{2 * cv}]), or the decoded "
+            "sigmas are too small"
+        )
+    return out
+
+
 def calibrate_generic(
     maps: Sequence[DecodedMaps],
     screen: ScreenGeometry,
@@ -247,6 +283,7 @@ def calibrate_generic(
         np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 25)), -1
     ).reshape(-1, 2)
     ang, org = fitted.ray_std(sample)
+    uncovered, views = uncovered_cells(grid, obs), views_per_pixel(maps)
     stats: dict[str, Any] = {
         "model": model,
         **summarize(per_pose),
@@ -258,12 +295,15 @@ def calibrate_generic(
         "chi2_dof": out.chi2_dof,
         "gauge_min_eig": out.min_eig,
         "cells": list(grid.cells),
-        "uncovered_cells": uncovered_cells(grid, obs),
+        "uncovered_cells": uncovered,
+        "views_per_pixel": views,
         "ray_std_rad_median": float(np.median(ang)),
         "ray_std_rad_max": float(np.max(ang)),
         "origin_std_mm_median": float(np.median(org)),
         "param_std": {"ray_angle_rad_median": float(np.median(ang))},
     }
+    stats["warnings"] = fit_warnings(model, views, len(uncovered), grid,
+                                     stats["noise_floor_ratio"])
     if held_maps:
         stats["heldout"] = _heldout(fitted, observations(held_maps, screen), held, lm, pitch)
     stats["wall_s"] = time.perf_counter() - t0
