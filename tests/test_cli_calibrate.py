@@ -63,10 +63,12 @@ def test_calibrate_project_unproject(workdir, capsys) -> None:
     np.testing.assert_allclose(np.load(d / "back.npy"), pix, atol=1e-6)
 
 
-@pytest.mark.parametrize("model", ["sgcc", "raygrid"])
-def test_calibrate_generic_with_heldout_and_options(workdir, capsys, model) -> None:
+@pytest.mark.parametrize(
+    ("model", "option"),
+    [("sgcc", "cells=[6,6]"), ("sgcc", "cells=auto"), ("raygrid", "grid_step=16")],
+)
+def test_calibrate_generic_with_heldout_and_options(workdir, capsys, model, option) -> None:
     d = workdir
-    option = "cells=[6,6]" if model == "sgcc" else "grid_step=16"
     out_json = d / f"{model}.json"
     args = ["calibrate", "--plan", str(d / "plan.json"), "--maps",
             *[str(d / f"pose{i}.npz") for i in range(5)], "--model", model,
@@ -81,6 +83,9 @@ def test_calibrate_generic_with_heldout_and_options(workdir, capsys, model) -> N
     assert 0.7 < stats["noise_floor_ratio"] < 1.3
     assert 0.7 < stats["heldout"]["noise_floor_ratio"] < 1.5
     assert (d / f"{model}.png").stat().st_size > 0
+    if option == "cells=auto":  # a smooth pinhole lens: the coarsest candidate suffices
+        assert "mesh 10x8 chosen (validation chi2 10x8: " in out
+        assert stats["cells"] == [10, 8] and len(stats["mesh_choice"]) == 3
 
 
 def test_cli_errors(workdir, capsys) -> None:
@@ -103,6 +108,9 @@ def test_cli_errors(workdir, capsys) -> None:
     assert "unknown key(s) ['knots']" in capsys.readouterr().err
     assert main([*base, *maps3, "--model", "sgcc", "--option", "xp=torch"]) == 1
     assert "options.xp: expected 'numpy' or 'cupy', got 'torch'" in capsys.readouterr().err
+    assert main([*base, *maps3, "--model", "sgcc", "--option", "cells=fine"]) == 1
+    assert "options.cells: expected [cu, cv] positive integers or \"auto\"" in (
+        capsys.readouterr().err)
     (d / "corrupt.json").write_text('{"format": "phasecal.model/1", "type": "opencv5"}')
     np.save(d / "p.npy", np.zeros((2, 2)))
     assert main(["unproject", "--model", str(d / "corrupt.json"), "--pixels", str(d / "p.npy"),

@@ -245,6 +245,25 @@ def test_noncentral_covariance_whitens_the_true_errors():
     assert res.stats["warnings"] == []
 
 
+@pytest.mark.parametrize(
+    ("bumps", "n_poses", "expected"), [(True, 6, [20, 15]), (False, 4, [10, 8])]
+)
+def test_auto_mesh_refines_only_where_the_lens_needs_it(bumps, n_poses, expected):
+    cam = cameras.smooth_noncentral(W, H, bumps=bumps)
+    rng = np.random.default_rng(0)
+    ps = poses.random_poses(cam, SCREEN, n_poses, rng, distance_mm=(150.0, 450.0),
+                            min_coverage=0.2)
+    maps = [synthetic.synthetic_maps(cam, p, SCREEN, rng=rng)[0] for p in ps]
+    res = calibrate_generic(maps, SCREEN, "sgcc-noncentral", options={"cells": "auto"})
+    assert res.stats["cells"] == expected
+    rows = res.stats["mesh_choice"]
+    assert [r["cells"] for r in rows] == [[10, 8], [14, 10], [20, 15]]
+    # Local bumps: the coarse meshes leave a misfit far beyond the validation noise.
+    coarse, fine = rows[0]["validation_chi2"], rows[-1]["validation_chi2"]
+    assert (coarse > 1.2 and fine < 1.06) if bumps else coarse < 1.03
+    assert res.stats["noise_floor_ratio"] < 1.05
+
+
 def test_fit_warnings_name_the_problem_and_the_remedy():
     grid = SplineGrid((640, 480), (10, 10))
     (hint,) = fit_warnings("sgcc", [0.0, 0.5, 0.2, 0.3], 0, grid, 1.3)  # central: views fine

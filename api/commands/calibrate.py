@@ -66,6 +66,10 @@ def run(args: argparse.Namespace) -> int:
     if st.get("heldout"):
         print(f"  held-out RMS {st['heldout']['rms_px']:.4g} px "
               f"(ratio {st['heldout']['noise_floor_ratio']:.3g})")
+    if st.get("mesh_choice"):
+        tried = ", ".join(f"{r['cells'][0]}x{r['cells'][1]}: {r['validation_chi2']:.4g}"
+                          for r in st["mesh_choice"])
+        print(f"  mesh {st['cells'][0]}x{st['cells'][1]} chosen (validation chi2 {tried})")
     for warning in st.get("warnings", []):
         print(f"  warning: {warning}")
     if args.report:

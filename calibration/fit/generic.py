@@ -1,7 +1,9 @@
 """Calibrate generic camera models (sgcc, sgcc-noncentral) from decoded maps.
 
 Entry point `calibrate_generic`; `calibration.fit.dispatch` forwards these model names here.
-Options (dict, all optional): `cells` [cu, cv] (default 10x10), `max_iterations` (60),
+Options (dict, all optional): `cells` [cu, cv] (default 10x10) or "auto" (`sgcc_mesh`: the
+coarsest of 10/14/20 cells along the longer side that fits as well as the best, judged on
+validation points), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
 CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc_device.py`).
@@ -21,8 +23,9 @@ from calibration.decode.arrays import array_module
 from calibration.evaluate import summarize
 from calibration.fit.heldout import split_heldout
 from calibration.fit.result import CalibrationResult, PoseEstimate
-from calibration.fit.sgcc_init import initial_state, pose_from_model
+from calibration.fit.sgcc_init import initial_state, opencv_init, pose_from_model
 from calibration.fit.sgcc_lm import LMOptions, LMResult, LMState, PoseObs, run_lm
+from calibration.fit.sgcc_mesh import choose_mesh
 from calibration.maps import DecodedMaps
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import (
@@ -51,7 +54,9 @@ def observations(maps: Sequence[DecodedMaps], screen: ScreenGeometry) -> list[Po
     return out
 
 
-def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMOptions]:
+def _parse_options(
+    options: dict[str, Any] | None,
+) -> tuple[tuple[int, int] | str, LMOptions]:
     """Mesh cells and LM options from the user's dict; one-line errors for bad values."""
     opts = dict(options or {})
     unknown = set(opts) - _OPTION_KEYS
@@ -61,10 +66,16 @@ def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMO
             f"known: {sorted(_OPTION_KEYS)}"
         )
     cells = opts.pop("cells", DEFAULT_CELLS)
-    if isinstance(cells, int):
+    if cells == "auto":
+        pass
+    elif isinstance(cells, int):
         cells = (cells, cells)
-    if len(cells) != 2 or not all(int(c) >= 1 for c in cells):
-        raise ValueError(f"options.cells: expected [cu, cv] positive integers, got {cells!r}")
+    if cells != "auto" and (
+        isinstance(cells, str) or len(cells) != 2 or not all(int(c) >= 1 for c in cells)
+    ):
+        raise ValueError(
+            f"options.cells: expected [cu, cv] positive integers or \"auto\", got {cells!r}"
+        )
     xp = opts.pop("xp", "numpy")
     if not isinstance(xp, str):
         raise ValueError(f"options.xp: expected 'numpy' or 'cupy', got {xp!r}")
@@ -77,7 +88,7 @@ def _parse_options(options: dict[str, Any] | None) -> tuple[tuple[int, int], LMO
     )
     if lm.max_iterations < 1:
         raise ValueError(f"options.max_iterations: expected >= 1, got {lm.max_iterations}")
-    return (int(cells[0]), int(cells[1])), lm
+    return (cells if cells == "auto" else (int(cells[0]), int(cells[1]))), lm
 
 
 def _screen_jacobian(model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs) -> np.ndarray:
@@ -255,13 +266,17 @@ def calibrate_generic(
     t0 = time.perf_counter()
     cells, lm = _parse_options(options)
     h, w = maps[0].shape
-    grid = SplineGrid((w, h), cells)
     obs = observations(maps, screen)
     for j, ob in enumerate(obs):
         if len(ob.pixels) < 100:
             raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
     cls = SGCCModel if model == "sgcc" else SGCCNonCentralModel
-    init = initial_state(obs, grid, cls.n_components)
+    cv_fit = opencv_init(obs, (w, h))
+    mesh_choice = None
+    if cells == "auto":
+        cells, mesh_choice = choose_mesh(obs, (w, h), cls.n_components, lm, cv_fit)
+    grid = SplineGrid((w, h), cells)
+    init = initial_state(obs, grid, cls.n_components, cv_fit)
     fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
     pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
@@ -302,6 +317,8 @@ def calibrate_generic(
         "origin_std_mm_median": float(np.median(org)),
         "param_std": {"ray_angle_rad_median": float(np.median(ang))},
     }
+    if mesh_choice is not None:
+        stats["mesh_choice"] = mesh_choice
     stats["warnings"] = fit_warnings(model, views, len(uncovered), grid,
                                      stats["noise_floor_ratio"])
     if held_maps:
