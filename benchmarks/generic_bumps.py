@@ -8,7 +8,7 @@ pixels that saw the screen, its ratio to the best OpenCV model, the noise-floor 
 the residuals (what a user sees without ground truth) and the wall time.
 
     .venv/bin/python benchmarks/generic_bumps.py [--width 320 --height 240] [--poses 8]
-        [--cells 20 24]
+        [--cells 20 24 auto]
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--poses", type=int, default=8)
-    ap.add_argument("--cells", type=int, nargs="+", default=[20], help="sgcc mesh columns")
+    ap.add_argument("--cells", nargs="+", default=["20", "auto"],
+                    help="sgcc mesh columns, or auto (options cells='auto')")
     args = ap.parse_args()
     w, h = args.width, args.height
     cam = cameras.smooth_noncentral(w, h, bumps=True)
@@ -47,20 +48,23 @@ def main() -> None:
         return cam.rays(p[:, 0], p[:, 1])
 
     runs: list[tuple[str, dict]] = [(m, {}) for m in PARAMETRIC]
-    runs += [("sgcc-noncentral", {"cells": [c, c * h // w]}) for c in args.cells]
+    runs += [("sgcc-noncentral", {"cells": "auto" if c == "auto" else [int(c), int(c) * h // w]})
+             for c in args.cells]
     rows = []
     for model, options in runs:
         t0 = time.perf_counter()
         res = calibrate(maps, SCREEN, model, options=options or None)
         wall = time.perf_counter() - t0
         err = ray_angle_difference(res.model.unproject, truth, (w, h), pixels=pix)["rms_rad"]
-        label = model + (f" {options['cells'][0]}x{options['cells'][1]}" if options else "")
+        cells = res.stats.get("cells")
+        label = model + (f" {cells[0]}x{cells[1]}" if options else "")
+        label += " (auto)" if options.get("cells") == "auto" else ""
         rows.append((label, err, res.stats["noise_floor_ratio"], wall))
     best = min(e for label, e, _, _ in rows if label in PARAMETRIC)
     print(f"{w}x{h}, {args.poses} poses, smooth_noncentral with bumps, sigma 0.05 screen px")
-    print(f"{'model':<26}{'ray rms rad':>12}{'x best OpenCV':>15}{'noise ratio':>13}{'wall s':>8}")
+    print(f"{'model':<30}{'ray rms rad':>12}{'x best OpenCV':>15}{'noise ratio':>13}{'wall s':>8}")
     for label, err, ratio, wall in rows:
-        print(f"{label:<26}{err:>12.3g}{err / best:>15.3f}{ratio:>13.2f}{wall:>8.1f}")
+        print(f"{label:<30}{err:>12.3g}{err / best:>15.3f}{ratio:>13.2f}{wall:>8.1f}")
 
 
 if __name__ == "__main__":
