@@ -54,6 +54,14 @@ def observations(maps: Sequence[DecodedMaps], screen: ScreenGeometry) -> list[Po
     return out
 
 
+def _is_mesh(cells: Any) -> bool:
+    """True for a pair of positive integers [cu, cv]."""
+    try:
+        return not isinstance(cells, str) and len(cells) == 2 and all(int(c) >= 1 for c in cells)
+    except (TypeError, ValueError):
+        return False
+
+
 def _parse_options(
     options: dict[str, Any] | None,
 ) -> tuple[tuple[int, int] | str, LMOptions]:
@@ -66,13 +74,9 @@ def _parse_options(
             f"known: {sorted(_OPTION_KEYS)}"
         )
     cells = opts.pop("cells", DEFAULT_CELLS)
-    if cells == "auto":
-        pass
-    elif isinstance(cells, int):
+    if isinstance(cells, int):
         cells = (cells, cells)
-    if cells != "auto" and (
-        isinstance(cells, str) or len(cells) != 2 or not all(int(c) >= 1 for c in cells)
-    ):
+    if cells != "auto" and not _is_mesh(cells):
         raise ValueError(
             f"options.cells: expected [cu, cv] positive integers or \"auto\", got {cells!r}"
         )

@@ -22,10 +22,12 @@ def _subsample(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, min(n, k)).astype(np.int64))
 
 
-def _opencv_fit(
-    obs: list[PoseObs], image_size: tuple[int, int]
-) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
-    """Rational-model OpenCV calibration on subsampled points, refitted without gross outliers."""
+OpenCVFit = tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]
+
+
+def opencv_init(obs: list[PoseObs], image_size: tuple[int, int]) -> OpenCVFit:
+    """(K, dist, rvecs, tvecs) of OpenCV's rational model on subsampled points, refitted
+    without gross outliers: the start of every sGCC fit."""
     objs, imgs = [], []
     for o in obs:
         sel = _subsample(len(o.pixels), _INIT_POINTS_PER_POSE)
@@ -82,20 +84,12 @@ def gauge_rotation(center_dir: np.ndarray, du_dir: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(e3, e1), e3])
 
 
-OpenCVFit = tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]
-
-
-def opencv_init(obs: list[PoseObs], image_size: tuple[int, int]) -> OpenCVFit:
-    """(K, dist, rvecs, tvecs) of OpenCV's rational model: the start of every sGCC fit."""
-    return _opencv_fit(obs, image_size)
-
-
 def initial_state(
     obs: list[PoseObs], grid: SplineGrid, n_comp: int, cv_fit: OpenCVFit | None = None
 ) -> LMState:
     """Central ray field and poses from OpenCV's rational model (`cv_fit`, computed from obs
     when None), rotated into the sGCC gauge."""
-    k, dist, rvecs, tvecs = _opencv_fit(obs, grid.image_size) if cv_fit is None else cv_fit
+    k, dist, rvecs, tvecs = opencv_init(obs, grid.image_size) if cv_fit is None else cv_fit
     w, h = grid.image_size
     c = np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 1.0, (h - 1) / 2]])
     dc = _directions(k, dist, c)

@@ -16,12 +16,18 @@ from dataclasses import replace
 import numpy as np
 
 from calibration.fit.sgcc_init import OpenCVFit, initial_state
-from calibration.fit.sgcc_lm import LMOptions, PoseObs, _Problem, _sigma_norm, run_lm
+from calibration.fit.sgcc_lm import (
+    LMOptions,
+    PoseObs,
+    _Problem,
+    _sigma_norm,
+    gauge_constraints,
+    run_lm,
+)
 from calibration.models.bspline import SplineGrid
 
 CANDIDATE_CELLS = (10, 14, 20)  # cells along the image's longer side
 _VALIDATION_CUT = 8.0  # sigmas: validation points beyond this are outliers, not misfit
-_GAUGE = {2: 3, 4: 6}  # gauge constraints per component count
 
 
 def candidate_meshes(image_size: tuple[int, int]) -> list[tuple[int, int]]:
@@ -61,8 +67,9 @@ def choose_mesh(
     rows: list[dict[str, float | list[int]]] = []
     for cells in candidate_meshes(image_size):
         grid = SplineGrid(image_size, cells)
-        k = grid.size * n_comp + 6 * len(obs) - _GAUGE[n_comp]
-        if k > n_train / 10:  # too few points to fit this mesh on the subset
+        n_gauge = len(gauge_constraints(grid, n_comp, grid.size * n_comp))
+        k = grid.size * n_comp + 6 * len(obs) - n_gauge
+        if rows and k > n_train / 10:  # too few points to fit finer meshes on the subset
             break
         out = run_lm(grid, n_comp, train, initial_state(train, grid, n_comp, cv_fit),
                      replace(lm, subset_pixels=n_train))
