@@ -18,6 +18,21 @@ from calibration.fit.result import CalibrationResult
 from calibration.models.parametric import PinholeFamily
 
 _QUIVER_POINTS = 1500
+_POINTS_PER_BIN = 4  # magnitude map: about this many residuals per bin
+
+
+def _binned_rms(pix: np.ndarray, mag: np.ndarray, w: int, h: int) -> np.ndarray:
+    """RMS of `mag` on square bins sized for about 4 points each (NaN where empty): an image
+    that draws in milliseconds where a per-point scatter of a dense fit took seconds."""
+    side = max(1.0, float(np.sqrt(w * h * _POINTS_PER_BIN / max(len(mag), 1))))
+    nx, ny = max(1, int(np.ceil(w / side))), max(1, int(np.ceil(h / side)))
+    ix = np.clip((pix[:, 0] / side).astype(int), 0, nx - 1)
+    iy = np.clip((pix[:, 1] / side).astype(int), 0, ny - 1)
+    flat = iy * nx + ix
+    count = np.bincount(flat, minlength=nx * ny)
+    total = np.bincount(flat, weights=mag**2, minlength=nx * ny)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sqrt(total / count).reshape(ny, nx)  # 0/0 -> NaN: drawn blank
 
 
 def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
@@ -39,9 +54,10 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual vectors (camera px)")
     ax = axes[1]
     hi = float(np.percentile(mag, 99)) if mag.size else 1.0
-    sc = ax.scatter(pix[:, 0], pix[:, 1], c=mag, s=2, vmin=0, vmax=hi, cmap="magma")
-    fig.colorbar(sc, ax=ax, label="|residual| px")
-    ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude")
+    im = ax.imshow(_binned_rms(pix, mag, w, h), extent=(0, w, h, 0), vmin=0, vmax=hi,
+                   cmap="magma", interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="RMS |residual| px")
+    ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude (binned RMS)")
     ax = axes[2]
     cam = result.model
     center = (cam.cx, cam.cy) if isinstance(cam, PinholeFamily) else ((w - 1) / 2, (h - 1) / 2)
