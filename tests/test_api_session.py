@@ -185,3 +185,22 @@ def test_restart_recovery(tmp_path) -> None:
     finally:
         c.close()
         srv.stop()
+
+
+def test_generic_options_through_the_api(client: PhasecalClient, session: dict,
+                                         captured: list[str]) -> None:
+    """sGCC options pass through the REST job unchanged: the mesh chosen on validation points
+    is reported, and a malformed option fails the job with the fitter's one-line reason."""
+    final = client.wait(client.post(f"/sessions/{session['id']}/calibrations",
+                                    {"model": "sgcc", "pose_ids": captured,
+                                     "options": {"cells": "auto"}}), timeout_s=300)
+    assert final["status"] == "succeeded", final["error"]
+    stats = client.get(final["resource"])["stats"]
+    tried = [r["cells"] for r in stats["mesh_choice"]]
+    assert tried == [[10, 8], [14, 10], [20, 15]][: len(tried)] and stats["cells"] in tried
+    assert isinstance(stats["warnings"], list) and len(stats["views_per_pixel"]) == 4
+    bad = client.wait(client.post(f"/sessions/{session['id']}/calibrations",
+                                  {"model": "sgcc", "pose_ids": captured,
+                                   "options": {"xp": "torch"}}), timeout_s=300)
+    assert bad["status"] == "failed"
+    assert "options.xp: expected 'numpy' or 'cupy', got 'torch'" in bad["error"]
