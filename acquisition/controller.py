@@ -22,7 +22,6 @@ costs about ceil((P + e + 2m) / P) refresh periods instead of latency + P + e + 
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -31,12 +30,7 @@ from typing import Any, Literal
 import numpy as np
 
 from acquisition.clock import Clock
-from acquisition.errors import (
-    AcquisitionCancelled,
-    AcquisitionError,
-    CameraDisconnected,
-    CameraTimeout,
-)
+from acquisition.errors import AcquisitionError, CameraDisconnected, CameraTimeout
 from acquisition.integrity import (
     IntegrityReport,
     IntegrityThresholds,
@@ -47,6 +41,7 @@ from acquisition.patterns import DisplayResponse, render_frame
 from acquisition.protocols import Camera, CameraSettings, Display, Frame
 from acquisition.sinks import FrameSink
 from calibration.plan import Plan
+from calibration.progress import Cancel, Cancelled, Progress, is_cancelled
 
 Status = Literal["complete", "cancelled", "failed", "flagged"]
 
@@ -68,16 +63,6 @@ class ControllerOptions:
     integrity: bool = True
     thresholds: IntegrityThresholds = field(default_factory=IntegrityThresholds)
     rephase_attempts: int = 3  # free-running: stream restarts to put frames in the windows
-
-
-@dataclass(frozen=True)
-class Progress:
-    """Progress report: frames done of total, estimated seconds left, stage name."""
-
-    done: int
-    total: int
-    eta_s: float | None
-    stage: str
 
 
 @dataclass(frozen=True)
@@ -129,18 +114,6 @@ class _Failed(AcquisitionError):
     """Internal: the pose cannot be completed (message is the reason)."""
 
 
-Cancel = threading.Event | Callable[[], bool] | None
-
-
-def _is_cancelled(cancel: Cancel) -> bool:
-    """Whether a threading.Event is set or a callable returns True."""
-    if cancel is None:
-        return False
-    if isinstance(cancel, threading.Event):
-        return cancel.is_set()
-    return bool(cancel())
-
-
 class _Runner:
     """State of one pose capture (devices, timing estimates, counters)."""
 
@@ -176,9 +149,9 @@ class _Runner:
         return self.display.show(self.codes(index))
 
     def check_cancel(self) -> None:
-        """Raise `AcquisitionCancelled` once the user asked to stop."""
-        if _is_cancelled(self.cancel):
-            raise AcquisitionCancelled("cancelled by the user")
+        """Raise `Cancelled` once the user asked to stop."""
+        if is_cancelled(self.cancel):
+            raise Cancelled("cancelled by the user")
 
     def fire(self) -> None:
         """One trigger: the trigger box in 'hardware' mode when present, else software."""
@@ -447,7 +420,7 @@ def capture_pose(
             if not report.ok:
                 return result("flagged", report.reason, report)
         return result("complete", "", report)
-    except AcquisitionCancelled:
+    except Cancelled:
         return result("cancelled", f"cancelled after {len(accepted)} of {len(order)} frames "
                                    "(see `accepted` for which)")
     except _Failed as exc:
