@@ -11,6 +11,7 @@ from pathlib import Path
 
 import cloudpickle
 import dask
+import distributed  # noqa: F401  (its config defaults must exist before dask.config.set below)
 import numpy as np
 import pytest
 
