@@ -144,7 +144,12 @@ class RigManager:
             if h is not None:
                 return h
         rec = self.record(rig_id)
-        rig = _open(rig_id, rec.name, parse_rig_config(rec.config, f"rig {rig_id}"))
+        parsed = parse_rig_config(rec.config, f"rig {rig_id}")
+        if rec.name not in self.operator_names:  # stored by a client (maybe by an older version)
+            from api.rig_policy import check_client_rig
+
+            parsed = check_client_rig(parsed, self.data_dir, aravis_ids=self.aravis_ids)
+        rig = _open(rig_id, rec.name, parsed)
         with self._lock:
             h = self._handles.setdefault(rig_id, RigHandle(rig_id, rig))
         if h.rig is not rig:
