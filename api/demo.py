@@ -20,11 +20,9 @@ import cv2
 import numpy as np
 
 from api.client import PhasecalClient
-from api.commands.demo import DEFAULT_MODELS
 from api.config import ServiceConfig
 from api.inprocess import running_service
 from calibration.plan import ScreenGeometry
-
 
 
 @dataclass
@@ -53,7 +51,7 @@ def demo_rig_config(width: int, height: int, camera: str = "wide_fisheye",
 
 
 def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, height: int = 480,
-             models: tuple[str, ...] = DEFAULT_MODELS, preset: str = "default", seed: int = 7,
+             models: tuple[str, ...], preset: str = "default", seed: int = 7,
              out: TextIO = sys.stdout) -> list[DemoRow]:
     """Run the demo; returns the table rows (also printed to `out`)."""
     root = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="phasecal-demo-"))
