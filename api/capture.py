@@ -7,7 +7,6 @@ missing frame and the folder can also be decoded by `phasecal decode`.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 from typing import Any
@@ -15,6 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from calibration.atomic import write_bytes_atomic
 from calibration.plan import Plan
 from calibration.progress import TaskContext
 
@@ -36,13 +36,7 @@ class PngFrameSink:
         ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
             raise OSError(f"frame {index}: PNG encoding failed")
-        path = self.folder / f"frame_{index:04d}.png"
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            fh.write(buf.tobytes())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        write_bytes_atomic(self.folder / f"frame_{index:04d}.png", buf.tobytes())
 
 
 def stored_indices(folder: Path) -> set[int]:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, RootModel, create_model
 
-ModelName = Literal["opencv5", "opencv-rational", "fisheye", "raygrid", "sgcc", "sgcc-noncentral"]
+from calibration.fit.registry import MODEL_NAMES, MODELS
+
+ModelName = Literal[MODEL_NAMES]  # type: ignore[valid-type]  # from the model registry
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
 JobKind = Literal["capture", "decode", "calibrate"]
 MAX_POINTS = 200_000
@@ -159,16 +161,35 @@ class Pose(BaseModel):
     created_at: float
 
 
-class CalibrationCreate(BaseModel):
-    """Calibrate chosen poses (default: every ready pose) with one model."""
+class _CalibrationFields(BaseModel):
+    """What every model's calibration request has besides its model and options."""
 
-    model_config = _strict(
-        {"model": "opencv-rational"}, {"model": "sgcc", "pose_ids": ["pose_0123456789abcdef"]}
-    )
-    model: ModelName
+    model_config = ConfigDict(extra="forbid")
     pose_ids: list[str] | None = Field(default=None, max_length=500)
     heldout_pose_ids: list[str] = Field(default_factory=list, max_length=500)
-    options: dict[str, Any] = Field(default_factory=dict)
+
+
+def per_model(base: type[BaseModel], prefix: str) -> Any:
+    """The discriminated union over the registry: one `<prefix>_<model>` request per model,
+    whose `options` is that model's typed options (so OpenAPI shows each model's options and
+    a bad option is a 422 naming the field)."""
+    variants = tuple(
+        create_model(f"{prefix}_{name.replace('-', '_')}", __base__=base,
+                     __doc__=f"{prefix} for model {name}.",
+                     model=(Literal[name], ...),
+                     options=(spec.options, Field(default_factory=spec.options)))
+        for name, spec in MODELS.items()
+    )
+    return Annotated[Union[variants], Field(discriminator="model")]  # noqa: UP007
+
+
+class CalibrationCreate(RootModel[per_model(_CalibrationFields, "CalibrationCreate")]):  # type: ignore[misc]
+    """Calibrate chosen poses (default: every ready pose) with one model and its options."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"model": "opencv-rational"},
+        {"model": "sgcc", "pose_ids": ["pose_0123456789abcdef"], "options": {"cells": [14, 10]}},
+    ]})
 
 
 class Calibration(BaseModel):

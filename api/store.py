@@ -14,6 +14,7 @@ import tempfile
 from pathlib import Path
 
 from api.problems import Problem
+from calibration.atomic import write_bytes_atomic
 
 ID_RE = re.compile(r"^(rig|ses|pose|cal|job)_[0-9a-f]{16}$")
 KIND_DIRS = {"ses": "sessions", "pose": "poses", "cal": "calibrations", "rig": "rigs"}
@@ -68,16 +69,7 @@ class DataStore:
 
     def write_bytes(self, path: Path, data: bytes) -> None:
         """Write bytes atomically (fsync, then rename over the target)."""
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_bytes_atomic(path, data)
 
     def temp_dir(self) -> Path:
         """A fresh scratch folder inside the data directory (same filesystem: renames work)."""

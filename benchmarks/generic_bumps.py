@@ -19,7 +19,8 @@ import time
 import numpy as np
 
 from calibration.compare import ray_angle_difference
-from calibration.fit.dispatch import PARAMETRIC, calibrate
+from calibration.fit.dispatch import calibrate
+from calibration.fit.registry import PARAMETRIC
 from calibration.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import tempfile
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from calibration.atomic import write_bytes_atomic
 
 MAPS_FORMAT = "phasecal.maps/1"
 
@@ -96,18 +96,7 @@ class DecodedMaps:
 
 def save_maps(maps: DecodedMaps, path: str | Path) -> None:
     """Write maps as NPZ atomically (temp file in the same folder, then rename)."""
-    p = Path(path)
-    data = maps.to_npz_bytes()
-    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent or ".")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_bytes_atomic(path, maps.to_npz_bytes())
 
 
 def load_maps(source: str | Path | bytes) -> DecodedMaps:

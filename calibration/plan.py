@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from calibration.atomic import write_json_atomic
+
 PLAN_FORMAT = "phasecal.plan/1"
 
 Axis = Literal["x", "y"]
@@ -282,10 +284,7 @@ def read_plan(path: str | Path) -> Plan:
 
 def write_plan(plan: Plan, path: str | Path) -> None:
     """Write a plan as JSON (atomically: temp file then rename)."""
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(plan.to_dict(), indent=2) + "\n", encoding="utf-8")
-    tmp.replace(p)
+    write_json_atomic(path, plan.to_dict(), indent=2)
 
 
 def cosine_frames(axis: Axis, periods: Iterable[float], steps: int) -> list[CosineFrame]:

@@ -107,7 +107,7 @@ def test_cli_errors(workdir, capsys) -> None:
     assert main([*base, *maps3, "--model", "sgcc", "--option", "knots=3"]) == 1
     assert "unknown key(s) ['knots']" in capsys.readouterr().err
     assert main([*base, *maps3, "--model", "sgcc", "--option", "xp=torch"]) == 1
-    assert "options.xp: expected 'numpy' or 'cupy', got 'torch'" in capsys.readouterr().err
+    assert "options.xp: Input should be 'numpy' or 'cupy', got 'torch'" in capsys.readouterr().err
     assert main([*base, *maps3, "--model", "sgcc", "--option", "cells=fine"]) == 1
     assert "options.cells: expected [cu, cv] positive integers or \"auto\"" in (
         capsys.readouterr().err)

@@ -101,7 +101,7 @@ def test_bad_inputs(pinhole_fit) -> None:
         calibrate(maps[:3], SCREEN, "opencv5", heldout=[0])
     with pytest.raises(ValueError, match="heldout"):
         calibrate(maps, SCREEN, "opencv5", heldout=[9])
-    with pytest.raises(ValueError, match="unknown keys"):
+    with pytest.raises(ValueError, match="unknown key"):
         calibrate(maps[:3], SCREEN, "opencv5", options={"bogus": 1})
     with pytest.raises(ValueError, match="model"):
         calibrate(maps, SCREEN, "nonesuch")

@@ -441,7 +441,8 @@ def test_noncentral_with_local_bumps_beats_every_opencv_model_by_20x():
     """A camera outside every parametric family: smooth non-central deviations plus local
     bumps. sgcc-noncentral must reach <= 0.05x the ray error of the best OpenCV model, and
     its residuals must sit at the noise floor while the OpenCV models are flagged."""
-    from calibration.fit.dispatch import PARAMETRIC, calibrate
+    from calibration.fit.dispatch import calibrate
+    from calibration.fit.registry import PARAMETRIC
 
     w, h = 320, 240
     cam = cameras.smooth_noncentral(w, h, bumps=True)

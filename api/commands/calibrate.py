@@ -27,16 +27,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
-    from calibration.fit.dispatch import MODEL_NAMES, PARAMETRIC, calibrate
     from calibration.fit.ransac import DegenerateError
-    from calibration.maps import load_maps
+    from calibration.fit.registry import MODEL_NAMES, PARAMETRIC
     from calibration.models.base import save_model
-    from calibration.plan import read_plan
+    from calibration.pipeline import calibrate_files
 
     if args.model not in MODEL_NAMES:
         raise UserError(f"--model: expected one of {', '.join(MODEL_NAMES)}, got {args.model!r}")
-    plan = read_plan(args.plan)
-    maps = [load_maps(m) for m in args.maps]
     options = _parse_options(args.option)
     if args.max_points is not None:
         if args.model not in PARAMETRIC:
@@ -46,8 +43,8 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--max-points: expected >= 50, got {args.max_points}")
         options["max_points_per_pose"] = args.max_points
     try:
-        result = calibrate(maps, plan.screen, args.model, options=options or None,
-                           heldout=args.heldout)
+        result = calibrate_files(args.plan, args.maps, args.model, options=options or None,
+                                 heldout=args.heldout)
     except DegenerateError as exc:
         raise UserError(f"calibration failed: {exc}") from None
     save_model(result.model, args.output)

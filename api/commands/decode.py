@@ -30,28 +30,19 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from api.cli import UserError
-    from calibration.decode import DecodeOptions, StreamingDecoder, read_frames
+    from calibration.decode import DecodeOptions
     from calibration.maps import save_maps
+    from calibration.pipeline import decode_frames
     from calibration.plan import read_plan
 
     plan = read_plan(args.plan)
-    source = read_frames(args.frames)
-    if source.count != len(plan.frames):
-        raise UserError(
-            f"{args.frames}: {source.count} frames, but plan {args.plan} has "
-            f"{len(plan.frames)} (frame i must show plan frame i)"
-        )
     if args.noise_dn is not None and not args.noise_dn > 0:
         raise UserError(f"--noise-dn: must be > 0 DN, got {args.noise_dn}")
     options = DecodeOptions()
     if args.max_sigma_px is not None:
         options = replace(options, max_sigma_px=args.max_sigma_px)
-    decoder = StreamingDecoder(
-        plan, source.shape, noise=args.noise_dn, saturation_dn=args.saturation_dn, options=options
-    )
-    for i, frame in enumerate(source):
-        decoder.add(i, frame)
-    maps = decoder.finish({"frames": str(args.frames)})
+    maps = decode_frames(plan, args.frames, noise=args.noise_dn, saturation_dn=args.saturation_dn,
+                         options=options, meta={"frames": str(args.frames)})
     save_maps(maps, args.output)
     h, w = maps.shape
     valid = maps.valid_count()

@@ -13,15 +13,16 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field, RootModel
 from sqlalchemy import select
 
 from api.db import CalibrationRecord, PoseRecord
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
-from api.schemas import ModelName, _strict
+from api.schemas import _strict, per_model
 from api.services import Services, get_services
 from api.store import new_id
+from calibration.fit.registry import model_spec
 from calibration.progress import TaskContext
 from calibration.worker.dask_batch import BatchItem, run_batch
 
@@ -31,12 +32,17 @@ Svc = Annotated[Services, Depends(get_services)]
 MAX_BATCH_ITEMS = 500
 
 
-class ModelSetting(BaseModel):
-    """One model with its fit options."""
+class _SettingFields(BaseModel):
+    """A model setting has nothing besides its model and typed options."""
 
-    model_config = _strict({"model": "sgcc", "options": {}})
-    model: ModelName
-    options: dict[str, Any] = Field(default_factory=dict)
+    model_config = ConfigDict(extra="forbid")
+
+
+class ModelSetting(RootModel[per_model(_SettingFields, "ModelSetting")]):  # type: ignore[misc]
+    """One model with its fit options (typed per model, from the model registry)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"model": "sgcc", "options": {"cells": [24, 16]}}]})
 
 
 class BatchCalibrationCreate(BaseModel):
@@ -61,6 +67,22 @@ def _ready_poses(s: Any, session_id: str) -> list[str]:
     return ids
 
 
+def _options(setting: Any) -> dict[str, Any]:
+    """The options the client set (JSON-able), as stored and handed to the fit."""
+    return setting.options.model_dump(mode="json", exclude_unset=True)
+
+
+def _check_pose_counts(poses: dict[str, list[str]], models: list[str]) -> None:
+    """422 unless every session has the ready poses every model needs."""
+    for model in dict.fromkeys(models):
+        need = model_spec(model).min_poses
+        for sid, ids in poses.items():
+            if len(ids) < need:
+                raise Problem(422, "validation-error",
+                              f"session_ids: session {sid} has {len(ids)} ready poses; "
+                              f"{model} needs >= {need}")
+
+
 @router.post("/batches/calibrations", status_code=202, response_model=None,
              responses={202: {"description": "batch job accepted; Location: /jobs/<id>"}})
 def create_batch(body: BatchCalibrationCreate, svc: Svc) -> JSONResponse:
@@ -70,23 +92,24 @@ def create_batch(body: BatchCalibrationCreate, svc: Svc) -> JSONResponse:
     if n_items > MAX_BATCH_ITEMS:
         raise Problem(422, "validation-error",
                       f"session_ids x models: {n_items} items, at most {MAX_BATCH_ITEMS}")
-    plan: list[tuple[str, str, list[str], ModelSetting]] = []
+    plan: list[tuple[str, str, list[str], Any]] = []
     with svc.db.session() as s:
         poses = {sid: _ready_poses(s, sid) for sid in session_ids}
+        _check_pose_counts(poses, [m.root.model for m in body.models])
         job = svc.jobs.create(s, "calibrate", "/calibrations", None, total=n_items)
         for sid in session_ids:
-            for setting in body.models:
+            for setting in (m.root for m in body.models):
                 cid = new_id("cal")
                 s.add(CalibrationRecord(id=cid, session_id=sid, model=setting.model,
                                         pose_ids=poses[sid], heldout_pose_ids=[],
-                                        options=setting.options, status="queued",
+                                        options=_options(setting), status="queued",
                                         job_id=job.id, exports=[], created_at=time.time()))
                 plan.append((cid, sid, poses[sid], setting))
     items = [
         BatchItem(name=cid, plan_path=str(svc.store.dir_for(sid) / "plan.json"),
                   maps_paths=tuple(str(svc.store.file(p, "maps.npz")) for p in pose_ids),
                   model=setting.model, out_dir=str(svc.store.dir_for(cid)),
-                  options=dict(setting.options))
+                  options=_options(setting))
         for cid, sid, pose_ids, setting in plan
     ]
     cids = [cid for cid, *_ in plan]

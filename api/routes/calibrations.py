@@ -23,6 +23,7 @@ from api.schemas import (
 )
 from api.services import Services, get_services
 from api.store import check_id, new_id
+from calibration.fit.registry import model_spec
 from calibration.models.base import CameraModel, load_model
 from calibration.progress import TaskContext
 from calibration.worker.tasks import calibrate_task
@@ -77,8 +78,10 @@ def _check_poses(s: Any, session_id: str, ids: list[str], field: str,
 
 @router.post("/sessions/{session_id}/calibrations", status_code=202, response_model=None,
              responses={202: {"description": "calibration job accepted; Location: /jobs/<id>"}})
-def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JSONResponse:
+def create_calibration(session_id: str, request: CalibrationCreate, svc: Svc) -> JSONResponse:
     """Calibrate chosen poses (default: every ready pose not held out) with one model (a job)."""
+    body = request.root
+    options = body.options.model_dump(mode="json", exclude_unset=True)
     cid = new_id("cal")
     with svc.db.session() as s:
         get_session(s, session_id)
@@ -95,6 +98,11 @@ def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JS
         sizes: dict[tuple[int | None, int | None], str] = {}
         _check_poses(s, session_id, pose_ids, "pose_ids", sizes)
         _check_poses(s, session_id, body.heldout_pose_ids, "heldout_pose_ids", sizes)
+        need = model_spec(body.model).min_poses
+        if len(pose_ids) < need:
+            raise Problem(422, "validation-error",
+                          f"pose_ids: {body.model} needs >= {need} training poses, got "
+                          f"{len(pose_ids)}")
         overlap = set(pose_ids) & set(body.heldout_pose_ids)
         if overlap:
             raise Problem(422, "validation-error",
@@ -102,7 +110,7 @@ def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JS
         job = svc.jobs.create(s, "calibrate", f"/calibrations/{cid}", session_id)
         s.add(CalibrationRecord(id=cid, session_id=session_id, model=body.model,
                                 pose_ids=pose_ids, heldout_pose_ids=body.heldout_pose_ids,
-                                options=body.options, status="queued", job_id=job.id,
+                                options=options, status="queued", job_id=job.id,
                                 exports=[], created_at=time.time()))
     plan_path = str(svc.store.dir_for(session_id) / "plan.json")
     maps = [str(svc.store.file(p, "maps.npz")) for p in pose_ids]
@@ -114,7 +122,7 @@ def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JS
             s.get(CalibrationRecord, cid).status = "running"
         fut = svc.executor.run_task(calibrate_task, plan_path, maps, body.model, str(out_dir),
                                     job_id=ctx.job_id, on_progress=ctx.progress,
-                                    options=body.options, heldout_paths=heldout or None)
+                                    options=options, heldout_paths=heldout or None)
         return fut.result()
 
     def ok(s: Any, result: dict[str, Any]) -> None:

@@ -36,6 +36,7 @@ from calibration.decode.unwrap import fuse_axis
 from calibration.decode.validity import REASONS, AxisChecks, classify, mark_screen_edges
 from calibration.maps import MAPS_FORMAT, DecodedMaps
 from calibration.plan import Plan
+from calibration.progress import CancelCheck, Cancelled, ProgressFn
 
 # Periods finer than the coarsest enter the fusion and the blur fit only above this
 # modulation SNR: below it the phase noise is no longer Gaussian (the linearized sigma lies).
@@ -369,23 +370,29 @@ def decode_stack(
     options: DecodeOptions | None = None,
     xp: ModuleType | str | None = np,
     meta: dict[str, Any] | None = None,
+    progress: ProgressFn | None = None,
+    cancelled: CancelCheck | None = None,
 ) -> DecodedMaps:
-    """Decode a whole (F, H, W) stack (or any sequence of 2-D frames in plan order)."""
+    """The one decode loop: frames in plan order (an (F, H, W) stack, a `FrameSource` or any
+    sized iterable of 2-D frames) to maps; progress per frame, `Cancelled` between frames."""
     count = len(frames)
     if count != len(plan.frames):
-        raise DecodeError(
-            f"frames: {count} frames given, the plan has {len(plan.frames)} "
-            "(frame i must be captured while plan frame i was shown)"
-        )
-    first = frames[0]
-    if getattr(first, "ndim", None) != 2:
-        raise DecodeError(
-            f"frames: expected a (F, H, W) stack of single-channel frames, got frame shape "
-            f"{getattr(first, 'shape', None)}"
-        )
-    dec = StreamingDecoder(
-        plan, tuple(first.shape), noise=noise, saturation_dn=saturation_dn, options=options, xp=xp
-    )
-    for i in range(count):
-        dec.add(i, frames[i])
+        raise DecodeError(f"frames: {count} frames given, the plan has {len(plan.frames)} "
+                          "(frame i must be captured while plan frame i was shown)")
+    dec: StreamingDecoder | None = None
+    for i, frame in enumerate(frames):
+        if cancelled is not None and cancelled():
+            raise Cancelled(f"decode cancelled after {i} of {count} frames")
+        if dec is None:
+            if getattr(frame, "ndim", None) != 2:
+                raise DecodeError("frames: expected a (F, H, W) stack of single-channel frames, "
+                                  f"got frame shape {getattr(frame, 'shape', None)}")
+            dec = StreamingDecoder(plan, tuple(frame.shape), noise=noise,
+                                   saturation_dn=saturation_dn, options=options, xp=xp)
+        dec.add(i, frame)
+        if progress is not None:
+            progress(i + 1, count, "decode")
+    assert dec is not None  # count == len(plan.frames) > 0
+    if progress is not None:
+        progress(count, count, "unwrap")
     return dec.finish(meta)

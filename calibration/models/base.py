@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+
+from calibration.atomic import write_text_atomic
 
 MODEL_FORMAT = "phasecal.model/1"
 
@@ -144,18 +144,7 @@ def load_model(path: str | Path) -> CameraModel:
 
 def save_model(model: CameraModel, path: str | Path) -> None:
     """Write a model JSON file atomically."""
-    p = Path(path)
-    text = json.dumps(model.to_dict(), indent=1) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, json.dumps(model.to_dict(), indent=1) + "\n")
 
 
 def _jsonable(value: Any) -> Any:

@@ -6,30 +6,10 @@ atomically to the given paths and returns a small JSON-able summary.
 
 from __future__ import annotations
 
-import json
-import os
-import tempfile
 import time
-from pathlib import Path
 from typing import Any
 
 from calibration.progress import Cancelled, TaskContext
-
-
-def write_json_atomic(path: str | Path, data: Any) -> None:
-    """Write JSON through a temp file in the same folder, then rename."""
-    p = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1, allow_nan=False)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def decode_task(
@@ -46,23 +26,13 @@ def decode_task(
     `noise` is the camera's per-frame noise: sigma in DN, a sensor noise model (anything
     with `noise_sigma_dn(mean)`), or None to estimate it from the fit residuals.
     """
-    from calibration.decode import DecodeError, StreamingDecoder, read_frames
     from calibration.maps import save_maps
+    from calibration.pipeline import decode_frames
     from calibration.plan import read_plan
 
     t0 = time.perf_counter()
-    plan = read_plan(plan_path)
-    source = read_frames(frames_path)
-    total = len(plan.frames)
-    if source.count != total:
-        raise DecodeError(f"{frames_path}: {source.count} frames but the plan has {total}")
-    decoder = StreamingDecoder(plan, source.shape, noise=noise)
-    for index, image in enumerate(source):
-        ctx.check_cancelled()
-        decoder.add(index, image)
-        ctx.progress(index + 1, total, "decode")
-    ctx.progress(total, total, "unwrap")
-    maps = decoder.finish(dict(meta or {}))
+    maps = decode_frames(read_plan(plan_path), frames_path, noise=noise, meta=meta,
+                         progress=ctx.progress, cancelled=ctx.cancelled)
     save_maps(maps, out_path)
     h, w = maps.shape
     return {
@@ -84,77 +54,17 @@ def calibrate_task(
     heldout_paths: list[str] | None = None,
 ) -> dict[str, Any]:
     """Fit `model` to the maps of several poses; write model.json, result.json and exports."""
-    from calibration.fit.dispatch import calibrate
-    from calibration.maps import load_maps
-    from calibration.models.base import _jsonable, save_model
-    from calibration.plan import read_plan
+    from calibration.pipeline import calibrate_files, write_model_folder
 
-    t0 = time.perf_counter()
-    out = Path(out_dir)
-    plan = read_plan(plan_path)
-    ctx.progress(0, len(maps_paths), "load")
-    maps_list = []
-    for i, p in enumerate(maps_paths):
-        ctx.check_cancelled()
-        maps_list.append(load_maps(p))
-        ctx.progress(i + 1, len(maps_paths), "load")
-    heldout = list(range(len(maps_list), len(maps_list) + len(heldout_paths or [])))
-    maps_list += [load_maps(p) for p in heldout_paths or []]
-    result = calibrate(
-        maps_list,
-        plan.screen,
-        model,
-        options=options or {},
-        heldout=heldout,
-        progress=ctx.progress,
-        cancelled=ctx.cancelled,
-    )
+    held = list(heldout_paths or [])
+    result = calibrate_files(plan_path, [*maps_paths, *held], model, options=options,
+                             heldout=list(range(len(maps_paths), len(maps_paths) + len(held))),
+                             progress=ctx.progress, cancelled=ctx.cancelled)
     ctx.check_cancelled()
     ctx.progress(0, 1, "write")
-    save_model(result.model, out / "model.json")
-    poses = [
-        {
-            "rotation": p.rotation.tolist(),
-            "translation_mm": p.translation.tolist(),
-            "rms_px": p.rms_px,
-            "rms_screen_px": p.rms_screen_px,
-            "n_points": p.n_points,
-        }
-        for p in result.poses
-    ]
-    stats = _jsonable(dict(result.stats))
-    stats.setdefault("wall_s", round(time.perf_counter() - t0, 3))
-    write_json_atomic(out / "result.json", {"model": model, "stats": stats, "poses": poses})
-    exports = _write_exports(result, out)
+    summary = write_model_folder(result, model, out_dir)
     ctx.progress(1, 1, "write")
-    return {"stats": stats, "exports": exports}
+    return summary
 
 
-def _write_exports(result: Any, out: Path) -> list[str]:
-    """OpenCV YAML and ROS camera_info (pinhole-family models) and the residual plot.
-
-    Each file is written under a temporary name with the same extension (the writers
-    pick the format from it) and renamed into place.
-    """
-    from calibration import export, report
-    from calibration.models.base import ModelError
-
-    written: list[str] = []
-    jobs = (
-        ("opencv.yaml", export.export_opencv_yaml),
-        ("camera_info.yaml", export.export_ros_yaml),
-        ("residuals.png", report.write_residual_report),
-    )
-    for name, fn in jobs:
-        tmp = out / f"tmp-{name}"
-        try:
-            fn(result if name == "residuals.png" else result.model, tmp)
-        except ModelError:
-            tmp.unlink(missing_ok=True)
-            continue  # this model has no such form (e.g. generic models and OpenCV YAML)
-        os.replace(tmp, out / name)
-        written.append(name)
-    return written
-
-
-__all__ = ["Cancelled", "calibrate_task", "decode_task", "write_json_atomic"]
+__all__ = ["Cancelled", "calibrate_task", "decode_task"]

@@ -18,19 +18,13 @@ import cv2
 import numpy as np
 
 from calibration.evaluate import pose_residuals, screen_jacobian
+from calibration.fit.classic.options import MIN_POSES, ParametricOptions
 from calibration.fit.correspondences import PointSet, subsample
 from calibration.fit.ransac import DegenerateError
 from calibration.fit.result import PoseEstimate
 from calibration.models.parametric import PARAMETRIC_MODELS, PinholeFamily
 from calibration.progress import ProgressFn
 
-DEFAULTS: dict[str, Any] = {
-    "max_points_per_pose": 2000,  # OpenCV's dense solver slows down quadratically beyond this
-    "thin_prism": False,  # opencv-rational: also fit s1..s4
-    "outlier_rounds": 2,
-    "seed": 0,
-}
-MIN_POSES = 3
 # A fit whose fx (or cx, relative to the image width) is this uncertain is degenerate.
 _MAX_REL_STD = 0.01
 
@@ -175,16 +169,13 @@ def _opencv_single_threaded() -> Iterator[None]:
 
 def fit_parametric(
     points: list[PointSet], image_size: tuple[int, int], model_name: str,
-    options: dict[str, Any] | None = None,
+    options: ParametricOptions | None = None,
     progress: ProgressFn | None = None,
 ) -> tuple[PinholeFamily, list[PoseEstimate], list[PointSet], dict[str, Any]]:
     """Fit one OpenCV-family model; returns (model, poses, used point sets, fit stats)."""
     if model_name not in PARAMETRIC_MODELS:
         raise ValueError(f"model: expected one of {sorted(PARAMETRIC_MODELS)}, got {model_name!r}")
-    opts = {**DEFAULTS, **(options or {})}
-    unknown = sorted(set(opts) - set(DEFAULTS))
-    if unknown:
-        raise ValueError(f"options: unknown keys {unknown}; known: {sorted(DEFAULTS)}")
+    opts = (options or ParametricOptions()).model_dump()
     if len(points) < MIN_POSES:
         raise DegenerateError(f"{model_name}: needs >= {MIN_POSES} poses, got {len(points)}")
     used = [subsample(p, int(opts["max_points_per_pose"])) for p in points]

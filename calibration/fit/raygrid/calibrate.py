@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,6 +25,7 @@ import numpy as np
 from calibration.evaluate import ADEQUATE_RATIO, summarize
 from calibration.fit.heldout import split_heldout
 from calibration.fit.observations import PoseObs, observations
+from calibration.fit.raygrid.options import RaygridOptions
 from calibration.fit.raygrid.solve import (
     Observations,
     cost_and_inliers,
@@ -38,6 +38,7 @@ from calibration.fit.raygrid.solve import (
     ray_weights,
     refine_poses,
 )
+from calibration.fit.registry import model_spec
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sgcc.initial import initial_state, pose_from_model
 from calibration.maps import DecodedMaps
@@ -45,47 +46,6 @@ from calibration.models.bspline import SplineGrid
 from calibration.models.raygrid import RayGridModel, default_grid_step
 from calibration.plan import ScreenGeometry
 from calibration.progress import CancelCheck, Cancelled, ProgressFn
-
-_OPTION_KEYS = {"central", "grid_step", "max_iterations", "tolerance", "cut_sigmas"}
-
-
-@dataclass
-class RaygridOptions:
-    """Parsed user options."""
-
-    central: bool = True
-    grid_step: int | None = None
-    max_iterations: int = 30
-    tolerance: float = 1e-9
-    cut_sigmas: float = 8.0
-
-
-def parse_options(options: dict[str, Any] | None) -> RaygridOptions:
-    """Validate the options dict; one-line errors naming the key."""
-    opts = dict(options or {})
-    unknown = set(opts) - _OPTION_KEYS
-    if unknown:
-        raise ValueError(
-            f"options: unknown key(s) {sorted(unknown)} for raygrid; known: {sorted(_OPTION_KEYS)}"
-        )
-    out = RaygridOptions()
-    if "central" in opts:
-        if not isinstance(opts["central"], bool):
-            raise ValueError(f"options.central: expected true/false, got {opts['central']!r}")
-        out.central = opts["central"]
-    if opts.get("grid_step") is not None:
-        step = opts["grid_step"]
-        if not isinstance(step, int) or isinstance(step, bool) or step < 1:
-            raise ValueError(f"options.grid_step: expected a positive integer, got {step!r}")
-        out.grid_step = step
-    out.max_iterations = int(opts.get("max_iterations", out.max_iterations))
-    if out.max_iterations < 1:
-        raise ValueError(f"options.max_iterations: expected >= 1, got {out.max_iterations}")
-    out.tolerance = float(opts.get("tolerance", out.tolerance))
-    out.cut_sigmas = float(opts.get("cut_sigmas", out.cut_sigmas))
-    if out.tolerance <= 0 or out.cut_sigmas <= 0:
-        raise ValueError("options.tolerance and options.cut_sigmas: expected positive numbers")
-    return out
 
 
 def _heldout(
@@ -132,14 +92,15 @@ def _heldout(
 def calibrate_raygrid(
     maps: Sequence[DecodedMaps],
     screen: ScreenGeometry,
+    model: str = "raygrid",
     *,
-    options: dict[str, Any] | None = None,
+    options: RaygridOptions | dict[str, Any] | None = None,
     heldout: Sequence[int] | None = None,
     progress: ProgressFn | None = None,
     cancelled: CancelCheck | None = None,
 ) -> CalibrationResult:
     """Fit a raygrid model to the poses not in `heldout`; held-out poses are validated."""
-    opts = parse_options(options)
+    opts: RaygridOptions = model_spec(model).parse_options(options)
     maps, held_maps, held = split_heldout(maps, heldout, "raygrid")
     t0 = time.perf_counter()
     h, w = maps[0].shape

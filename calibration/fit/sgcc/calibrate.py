@@ -23,68 +23,34 @@ from calibration.decode.arrays import array_module
 from calibration.evaluate import summarize
 from calibration.fit.heldout import split_heldout
 from calibration.fit.observations import PoseObs, observations
+from calibration.fit.registry import model_spec
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sgcc.initial import initial_state, opencv_init, pose_from_model
 from calibration.fit.sgcc.lm import run_lm
 from calibration.fit.sgcc.mesh import choose_mesh
+from calibration.fit.sgcc.options import SgccOptions
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import (
-    DEFAULT_CELLS,
     SGCCBase,
-    SGCCModel,
-    SGCCNonCentralModel,
     expmap_jacobian,
 )
 from calibration.plan import ScreenGeometry
 from calibration.progress import CancelCheck, ProgressFn
 
-GENERIC_MODELS = ("sgcc", "sgcc-noncentral")
-_OPTION_KEYS = {"cells", "max_iterations", "huber_k", "cut_sigmas", "smooth", "xp"}
 _FEW_VIEWS = 0.1  # warn when more of the seen pixels than this have fewer than 3 views
 _MESH_HINT_RATIO = 1.1  # noise-floor ratio above which a finer mesh is suggested
 
 
-def _is_mesh(cells: Any) -> bool:
-    """True for a pair of positive integers [cu, cv]."""
+def _lm_options(opts: SgccOptions) -> LMOptions:
+    """LM options from the typed options; a missing CuPy fails here, before any work."""
     try:
-        return not isinstance(cells, str) and len(cells) == 2 and all(int(c) >= 1 for c in cells)
-    except (TypeError, ValueError):
-        return False
-
-
-def _parse_options(
-    options: dict[str, Any] | None,
-) -> tuple[tuple[int, int] | str, LMOptions]:
-    """Mesh cells and LM options from the user's dict; one-line errors for bad values."""
-    opts = dict(options or {})
-    unknown = set(opts) - _OPTION_KEYS
-    if unknown:
-        raise ValueError(
-            f"options: unknown key(s) {sorted(unknown)} for generic models; "
-            f"known: {sorted(_OPTION_KEYS)}"
-        )
-    cells = opts.pop("cells", DEFAULT_CELLS)
-    if isinstance(cells, int):
-        cells = (cells, cells)
-    if cells != "auto" and not _is_mesh(cells):
-        raise ValueError(
-            f"options.cells: expected [cu, cv] positive integers or \"auto\", got {cells!r}"
-        )
-    xp = opts.pop("xp", "numpy")
-    if not isinstance(xp, str):
-        raise ValueError(f"options.xp: expected 'numpy' or 'cupy', got {xp!r}")
-    try:
-        array_module(xp)  # a missing CuPy fails here, before any work
+        array_module(opts.xp)
     except ValueError as exc:
         raise ValueError(f"options.{exc}") from None
-    lm = LMOptions(
-        **{k: (int(v) if k == "max_iterations" else float(v)) for k, v in opts.items()}, xp=xp
-    )
-    if lm.max_iterations < 1:
-        raise ValueError(f"options.max_iterations: expected >= 1, got {lm.max_iterations}")
-    return (cells if cells == "auto" else (int(cells[0]), int(cells[1]))), lm
+    return LMOptions(max_iterations=opts.max_iterations, huber_k=opts.huber_k,
+                     cut_sigmas=opts.cut_sigmas, smooth=opts.smooth, xp=opts.xp)
 
 
 def _screen_jacobian(model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs) -> np.ndarray:
@@ -240,7 +206,7 @@ def calibrate_generic(
     screen: ScreenGeometry,
     model: str,
     *,
-    options: dict[str, Any] | None = None,
+    options: SgccOptions | dict[str, Any] | None = None,
     heldout: Sequence[int] | None = None,
     progress: ProgressFn | None = None,
     cancelled: CancelCheck | None = None,
@@ -250,17 +216,19 @@ def calibrate_generic(
     `progress(done, total, message)` is called once per LM iteration; `cancelled()`
     returning True aborts with `calibration.progress.Cancelled`.
     """
-    if model not in GENERIC_MODELS:
-        raise ValueError(f"model: expected one of {list(GENERIC_MODELS)}, got {model!r}")
+    spec = model_spec(model)
+    if spec.family != "sgcc":
+        raise ValueError(f"model: expected an sGCC model (sgcc, sgcc-noncentral), got {model!r}")
+    opts: SgccOptions = spec.parse_options(options)
     maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
-    cells, lm = _parse_options(options)
+    cells, lm = opts.cells, _lm_options(opts)
     h, w = maps[0].shape
     obs = observations(maps, screen)
     for j, ob in enumerate(obs):
         if len(ob.pixels) < 100:
             raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
-    cls = SGCCModel if model == "sgcc" else SGCCNonCentralModel
+    cls = spec.model_class
     cv_fit = opencv_init(obs, (w, h))
     mesh_choice = None
     if cells == "auto":

@@ -1,0 +1,45 @@
+"""The one atomic file writer: write a temporary file in the target's folder, fsync, rename
+over the target, so readers never see a half-written file (and a crash leaves the old one)."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path next to `path` (same suffix, so writers that pick the format from the
+    extension still work) that replaces `path` when the block succeeds; removed if it fails."""
+    p = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """Write `data` to `path` atomically (fsync before the rename)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write UTF-8 `text` to `path` atomically."""
+    write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_json_atomic(path: str | Path, data: Any, *, indent: int = 1) -> None:
+    """Write `data` as JSON (no NaN/Infinity: they are not JSON) plus a newline, atomically."""
+    write_text_atomic(path, json.dumps(data, indent=indent, allow_nan=False) + "\n")

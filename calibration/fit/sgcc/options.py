@@ -1,0 +1,39 @@
+"""Typed fit options of the sGCC models (sgcc, sgcc-noncentral)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt, field_validator
+
+from calibration.models.sgcc import DEFAULT_CELLS
+
+MIN_POSES = 3
+
+
+class SgccOptions(BaseModel):
+    """Options of the sGCC fit; every field has a working default."""
+
+    model_config = ConfigDict(extra="forbid")
+    cells: tuple[PositiveInt, PositiveInt] | Literal["auto"] = Field(
+        default=DEFAULT_CELLS,
+        description='spline mesh [cu, cv] (a single integer n means [n, n]), or "auto": the '
+                    "coarsest of 10/14/20 cells along the longer side that fits as well as the "
+                    "best on validation points")
+    max_iterations: int = Field(default=60, ge=1, le=10_000)
+    huber_k: float = Field(default=3.0, gt=0, description="Huber threshold, sigmas")
+    cut_sigmas: float = Field(default=8.0, gt=0, description="hard outlier cut, sigmas")
+    smooth: float = Field(default=1e-10, ge=0,
+                          description="relative weight of the second-difference prior")
+    xp: Literal["numpy", "cupy"] = Field(
+        default="numpy", description='"numpy": threaded CPU; "cupy": per-pixel work on a GPU')
+
+    @field_validator("cells", mode="before")
+    @classmethod
+    def _mesh(cls, v: object) -> object:
+        """"auto", a pair of positive integers, or one (n means an n x n mesh)."""
+        pair = (v, v) if isinstance(v, int) else v
+        if v == "auto" or (isinstance(pair, list | tuple) and len(pair) == 2 and all(
+                isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in pair)):
+            return pair
+        raise ValueError('expected [cu, cv] positive integers or "auto" (or one integer n)')
