@@ -40,13 +40,15 @@ class Services:
         return services
 
     def recover(self) -> None:
-        """Jobs left active by a previous process become interrupted, and so do their targets."""
+        """Jobs left active by a previous process become interrupted, and so do their targets;
+        their staged outputs are removed."""
         from api.recovery import mark_interrupted
 
         stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         reason = f"interrupted: the server stopped while this job was active (restart at {stamp})"
         ids = self.jobs.recover(reason)
         mark_interrupted(self.db, ids, reason)
+        self.store.clear_tmp()  # staging of jobs that were cut off (never committed)
 
     def close(self) -> None:
         """Cancel live jobs, stop the executor, close rigs and the database."""

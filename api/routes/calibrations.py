@@ -112,10 +112,16 @@ def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JS
     def run(ctx: TaskContext) -> dict[str, Any]:
         with svc.db.session() as s:
             s.get(CalibrationRecord, cid).status = "running"
-        fut = svc.executor.run_task(calibrate_task, plan_path, maps, body.model, str(out_dir),
-                                    job_id=ctx.job_id, on_progress=ctx.progress,
-                                    options=body.options, heldout_paths=heldout or None)
-        return fut.result()
+        with svc.store.staging(ctx.job_id) as staged:
+            fut = svc.executor.run_task(calibrate_task, plan_path, maps, body.model,
+                                        str(staged), job_id=ctx.job_id,
+                                        on_progress=ctx.progress, options=body.options,
+                                        heldout_paths=heldout or None)
+            result = fut.result()
+            ctx.check_cancelled()
+            svc.store.commit(staged, ["model.json", "result.json", *result.get("exports", [])],
+                             out_dir)
+        return result
 
     def ok(s: Any, result: dict[str, Any]) -> None:
         c = s.get(CalibrationRecord, cid)

@@ -132,11 +132,19 @@ def _set_pose_status(svc: Services, pose_id: str, status: str) -> None:
 
 def _decode(svc: Services, ctx: TaskContext, session_dir: Path, frames: Path, pose_dir: Path,
             meta: dict[str, Any], noise: Any) -> dict[str, Any]:
-    """Run the decode task on the executor and wait for it (cancel propagates)."""
-    fut = svc.executor.run_task(decode_task, str(session_dir / "plan.json"), str(frames),
-                                str(pose_dir / "maps.npz"), job_id=ctx.job_id,
-                                on_progress=ctx.progress, noise=noise, meta=meta)
-    return fut.result()
+    """Run the decode task on the executor and wait for it (cancel propagates).
+
+    The worker writes into the job's staging folder; only this server moves the maps into
+    the pose folder, once the task succeeded.
+    """
+    with svc.store.staging(ctx.job_id) as staged:
+        fut = svc.executor.run_task(decode_task, str(session_dir / "plan.json"), str(frames),
+                                    str(staged / "maps.npz"), job_id=ctx.job_id,
+                                    on_progress=ctx.progress, noise=noise, meta=meta)
+        result = fut.result()
+        ctx.check_cancelled()
+        svc.store.commit(staged, ["maps.npz"], pose_dir)
+    return result
 
 
 def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, plan: Plan,
