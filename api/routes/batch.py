@@ -71,12 +71,14 @@ def create_batch(body: BatchCalibrationCreate, svc: Svc) -> JSONResponse:
         raise Problem(422, "validation-error",
                       f"session_ids x models: {n_items} items, at most {MAX_BATCH_ITEMS}")
     plan: list[tuple[str, str, list[str], ModelSetting]] = []
-    with svc.db.session() as s:
+    cal_ids = [new_id("cal") for _ in range(n_items)]
+    with svc.db.claim_session() as s:
         poses = {sid: _ready_poses(s, sid) for sid in session_ids}
-        job = svc.jobs.create(s, "calibrate", "/calibrations", None, total=n_items)
+        job = svc.jobs.create(s, "calibrate", "/calibrations", None, total=n_items,
+                              claims=tuple(cal_ids))
         for sid in session_ids:
             for setting in body.models:
-                cid = new_id("cal")
+                cid = cal_ids[len(plan)]
                 s.add(CalibrationRecord(id=cid, session_id=sid, model=setting.model,
                                         pose_ids=poses[sid], heldout_pose_ids=[],
                                         options=setting.options, status="queued",
