@@ -37,9 +37,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from acquisition.patterns import build_plan  # noqa: E402
 from calibration.maps import save_maps  # noqa: E402
 from calibration.plan import write_plan  # noqa: E402
+from calibration.progress import TaskContext  # noqa: E402
 from calibration.worker.dask_batch import BATCH_FORMAT, items_from_manifest, run_batch  # noqa: E402
 from calibration.worker.dask_executor import DaskExecutor, start_local_cluster  # noqa: E402
-from calibration.worker.executor import InProcessExecutor, TaskContext  # noqa: E402
+from calibration.worker.executor import InProcessExecutor  # noqa: E402
 
 
 def opencv_calibrate_task(ctx: TaskContext, plan_path: str, maps_paths: list[str], model: str,
