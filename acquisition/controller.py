@@ -45,7 +45,9 @@ from acquisition.pose_types import (
     Status,
 )
 from acquisition.protocols import Camera, CameraSettings, Display, Frame
+from acquisition.rig import Rig
 from acquisition.sinks import FrameSink
+from acquisition.usb.trigger_box import TriggerSink
 from calibration.plan import Plan
 from calibration.progress import Cancel, Cancelled, Progress, is_cancelled
 
@@ -58,7 +60,7 @@ class _Runner:
     """State of one pose capture (devices, timing estimates, counters)."""
 
     def __init__(self, display: Display, camera: Camera, clock: Clock, settings: CameraSettings,
-                 plan: Plan, opts: ControllerOptions, latency_s: float, trigger: Any,
+                 plan: Plan, opts: ControllerOptions, latency_s: float, trigger: TriggerSink | None,
                  cancel: Cancel) -> None:
         self.display, self.camera, self.clock, self.plan = display, camera, clock, plan
         self.settings, self.opts, self.lat, self.trigger_box = settings, opts, latency_s, trigger
@@ -293,7 +295,7 @@ class _Runner:
 
 
 def capture_pose(
-    rig: Any,
+    rig: Rig,
     plan: Plan,
     sink: FrameSink,
     *,
@@ -305,25 +307,24 @@ def capture_pose(
 ) -> PoseCapture:
     """Capture plan frames `indices` (default all) of one pose on `rig` into `sink`.
 
-    `rig` has `display`, `camera`, `clock` and `settings` (or `camera_settings`), and
-    optionally `trigger` (a trigger box for 'hardware' trigger mode), `display_response`
-    (gamma LUT from `measure_display_response`) and `measured_latency_s` (cached here).
+    `settings` default to the rig's; the rig's measured display response (gamma LUT) is
+    used unless `options.response` is given, and its flip-to-panel latency is measured on
+    the first capture and kept on the rig (`Rig.latency_s`) unless `options.latency_s` is.
     Never raises for camera faults, cancel or integrity problems: see `status`/`reason`.
     """
     opts = options or ControllerOptions()
-    if opts.response is None and getattr(rig, "display_response", None) is not None:
+    if opts.response is None and rig.display_response is not None:
         opts = replace(opts, response=rig.display_response)  # measured once per rig
     display, camera, clock = rig.display, rig.camera, rig.clock
-    settings = settings or getattr(rig, "settings", None) or rig.camera_settings
+    settings = settings or rig.settings
     order = list(range(len(plan.frames))) if indices is None else [int(i) for i in indices]
     if len(set(order)) != len(order) or any(not 0 <= i < len(plan.frames) for i in order):
         raise ValueError(f"indices: expected distinct plan frame indices 0..{len(plan.frames) - 1}")
     applied = camera.configure(settings)
-    latency = _latency(rig, opts, display, camera, clock, applied)
+    latency = _latency(rig, opts, applied)
     started = clock.now()
     wall0 = time.monotonic()
-    runner = _Runner(display, camera, clock, applied, plan, opts, latency,
-                     getattr(rig, "trigger", None), cancelled)
+    runner = _Runner(display, camera, clock, applied, plan, opts, latency, rig.trigger, cancelled)
     refs = reference_indices(plan) if opts.integrity else None
     originals: dict[int, np.ndarray] = {}
     accepted: list[int] = []
@@ -372,19 +373,12 @@ def capture_pose(
             pass
 
 
-def _latency(rig: Any, opts: ControllerOptions, display: Display, camera: Camera, clock: Clock,
-             settings: CameraSettings) -> float:
-    """Flip-to-panel latency: given, cached on the rig, or measured now (and cached)."""
+def _latency(rig: Rig, opts: ControllerOptions, settings: CameraSettings) -> float:
+    """Flip-to-panel latency: given, kept on the rig, or measured now (and kept)."""
     if opts.latency_s is not None:
         return opts.latency_s
-    cached = getattr(rig, "measured_latency_s", None)
-    if cached is not None:
-        return float(cached)
-    from acquisition.setup import measure_latency
+    if rig.latency_s is None:
+        from acquisition.setup import measure_latency
 
-    latency = measure_latency(display, camera, clock, settings).latency_s
-    try:
-        rig.measured_latency_s = latency
-    except AttributeError:
-        pass
-    return latency
+        rig.latency_s = measure_latency(rig.display, rig.camera, rig.clock, settings).latency_s
+    return rig.latency_s

@@ -107,3 +107,11 @@ class Camera(Protocol):
     def reconnect(self) -> None: ...
 
     def close(self) -> None: ...
+
+
+class SimulatorControls(Protocol):
+    """What only a simulated rig can do: place the screen (on a real rig a person or a robot
+    moves it). `Rig.simulated` holds one on simulated rigs and None on real ones."""
+
+    def set_pose(self, rotation: np.ndarray, translation_mm: np.ndarray) -> None:
+        """Move the screen: X_cam = R S + t, for the next captured frame."""

@@ -20,7 +20,9 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from acquisition.clock import Clock, RealClock
-from acquisition.protocols import Camera, CameraSettings, Display
+from acquisition.patterns import DisplayResponse
+from acquisition.protocols import Camera, CameraSettings, Display, SimulatorControls
+from acquisition.usb.trigger_box import TriggerSink
 from calibration.plan import ScreenGeometry
 
 RIG_FORMAT = "phasecal.rig/1"
@@ -199,16 +201,20 @@ def load_rig_config(path: str | Path) -> RigConfig:
 
 @dataclass
 class Rig:
-    """An opened rig: devices, screen geometry, clock, start settings, optional trigger."""
+    """An opened rig, the only thing the acquisition controller takes: devices on one clock,
+    the screen, the camera settings to use, and what was measured on it once (flip-to-panel
+    latency, display response) so later poses reuse it."""
 
-    config: RigConfig
     display: Display
     camera: Camera
-    screen: ScreenGeometry
     clock: Clock
     settings: CameraSettings
-    simulated: Any = None  # hw_mocks.rig.SimulatedRig for simulated rigs
-    trigger: Any = None  # acquisition.usb.trigger_box.TriggerSink, fired after each flip
+    screen: ScreenGeometry
+    config: RigConfig | None = None  # None for a rig assembled in code
+    trigger: TriggerSink | None = None  # fired after each flip in 'hardware' trigger mode
+    simulated: SimulatorControls | None = None  # simulator-only controls; None on real rigs
+    display_response: DisplayResponse | None = None  # gamma LUT (`measure_display_response`)
+    latency_s: float | None = None  # flip-to-panel latency, measured on first capture
     _closed: bool = field(default=False, repr=False)
 
     def close(self) -> None:
@@ -303,7 +309,7 @@ def open_rig(config: RigConfig, clock: Clock | None = None, *,
                 f"is {info.width_px}x{info.height_px}"
             )
         settings = config.settings.to_settings() if config.settings else CameraSettings()
-        return Rig(config, display, camera, screen, clock, settings, trigger=trigger)
+        return Rig(display, camera, clock, settings, screen, config=config, trigger=trigger)
     except BaseException:
         for part in reversed(opened):
             part.close()

@@ -14,6 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from acquisition.rig import Rig
 from calibration.atomic import write_bytes_atomic
 from calibration.plan import Plan
 from calibration.progress import TaskContext
@@ -59,7 +60,7 @@ class _SkipSink:
         self.ctx.progress(len(self.have), self.total, "capture")
 
 
-def capture_frames(ctx: TaskContext, rig: Any, plan: Plan, folder: Path) -> dict[str, Any]:
+def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, folder: Path) -> dict[str, Any]:
     """Run the controller for the plan frames missing in `folder`; raise on failure/cancel."""
     from acquisition.controller import capture_pose
 

@@ -10,13 +10,17 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select
 
 from api.db import Database, RigRecord
 from api.problems import Problem
 from api.store import new_id
+
+if TYPE_CHECKING:
+    from acquisition.protocols import SimulatorControls
+    from acquisition.rig import Rig
 
 DEFAULT_RIG_NAME = "default"
 
@@ -26,13 +30,13 @@ class RigHandle:
     """An opened rig (`acquisition.rig.Rig`) and the lock that serializes its use."""
 
     rig_id: str
-    rig: Any
+    rig: Rig
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
-    def simulated(self) -> Any | None:
-        """The `hw_mocks.rig.SimulatedRig` behind a simulated rig, else None."""
-        return getattr(self.rig, "simulated", None)
+    def simulated(self) -> SimulatorControls | None:
+        """The simulator-only controls of a simulated rig, else None."""
+        return self.rig.simulated
 
 
 def parse_rig_config(config: dict[str, Any], source: str = "rig config") -> Any:
@@ -153,7 +157,7 @@ class RigManager:
         with self._lock:
             h = self._handles.setdefault(rig_id, RigHandle(rig_id, rig))
         if h.rig is not rig:
-            _close(rig)
+            rig.close()
         return h
 
     def close(self) -> None:
@@ -161,10 +165,10 @@ class RigManager:
         with self._lock:
             handles, self._handles = list(self._handles.values()), {}
         for h in handles:
-            _close(h.rig)
+            h.rig.close()
 
 
-def _open(rig_id: str, name: str, config: Any) -> Any:
+def _open(rig_id: str, name: str, config: Any) -> Rig:
     """Open a rig's devices; problems name the rig and say whether config or device failed."""
     from acquisition.errors import AcquisitionError
     from acquisition.rig import open_rig
@@ -178,10 +182,3 @@ def _open(rig_id: str, name: str, config: Any) -> Any:
     except (OSError, AcquisitionError) as exc:
         raise Problem(503, "device-error",
                       f"rig {rig_id} ({name}): a device failed to open: {exc}") from None
-
-
-def _close(rig: Any) -> None:
-    """Close a rig's devices, whichever close method it offers."""
-    closer = getattr(rig, "close", None)
-    if callable(closer):
-        closer()

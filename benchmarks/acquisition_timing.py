@@ -39,7 +39,7 @@ def one_pose(mode: str, exposure: float, latency: int, phase: float) -> float:
     rig.clock.sleep_until(phase)
     s = rig.with_settings(exposure_s=exposure, trigger_mode=mode,
                           frame_rate_hz=FPS if mode == "free-running" else None)
-    res = capture_pose(rig, plan, MemoryFrameStore(), settings=s,
+    res = capture_pose(rig.rig, plan, MemoryFrameStore(), settings=s,
                        options=ControllerOptions(latency_s=latency / REFRESH, integrity=False))
     assert res.status == "complete", res.reason
     return res.duration_s

@@ -67,6 +67,9 @@ class SimulatedRig:
         default_format = "Mono8" if self.sensor.bit_depth == 8 else "Mono12"
         self.camera_settings = settings or CameraSettings(
             exposure_s=0.02, pixel_format=default_format, trigger_mode="software")
+        # what the controller takes: these devices, with this simulator's controls
+        self.rig = Rig(self.display, self.camera, self.clock, self.camera_settings, screen,
+                       simulated=self)
 
     @classmethod
     def from_config(cls, config: dict[str, Any], clock: Clock | None = None) -> SimulatedRig:
@@ -147,5 +150,7 @@ def open_simulated_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
     built from a `kind = "simulated"` config."""
     sim = SimulatedRig.from_config(config.model_dump(mode="json", exclude_none=True),
                                    clock=clock)
-    settings = config.settings.to_settings() if config.settings else sim.camera_settings
-    return Rig(config, sim.display, sim.camera, sim.screen, sim.clock, settings, simulated=sim)
+    sim.rig.config = config
+    if config.settings:
+        sim.rig.settings = config.settings.to_settings()
+    return sim.rig

@@ -35,12 +35,12 @@ def test_controller_streams_into_decoder_and_maps_match_truth(mode):
     settings = rig.with_settings(exposure_s=0.012, trigger_mode=mode,
                                  frame_rate_hz=30.0 if mode == "free-running" else None)
     # gamma pre-compensation from the display response measured through the camera
-    rig.display_response = measure_display_response(
+    rig.rig.display_response = measure_display_response(
         rig.display, rig.camera, rig.clock, settings, latency_s=2 / 60)
     plan = build_plan(SCREEN.width_px, SCREEN.height_px, SCREEN.pitch_mm)
     decoder = CountingDecoder(plan, (72, 96), noise=rig.sensor,
                               saturation_dn=rig.sensor.max_dn)
-    result = capture_pose(rig, plan, decoder, settings=settings)
+    result = capture_pose(rig.rig, plan, decoder, settings=settings)
     assert result.status == "complete", result.reason
     assert sorted(decoder.order) == list(range(len(plan.frames)))  # each frame exactly once
     maps = decoder.finish({"pose_id": "p0"})

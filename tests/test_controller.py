@@ -56,7 +56,7 @@ def shown_codes_match(r: SimulatedRig, res) -> bool:
 def test_full_sequence_zero_missync(mode, latency):
     r = make_rig(latency)
     store = MemoryFrameStore()
-    res = capture_pose(r, PLAN, store, settings=settings(r, mode))
+    res = capture_pose(r.rig, PLAN, store, settings=settings(r, mode))
     assert res.status == "complete", res.reason
     assert res.latency_s == pytest.approx(latency / 60)
     assert sorted(store.frames) == list(range(len(PLAN.frames)))
@@ -73,7 +73,7 @@ def test_free_running_rephase_reaches_one_pattern_per_camera_frame(start_phase):
     def pose(attempts: int) -> tuple[float, list[int]]:
         r = make_rig(2)
         r.clock.sleep_until(start_phase)
-        res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "free-running"),
+        res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=settings(r, "free-running"),
                            options=ControllerOptions(latency_s=2 / 60, integrity=False,
                                                      rephase_attempts=attempts))
         assert res.status == "complete", res.reason
@@ -89,14 +89,14 @@ def test_free_running_rephase_reaches_one_pattern_per_camera_frame(start_phase):
 
 def test_dropped_frames_and_jitter_free_running():
     r = make_rig(2, CameraFaults(drop_probability=0.2), timestamp_jitter_s=3e-4)
-    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "free-running"))
+    res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=settings(r, "free-running"))
     assert res.status == "complete" and mis_synced(r, res) == []
 
 
 def test_late_trigger_straddles_and_is_recaptured():
     r = make_rig(2, CameraFaults(late_triggers={5: 0.02, 9: 0.03}))
     store = MemoryFrameStore()
-    res = capture_pose(r, PLAN, store, settings=settings(r, "software"),
+    res = capture_pose(r.rig, PLAN, store, settings=settings(r, "software"),
                        options=ControllerOptions(latency_s=2 / 60))
     assert res.status == "complete"
     assert any(rc.reason.startswith("torn") for rc in res.recaptures)
@@ -107,7 +107,7 @@ def test_late_trigger_straddles_and_is_recaptured():
 def test_unplug_mid_sequence_recovers_exactly_once(mode):
     r = make_rig(2, CameraFaults(unplug_after_frames=25, reconnect_failures=2))
     store = MemoryFrameStore()  # raises on a duplicate hand-off
-    res = capture_pose(r, PLAN, store, settings=settings(r, mode),
+    res = capture_pose(r.rig, PLAN, store, settings=settings(r, mode),
                        options=ControllerOptions(latency_s=2 / 60))
     assert res.status == "complete", res.reason
     assert res.reconnects == 1 and any("disconnected" in x.reason for x in res.recaptures)
@@ -117,7 +117,7 @@ def test_unplug_mid_sequence_recovers_exactly_once(mode):
 
 def test_unplug_gives_clear_error_after_max_retries():
     r = make_rig(2, CameraFaults(unplug_after_frames=10, reconnect_failures=99))
-    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
+    res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
                        options=ControllerOptions(latency_s=2 / 60, max_reconnects=3))
     assert res.status == "failed" and "3 reconnect attempts failed" in res.reason
     assert 0 < res.accepted_count < len(PLAN.frames)
@@ -126,7 +126,7 @@ def test_unplug_gives_clear_error_after_max_retries():
 def test_timeouts_are_recaptured():
     r = make_rig(2, CameraFaults(timeout_grabs=frozenset({7, 20})))
     store = MemoryFrameStore()
-    res = capture_pose(r, PLAN, store, settings=settings(r, "software"),
+    res = capture_pose(r.rig, PLAN, store, settings=settings(r, "software"),
                        options=ControllerOptions(latency_s=2 / 60))
     assert res.status == "complete"
     assert sum("timeout" in x.reason for x in res.recaptures) == 2
@@ -135,7 +135,7 @@ def test_timeouts_are_recaptured():
 
 def test_persistent_timeouts_fail_clearly():
     r = make_rig(2, CameraFaults(timeout_grabs=frozenset(range(5, 100))))
-    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
+    res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
                        options=ControllerOptions(latency_s=2 / 60, max_attempts=3))
     assert res.status == "failed" and "after 3 attempts" in res.reason and "timeout" in res.reason
 
@@ -151,7 +151,7 @@ def test_cancel_leaves_marked_partial_result():
             ev.set()
 
     store = MemoryFrameStore()
-    res = capture_pose(r, PLAN, store, settings=settings(r, "software"), progress=progress,
+    res = capture_pose(r.rig, PLAN, store, settings=settings(r, "software"), progress=progress,
                        cancelled=ev, options=ControllerOptions(latency_s=2 / 60))
     assert res.status == "cancelled" and res.accepted == list(range(10))
     assert sorted(store.frames) == list(range(10))
@@ -161,14 +161,14 @@ def test_cancel_leaves_marked_partial_result():
 def test_resume_with_indices():
     r = make_rig(2)
     store = MemoryFrameStore()
-    res = capture_pose(r, PLAN, store, settings=settings(r, "software"), indices=[5, 6, 7])
+    res = capture_pose(r.rig, PLAN, store, settings=settings(r, "software"), indices=[5, 6, 7])
     assert res.status == "complete" and sorted(store.frames) == [5, 6, 7]
 
 
 def _flagged(inject) -> str:
     r = make_rig(2)
     inject(r)
-    res = capture_pose(r, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
+    res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
                        options=ControllerOptions(latency_s=2 / 60))
     assert res.status == "flagged", res.integrity
     return res.reason
@@ -206,7 +206,7 @@ def test_setup_helpers():
 def test_averaging_two_frames(mode):
     r = make_rig(2)
     store = MemoryFrameStore()
-    res = capture_pose(r, PLAN, store, settings=settings(r, mode), indices=range(6),
+    res = capture_pose(r.rig, PLAN, store, settings=settings(r, mode), indices=range(6),
                        options=ControllerOptions(latency_s=2 / 60, average=2, integrity=False))
     assert res.status == "complete" and mis_synced(r, res) == []
     assert all(img.dtype == np.float32 for img in store.frames.values())

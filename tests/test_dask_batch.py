@@ -189,6 +189,17 @@ def test_cli_reports_missing_input(tmp_path, capsys):
     assert "s0/deg1: input file" in capsys.readouterr().err
 
 
+def test_cli_checks_models_and_options_before_any_work(tmp_path, capsys):
+    manifest = _write_sessions(tmp_path, 1)
+    data = json.loads(manifest.read_text())
+    data["models"] = [{"model": "sgcc", "options": {"grid": [24, 16]}}]
+    manifest.write_text(json.dumps(data))
+    rc = cli_main(["batch", "--manifest", str(manifest), "-o", str(tmp_path / "out")])
+    assert rc == 1
+    assert "s0/sgcc: options: unknown key(s) ['grid'] for sgcc" in capsys.readouterr().err
+    assert not (tmp_path / "out" / "batch.json").exists()
+
+
 def test_cli_rejects_mixed_arguments(tmp_path, capsys):
     rc = cli_main(["batch", "--manifest", "m.json", "--plan", "p.json", "-o", str(tmp_path)])
     assert rc == 1

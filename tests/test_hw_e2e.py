@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import re
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,7 @@ from acquisition.controller import ControllerOptions, capture_pose
 from acquisition.display.framebuffer import FramebufferDisplay, FramebufferGeometry
 from acquisition.patterns import build_plan, render_frame
 from acquisition.protocols import CameraSettings
+from acquisition.rig import Rig
 from acquisition.sinks import MemoryFrameStore
 from calibration.decode import decode_stack
 from hw_mocks.cameras import mild_pinhole
@@ -51,22 +51,11 @@ def world():
 
 def run_pose(plan, display, camera, settings: CameraSettings, options: ControllerOptions):
     """The controller captures one pose on these devices; returns the frame stack."""
-    rig = Rig(display=display, camera=camera, clock=RealClock(), settings=settings)
+    rig = Rig(display, camera, RealClock(), settings, plan.screen)
     store = MemoryFrameStore()
     result = capture_pose(rig, plan, store, options=options)
     assert result.status == "complete", result.reason
     return store.stack(len(plan.frames)), result
-
-
-@dataclass
-class Rig:
-    """The parts of a rig the controller uses."""
-
-    display: object
-    camera: object
-    clock: object
-    settings: CameraSettings
-    trigger: object = None
 
 
 def simulated_maps(world, seed: int):
@@ -207,7 +196,7 @@ def test_check_command_on_the_aravis_rig(world, capsys):
         try:
             settings = CameraSettings(exposure_s=0.005, pixel_format="Mono16",
                                       trigger_mode="software")
-            found = check_rig(Rig(display, cam, RealClock(), settings), target=0.7)
+            found = check_rig(Rig(display, cam, RealClock(), settings, _plan.screen), target=0.7)
         finally:
             cam.close()
             display.close()

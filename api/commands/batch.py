@@ -62,6 +62,18 @@ def _missing_inputs(items: list) -> str | None:
     return None
 
 
+def _invalid_item(items: list) -> str | None:
+    """The first item whose model or options the model registry refuses (before any work)."""
+    from calibration.fit.registry import model_spec
+
+    for item in items:
+        try:
+            model_spec(item.model).parse_options(item.options)
+        except ValueError as exc:
+            return f"{item.name}: {exc}"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
     from calibration.atomic import write_json_atomic
@@ -70,9 +82,9 @@ def run(args: argparse.Namespace) -> int:
     from calibration.worker.dask_batch import run_batch
 
     items = _items(args)
-    missing = _missing_inputs(items)
-    if missing:
-        raise UserError(missing)
+    problem = _missing_inputs(items) or _invalid_item(items)
+    if problem:
+        raise UserError(problem)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     executor = make_executor(args.executor)

@@ -10,9 +10,12 @@ from __future__ import annotations
 import argparse
 import json
 from dataclasses import asdict
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from acquisition.rig import Rig
 
 HELP = "check a rig: latency, exposure, flats, display response"
 
@@ -65,7 +68,7 @@ def _full_scale(pixel_format: str, bit_depth: int) -> int:
     return (1 << (fmt.bit_depth if fmt is not None else bit_depth)) - 1
 
 
-def check_rig(rig: Any, *, target: float = 0.8, response: bool = True) -> dict[str, Any]:
+def check_rig(rig: Rig, *, target: float = 0.8, response: bool = True) -> dict[str, Any]:
     """Run the checks on an opened rig; returns the findings (JSON-friendly)."""
     from acquisition.errors import AcquisitionError
     from acquisition.flat_check import flat_report
@@ -77,7 +80,7 @@ def check_rig(rig: Any, *, target: float = 0.8, response: bool = True) -> dict[s
     )
 
     display, camera, clock = rig.display, rig.camera, rig.clock
-    trig = getattr(rig, "trigger", None)
+    trig = rig.trigger
     found: dict[str, Any] = {"display": asdict(display.info), "camera": asdict(camera.info)}
     lat = measure_latency(display, camera, clock, rig.settings, trigger_box=trig)
     found["latency"] = asdict(lat)

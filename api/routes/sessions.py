@@ -170,7 +170,7 @@ def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, pl
             cap = capture_frames(ctx, handle.rig, plan, frames)
         _set_pose_status(svc, pose_id, "decoding")
         meta = {"pose_id": pose_id, "session_id": session_id, "plan_digest": plan.digest(),
-                "camera": _camera_name(handle.rig)}
+                "camera": handle.rig.camera.info.name}
         # a simulated rig knows its sensor's noise model (a real one: estimated per pixel)
         noise = getattr(handle.simulated, "sensor", None)
         dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, noise)
@@ -193,10 +193,6 @@ def _move_screen(handle: Any, screen_pose: dict[str, Any]) -> None:
     sim.set_pose(rot, np.asarray(screen_pose["tvec_mm"], np.float64))
 
 
-def _camera_name(rig: Any) -> str:
-    cam = getattr(rig, "camera", None)
-    info = getattr(cam, "info", None)
-    return str(getattr(info, "name", "unknown"))
 
 
 @router.post("/sessions/{session_id}/poses", status_code=202, response_model=None,

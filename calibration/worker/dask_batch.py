@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from calibration.fit.registry import model_spec
 from calibration.progress import Cancelled, TaskContext
 from calibration.worker.executor import Executor
 
@@ -89,10 +88,6 @@ def items_from_manifest(data: Any, base_dir: str | Path, out_dir: str | Path,
         options = m.get("options", {})
         if not isinstance(options, dict):
             raise BatchError(f"{where}.options: expected an object")
-        try:
-            model_spec(m["model"]).parse_options(options)  # typed check before any work
-        except ValueError as exc:
-            raise BatchError(f"{where}.{exc}") from None
         mname = _name(m.get("name", m["model"]), f"{where}.name")
         parsed_models.append((mname, m["model"], options))
     _unique([n for n, _, _ in parsed_models], f"{source}: models")
