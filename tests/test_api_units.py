@@ -280,3 +280,14 @@ def test_process_executor_progress_and_cancel() -> None:
             slow.result(timeout=60)
     finally:
         ex.shutdown()
+
+
+def test_default_rig_is_addressable_by_name(client: TestClient) -> None:
+    """docs/api.md: `default` names the rig the server was started with, in every rig path."""
+    listed = client.get("/rigs").json()
+    default = next(r for r in listed if r["name"] == "default")
+    got = client.get("/rigs/default")
+    assert got.status_code == 200 and got.json() == default
+    assert client.get("/rigs/default/camera/settings").json() == \
+        client.get(f"/rigs/{default['id']}/camera/settings").json()
+    assert client.get("/rigs/nondefault").status_code == 404

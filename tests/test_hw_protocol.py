@@ -1,4 +1,4 @@
-"""Every real backend against the shared device protocol suite (tests/device_protocol.py)."""
+"""Every real backend against the shared device protocol suite (acquisition/conformance.py)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from acquisition import conformance as protocol
 from acquisition.clock import RealClock
 from acquisition.display.framebuffer import FramebufferDisplay, FramebufferGeometry
-from tests import device_protocol as protocol
 from tests.hw_aravis_support import fake_camera_lock, require_aravis
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from acquisition.conformance import check_camera, check_display
 from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError
 from acquisition.protocols import CameraSettings
 from calibration.plan import ScreenGeometry
@@ -13,7 +14,6 @@ from hw_mocks.cameras import mild_pinhole
 from hw_mocks.clock import VirtualClock
 from hw_mocks.display import SimulatedDisplay
 from hw_mocks.rig import SimulatedRig
-from tests.device_protocol import check_camera, check_display
 
 SCREEN = ScreenGeometry(160, 100, (1.0, 1.0))
 
@@ -25,6 +25,18 @@ def rig(**kw) -> SimulatedRig:
 def test_display_passes_protocol():
     clock = VirtualClock()
     check_display(SimulatedDisplay(64, 48, clock), clock)
+
+
+def test_conformance_kit_catches_a_broken_display():
+    """The shipped kit fails a display that reports flips before show() was called."""
+
+    class EarlyFlips(SimulatedDisplay):
+        def show(self, image):
+            return super().show(image) - 1.0
+
+    clock = VirtualClock()
+    with pytest.raises(AssertionError, match="must not precede"):
+        check_display(EarlyFlips(64, 48, clock), clock)
 
 
 @pytest.mark.parametrize("mode", ["software", "free-running"])

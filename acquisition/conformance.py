@@ -1,13 +1,18 @@
-"""Backend-neutral protocol checks every `Display` / `Camera` implementation must pass.
+"""The device conformance kit: checks every `Display` / `Camera` implementation must pass.
 
-Plain functions (not tests) so each backend's test module calls them with its own device
-and clock: simulated, framebuffer, SDL, OpenCV, Aravis.
+Shipped with the code (not only the tests) so a new backend, in this repository or outside
+it, is checked the same way: call `check_display(display, clock)` and
+`check_camera(camera, clock)` from its tests; they raise AssertionError naming the broken
+rule. Used here for the simulated, framebuffer, SDL, OpenCV and Aravis backends.
 """
 
 from __future__ import annotations
 
+import re
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import numpy as np
-import pytest
 
 from acquisition.clock import Clock
 from acquisition.errors import CameraTimeout, DeviceSettingsError, DisplayError
@@ -31,7 +36,7 @@ def check_display(display: Display, clock: Clock) -> None:
     gaps = np.diff(flips) / period
     assert np.all(gaps > 0.5), f"two flips within one refresh period: {gaps}"
     assert np.allclose(gaps, np.round(gaps), atol=0.25), f"flips off the vsync grid: {gaps}"
-    with pytest.raises((DisplayError, ValueError)):
+    with _raises((DisplayError, ValueError)):
         display.show(np.zeros((info.height_px + 1, info.width_px), dtype))
 
 
@@ -40,10 +45,10 @@ def check_camera(camera: Camera, clock: Clock, settings: CameraSettings | None =
     info = camera.info
     base = settings or CameraSettings(exposure_s=0.005, pixel_format=info.pixel_formats[0],
                                       trigger_mode=info.trigger_modes[0])
-    with pytest.raises(DeviceSettingsError, match="exposure"):
+    with _raises(DeviceSettingsError, match="exposure"):
         camera.configure(CameraSettings(exposure_s=-1.0, pixel_format=base.pixel_format,
                                         trigger_mode=base.trigger_mode))
-    with pytest.raises(DeviceSettingsError, match="pixel_format"):
+    with _raises(DeviceSettingsError, match="pixel_format"):
         camera.configure(CameraSettings(exposure_s=base.exposure_s, pixel_format="Bogus99",
                                         trigger_mode=base.trigger_mode))
     applied = camera.configure(base)
@@ -64,8 +69,21 @@ def check_camera(camera: Camera, clock: Clock, settings: CameraSettings | None =
         assert second.sequence > frame.sequence and second.timestamp_s > frame.timestamp_s
         if applied.trigger_mode == "software":
             t1 = clock.now()
-            with pytest.raises(CameraTimeout):
+            with _raises(CameraTimeout):
                 camera.grab(timeout_s=0.05)  # nothing triggered: must time out, not hang
             assert clock.now() - t1 < 1.0
     finally:
         camera.stop()
+
+
+@contextmanager
+def _raises(expected: type[BaseException] | tuple[type[BaseException], ...],
+            match: str | None = None) -> Iterator[None]:
+    """Assert that the block raises `expected` (with `match` in its message); no pytest needed."""
+    try:
+        yield
+    except expected as exc:
+        if match is not None and not re.search(match, str(exc)):
+            raise AssertionError(f"{type(exc).__name__} without {match!r}: {exc}") from exc
+        return
+    raise AssertionError(f"expected {expected} to be raised")
