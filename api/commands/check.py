@@ -30,18 +30,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the findings as JSON")
 
 
-def _open(spec: str) -> Any:
-    from pathlib import Path
-
-    from acquisition.rig import RigConfig, load_rig_config, open_rig
-    from api.cli import UserError
+def _open(spec: str) -> Rig:
+    """Open `simulated` or a rig config file, read the way `phasecal serve --rig` reads it."""
+    from acquisition.rig import open_rig, parse_rig_config
+    from api.rigs import load_default_config
     from hw_mocks.rig import open_simulated_rig
 
-    if spec == "simulated":
-        return open_rig(RigConfig(), simulator=open_simulated_rig)
-    if not Path(spec).is_file():
-        raise UserError(f"--rig {spec}: no such rig config file (or use 'simulated')")
-    return open_rig(load_rig_config(spec), simulator=open_simulated_rig)
+    config = parse_rig_config(load_default_config(spec), f"--rig {spec}")
+    return open_rig(config, simulator=open_simulated_rig)
 
 
 def _gamma(levels: np.ndarray, linear: np.ndarray, top: int) -> float:
