@@ -74,14 +74,14 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, folder: Path) -> dict
     result = capture_pose(rig, plan, sink, indices=missing, progress=None,
                           cancelled=ctx.cancelled)
     ctx.check_cancelled()
-    status = getattr(result, "status", "complete")
+    status = result.status
     if status not in ("complete", "flagged"):
-        reason = getattr(result, "reason", "") or status
+        reason = result.reason or status
         raise RuntimeError(f"capture {status}: {reason}")
     left = [i for i in range(total) if i not in stored_indices(folder)]
     if left:
         raise RuntimeError(f"capture ended with {len(left)} plan frames missing (first {left[0]})")
     out: dict[str, Any] = {"captured": len(missing), "resumed_from": len(have)}
     if status == "flagged":
-        out["flagged"] = getattr(result, "reason", "")
+        out["flagged"] = result.reason
     return out

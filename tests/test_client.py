@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import importlib.util
 import tracemalloc
 from pathlib import Path
 from typing import get_type_hints
@@ -96,12 +97,17 @@ def test_failed_request_and_failed_job_carry_problem_details(client, session, po
     with pytest.raises(ServiceError) as err:
         client.export("cal_0000000000000000", "ros", "/nonexistent/x.yaml")
     assert err.value.status == 404
-    job = client.calibrate(session, "sgcc", pose_ids=poses, options={"xp": "torch"})
-    with pytest.raises(JobFailed) as err:
+    with pytest.raises(ServiceError) as err:  # a malformed option never becomes a job
+        client.calibrate(session, "sgcc", pose_ids=poses, options={"xp": "torch"})
+    assert err.value.status == 422 and "options.xp" in err.value.detail
+    if importlib.util.find_spec("cupy") is not None:
+        pytest.skip("CuPy is installed: an xp=cupy fit would not fail")
+    job = client.calibrate(session, "sgcc", pose_ids=poses, options={"xp": "cupy"})
+    with pytest.raises(JobFailed) as err:  # well-formed, but this machine cannot run it
         client.wait(job, timeout_s=300)
     assert not isinstance(err.value, JobCancelled)
     assert err.value.job["status"] == "failed" and err.value.job_status == "failed"
-    assert "options.xp: expected 'numpy' or 'cupy', got 'torch'" in err.value.detail
+    assert "options.xp: 'cupy' requested but not importable" in err.value.detail
     assert err.value.problem["instance"] == f"/jobs/{job['id']}"
     assert err.value.type.endswith("/job-failed")
 
