@@ -212,3 +212,23 @@ def diff_png(pixels: np.ndarray, angle_rad: np.ndarray, image_size: tuple[int, i
     fig.colorbar(im, ax=ax, label="ray angle difference (urad, log scale)")
     ax.set(aspect="equal", xlabel="u (px)", ylabel="v (px)", title=title)
     _save(fig, path)
+
+
+def guidance_png(before: np.ndarray, after: np.ndarray, outline: np.ndarray,
+                 image_size: tuple[int, int], title: str, path: Path) -> None:
+    """Predicted ray-sigma maps now and after the suggested pose, with its screen outline."""
+    w, h = image_size
+    fig, axes = subplots(2, (12, 4.6))
+    both = np.concatenate([before[np.isfinite(before)], after[np.isfinite(after)]]) * 1e6
+    norm = _log_norm(both)
+    for ax, img, name in ((axes[0], before, "now"), (axes[1], after, "after the suggested pose")):
+        im = ax.imshow(img * 1e6, extent=(0, w, h, 0), cmap="inferno", norm=norm,
+                       interpolation="bilinear")
+        ax.set(aspect="equal", xlim=(0, w), ylim=(h, 0),
+               title=f"predicted ray 1-sigma {name}: worst {np.nanmax(img) * 1e6:.3g} urad")
+        fig.colorbar(im, ax=ax, label="urad (log scale)")
+    closed = np.vstack([outline, outline[:1]])
+    axes[1].plot(closed[:, 0], closed[:, 1], "c-", lw=2, label="suggested screen")
+    axes[1].legend(loc="lower right", fontsize=8)
+    fig.suptitle(title)
+    _save(fig, path)

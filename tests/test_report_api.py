@@ -144,3 +144,28 @@ def test_decode_previews_have_colour_bars(service) -> None:
         img = _png(client.request(
             "GET", f"/sessions/{ses['id']}/poses/{poses[0]}/preview/{kind}.png").content)
         assert img.shape[1] > 400  # map plus colour bar, not the bare 160 px map
+
+
+def test_next_pose_is_visible_and_captures(service) -> None:
+    client, ses, poses, _, _ = service
+    g = client.get(f"/sessions/{ses['id']}/next-pose", model="opencv5")
+    assert g["poses_used"] == poses and g["full_screen_visible"]
+    pred = g["predicted_worst_ray_sigma_urad"]
+    assert 0 < pred["after"] < pred["now"]
+    _png(client.request("GET", g["image"]).content)
+    # The simulator's truth (from outside the product) sees the whole screen there.
+    from hw_mocks.scene import ScreenPose
+    from tests.test_api_session import SCREEN, truth_camera
+
+    pose = ScreenPose.from_rvec(np.array(g["screen_pose"]["rvec"]),
+                                np.array(g["screen_pose"]["tvec_mm"]))
+    cam = truth_camera()
+    corners = np.array([[0, 0], [SCREEN.width_px - 1, 0], [0, SCREEN.height_px - 1],
+                        [SCREEN.width_px - 1, SCREEN.height_px - 1]], float)
+    px = cam.project(pose.screen_px_to_camera(SCREEN, corners[:, 0], corners[:, 1]))
+    assert np.all((px >= 0) & (px <= [cam.width - 1, cam.height - 1]))
+    job = client.wait(client.post(f"/sessions/{ses['id']}/poses",
+                                  {"screen_pose": g["screen_pose"]}))
+    assert job["status"] == "succeeded"
+    info = client.get(job["resource"])
+    assert info["valid_pixels"] > 0.5 * g["image_fraction"] * 160 * 120
