@@ -5,9 +5,12 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
 
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
@@ -16,6 +19,7 @@ from api.routes import batch, calibrations, guidance, jobs, reports, rigs, sessi
 from api.security import BodyLimitMiddleware, TokenMiddleware
 from api.services import Services
 
+WEB_DIR = Path(__file__).parent / "web"  # the page at `/`: plain HTML/JS/CSS, no build step
 DESCRIPTION = """Camera calibration with an active phase-shift target.
 
 Flow: create a session (rig + plan), capture or import poses (jobs), calibrate chosen
@@ -44,6 +48,13 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     install_handlers(app)
     for module in (rigs, sessions, guidance, calibrations, reports, batch, jobs):
         app.include_router(module.router)
+
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        """The operator's web page (static; it talks to this API with the same token)."""
+        return FileResponse(WEB_DIR / "index.html", media_type="text/html")
+
+    app.mount("/ui", StaticFiles(directory=WEB_DIR), name="ui")
 
     @app.get("/health", tags=["service"])
     def health() -> dict[str, Any]:

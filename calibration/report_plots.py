@@ -232,3 +232,18 @@ def guidance_png(before: np.ndarray, after: np.ndarray, outline: np.ndarray,
     axes[1].legend(loc="lower right", fontsize=8)
     fig.suptitle(title)
     _save(fig, path)
+
+
+def count_png(counts: np.ndarray, title: str) -> bytes:
+    """PNG bytes of a per-pixel count image (poses seeing each pixel) with an integer key."""
+    import io
+
+    fig, ax = subplots(1, (6.4, 6.4 * counts.shape[0] / counts.shape[1] * 0.85 + 0.6))
+    top = max(int(counts.max()), 1)
+    im = ax.imshow(counts, cmap="viridis", vmin=-0.5, vmax=top + 0.5, interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="poses seeing the pixel", ticks=range(0, top + 1))
+    ax.set(title=title, xlabel="u (camera px)", ylabel="v (camera px)")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=_DPI)
+    return buf.getvalue()

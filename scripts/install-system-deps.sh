@@ -7,10 +7,12 @@
 #     python3-dev (pycairo/PyGObject compile C extensions)
 #   SDL display tests under X: xvfb (read-back through Xvfb -fbdir)
 #   pyusb: libusb-1.0-0
+#   web page end-to-end test (selenium): chromium chromium-driver
 set -euo pipefail
 packages=(
   gir1.2-aravis-0.8 libaravis-0.8-0 libgirepository1.0-dev libcairo2-dev pkg-config
   gcc python3-dev xvfb libusb-1.0-0
+  chromium chromium-driver
 )
 missing=()
 if command -v dpkg-query >/dev/null 2>&1; then

@@ -80,3 +80,24 @@ def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational")
     """Predicted ray-uncertainty maps now and after the suggested pose, with its outline."""
     folder, _ = _guidance_dir(svc, session_id, model)
     return Response((folder / "next-pose.png").read_bytes(), media_type="image/png")
+
+
+@router.get("/sessions/{session_id}/coverage.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}})
+def coverage_image(session_id: str, svc: Svc) -> Response:
+    """How many of the session's decoded poses saw each camera pixel (a colour bar counts)."""
+    import numpy as np
+
+    from calibration.maps import load_maps
+    from calibration.report_plots import count_png
+
+    with svc.db.session() as s:
+        get_session(s, session_id)
+        ids = list(s.scalars(select(PoseRecord.id).where(
+            PoseRecord.session_id == session_id,
+            PoseRecord.status.in_(("ready", "flagged")))))
+    if not ids:
+        raise Problem(409, "not-enough-poses", f"session {session_id} has no decoded poses yet")
+    counts = np.sum([load_maps(svc.store.file(p, "maps.npz")).mask for p in ids], axis=0)
+    return Response(count_png(counts, f"sensor coverage by {len(ids)} poses"),
+                    media_type="image/png")
