@@ -8,8 +8,8 @@ HELP = "difference of two models' rays (after the best rotation): diff.png + dif
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("model_a", help="first model.json")
-    p.add_argument("model_b", help="second model.json")
+    p.add_argument("model_a", help="first model (phasecal JSON, mrcal .cameramodel or OpenCV YAML)")
+    p.add_argument("model_b", help="second model (same formats)")
     p.add_argument("--maps", nargs="+", default=[],
                    help="compare only pixels these poses' maps decoded (default: every pixel)")
     p.add_argument("--step", type=float, default=4.0, help="grid step in pixels (default 4)")
@@ -22,13 +22,13 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from api.cli import UserError
+    from calibration.formats import load_model_any
     from calibration.maps import load_maps
-    from calibration.models.base import load_model
     from calibration.report_html import write_diff
 
     if args.step < 1:
         raise UserError(f"--step: expected >= 1 px, got {args.step}")
-    a, b = load_model(args.model_a), load_model(args.model_b)
+    a, b = load_model_any(args.model_a), load_model_any(args.model_b)
     pixels = None
     if args.maps:
         step = int(args.step)
