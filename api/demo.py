@@ -94,12 +94,12 @@ def _print_links(links: list[tuple[str, str]], root: Path, out: TextIO) -> None:
     """Where to look: the web page and the reports, once `phasecal serve` runs on the data."""
     data = root / "data"
     lines = [f"\nsee it: phasecal serve --data-dir {data}   then open",
-             f"  web page                    {SERVE_URL}/"]
+             f"  web page                       {SERVE_URL}/"]
     for label, path in links:
-        lines.append(f"  {label:<27} {SERVE_URL}{path}")
+        lines.append(f"  {label:<30} {SERVE_URL}{path}")
         if path.endswith("report.html"):
             page = data / "calibrations" / path.split("/")[2] / "report" / "report.html"
-            lines.append(f"  {'':<27} (file: {page})")
+            lines.append(f"  {'':<30} (file: {page})")
     out.write("\n".join(lines) + "\n")
 
 

@@ -7,7 +7,7 @@ same page for the same files, today or a year later.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -48,7 +48,6 @@ class ReportData:
     grid_shape: tuple[int, int]  # (ny, nx)
     ray_sigma: np.ndarray  # (N,) rad
     ray_sigma_method: str
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def _pose_view(model: CameraModel, rotation: np.ndarray, translation: np.ndarray,

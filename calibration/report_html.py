@@ -64,18 +64,17 @@ def _numbers(data: ReportData) -> str:
     poses = [[v.label + (" (held-out)" if v.heldout else ""), v.stats["rms_px"],
               v.stats["expected_rms_px"], v.stats["noise_floor_ratio"], v.stats["n_points"],
               v.stats["outlier_fraction"]] for v in data.poses]
-    params = [[k, v] for k, v in (st.get("param_std") or {}).items()]
-    values = getattr(data.model, "param_names", None)
-    if values is not None:
+    params: list[list[Any]] = []
+    if hasattr(data.model, "param_names"):  # parametric models: named values and their std
         named = dict(zip(data.model.param_names(), data.model.get_params().tolist(),
                          strict=True))
-        params = [[k, named.get(k), s] for k, s in (st.get("param_std") or {}).items()]
+        params = [[k, named[k], s] for k, s in (st.get("param_std") or {}).items() if k in named]
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in st.get("warnings", []))
     return (f"<p>{verdict}</p>" + _table(["quantity", "value"], rows)
             + "<h3>Per pose (recomputed from the stored maps)</h3>"
             + _table(["pose", "RMS px", "expected px", "ratio", "points", "outliers"], poses)
             + ("<h3>Parameters</h3>" + _table(["parameter", "value", "1-sigma"], params)
-               if values is not None else "")
+               if params else "")
             + (f"<h3>Warnings</h3><ul>{warnings}</ul>" if warnings else ""))
 
 
@@ -136,7 +135,7 @@ def write_diff(model_a: CameraModel, model_b: CameraModel, out_dir: str | Path,
                "rotation_b_from_a": np.asarray(d["rotation"]).tolist(),
                "pixels_compared": int(np.isfinite(d["angle_rad"]).sum()), "image": "diff.png"}
     report_plots.diff_png(d["pixels"], d["angle_rad"], model_a.image_size, step_px,
-                          f"{names[0]} vs {names[1]}: RMS {summary['rms_urad']:.3g} urad, "
+                          f"{names[0]} vs {names[1]}\nRMS {summary['rms_urad']:.3g} urad, "
                           f"max {summary['max_urad']:.3g} urad after the best rotation",
                           out / "diff.png")
     (out / "diff.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")

@@ -46,8 +46,8 @@ def subplots(ncols: int, figsize: tuple[float, float]) -> tuple[Figure, Any]:
 
 
 def _save(fig: Figure, path: Path) -> None:
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=_DPI)
+    fig.tight_layout(rect=(0, 0, 1, 0.94) if fig.get_suptitle() else (0, 0, 1, 1))
+    fig.savefig(str(path), dpi=_DPI, bbox_inches="tight")
 
 
 def pose_png(view: PoseView, image_size: tuple[int, int], path: Path) -> None:
@@ -73,7 +73,8 @@ def pose_png(view: PoseView, image_size: tuple[int, int], path: Path) -> None:
     im = ax.imshow(_binned_rms(pix, mag, w, h), extent=(0, w, h, 0), vmin=0, vmax=hi,
                    cmap="magma", interpolation="nearest")
     fig.colorbar(im, ax=ax, label="RMS |residual| (camera px)")
-    ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude (binned RMS)")
+    ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude (binned RMS)",
+           xlabel="u (px)", ylabel="v (px)")
     kind = "held-out" if view.heldout else "training"
     st = view.stats
     fig.suptitle(f"{view.label} ({kind}): RMS {st['rms_px']:.4g} px, expected "
@@ -143,14 +144,10 @@ def radial_png(data: ReportData, path: Path) -> None:
     _save(fig, path)
 
 
-def _grid_image(data: ReportData, values: np.ndarray) -> np.ndarray:
-    return values.reshape(data.grid_shape)
-
-
 def uncertainty_png(data: ReportData, path: Path) -> None:
     """Per-pixel 1-sigma ray direction uncertainty over the sensor, in microradians."""
     w, h = data.model.image_size
-    img = _grid_image(data, data.ray_sigma * 1e6)
+    img = (data.ray_sigma * 1e6).reshape(data.grid_shape)
     fig, ax = subplots(1, (7.5, 5))
     finite = img[np.isfinite(img)]
     im = ax.imshow(img, extent=(0, w, h, 0), cmap="inferno", norm=_log_norm(finite),
@@ -210,7 +207,8 @@ def diff_png(pixels: np.ndarray, angle_rad: np.ndarray, image_size: tuple[int, i
     im = ax.imshow(img, extent=(0, w, h, 0), cmap="magma", norm=_log_norm(img[np.isfinite(img)]),
                    interpolation="nearest")
     fig.colorbar(im, ax=ax, label="ray angle difference (urad, log scale)")
-    ax.set(aspect="equal", xlabel="u (px)", ylabel="v (px)", title=title)
+    ax.set(aspect="equal", xlabel="u (px)", ylabel="v (px)")
+    ax.set_title(title, fontsize=9)
     _save(fig, path)
 
 
