@@ -15,6 +15,7 @@ COMMANDS = [
     "plan",
     "decode",
     "calibrate",
+    "intrinsics",
     "project",
     "unproject",
     "serve",

@@ -12,12 +12,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.optics import OpticalSetup
-from hw_mocks.poses import _rotation, fill_distance_mm, look_at_pose
+from hw_mocks.poses import _rotation, fill_distance_mm, look_at_pose, rotation_only_poses
 from hw_mocks.scene import ScreenPose
 from hw_mocks.sensor import SensorModel
 
@@ -50,7 +51,7 @@ class Board:
 
 def two_board_scene(
     size_mm: tuple[float, float] = (240.0, 180.0), grid: tuple[int, int] = (9, 7),
-    hinge_deg: float = 110.0, twist_deg: tuple[float, float] = (-15.0, 25.0),
+    hinge_deg: float = 130.0, twist_deg: tuple[float, float] = (-15.0, 25.0),
 ) -> list[Board]:
     """Two boards on the faces of a corner of `hinge_deg` (open towards the cameras), each
     turned in its plane by `twist_deg` so that no edge runs along the hinge and no three of
@@ -60,8 +61,8 @@ def two_board_scene(
     turn = _rotation(np.array([0, 1.0, 0]), np.radians(180.0 - hinge_deg))
     b_axes = turn @ _rotation(z, np.radians(twist_deg[1])) @ np.array([[1.0, 0, 0], [0, 1.0, 0]]).T
     w, h = size_mm
-    a = Board(np.array([-w - 10.0, -h / 2, 0.0]), a_axes, size_mm, grid)
-    b_origin = np.array([10.0, -h / 2, 0.0])
+    a = Board(np.array([-w - 60.0, -h / 2, 0.0]), a_axes, size_mm, grid)
+    b_origin = np.array([60.0, -h / 2, 0.0])
     return [a, Board(b_origin, b_axes, size_mm, grid)]
 
 
@@ -102,13 +103,27 @@ def project_points(camera: TruthCamera, view: CameraView, world: np.ndarray) -> 
     return camera.project(pts).reshape(*world.shape[:-1], 2)
 
 
+def _outlines_overlap(camera: TruthCamera, view: CameraView, boards: list[Board],
+                      margin_px: float) -> bool:
+    """Whether the images of two boards overlap or come within `margin_px` of each other."""
+    polys = [project_points(camera, view, b.outline()).astype(np.float32) for b in boards]
+    for i in range(len(polys)):
+        for j in range(i + 1, len(polys)):
+            area, _ = cv2.intersectConvexConvex(polys[i], polys[j])
+            gap = min(abs(cv2.pointPolygonTest(polys[j], tuple(map(float, p)), True))
+                      for p in polys[i])
+            if area > 0 or gap < 2 * margin_px:
+                return True
+    return False
+
+
 def general_motion_views(
     camera: TruthCamera, boards: list[Board], n: int, rng: np.random.Generator, *,
     distance_mm: tuple[float, float] = (450.0, 750.0), max_elevation_deg: float = 25.0,
     roll_deg: float = 20.0, aim_jitter_mm: float = 60.0, margin_px: float = 4.0,
 ) -> list[CameraView]:
     """`n` views from different places and orientations (general motion) that each see every
-    corner of every board at least `margin_px` inside the image."""
+    corner of every board at least `margin_px` inside the image, the boards' images apart."""
     if n < 1:
         raise ValueError(f"n: expected >= 1 views, got {n}")
     pts = np.concatenate([b.corners().reshape(-1, 3) for b in boards])
@@ -129,7 +144,7 @@ def general_motion_views(
             uv = project_points(camera, view, pts)
             inside = np.all(np.isfinite(uv)) and np.all(
                 (uv >= margin_px) & (uv <= np.array([camera.width, camera.height]) - 1 - margin_px))
-            if inside:
+            if inside and not _outlines_overlap(camera, view, boards, margin_px):
                 views.append(view)
                 break
         else:
@@ -207,3 +222,51 @@ def whole_screen_poses(
         else:
             raise ValueError("whole_screen_poses: no pose keeps the screen in view; lower fill")
     return out
+
+
+def boards_image(
+    camera: TruthCamera, boards: list[Board], view: CameraView, rng: np.random.Generator, *,
+    px_per_mm: float = 1.0, level: float = 0.8, ambient: float = 2.0e3,
+    blur_sigma_screen_px: float = 0.5, supersample: int = 2,
+    sensor: SensorModel | None = None,
+) -> np.ndarray:
+    """A camera image of the boards as bright (white) rectangles on a dark room, each rendered
+    like a screen showing a white flat (blur, vignetting, pixel-area integration, noise)."""
+    sensor = sensor or SensorModel()
+    irr = np.zeros((camera.height, camera.width), np.float32)
+    for b in boards:
+        w_px = max(round(b.size_mm[0] * px_per_mm), 2)
+        h_px = max(round(b.size_mm[1] * px_per_mm), 2)
+        pitch = (b.size_mm[0] / w_px, b.size_mm[1] / h_px)
+        rot = view.rotation @ np.column_stack([b.axes, np.cross(b.axes[:, 0], b.axes[:, 1])])
+        # screen extent starts at -0.5 px: shift so that it starts at the board's corner
+        half = rot @ np.array([pitch[0], pitch[1], 0.0]) / 2
+        t = view.rotation @ b.origin + view.translation + half
+        setup = OpticalSetup(camera, ScreenPose(rot, t), ScreenGeometry(w_px, h_px, pitch),
+                             blur_sigma_screen_px=blur_sigma_screen_px, ambient=0.0,
+                             supersample=supersample)
+        irr += setup.render_irradiance(np.ones((h_px, w_px), np.float32))
+    exposure = level * sensor.full_well_e / max(float(irr.max()), 1e-9)
+    return sensor.expose(irr + np.float32(ambient), exposure, 0.0, rng)
+
+
+def pan_tilt_poses(
+    camera: TruthCamera, screen: ScreenGeometry, n: int, rng: np.random.Generator, *,
+    fill: float = 0.5, max_rotation_deg: float = 25.0, margin_px: float = 8.0,
+) -> list[ScreenPose]:
+    """A fixed screen seen by a camera that only rotates about its center (a pan-tilt rig),
+    the whole screen in view in every image; the first pose is frontal."""
+    size = np.array([camera.width, camera.height]) - 1 - margin_px
+    dist = fill_distance_mm(camera, screen, fill)
+    out: list[ScreenPose] = []
+    for _ in range(_MAX_TRIES):
+        cand = rotation_only_poses(camera, screen, 2, rng, distance_mm=dist,
+                                   max_rotation_deg=max_rotation_deg, min_coverage=0.01)
+        if not out:
+            out.append(cand[0])
+        c = screen_corners_px(camera, cand[1], screen)
+        if np.all(np.isfinite(c)) and np.all((c >= margin_px) & (c <= size)):
+            out.append(cand[1])
+            if len(out) == n:
+                return out
+    raise ValueError("pan_tilt_poses: too few rotations keep the screen in view")
