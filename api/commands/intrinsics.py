@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
 
 HELP = "quick intrinsics (rectangle VPs, general-motion selfcal, rotation-only) before decoding"
 
@@ -26,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="output intrinsics JSON")
 
 
-def _read_image(path: str):  # noqa: ANN202 - numpy array
+def _read_image(path: str) -> np.ndarray:
     import cv2
     import numpy as np
 
