@@ -33,7 +33,8 @@ class Services:
         db = Database(store.db_path)
         executor = make_executor(config.executor)
         jobs = JobManager(db, executor)
-        rigs = RigManager(db, config.rig)
+        rigs = RigManager(db, config.rig, store.root, config.rigs_dir,
+                          tuple(config.aravis_addresses))
         services = cls(config, store, db, executor, jobs, rigs)
         services.recover()
         return services
