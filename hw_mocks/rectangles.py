@@ -175,18 +175,29 @@ def board_pixels(
 
 def white_flat_image(
     camera: TruthCamera, pose: ScreenPose, screen: ScreenGeometry, rng: np.random.Generator, *,
-    level: float = 0.8, ambient: float = 2.0e3, blur_sigma_screen_px: float = 0.5,
+    level: float = 0.8, ambient: float = 2.0e3, blur_px: float = 0.8,
     supersample: int = 2, sensor: SensorModel | None = None,
 ) -> np.ndarray:
     """The camera image of the screen showing a white flat: a bright quadrilateral on a dark
-    room, with blur, vignetting, pixel-area integration, shot/read noise and quantization.
-    `level` puts the brightest pixel at that fraction of the full well."""
+    room, with lens blur, vignetting, pixel-area integration, shot/read noise and
+    quantization. `level` puts the brightest pixel at that fraction of the full well.
+
+    The blur (Gaussian, `blur_px` camera px) acts in the image, as defocus does, so light
+    spreads past the screen's edge; `OpticalSetup`'s screen-space blur keeps only the part
+    inside the screen, which moves a white flat's edges inwards by ~0.07 px."""
     sensor = sensor or SensorModel()
-    setup = OpticalSetup(camera, pose, screen, blur_sigma_screen_px=blur_sigma_screen_px,
-                         ambient=ambient, supersample=supersample)
-    irr = setup.render_irradiance(np.ones((screen.height_px, screen.width_px), np.float32))
+    setup = OpticalSetup(camera, pose, screen, ambient=0.0, supersample=supersample)
+    irr = _blurred(setup.render_irradiance(np.ones((screen.height_px, screen.width_px),
+                                                   np.float32)), blur_px)
     exposure = level * sensor.full_well_e / max(float(irr.max()), 1e-9)
-    return sensor.expose(irr, exposure, 0.0, rng)
+    return sensor.expose(irr + np.float32(ambient), exposure, 0.0, rng)
+
+
+def _blurred(irradiance: np.ndarray, blur_px: float) -> np.ndarray:
+    """Image-space Gaussian defocus of an irradiance image (none for blur_px = 0)."""
+    if blur_px < 0:
+        raise ValueError(f"blur_px: expected >= 0, got {blur_px}")
+    return cv2.GaussianBlur(irradiance, (0, 0), blur_px) if blur_px > 0 else irradiance
 
 
 def screen_corners_px(camera: TruthCamera, pose: ScreenPose, screen: ScreenGeometry) -> np.ndarray:
@@ -226,12 +237,11 @@ def whole_screen_poses(
 
 def boards_image(
     camera: TruthCamera, boards: list[Board], view: CameraView, rng: np.random.Generator, *,
-    px_per_mm: float = 1.0, level: float = 0.8, ambient: float = 2.0e3,
-    blur_sigma_screen_px: float = 0.5, supersample: int = 2,
-    sensor: SensorModel | None = None,
+    px_per_mm: float = 1.0, level: float = 0.8, ambient: float = 2.0e3, blur_px: float = 0.8,
+    supersample: int = 2, sensor: SensorModel | None = None,
 ) -> np.ndarray:
     """A camera image of the boards as bright (white) rectangles on a dark room, each rendered
-    like a screen showing a white flat (blur, vignetting, pixel-area integration, noise)."""
+    like a screen showing a white flat (see `white_flat_image`)."""
     sensor = sensor or SensorModel()
     irr = np.zeros((camera.height, camera.width), np.float32)
     for b in boards:
@@ -243,9 +253,9 @@ def boards_image(
         half = rot @ np.array([pitch[0], pitch[1], 0.0]) / 2
         t = view.rotation @ b.origin + view.translation + half
         setup = OpticalSetup(camera, ScreenPose(rot, t), ScreenGeometry(w_px, h_px, pitch),
-                             blur_sigma_screen_px=blur_sigma_screen_px, ambient=0.0,
-                             supersample=supersample)
+                             ambient=0.0, supersample=supersample)
         irr += setup.render_irradiance(np.ones((h_px, w_px), np.float32))
+    irr = _blurred(irr, blur_px)
     exposure = level * sensor.full_well_e / max(float(irr.max()), 1e-9)
     return sensor.expose(irr + np.float32(ambient), exposure, 0.0, rng)
 
@@ -255,18 +265,22 @@ def pan_tilt_poses(
     fill: float = 0.5, max_rotation_deg: float = 25.0, margin_px: float = 8.0,
 ) -> list[ScreenPose]:
     """A fixed screen seen by a camera that only rotates about its center (a pan-tilt rig),
-    the whole screen in view in every image; the first pose is frontal."""
+    the whole screen in view in every image. The first view is turned a few degrees from
+    frontal: a real rig is never exactly axis-aligned, and the simulator's sub-pixel
+    sampling biases perfectly axis-aligned edges by up to 1/(2 supersample) px."""
     size = np.array([camera.width, camera.height]) - 1 - margin_px
     dist = fill_distance_mm(camera, screen, fill)
+    q0 = _rotation(rng.normal(size=3), np.radians(rng.uniform(3.0, 6.0)))
     out: list[ScreenPose] = []
     for _ in range(_MAX_TRIES):
         cand = rotation_only_poses(camera, screen, 2, rng, distance_mm=dist,
                                    max_rotation_deg=max_rotation_deg, min_coverage=0.01)
         if not out:
-            out.append(cand[0])
-        c = screen_corners_px(camera, cand[1], screen)
+            out.append(ScreenPose(q0 @ cand[0].rotation, q0 @ cand[0].translation))
+        pose = ScreenPose(q0 @ cand[1].rotation, q0 @ cand[1].translation)
+        c = screen_corners_px(camera, pose, screen)
         if np.all(np.isfinite(c)) and np.all((c >= margin_px) & (c <= size)):
-            out.append(cand[1])
+            out.append(pose)
             if len(out) == n:
                 return out
     raise ValueError("pan_tilt_poses: too few rotations keep the screen in view")

@@ -15,9 +15,9 @@ import numpy as np
 
 from calibration.decode.frames_io import read_frames
 from calibration.fit.correspondences import point_set, subsample
-from calibration.fit.estimate import IntrinsicsEstimate
+from calibration.fit.estimate import IntrinsicsEstimate, monte_carlo_std
 from calibration.fit.homography import DegenerateError, fit_homography
-from calibration.fit.lines import Point
+from calibration.fit.lines import Point, intersect, sample_points
 from calibration.fit.quad import Quad, find_quads
 from calibration.fit.rectangle import rectangle_intrinsics
 from calibration.fit.rotation import interview_homographies
@@ -28,6 +28,7 @@ from calibration.plan import FlatFrame, Plan, ScreenGeometry
 
 METHODS = ("rectangle", "selfcal", "rotation")
 _MAP_POINTS = 3000
+_MC_SAMPLES = 200
 
 
 def white_flat_index(plan: Plan) -> int:
@@ -99,11 +100,29 @@ def intrinsics_from_images(
         tracks = [[vp for q in qs for vp in q.vanishing_points()] for qs in _quads(images, 2)]
         est = selfcal_intrinsics(tracks, size, zero_skew=zero_skew)
     else:
-        corners = [q[0].corners for q in _quads(images, 1)]
-        hs = [fit_homography(corners[0], c) for c in corners[1:]]
-        est = rotation_intrinsics_from_images(hs, size)
+        est = _rotation_from_quads([q[0] for q in _quads(images, 1)], size)
     est.stats["image_size"] = list(size)
     est.stats["source"] = "images"
+    return est
+
+
+def _rotation_from_quads(quads: list[Quad], size: tuple[int, int]) -> IntrinsicsEstimate:
+    """Rotation-only K from the corners of one fixed rectangle; std by Monte Carlo on the
+    corners (intersections of the fitted sides, with their covariances)."""
+    pts = [[intersect(q.sides[k - 1], q.sides[k]) for k in range(4)] for q in quads]
+
+    def solve(corners: list[np.ndarray]) -> np.ndarray:
+        hs = [fit_homography(corners[0], c) for c in corners[1:]]
+        return rotation_intrinsics_from_images(hs, size).k
+
+    def redraw(g: np.random.Generator) -> np.ndarray:
+        drawn = [np.array([sample_points(p, 1, g)[0] for p in qp]) for qp in pts]
+        return solve([d[:, :2] / d[:, 2:] for d in drawn])
+
+    est = rotation_intrinsics_from_images(
+        [fit_homography(quads[0].corners, q.corners) for q in quads[1:]], size)
+    est.std, failed = monte_carlo_std(redraw, _MC_SAMPLES, np.random.default_rng(0))
+    est.stats.update(mc_samples=_MC_SAMPLES, mc_not_positive_definite=failed)
     return est
 
 
