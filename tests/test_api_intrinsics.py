@@ -69,7 +69,7 @@ def test_quick_intrinsics_from_white_flats_then_maps(client: PhasecalClient,
     res = final["result"]
     assert res["method"] == "rectangle-square" and len(res["pose_ids"]) == 4
     assert _err(res) < 0.02 and res["std"]["fx"] > 0
-    assert c.get(f"/sessions/{sid}/intrinsics")["fx"] == res["fx"]
+    assert c.get_intrinsics(sid)["fx"] == res["fx"]
     for j in session["decode_jobs"]:
         assert c.wait(j, timeout_s=300)["status"] == "succeeded"
     final = c.wait(c.post(f"/sessions/{sid}/intrinsics",
@@ -91,8 +91,7 @@ def test_quick_intrinsics_bad_requests(server: ServerProcess, client: PhasecalCl
         r = h.post(url, json={"method": "rectangle", "pose_ids": two})
         assert r.status_code == 409 and "needs >= 4" in r.json()["detail"]
     # selfcal needs two rectangles per image: the job fails with a specific reason
-    final = client.wait(client.post(f"/sessions/{sid}/intrinsics", {"method": "selfcal"}),
-                        timeout_s=120)
+    final = client.wait(client.quick_intrinsics(sid, "selfcal"), timeout_s=120, check=False)
     assert final["status"] == "failed" and "expected 2" in final["error"]
 
 
