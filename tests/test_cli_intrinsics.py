@@ -13,6 +13,7 @@ from acquisition.patterns import build_plan
 from api.cli import main
 from calibration.fit.quick import white_flat_index
 from calibration.maps import save_maps
+from calibration.models.base import load_model
 from calibration.plan import write_plan
 from hw_mocks.cameras import PinholeCamera
 from hw_mocks.poses import random_poses, rotation_only_poses
@@ -49,8 +50,12 @@ def flats(tmp_path_factory):
 def test_rectangle_from_white_flat_images_and_frames(flats, capsys) -> None:
     imgs = [str(flats / f"flat{i}.png") for i in range(5)]
     assert main(["intrinsics", "--method", "rectangle", "--images", *imgs,
-                 "-o", str(flats / "k.json")]) == 0
+                 "-o", str(flats / "k.json"), "--model-out", str(flats / "model.json")]) == 0
     assert _err(flats / "k.json") < 0.02
+    model = load_model(flats / "model.json")
+    assert model.type_name == "opencv5" and model.image_size == (640, 480)
+    np.testing.assert_allclose(model.camera_matrix[0, 0],
+                               json.loads((flats / "k.json").read_text())["fx"])
     assert "rectangle from 5 views: fx" in capsys.readouterr().out
     # the same white flats inside captured-pose frame stacks (FORMATS.md .npy)
     plan = build_plan(DEFAULT_SCREEN.width_px, DEFAULT_SCREEN.height_px, 0.25)

@@ -28,6 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zero-skew", action="store_true",
                    help="selfcal: fix the skew to 0 in the maximum-likelihood refinement")
     p.add_argument("-o", "--output", required=True, help="output intrinsics JSON")
+    p.add_argument("--model-out", metavar="MODEL",
+                   help="also write a distortion-free opencv5 phasecal.model/1 (for project, "
+                        "export, or as a start; the skew is dropped)")
 
 
 def _read_image(path: str) -> np.ndarray:
@@ -75,6 +78,17 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.method}: {exc}") from None
     with open(args.output, "w") as fh:
         json.dump(est.to_dict(), fh, indent=1)
+    if args.model_out:
+        import numpy as np
+
+        from calibration.models.base import save_model
+        from calibration.models.parametric import OpenCV5Model
+
+        k = est.k.copy()
+        k[0, 1] = 0.0
+        model = OpenCV5Model(tuple(est.stats["image_size"]), k, np.zeros(5))
+        model.stats = {"source": f"phasecal intrinsics --method {args.method}", **est.to_dict()}
+        save_model(model, args.model_out)
     d, s = est.to_dict(), est.std
     parts = [f"{p} {d[p]:.2f}" + (f" +- {s[p]:.2f}" if p in s else "")
              for p in ("fx", "fy", "cx", "cy", "skew")]
