@@ -19,15 +19,21 @@ import time
 
 import numpy as np
 
-from calibration.fit.homography import DegenerateError, fit_homography, ransac_homography
-from calibration.fit.lines import Point, fit_line, grid_vanishing_points, intersect
-from calibration.fit.quad import find_quads
-from calibration.fit.rectangle import rectangle_intrinsics
-from calibration.fit.robust import dlt_ransac, required_iterations, solve_pnp, usac_homography
-from calibration.fit.rotation import interview_homographies, rotation_intrinsics
-from calibration.fit.selfcal import NotPositiveDefiniteError, linear_selfcal, normalizer
-from calibration.fit.selfcal_refine import selfcal_intrinsics
-from calibration.fit.zhang import zhang_intrinsics
+from calibration.fit.classic.dlt import ransac_dlt
+from calibration.fit.classic.estimate import normalizer
+from calibration.fit.classic.homography import fit_homography, ransac_homography
+from calibration.fit.classic.lines import Point, fit_line, grid_vanishing_points, intersect
+from calibration.fit.classic.quad import find_quads
+from calibration.fit.classic.rectangle import rectangle_intrinsics
+from calibration.fit.classic.robust import solve_pnp, usac_homography
+from calibration.fit.classic.rotation import (
+    NotPositiveDefiniteError,
+    interview_homographies,
+    rotation_intrinsics,
+)
+from calibration.fit.classic.selfcal import linear_selfcal, selfcal_intrinsics
+from calibration.fit.classic.zhang import zhang_intrinsics
+from calibration.fit.ransac import DegenerateError, required_iterations
 from hw_mocks.cameras import PinholeCamera
 from hw_mocks.rectangles import (
     board_pixels,
@@ -178,12 +184,12 @@ def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
 def seed003(trials: int, rng: np.random.Generator) -> None:
     """Robust estimation at gross outlier rates; non-planar PnP vs noise."""
     print("\n## Seed 003: RANSAC inlier recall vs outlier rate (mean over trials)")
-    print("| outliers | fixed-500 RANSAC H | USAC MAGSAC++ H | adaptive DLT: recall, samples "
-          "(theory for p = 0.999) |")
+    print("| outliers | adaptive RANSAC H: recall, samples (theory) | USAC MAGSAC++ H: recall "
+          "| adaptive RANSAC DLT: recall, samples (theory) |")
     print("|---|---|---|---|")
     k = CAM.camera_matrix
     for frac in (0.2, 0.4, 0.6):
-        old, new, dlt, drawn = [], [], [], []
+        old, new, dlt, drawn, h_drawn = [], [], [], [], []
         for _ in range(trials):
             src = rng.uniform(0, 500, (400, 2))
             h = np.array([[1.1, 0.05, 20], [0.02, 0.95, -10], [1e-4, -5e-5, 1]])
@@ -191,21 +197,25 @@ def seed003(trials: int, rng: np.random.Generator) -> None:
             dst = q[:, :2] / q[:, 2:] + 0.3 * rng.standard_normal((400, 2))
             out = rng.random(400) < frac
             dst[out] = rng.uniform(0, 600, (int(out.sum()), 2))
-            old.append(ransac_homography(src, dst, 1.0, rng)[1][~out].mean())
+            st_h: dict[str, float] = {}
+            old.append(ransac_homography(src, dst, 1.0, rng, stats=st_h)[1][~out].mean())
+            h_drawn.append(st_h["samples"])
             new.append(usac_homography(src, dst, 1.0)[1][~out].mean())
             x = rng.uniform(-150, 150, (400, 3))
             p = (x + np.array([0, 0, 600.0])) @ k.T
             u = p[:, :2] / p[:, 2:] + 0.3 * rng.standard_normal((400, 2))
             u[out] = rng.uniform(0, 640, (int(out.sum()), 2))
             try:
-                _, inl, nd = dlt_ransac(x, u, 1.0, rng)
+                st: dict[str, float] = {}
+                inl = ransac_dlt(x, u, 1.0, rng, stats=st)[1]
                 dlt.append(inl[~out].mean())
-                drawn.append(nd)
+                drawn.append(st["samples"])
             except DegenerateError:
                 dlt.append(0.0)
-        theory = required_iterations(1 - frac, 6, 0.999)
-        print(f"| {frac:.0%} | {np.mean(old):.3f} | {np.mean(new):.3f} | "
-              f"{np.mean(dlt):.3f}, {np.median(drawn) if drawn else 0:.0f} ({theory:.0f}) |")
+        th4, th6 = (required_iterations(1 - frac, s, 0.999) for s in (4, 6))
+        print(f"| {frac:.0%} | {np.mean(old):.3f}, {np.median(h_drawn):.0f} ({th4:.0f}) | "
+              f"{np.mean(new):.3f} | {np.mean(dlt):.3f}, {np.median(drawn) if drawn else 0:.0f} "
+              f"({th6:.0f}) |")
     print("\n## Seed 003: non-planar PnP, rotation error (deg) vs pixel noise, 50 points")
     print("| sigma px | sqpnp | epnp | iterative |")
     print("|---|---|---|---|")

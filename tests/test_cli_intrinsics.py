@@ -11,7 +11,7 @@ import pytest
 
 from acquisition.patterns import build_plan
 from api.cli import main
-from calibration.fit.quick import white_flat_index
+from calibration.fit.classic.quick import white_flat_index
 from calibration.maps import save_maps
 from calibration.models.base import load_model
 from calibration.plan import write_plan

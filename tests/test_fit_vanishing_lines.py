@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.fit.homography import DegenerateError
-from calibration.fit.lines import fit_line, grid_vanishing_points, intersect
-from calibration.fit.quad import find_quads
-from calibration.fit.rectangle import rectangle_intrinsics
-from calibration.fit.selfcal import NotPositiveDefiniteError, k_from_kkt
-from calibration.fit.selfcal_refine import selfcal_intrinsics
+from calibration.fit.classic.lines import fit_line, grid_vanishing_points, intersect
+from calibration.fit.classic.quad import find_quads
+from calibration.fit.classic.rectangle import rectangle_intrinsics
+from calibration.fit.classic.rotation import NotPositiveDefiniteError, k_from_kkt
+from calibration.fit.classic.selfcal import selfcal_intrinsics
+from calibration.fit.ransac import DegenerateError
 from hw_mocks.cameras import PinholeCamera
 from hw_mocks.rectangles import (
     board_pixels,

@@ -54,8 +54,12 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from api.cli import UserError
-    from calibration.fit.homography import DegenerateError
-    from calibration.fit.quick import intrinsics_from_images, intrinsics_from_maps, read_white_flat
+    from calibration.fit.classic.quick import (
+        intrinsics_from_images,
+        intrinsics_from_maps,
+        read_white_flat,
+    )
+    from calibration.fit import DegenerateError
     from calibration.maps import load_maps
     from calibration.plan import read_plan
 

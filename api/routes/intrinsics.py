@@ -17,7 +17,7 @@ from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import IntrinsicsCreate
 from api.services import Services, get_services
 from api.store import check_id
-from calibration.fit.quick import white_flat_index
+from calibration.fit.classic.quick import white_flat_index
 from calibration.plan import plan_from_dict
 from calibration.worker.executor import TaskContext
 from calibration.worker.intrinsics_task import intrinsics_task

@@ -14,7 +14,7 @@ def intrinsics_task(
 ) -> dict[str, Any]:
     """Read each pose's white flat frame (`source="flats"`, paths: frame stacks/folders) or
     decoded maps (`source="maps"`), estimate K by `method`, write JSON to `out_path`."""
-    from calibration.fit.quick import (
+    from calibration.fit.classic.quick import (
         intrinsics_from_images,
         intrinsics_from_maps,
         read_white_flat,

@@ -1,24 +1,17 @@
-"""Seed 003's classic estimators through OpenCV: PnP for any (non-)coplanar points, USAC
-(MAGSAC++) homographies and PnP with adaptive termination, and an adaptive RANSAC for the
-3x4 DLT, which OpenCV lacks.
-
-Adaptive termination: after a model with inlier ratio w is found, N = log(1 - p) /
-log(1 - w^s) samples suffice for confidence p with s-point samples; the loop stops there.
-"""
+"""Seed 003's classic estimators through OpenCV: PnP for any (non-)coplanar points and
+USAC (MAGSAC++ scoring, local optimization, adaptive termination) for homographies and PnP.
+The 3x4 DLT, which OpenCV lacks, runs in the package's own adaptive RANSAC
+(`classic.dlt.ransac_dlt`)."""
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import cv2
 import numpy as np
 
-from calibration.fit.dlt import dlt_projection, project_with
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 
 PNP_METHODS = {"sqpnp": cv2.SOLVEPNP_SQPNP, "epnp": cv2.SOLVEPNP_EPNP,
                "iterative": cv2.SOLVEPNP_ITERATIVE}
-_REFITS = 10
 
 
 def _as_pairs(points: np.ndarray, pixels: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -91,57 +84,3 @@ def usac_homography(
     if h is None or mask is None or int(mask.sum()) < 4:
         raise DegenerateError("USAC homography: no consensus set of >= 4 inliers")
     return h / h[2, 2], mask.ravel().astype(bool)
-
-
-def required_iterations(inlier_ratio: float, sample_size: int, confidence: float) -> float:
-    """Samples needed to draw one all-inlier sample with probability `confidence`."""
-    good = inlier_ratio**sample_size
-    if good >= 1.0:
-        return 1.0
-    if good <= 0.0:
-        return float("inf")
-    return float(np.log(1 - confidence) / np.log1p(-good))
-
-
-def adaptive_ransac(
-    n: int, sample_size: int, fit: Callable[[np.ndarray], np.ndarray],
-    errors: Callable[[np.ndarray], np.ndarray], threshold: float, rng: np.random.Generator, *,
-    confidence: float = 0.999, max_iterations: int = 100000,
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """(model refit on its consensus set, inlier mask, samples drawn); stops adaptively."""
-    if n < sample_size:
-        raise DegenerateError(f"RANSAC needs >= {sample_size} points, got {n}")
-    best = np.zeros(n, dtype=bool)
-    needed, drawn = float(max_iterations), 0
-    while drawn < min(needed, max_iterations):
-        drawn += 1
-        try:
-            model = fit(rng.choice(n, sample_size, replace=False))
-        except DegenerateError:
-            continue
-        inl = errors(model) < threshold
-        if inl.sum() > best.sum():
-            best = inl
-            needed = required_iterations(inl.mean(), sample_size, confidence)
-    if best.sum() < sample_size:
-        raise DegenerateError(f"RANSAC: no consensus set of >= {sample_size} inliers")
-    inl = best
-    for _ in range(_REFITS):  # refit on the consensus set until it is stable
-        model = fit(np.flatnonzero(inl))
-        new = errors(model) < threshold
-        if new.sum() < sample_size or np.array_equal(new, inl):
-            break
-        inl = new
-    return model, inl, drawn
-
-
-def dlt_ransac(
-    points: np.ndarray, pixels: np.ndarray, threshold_px: float, rng: np.random.Generator, *,
-    confidence: float = 0.999,
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Robust 3x4 P from non-coplanar points: (P, inlier mask, samples drawn)."""
-    x, u = _as_pairs(points, pixels, 3)
-    return adaptive_ransac(
-        len(x), 6, lambda i: dlt_projection(x[i], u[i]),
-        lambda p: np.linalg.norm(project_with(p, x) - u, axis=1), threshold_px, rng,
-        confidence=confidence)

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.fit.homography import DegenerateError
-from calibration.fit.lines import Line, Point, fit_line, intersect
+from calibration.fit.classic.lines import Line, Point, fit_line, intersect
+from calibration.fit.ransac import DegenerateError
 
 _HALF_WIDTH_PX = 6.0  # profile half-length across an edge
 _STEP_PX = 0.25  # profile sampling step

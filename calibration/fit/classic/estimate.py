@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 
 PARAMS = ("fx", "fy", "cx", "cy", "skew")
 
@@ -34,6 +34,14 @@ class IntrinsicsEstimate:
         return {"format": "phasecal.intrinsics/1", "method": self.method,
                 "n_views": self.n_views, "camera_matrix": self.k.tolist(),
                 **k_params(self.k), "std": self.std, "stats": self.stats}
+
+
+def normalizer(image_size: tuple[int, int]) -> np.ndarray:
+    """Pixel -> normalized coordinates (image center to 0, (W + H) / 2 to 1): conditioning
+    for the linear solves; K' = T K keeps K's upper-triangular form."""
+    w, h = image_size
+    s = 2.0 / (w + h)
+    return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
 
 
 def monte_carlo_std(solve: Callable[[np.random.Generator], np.ndarray], samples: int,

@@ -1,25 +1,63 @@
-"""General-motion self-calibration (seed 004): the linear K, then a maximum-likelihood fit.
+"""Self-calibration under general motion from vanishing points (seed 004, Chang, Wang & Wang).
 
-Model: vanishing point of direction d_k in image i is K R_i d_k (R_0 = I fixes the gauge).
-Residuals are the observed unit points' tangent-space deviations, whitened by their
-covariances; K (optionally with zero skew), the rotations and the directions are fitted
-with scipy's trust-region least squares; the std comes from the Gauss-Newton covariance.
+The camera moves and rotates; vanishing points of >= 4 world directions (the edge
+directions of two non-parallel rectangles, no three of them coplanar) are tracked across
+images. Translation does not move vanishing points, so those of image i map to those of
+image j by the infinite homography H_ij = K R_ij K^-1, fitted by DLT on the homogeneous
+points; every image pair's H enters the linear H C H^T = C of `classic.rotation`, and K
+follows by Cholesky (a clear error when K K^T is not positive definite, as the paper warns).
+That is the paper's method. phasecal then refines it by maximum likelihood: vanishing point
+of direction d_k in image i = K R_i d_k (R_0 = I), residuals in the tangent space of the
+observed unit points, whitened by their covariances; std from the Gauss-Newton covariance.
 """
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import cv2
 import numpy as np
 import scipy.optimize
 
-from calibration.fit.estimate import PARAMS, IntrinsicsEstimate, monte_carlo_std
-from calibration.fit.homography import DegenerateError
-from calibration.fit.lines import Point, sample_points
-from calibration.fit.selfcal import homogeneous_homography, linear_selfcal, normalizer
+from calibration.fit.classic.estimate import PARAMS, IntrinsicsEstimate, monte_carlo_std, normalizer
+from calibration.fit.classic.lines import Point, sample_points
+from calibration.fit.classic.rotation import rotation_intrinsics
+from calibration.fit.ransac import DegenerateError
 
 _MC_SAMPLES = 200
+
+
+def homogeneous_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """H with dst ~ H src from >= 4 homogeneous point pairs (N, 3), no three collinear.
+
+    Cross-product DLT (x' x H x = 0), so points at infinity are fine; the points should be
+    in normalized coordinates (see `estimate.normalizer`).
+    """
+    s = src / np.linalg.norm(src, axis=1, keepdims=True)
+    d = dst / np.linalg.norm(dst, axis=1, keepdims=True)
+    if len(s) < 4:
+        raise DegenerateError(f"infinite homography needs >= 4 vanishing points, got {len(s)}")
+    rows = []
+    for x, y in zip(s, d, strict=True):
+        z = np.zeros(3)
+        rows += [np.concatenate([z, -y[2] * x, y[1] * x]),
+                 np.concatenate([y[2] * x, z, -y[0] * x]),
+                 np.concatenate([-y[1] * x, y[0] * x, z])]
+    _, sv, vt = np.linalg.svd(np.array(rows))
+    if sv[-2] < 1e-8 * sv[0]:
+        raise DegenerateError("infinite homography: three of the directions are coplanar "
+                              "(e.g. both rectangles share an edge direction)")
+    return vt[-1].reshape(3, 3)
+
+
+def linear_selfcal(vps: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """K in pixels from (images, directions, 3) homogeneous pixel vanishing points."""
+    vn = vps @ t.T
+    hs = [homogeneous_homography(vn[i], vn[j])
+          for i, j in itertools.combinations(range(len(vn)), 2)]
+    k = np.linalg.inv(t) @ rotation_intrinsics(hs)
+    return k / k[2, 2]
 
 
 def _tangent_whiteners(tracks: list[list[Point]]) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 
 
 @dataclass(frozen=True)

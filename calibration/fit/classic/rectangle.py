@@ -12,19 +12,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.fit.estimate import IntrinsicsEstimate, monte_carlo_std
-from calibration.fit.homography import DegenerateError
-from calibration.fit.lines import Point, sample_points
+from calibration.fit.classic.estimate import IntrinsicsEstimate, monte_carlo_std, normalizer
+from calibration.fit.classic.lines import Point, sample_points
+from calibration.fit.ransac import DegenerateError
 
 _REWEIGHT = 3
 _MC_SAMPLES = 200
 
 
-def _normalizer(image_size: tuple[int, int]) -> np.ndarray:
-    """Pixel -> normalized coordinates: image center to 0, (W + H) / 2 to 1."""
-    w, h = image_size
-    s = 2.0 / (w + h)
-    return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
+def vanishing_points(homography: np.ndarray) -> tuple[Point, Point]:
+    """The vanishing points of a plane's x and y directions: the first two columns of its
+    plane-to-image homography (for decoded maps: the common point of every decoded iso-y /
+    iso-x line). No covariance is attached (zero), so no reweighting or Monte Carlo std."""
+    h = np.asarray(homography, dtype=np.float64)
+    z = np.zeros((3, 3))
+    return (Point(h[:, 0] / np.linalg.norm(h[:, 0]), z),
+            Point(h[:, 1] / np.linalg.norm(h[:, 1]), z))
 
 
 def _rows(a: np.ndarray, b: np.ndarray, square: bool) -> np.ndarray:
@@ -92,7 +95,7 @@ def rectangle_intrinsics(
     if len(pairs) < need:
         raise DegenerateError(f"rectangle intrinsics ({'square' if square_pixels else 'fx != fy'}"
                               f" pixels) need >= {need} views, got {len(pairs)}")
-    t = _normalizer(image_size)
+    t = normalizer(image_size)
     tinv = np.linalg.inv(t)
 
     def norm(pts: list[Point]) -> tuple[np.ndarray, np.ndarray]:

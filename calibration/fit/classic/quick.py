@@ -14,15 +14,15 @@ from pathlib import Path
 import numpy as np
 
 from calibration.decode.frames_io import read_frames
+from calibration.fit.classic.estimate import IntrinsicsEstimate, monte_carlo_std
+from calibration.fit.classic.homography import fit_homography
+from calibration.fit.classic.lines import intersect, sample_points
+from calibration.fit.classic.quad import Quad, find_quads
+from calibration.fit.classic.rectangle import rectangle_intrinsics, vanishing_points
+from calibration.fit.classic.rotation import interview_homographies, rotation_estimate
+from calibration.fit.classic.selfcal import selfcal_intrinsics
 from calibration.fit.correspondences import point_set, subsample
-from calibration.fit.estimate import IntrinsicsEstimate, monte_carlo_std
-from calibration.fit.homography import DegenerateError, fit_homography
-from calibration.fit.lines import Point, intersect, sample_points
-from calibration.fit.quad import Quad, find_quads
-from calibration.fit.rectangle import rectangle_intrinsics
-from calibration.fit.rotation import interview_homographies
-from calibration.fit.selfcal import rotation_intrinsics_from_images
-from calibration.fit.selfcal_refine import selfcal_intrinsics
+from calibration.fit.ransac import DegenerateError
 from calibration.maps import DecodedMaps
 from calibration.plan import FlatFrame, Plan, ScreenGeometry
 
@@ -113,13 +113,13 @@ def _rotation_from_quads(quads: list[Quad], size: tuple[int, int]) -> Intrinsics
 
     def solve(corners: list[np.ndarray]) -> np.ndarray:
         hs = [fit_homography(corners[0], c) for c in corners[1:]]
-        return rotation_intrinsics_from_images(hs, size).k
+        return rotation_estimate(hs, size).k
 
     def redraw(g: np.random.Generator) -> np.ndarray:
         drawn = [np.array([sample_points(p, 1, g)[0] for p in qp]) for qp in pts]
         return solve([d[:, :2] / d[:, 2:] for d in drawn])
 
-    est = rotation_intrinsics_from_images(
+    est = rotation_estimate(
         [fit_homography(quads[0].corners, q.corners) for q in quads[1:]], size)
     est.std, failed = monte_carlo_std(redraw, _MC_SAMPLES, np.random.default_rng(0))
     est.stats.update(mc_samples=_MC_SAMPLES, mc_not_positive_definite=failed)
@@ -149,12 +149,10 @@ def intrinsics_from_maps(
             raise DegenerateError(f"pose {i}: only {len(pts)} decoded points")
         hs.append(fit_homography(pts.screen_mm[:, :2], pts.pixels))
     if method == "rectangle":
-        z = np.zeros((3, 3))
-        pairs = [(Point(hm[:, 0] / np.linalg.norm(hm[:, 0]), z),
-                  Point(hm[:, 1] / np.linalg.norm(hm[:, 1]), z)) for hm in hs]
+        pairs = [vanishing_points(hm) for hm in hs]
         est = rectangle_intrinsics(pairs, (w, h), square_pixels=square_pixels)
     else:
-        est = rotation_intrinsics_from_images(interview_homographies(hs), (w, h))
+        est = rotation_estimate(interview_homographies(hs), (w, h))
     est.stats["image_size"] = [int(w), int(h)]
     est.stats["source"] = "decoded maps"
     return est
