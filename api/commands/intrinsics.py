@@ -54,12 +54,12 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from api.cli import UserError
+    from calibration.fit import DegenerateError
     from calibration.fit.classic.quick import (
         intrinsics_from_images,
         intrinsics_from_maps,
         read_white_flat,
     )
-    from calibration.fit import DegenerateError
     from calibration.maps import load_maps
     from calibration.plan import read_plan
 

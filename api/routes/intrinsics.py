@@ -78,7 +78,9 @@ def start_intrinsics(session_id: str, body: IntrinsicsCreate, svc: Svc) -> JSONR
             paths = [_flat_source(svc, p, index) for p in poses]
         else:
             paths = [str(svc.store.file(p.id, "maps.npz")) for p in poses]
-        job = svc.jobs.create(s, "intrinsics", f"/sessions/{session_id}/intrinsics", session_id)
+        # one quick-intrinsics job per session at a time (409 job-active otherwise)
+        job = svc.jobs.create(s, "intrinsics", f"/sessions/{session_id}/intrinsics", session_id,
+                              claims=(f"{session_id}:intrinsics",))
     plan_path = str(svc.store.dir_for(session_id) / "plan.json")
     out = svc.store.dir_for(session_id) / RESULT
     pose_ids = [p.id for p in poses]
