@@ -19,7 +19,7 @@ from api.services import Services, get_services
 from api.store import check_id
 from calibration.fit.classic.quick import white_flat_index
 from calibration.plan import plan_from_dict
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 from calibration.worker.intrinsics_task import intrinsics_task
 
 router = APIRouter(tags=["intrinsics"], responses=PROBLEM_RESPONSES)
