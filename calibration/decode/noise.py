@@ -128,7 +128,13 @@ def fit_photon_transfer(
     if len(xs) < 4:
         return None
     x, y, w = np.array(xs), np.array(ys), np.array(ws, dtype=np.float64)
-    slope, offset = np.polyfit(x, y, 1, w=np.sqrt(w) / y)
+    wt = w / y**2  # the polyfit weights squared: relative errors of the bin medians
+    slope, offset = np.polyfit(x, y, 1, w=np.sqrt(wt))
     if slope < 0:
         slope, offset = 0.0, float(np.average(y, weights=w))
+    elif offset < floor:
+        # Constrained least squares: the offset at its floor, the slope refitted. (Clamping the
+        # offset alone would lift the whole line where the levels span a narrow range.)
+        offset = floor
+        slope = max(float(np.sum(wt * x * (y - floor)) / np.sum(wt * x * x)), 0.0)
     return LinearVariance(offset=max(float(offset), floor), slope=float(slope))
