@@ -13,10 +13,9 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
 from calibration.decode.accumulate import SetSums
-from calibration.decode.arrays import to_host
+from calibration.decode.arrays import chi2_isf, to_host
 from calibration.decode.blur import fit_blur
 from calibration.decode.options import DecodeOptions
 from calibration.decode.phase import SetFit
@@ -32,7 +31,7 @@ MIN_PERIOD_SNR = 4.0
 @functools.lru_cache(maxsize=16)
 def chi2_limits(max_dof: int, p: float) -> np.ndarray:
     """Chi-square consistency limit by number of fused finer periods (inf for none)."""
-    return np.array([math.inf] + [float(chi2_dist.isf(p, d)) for d in range(1, max_dof + 1)])
+    return np.array([math.inf] + [chi2_isf(p, d) for d in range(1, max_dof + 1)])
 
 
 def decode_axes_xp(

@@ -17,10 +17,9 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
 from calibration.decode.accumulate import DecodeError, FrameAccumulator
-from calibration.decode.arrays import array_module, to_host
+from calibration.decode.arrays import array_module, chi2_isf, to_host
 from calibration.decode.axes import decode_axes_compiled, decode_axes_xp
 from calibration.decode.noise import (
     LinearVariance,
@@ -42,6 +41,7 @@ _MIN_CLEAN_PIXELS = 2000
 # about _NOISE_SAMPLE in all (the fit needs ~1e5 pixels; the rest only costs time).
 _NOISE_PIECE = 1 << 14
 _NOISE_SAMPLE = 1 << 20
+_COMPILED_MIN_PIXELS = 1 << 20
 
 
 def _output_planes(npix: int, axes: list[str]) -> dict[str, np.ndarray]:
@@ -62,7 +62,7 @@ def _chi2_tail(max_dof: int) -> np.ndarray:
     """Per-dof ratio chi2.isf(1e-6, d)/d for d = 0..max_dof (inf for d = 0)."""
     d = np.arange(max_dof + 1, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = chi2_dist.isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
+        ratio = chi2_isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
     ratio[0] = np.inf
     return ratio
 
@@ -113,8 +113,9 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
-        # NumPy arrays take the compiled per-pixel kernel; other namespaces (CuPy) the xp path.
-        self._compiled = self.xp is np
+        # Large NumPy images take the compiled per-pixel kernel (importing numba costs ~0.3 s,
+        # more than it saves below ~1 Mpixel); other namespaces (CuPy) the xp path.
+        self._compiled = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
 
     @property
     def missing(self) -> list[int]:
