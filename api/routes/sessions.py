@@ -140,7 +140,8 @@ def _decode(svc: Services, ctx: TaskContext, session_dir: Path, frames: Path, po
 
 
 def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, plan: Plan,
-                   screen_pose: dict[str, Any] | None, job_id: str) -> None:
+                   screen_pose: dict[str, Any] | None, job_id: str,
+                   noise_dn: float | None = None) -> None:
     session_dir = svc.store.dir_for(session_id)
     pose_dir = svc.store.dir_for(pose_id)
     frames = pose_dir / "frames"
@@ -157,9 +158,9 @@ def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, pl
         _set_pose_status(svc, pose_id, "decoding")
         meta = {"pose_id": pose_id, "session_id": session_id, "plan_digest": plan.digest(),
                 "camera": _camera_name(handle.rig)}
-        # a simulated rig knows its sensor's noise model (a real one: estimated per pixel)
-        noise = getattr(handle.simulated, "sensor", None)
-        dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, noise)
+        # simulated rigs decode like real ones: the noise is the client's noise_dn or is
+        # estimated from the residuals (the simulator's own noise model is ground truth)
+        dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, noise_dn)
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(frames))}
 
     ok, fail = _pose_hooks(pose_id)
@@ -200,7 +201,8 @@ def capture_pose(session_id: str, svc: Svc, body: CaptureRequest | None = None) 
                       f"rig {rig_id} is not simulated: screen_pose moves only a simulated screen")
     plan = plan_from_dict(plan_data, f"session {session_id} plan")
     pid, job = _new_pose(svc, session_id, "capture", "capture", screen_pose)
-    _start_capture(svc, session_id, pid, rig_id, plan, screen_pose, job["id"])
+    _start_capture(svc, session_id, pid, rig_id, plan, screen_pose, job["id"],
+                   body.noise_dn if body else None)
     return accepted(job)
 
 
