@@ -11,6 +11,7 @@ when resumed.
 from __future__ import annotations
 
 import re
+import time
 from pathlib import Path
 from typing import Any
 
@@ -66,10 +67,13 @@ class StoreSink:
         self.store, self.ctx, self.total = store, ctx, total
         self.have = {int(i) for i in store.stored()}
         self.on_frame = on_frame
+        self.store_s = 0.0  # time spent storing frames (on the capture thread)
 
     def add(self, index: int, image: np.ndarray) -> None:
         if index not in self.have:
+            t0 = time.perf_counter()
             self.store.add(index, image)
+            self.store_s += time.perf_counter() - t0
             self.have.add(index)
             if self.on_frame is not None:
                 self.on_frame(self.store, index)
@@ -92,11 +96,16 @@ def capture_frames(ctx: TaskContext, rig: Any, plan: Plan, pose_dir: Path,
     missing = [i for i in range(total) if i not in sink.have]
     if not missing:
         return {"captured": 0, "resumed_from": have}
+    t0 = time.perf_counter()
     try:
         result = capture_pose(rig, plan, sink, indices=missing, progress=None,
                               cancelled=ctx.cancelled)
     finally:
+        captured_at = time.time()
         store.close()  # durable at the end of the pose, whatever happened
+    timing = {"capture_s": round(time.perf_counter() - t0, 4), "store_s": round(sink.store_s, 4),
+              "captured_at": captured_at,
+              "recaptures": len(getattr(result, "recaptures", []) or [])}
     ctx.check_cancelled()
     status = getattr(result, "status", "complete")
     if status not in ("complete", "flagged"):
@@ -105,7 +114,7 @@ def capture_frames(ctx: TaskContext, rig: Any, plan: Plan, pose_dir: Path,
     left = [i for i in range(total) if i not in sink.have]
     if left:
         raise RuntimeError(f"capture ended with {len(left)} plan frames missing (first {left[0]})")
-    out: dict[str, Any] = {"captured": len(missing), "resumed_from": have}
+    out: dict[str, Any] = {"captured": len(missing), "resumed_from": have, **timing}
     if status == "flagged":
         out["flagged"] = getattr(result, "reason", "")
     return out
