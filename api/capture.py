@@ -19,7 +19,7 @@ import numpy as np
 
 from calibration.decode.frame_store import FrameStore
 from calibration.plan import Plan
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 
 FRAME_RE = re.compile(r"^frame_(\d{4,6})\.(png|tif|tiff)$")
 LEGACY_FRAMES = "frames"  # folder of PNG frames written before the frame store

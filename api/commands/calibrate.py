@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
     from calibration.fit.dispatch import MODEL_NAMES, PARAMETRIC, calibrate
-    from calibration.fit.homography import DegenerateError
+    from calibration.fit.ransac import DegenerateError
     from calibration.maps import load_maps
     from calibration.models.base import save_model
     from calibration.plan import read_plan

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from api.capture import capture_frames
     from api.cli import UserError
     from calibration.plan import read_plan
-    from calibration.worker.executor import TaskContext
+    from calibration.progress import TaskContext
     from calibration.worker.tasks import stream_decode_task
 
     if args.noise_dn is not None and not args.noise_dn > 0:

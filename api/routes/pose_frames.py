@@ -16,7 +16,7 @@ from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session
 from api.services import Services, get_services
 from calibration.plan import plan_from_dict
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 from calibration.worker.tasks import decode_task
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)

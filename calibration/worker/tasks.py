@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.worker.executor import JobCancelled, TaskContext
+from calibration.progress import Cancelled, TaskContext
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:
@@ -220,4 +220,4 @@ def _write_exports(result: Any, out: Path) -> list[str]:
     return written
 
 
-__all__ = ["JobCancelled", "calibrate_task", "decode_task", "write_json_atomic"]
+__all__ = ["Cancelled", "calibrate_task", "decode_task", "write_json_atomic"]
