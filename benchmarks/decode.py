@@ -121,10 +121,39 @@ def run_cupy(plan: Plan, stack: np.ndarray, repeats: int) -> list[tuple[str, flo
             ("cupy add, from pinned host", timed(from_host, repeats))]
 
 
+def cli_vs_library(plan: Plan, stack: np.ndarray) -> tuple[float, float]:
+    """Wall seconds of `phasecal decode` (a fresh process: imports, reading, decoding,
+    writing the maps) and of the library reading + decoding the same .npy in this process."""
+    import subprocess
+    import tempfile
+
+    from calibration.decode import read_frames
+    from calibration.plan import write_plan
+
+    with tempfile.TemporaryDirectory(prefix="phasecal-decode-") as tmp:
+        plan_path, frames_path = Path(tmp) / "plan.json", Path(tmp) / "frames.npy"
+        write_plan(plan, plan_path)
+        np.save(frames_path, stack)
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "api.cli", "decode", "--plan", str(plan_path),
+                        "--frames", str(frames_path), "-o", str(Path(tmp) / "maps.npz")],
+                       check=True, cwd=Path(__file__).resolve().parents[1],
+                       stdout=subprocess.DEVNULL)
+        cli = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        source = read_frames(frames_path)
+        dec = StreamingDecoder(plan, source.shape)
+        for i, frame in enumerate(source):
+            dec.add(i, frame)
+        dec.finish()
+        return cli, time.perf_counter() - t0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--xp", default="numpy", choices=["numpy", "cupy"])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--no-cli", action="store_true", help="skip the phasecal decode comparison")
     args = ap.parse_args()
     plan = bench_plan()
     npf = H * W * len(plan.frames) / 1e6  # Mpixel-frames
@@ -172,6 +201,10 @@ def main() -> int:
         for tag, t_fin, total in finishes:
             print(f"{tag:44s} {t_fin:9.3f} {H * W / 1e6 / t_fin:9.2f} {t_fin / total:10.0%} "
                   f"{t_fin / capture:11.0%}")
+    if args.xp == "numpy" and not args.no_cli:
+        cli, lib = cli_vs_library(plan, make_stack(plan, False))
+        print(f"\nphasecal decode {cli:.2f} s vs library read + decode {lib:.2f} s "
+              f"(noise from residuals): {cli / lib:.2f}x")
     return 0
 
 

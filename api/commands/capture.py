@@ -42,10 +42,11 @@ class _Bar:
 
 def _open(spec: str) -> Any:
     from acquisition.rig import load_rig_config, open_rig, parse_rig_config
+    from hw_mocks.rig import open_simulated_rig
 
     config = (parse_rig_config({"kind": "simulated"}, "--rig simulated") if spec == "simulated"
               else load_rig_config(spec))
-    return open_rig(config)
+    return open_rig(config, simulator=open_simulated_rig)
 
 
 def run(args: argparse.Namespace) -> int:
