@@ -175,3 +175,30 @@ def test_cli_capture_on_the_simulated_rig_and_resume(tmp_path: Path, capsys) -> 
     assert 0 < load_maps(out2).valid_count() < first.valid_count()
     assert cli_main(["capture", "--rig", "simulated", "--plan", str(tmp_path / "none.json"),
                      "-o", str(pose)]) == 1
+
+
+def test_simulated_camera_replay_repeats_frames_of_the_same_screen() -> None:
+    """The benchmark's `replay` option: a second pose of the same screen content gets the
+    frames rendered the first time (noise included); without it every frame is new."""
+    from acquisition.controller import capture_pose
+    from acquisition.patterns import build_plan
+    from acquisition.rig import open_rig, parse_rig_config
+    from acquisition.sinks import MemoryFrameStore
+    from hw_mocks.rig import open_simulated_rig
+
+    plan = build_plan(640, 400, 0.25, preset="fast")
+    stacks = {}
+    for replay in (True, False):
+        rig = open_rig(parse_rig_config({"kind": "simulated", "camera": {"replay": replay}}),
+                       simulator=open_simulated_rig)
+        try:
+            runs = []
+            for _ in range(2):
+                sink = MemoryFrameStore()
+                assert capture_pose(rig, plan, sink).status == "complete"
+                runs.append(sink.stack(len(plan.frames)))
+        finally:
+            rig.close()
+        stacks[replay] = runs
+    np.testing.assert_array_equal(stacks[True][0], stacks[True][1])
+    assert not np.array_equal(stacks[False][0], stacks[False][1])
