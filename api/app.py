@@ -22,6 +22,8 @@ from api.routes import (
     guidance,
     intrinsics,
     jobs,
+    pose_frames,
+    preview,
     reports,
     rigs,
     sessions,
@@ -58,7 +60,9 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     install_handlers(app)
     for module in (
         rigs,
+        preview,
         sessions,
+        pose_frames,
         guidance,
         intrinsics,
         calibrations,
