@@ -7,13 +7,13 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
 from api.problems import install_handlers
 from api.routes import batch, calibrations, deletion, jobs, rigs, sessions
-from api.security import BodyLimitMiddleware, TokenMiddleware
+from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
 
 DESCRIPTION = """Camera calibration with an active phase-shift target.
@@ -46,10 +46,13 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         app.include_router(module.router)
 
     @app.get("/health", tags=["service"])
-    def health() -> dict[str, Any]:
-        """Liveness: status, data directory and number of active jobs."""
-        return {"status": "ok", "data_dir": str(services.store.root),
-                "active_jobs": len(services.jobs.active_ids())}
+    def health(request: Request) -> dict[str, Any]:
+        """Liveness: status and number of active jobs; the data directory only for clients
+        that sent the API token (or when the server has none)."""
+        body: dict[str, Any] = {"status": "ok", "active_jobs": len(services.jobs.active_ids())}
+        if token_matches(cfg.token, request.headers.get("authorization")):
+            body["data_dir"] = str(services.store.root)
+        return body
 
     app.add_middleware(IdempotencyMiddleware, db_getter=lambda: services.db)
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)

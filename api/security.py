@@ -22,6 +22,13 @@ async def send_problem(send: Any, status: int, slug: str, detail: str,
     await send({"type": "http.response.body", "body": body})
 
 
+def token_matches(token: str | None, authorization: str | None) -> bool:
+    """True if the server has no token, or `authorization` is `Bearer <token>`."""
+    if not token:
+        return True
+    return hmac.compare_digest((authorization or "").encode(), f"Bearer {token}".encode())
+
+
 class TokenMiddleware:
     """Requires `Authorization: Bearer <token>` on every request except /health."""
 

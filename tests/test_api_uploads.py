@@ -23,8 +23,8 @@ PLAN = build_plan(640, 480, 0.5, preset="fast")
 W, H = 64, 48
 
 
-def good_maps(seed: int = 0):
-    cam = mild_pinhole(W, H)
+def good_maps(seed: int = 0, size: tuple[int, int] = (W, H)):
+    cam = mild_pinhole(*size)
     rng = np.random.default_rng(seed)
     pose = random_poses(cam, PLAN.screen, 1, rng)[0]
     maps, _ = synthetic_maps(cam, pose, PLAN.screen, sigma_px=0.05, rng=rng)

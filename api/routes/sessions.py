@@ -19,7 +19,7 @@ from api.maps_upload import validated_maps
 from api.previews import PREVIEW_KINDS, preview_png
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session, pose_to_dict
-from api.schemas import CaptureRequest, Pose, Session, SessionCreate
+from api.schemas import MAX_OFFSET, CaptureRequest, Pose, Session, SessionCreate
 from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.maps import load_maps
@@ -67,7 +67,7 @@ def create_session(body: SessionCreate, svc: Svc) -> JSONResponse:
 
 @router.get("/sessions", response_model=list[Session])
 def list_sessions(svc: Svc, limit: Annotated[int, Query(ge=1, le=500)] = 100,
-                  offset: Annotated[int, Query(ge=0)] = 0) -> list[dict[str, Any]]:
+                  offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> list[dict[str, Any]]:
     """Sessions, newest first."""
     with svc.db.session() as s:
         recs = s.scalars(select(SessionRecord).order_by(SessionRecord.created_at.desc())
