@@ -1,4 +1,4 @@
-"""scripts/install-system-deps.sh waits for the dpkg lock (another apt at boot) instead of failing."""
+"""install-system-deps.sh waits for the dpkg lock (another apt at boot) instead of failing."""
 
 from __future__ import annotations
 
