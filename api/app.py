@@ -15,6 +15,7 @@ from api.problems import install_handlers
 from api.routes import batch, calibrations, deletion, jobs, rigs, sessions
 from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
+from api.timing import ServerTimingMiddleware
 
 DESCRIPTION = """Camera calibration with an active phase-shift target.
 
@@ -58,6 +59,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)
     if cfg.token:
         app.add_middleware(TokenMiddleware, token=cfg.token)
+    app.add_middleware(ServerTimingMiddleware)  # outermost: times everything above
     return app
 
 
