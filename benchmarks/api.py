@@ -95,6 +95,16 @@ async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
     return int(status_line.split()[1]), server_s
 
 
+async def _get_retrying(c: httpx.AsyncClient, path: str) -> httpx.Response:
+    """GET once more when a kept-alive connection was closed by the server as the request
+    went out (uvicorn drops connections idle for 5 s; a starved client loop can idle that
+    long between its own polls)."""
+    try:
+        return await c.get(path)
+    except httpx.RemoteProtocolError:
+        return await c.get(path)
+
+
 def _server_s(response: httpx.Response) -> float:
     value = response.headers.get("server-timing", "")
     return float(value.split("dur=")[1].split(";")[0]) / 1e3 if "dur=" in value else float("nan")
@@ -129,7 +139,7 @@ async def poll(url: str, path: str, clients: int, stop: asyncio.Event,
         if client == "httpx":
             async with httpx.AsyncClient(base_url=url, timeout=60) as c:
                 async def get() -> tuple[int, float]:
-                    r = await c.get(path)
+                    r = await _get_retrying(c, path)
                     return r.status_code, _server_s(r)
                 await loop(get)
             return
@@ -157,7 +167,7 @@ async def measure(url: str, session_id: str, clients: int, model: str,
                                         interval_s=interval_s, client=client))
         t0 = time.perf_counter()
         while True:
-            state = (await c.get(f"/jobs/{job['id']}")).json()
+            state = (await _get_retrying(c, f"/jobs/{job['id']}")).json()
             if state["status"] not in ("queued", "running"):
                 break
             await asyncio.sleep(0.2)
