@@ -12,7 +12,7 @@ from fastapi import FastAPI, Request
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
 from api.problems import install_handlers
-from api.routes import batch, calibrations, deletion, jobs, rigs, sessions
+from api.routes import batch, calibrations, deletion, exports, jobs, rigs, sessions
 from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
 from api.timing import ServerTimingMiddleware
@@ -43,7 +43,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
-    for module in (rigs, sessions, calibrations, batch, jobs, deletion):
+    for module in (rigs, sessions, calibrations, exports, batch, jobs, deletion):
         app.include_router(module.router)
 
     @app.get("/health", tags=["service"])
