@@ -15,6 +15,8 @@ COMMANDS = [
     "plan",
     "decode",
     "calibrate",
+    "report",
+    "diff",
     "intrinsics",
     "project",
     "unproject",
