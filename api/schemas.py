@@ -10,8 +10,13 @@ from calibration.fit.registry import MODEL_NAMES, MODELS
 
 ModelName = Literal[MODEL_NAMES]  # type: ignore[valid-type]  # from the model registry
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
-JobKind = Literal["capture", "decode", "calibrate"]
+JobKind = Literal["capture", "decode", "calibrate", "intrinsics"]
 MAX_POINTS = 200_000
+MAX_OFFSET = 1_000_000_000  # list offsets (SQLite integers overflow past 2**63)
+# Numbers in request bodies are typed strictly: `false` or "1" is not a number, NaN and
+# infinities are refused (JSON has none, but Python's parser accepts NaN/Infinity).
+Num = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+Coord = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1e9, le=1e9)]
 PoseStatus = Literal[
     "pending", "capturing", "decoding", "ready", "flagged", "failed", "cancelled", "interrupted"
 ]
@@ -96,8 +101,8 @@ class CameraSettingsModel(BaseModel):
     model_config = _strict(
         {"exposure_s": 0.01, "gain_db": 0.0, "pixel_format": "Mono8"}
     )
-    exposure_s: float | None = Field(default=None, gt=0, le=10)
-    gain_db: float | None = Field(default=None, ge=0, le=48)
+    exposure_s: Num | None = Field(default=None, gt=0, le=10)
+    gain_db: Num | None = Field(default=None, ge=0, le=48)
     pixel_format: str | None = Field(default=None, min_length=1, max_length=32)
 
 
@@ -107,8 +112,10 @@ class ScreenPoseIn(BaseModel):
     model_config = _strict(
         {"rvec": [0.1, -0.05, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}
     )
-    rvec: list[float] = Field(min_length=3, max_length=3, description="rotation vector, radians")
-    tvec_mm: list[float] = Field(min_length=3, max_length=3, description="translation, mm")
+    rvec: list[Annotated[Num, Field(ge=-10, le=10)]] = Field(
+        min_length=3, max_length=3, description="rotation vector, radians")
+    tvec_mm: list[Annotated[Num, Field(ge=-1e6, le=1e6)]] = Field(
+        min_length=3, max_length=3, description="translation, mm")
 
 
 class SessionCreate(BaseModel):
@@ -141,6 +148,10 @@ class CaptureRequest(BaseModel):
         {"screen_pose": {"rvec": [0.1, 0.0, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}}
     )
     screen_pose: ScreenPoseIn | None = None
+    noise_dn: float | None = Field(
+        None, gt=0, le=1e4,
+        description="per-frame camera noise sigma in DN; default: estimated from the residuals",
+    )
 
 
 class Pose(BaseModel):
@@ -192,6 +203,19 @@ class CalibrationCreate(RootModel[per_model(_CalibrationFields, "CalibrationCrea
     ]})
 
 
+class IntrinsicsCreate(BaseModel):
+    """Quick closed-form intrinsics from a session's poses (docs/intrinsics.md)."""
+
+    model_config = _strict({"method": "rectangle", "source": "flats"},
+                           {"method": "rotation", "source": "maps",
+                            "pose_ids": ["pose_0123456789abcdef"]})
+    method: Literal["rectangle", "selfcal", "rotation"]
+    source: Literal["flats", "maps"] = "flats"
+    pose_ids: list[str] | None = Field(default=None, max_length=500)
+    square_pixels: bool = False
+    zero_skew: bool = False
+
+
 class Calibration(BaseModel):
     """A calibration and, once done, its statistics and exports."""
 
@@ -214,7 +238,7 @@ class ProjectRequest(BaseModel):
     model_config = _strict(
         {"points": [[0.0, 0.0, 1000.0], [100.0, 50.0, 800.0]]}
     )
-    points: list[tuple[float, float, float]] = Field(max_length=MAX_POINTS)
+    points: list[tuple[Coord, Coord, Coord]] = Field(max_length=MAX_POINTS)
 
 
 class ProjectResponse(BaseModel):
@@ -229,7 +253,7 @@ class UnprojectRequest(BaseModel):
     model_config = _strict(
         {"pixels": [[320.0, 240.0], [10.5, 20.25]]}
     )
-    pixels: list[tuple[float, float]] = Field(max_length=MAX_POINTS)
+    pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS)
 
 
 class UnprojectResponse(BaseModel):

@@ -27,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
+    from api.progress import progress_bar
     from calibration.fit.ransac import DegenerateError
     from calibration.fit.registry import MODEL_NAMES, PARAMETRIC
     from calibration.models.base import save_model
@@ -47,8 +48,9 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--max-points: expected >= 50, got {args.max_points}")
         options["max_points_per_pose"] = args.max_points
     try:
-        result = calibrate_files(args.plan, args.maps, args.model, options=options or None,
-                                 heldout=args.heldout)
+        with progress_bar(f"calibrate {args.model}") as update:
+            result = calibrate_files(args.plan, args.maps, args.model, options=options or None,
+                                     heldout=args.heldout, progress=update)
     except DegenerateError as exc:
         raise UserError(f"calibration failed: {exc}") from None
     save_model(result.model, args.output)

@@ -29,7 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
+    import numpy as np
+
     from api.cli import UserError
+    from api.progress import progress_bar
     from calibration.decode import DecodeOptions
     from calibration.maps import save_maps
     from calibration.pipeline import decode_frames
@@ -41,13 +44,14 @@ def run(args: argparse.Namespace) -> int:
     options = DecodeOptions()
     if args.max_sigma_px is not None:
         options = replace(options, max_sigma_px=args.max_sigma_px)
-    maps = decode_frames(plan, args.frames, noise=args.noise_dn, saturation_dn=args.saturation_dn,
-                         options=options, meta={"frames": str(args.frames)})
+    with progress_bar("decode") as update:
+        maps = decode_frames(plan, args.frames, noise=args.noise_dn,
+                             saturation_dn=args.saturation_dn, options=options,
+                             meta={"frames": str(args.frames)}, progress=update)
     save_maps(maps, args.output)
     h, w = maps.shape
     valid = maps.valid_count()
-    sig = maps.sigma_x[maps.mask]
-    med = float(sorted(sig.tolist())[len(sig) // 2]) if valid else float("nan")
+    med = float(np.median(maps.sigma_x[maps.mask])) if valid else float("nan")
     print(
         f"wrote {args.output}: {valid} of {h * w} pixels valid "
         f"({100.0 * valid / (h * w):.1f} %), median sigma_x {med:.3g} px"
