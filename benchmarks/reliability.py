@@ -3,7 +3,7 @@
 Drives `phasecal serve` subprocesses (default executor: worker processes) over HTTP and
 prints what was tried, how many times, and the outcome: server errors (5xx), files
 outside the data directory touched, orphaned processes after kill -9, finished poses lost
-at restart, duplicate jobs from simultaneous requests. Fuzzing is `tests/test_api_schema.py`.
+at restart, duplicate jobs from simultaneous requests. Fuzzing is `tests/api/test_api_schema.py`.
 
     .venv/bin/python benchmarks/reliability.py [--kills 3] [--concurrent 10]
 """

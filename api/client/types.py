@@ -1,5 +1,5 @@
 """Typed views of the service's JSON answers (plain dicts at run time; api.schemas is the
-server's definition and tests/test_client.py checks that these keys match it)."""
+server's definition and tests/api/test_client.py checks that these keys match it)."""
 
 from __future__ import annotations
 

@@ -24,8 +24,8 @@ from api.client import (
     ServiceError,
 )
 from api.client import types as ct
+from tests.api.test_api_session import screen_poses, small_rig
 from tests.api_server import ServerProcess
-from tests.test_api_session import screen_poses, small_rig
 
 
 @pytest.fixture(scope="module")

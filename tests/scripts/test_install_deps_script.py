@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "install-system-deps.sh"
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "install-system-deps.sh"
 
 
 def _fake(bin_dir: Path, name: str, body: str) -> None:

@@ -84,7 +84,7 @@ def assert_maps_agree(a, b, truth, *, min_valid: float = 0.5) -> None:
 
 def test_opencv_replay_of_recorded_frames_decodes_like_the_simulation(world, tmp_path):
     from acquisition.camera.opencv_capture import OpenCvCamera
-    from tests.test_hw_opencv import write_sequence
+    from tests.acquisition.test_hw_opencv import write_sequence
 
     plan, setup, sensor = world
     frames, maps_sim = simulated_maps(world, seed=1)

@@ -43,7 +43,7 @@ def test_sdl_display(monkeypatch) -> None:
 
 def test_opencv_camera_free_running_replay(tmp_path: Path) -> None:
     from acquisition.camera.opencv_capture import OpenCvCamera
-    from tests.test_hw_opencv import write_ffv1
+    from tests.acquisition.test_hw_opencv import write_ffv1
 
     frames = np.random.default_rng(0).integers(0, 256, (400, 24, 32)).astype(np.uint8)
     clock = RealClock()

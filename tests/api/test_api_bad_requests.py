@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.config import ServiceConfig
-from tests.test_api_uploads import PLAN, good_maps
+from tests.api.test_api_uploads import PLAN, good_maps
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import httpx
 from api.client import PhasecalClient
 from api.config import ServiceConfig
 from api.inprocess import running_service
-from tests.test_api_session import small_rig
+from tests.api.test_api_session import small_rig
 
 
 def _events(response: httpx.Response, limit: int | None = None) -> list[tuple[str, str, dict]]:

@@ -20,11 +20,11 @@ from PIL import Image
 from api.client import PhasecalClient
 from api.config import ServiceConfig
 from api.inprocess import running_service
-from tests.test_api_session import screen_poses, small_rig
+from tests.api.test_api_session import screen_poses, small_rig
 
 CHROMIUM, DRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 TOKEN = "page-test-token"
-ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "web"
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "web"
 
 
 @pytest.fixture

@@ -24,7 +24,7 @@ from calibration.decode import DecodeError, read_frames
 from calibration.decode.frame_store import FrameStore
 from calibration.maps import load_maps
 from hw_mocks.scene import screen_points
-from tests.test_api_session import SCREEN, screen_poses, small_rig
+from tests.api.test_api_session import SCREEN, screen_poses, small_rig
 
 KILLED_WRITER = """
 import os, signal, sys
@@ -53,7 +53,7 @@ def _done(j: dict) -> bool:
 
 def test_frame_store_survives_a_killed_writer_and_resumes(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-c", KILLED_WRITER, str(tmp_path)],
-                          cwd=Path(__file__).resolve().parents[1], check=False)
+                          cwd=Path(__file__).resolve().parents[2], check=False)
     assert proc.returncode == -9
     store = FrameStore(tmp_path)
     assert store.stored().tolist() == [0, 3, 5, 6]

@@ -18,7 +18,7 @@ from api.jobs import JobManager
 from api.problems import Problem
 from api.recovery import mark_interrupted
 from calibration.worker.executor import InProcessExecutor
-from tests.test_api_session import screen_poses, small_rig
+from tests.api.test_api_session import screen_poses, small_rig
 
 
 def _wait(c: TestClient, job_id: str, cond, timeout_s: float = 120) -> dict:

@@ -20,7 +20,7 @@ from api.config import ServiceConfig
 from calibration.maps import load_maps
 from calibration.plan import CosineFrame, FlatFrame, Plan
 from calibration.worker.dask_executor import DaskExecutor, start_local_cluster
-from tests.test_dask_batch import FIT_AGREE_PX, model_disagreement_px
+from tests.calibration.worker.test_dask_batch import FIT_AGREE_PX, model_disagreement_px
 
 H, W = 96, 128
 TERMINAL = ("succeeded", "failed", "cancelled", "interrupted")

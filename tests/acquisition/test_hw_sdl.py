@@ -17,7 +17,7 @@ import pytest
 from acquisition.clock import RealClock
 from acquisition.errors import DisplayError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 

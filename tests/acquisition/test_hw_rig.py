@@ -18,9 +18,9 @@ from acquisition.rig import (
 )
 from api.cli import main
 from hw_mocks.rig import open_simulated_rig
-from tests.test_hw_opencv import write_sequence
+from tests.acquisition.test_hw_opencv import write_sequence
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "rigs"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "rigs"
 
 
 @pytest.fixture
@@ -144,7 +144,7 @@ def test_screen_size_must_match_the_display(tmp_path: Path, fb_path: Path) -> No
 
 def test_list_devices_on_a_fake_system(tmp_path: Path, monkeypatch) -> None:
     from acquisition.discovery import list_devices
-    from tests.test_hw_usb import FakeBackend, _device
+    from tests.acquisition.test_hw_usb import FakeBackend, _device
 
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
     dev, sysfs = tmp_path / "dev", tmp_path / "sys"

@@ -26,7 +26,7 @@ from calibration.fit.result import PoseEstimate
 from calibration.maps import load_maps
 from calibration.models.base import model_from_dict
 from calibration.plan import plan_from_dict
-from tests.test_api_session import screen_poses, small_rig
+from tests.api.test_api_session import screen_poses, small_rig
 
 EXPECTED = ("histogram.png", "radial.png", "uncertainty.png", "coverage.png", "pose_00.png",
             "pose_01.png", "pose_02.png", "heldout_03.png")
@@ -155,7 +155,7 @@ def test_next_pose_is_visible_and_captures(service) -> None:
     _png(client.request("GET", g["image"]).content)
     # The simulator's truth (from outside the product) sees the whole screen there.
     from hw_mocks.scene import ScreenPose
-    from tests.test_api_session import SCREEN, truth_camera
+    from tests.api.test_api_session import SCREEN, truth_camera
 
     pose = ScreenPose.from_rvec(np.array(g["screen_pose"]["rvec"]),
                                 np.array(g["screen_pose"]["tvec_mm"]))

@@ -46,7 +46,7 @@ LIVE = schemathesis.openapi.from_asgi("/openapi.json", LIVE_APP).exclude(method=
 
 @pytest.fixture(scope="module")
 def live_ids() -> dict[str, str]:
-    from tests.test_api_uploads import PLAN, good_maps
+    from tests.api.test_api_uploads import PLAN, good_maps
 
     c = TestClient(create_app(_LIVE_CONFIG))  # no lifespan: its executor stays up
     sess = c.post("/sessions", json={"plan": PLAN.to_dict()}).json()

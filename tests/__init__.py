@@ -1,0 +1,1 @@
+"""phasecal tests, laid out like the source tree (one folder per package)."""
