@@ -25,7 +25,8 @@ from sqlalchemy.orm import Session
 from api.db import ACTIVE_JOB_STATES, Database, JobLockRecord, JobRecord
 from api.problems import Problem
 from api.store import new_id
-from calibration.worker.executor import Executor, JobCancelled, TaskContext
+from calibration.progress import Cancelled, TaskContext
+from calibration.worker.executor import Executor
 
 log = logging.getLogger("phasecal.jobs")
 
@@ -143,7 +144,7 @@ class JobManager:
         try:
             ctx.check_cancelled()
             result = body(ctx)
-        except JobCancelled:
+        except Cancelled:
             self._finish(job_id, *self._stop_reason(), None, on_failure, None)
         except Exception as exc:  # every failure of a job is reported on the job
             if self._live[job_id].cancel.is_set():

@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
     from api.progress import progress_bar
     from calibration.fit.dispatch import MODEL_NAMES, PARAMETRIC, calibrate
-    from calibration.fit.homography import DegenerateError
+    from calibration.fit.ransac import DegenerateError
     from calibration.maps import load_maps
     from calibration.models.base import save_model
     from calibration.plan import read_plan
