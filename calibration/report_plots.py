@@ -222,8 +222,9 @@ def guidance_png(before: np.ndarray, after: np.ndarray, outline: np.ndarray,
     for ax, img, name in ((axes[0], before, "now"), (axes[1], after, "after the suggested pose")):
         im = ax.imshow(img * 1e6, extent=(0, w, h, 0), cmap="inferno", norm=norm,
                        interpolation="bilinear")
-        ax.set(aspect="equal", xlim=(0, w), ylim=(h, 0),
-               title=f"predicted ray 1-sigma {name}: worst {np.nanmax(img) * 1e6:.3g} urad")
+        ax.set(aspect="equal", xlim=(0, w), ylim=(h, 0))
+        ax.set_title(f"predicted ray 1-sigma {name}\nworst {np.nanmax(img) * 1e6:.3g} urad "
+                     "(blank: beyond 70 deg)", fontsize=9)
         fig.colorbar(im, ax=ax, label="urad (log scale)")
     closed = np.vstack([outline, outline[:1]])
     axes[1].plot(closed[:, 0], closed[:, 1], "c-", lw=2, label="suggested screen")

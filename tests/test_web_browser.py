@@ -3,8 +3,9 @@ driven by selenium; nothing is downloaded at run time).
 
 With an API token set: the page takes the token, opens a session on the simulated rig,
 captures a pose with the suggested screen placement and shows the progress from the SSE
-stream until it succeeds, calibrates, and opens the report. Screenshots are saved under
-test-artifacts/web/ (ignored by git) and checked: not blank, the key elements present.
+stream until it succeeds, cancels a second capture, calibrates, and opens the report.
+Screenshots are saved under test-artifacts/web/ (ignored by git) and checked: not blank,
+the key elements present.
 """
 
 from __future__ import annotations
@@ -123,6 +124,15 @@ def test_page_capture_progress_calibrate_report(browser, tmp_path: Path) -> None
         _wait(d, lambda d: all(_loaded(d, f"#pose-maps img:nth-of-type({i})")
                                for i in (1, 2, 3, 4)))
         _shot(d, "2-session-after-capture")
+
+        # Start another capture and cancel it from the page.
+        d.find_element(By.ID, "capture-btn").click()
+        _wait(d, lambda d: d.find_element(By.ID, "progress-text").get_attribute("data-status")
+              == "running")
+        d.find_element(By.ID, "cancel-btn").click()
+        _wait(d, lambda d: d.find_element(By.ID, "progress-text").get_attribute("data-status")
+              in ("cancelled", "succeeded"))
+        assert "cancelled" in d.find_element(By.ID, "progress-text").text
 
         Select(d.find_element(By.ID, "calibrate-model")).select_by_visible_text("opencv5")
         d.find_element(By.ID, "calibrate-btn").click()
