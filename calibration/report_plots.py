@@ -35,7 +35,7 @@ def _log_norm(finite: np.ndarray) -> LogNorm:
     if not pos.size:
         return LogNorm(1e-3, 1.0)
     lo, hi = float(np.percentile(pos, 1)), float(pos.max())
-    return LogNorm(lo, max(hi, lo * 10))
+    return LogNorm(lo, max(hi, lo * 1.01))
 
 
 def subplots(ncols: int, figsize: tuple[float, float]) -> tuple[Figure, Any]:
