@@ -15,7 +15,17 @@ from fastapi.staticfiles import StaticFiles
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
 from api.problems import install_handlers
-from api.routes import batch, calibrations, exports, guidance, jobs, reports, rigs, sessions
+from api.routes import (
+    batch,
+    calibrations,
+    exports,
+    guidance,
+    intrinsics,
+    jobs,
+    reports,
+    rigs,
+    sessions,
+)
 from api.security import BodyLimitMiddleware, TokenMiddleware
 from api.services import Services
 
@@ -46,7 +56,9 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
-    for module in (rigs, sessions, guidance, calibrations, reports, exports, batch, jobs):
+    for module in (
+        rigs, sessions, guidance, intrinsics, calibrations, reports, exports, batch, jobs
+    ):
         app.include_router(module.router)
 
     @app.get("/", include_in_schema=False)

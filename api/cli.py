@@ -17,6 +17,7 @@ COMMANDS = [
     "calibrate",
     "report",
     "diff",
+    "intrinsics",
     "project",
     "unproject",
     "serve",
