@@ -40,6 +40,7 @@ def browser(tmp_path: Path):
 
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
+    opts.page_load_strategy = "eager"  # do not wait for never-ending MJPEG previews
     for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--no-first-run", "--window-size=1280,1800",
                  f"--user-data-dir={tmp_path / 'chromium-profile'}"):
