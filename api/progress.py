@@ -39,6 +39,6 @@ def progress_bar(label: str, stream: TextIO | None = None) -> Iterator[ProgressF
 
         def update(done: int, total: int, stage: str) -> None:
             prog.update(task, completed=done, total=total if total > 0 else None,
-                        description=f"{label}: {stage}" if stage else label)
+                        description=f"{label}: {stage}" if stage not in ("", label) else label)
 
         yield update
