@@ -23,6 +23,8 @@ from api.routes import (
     guidance,
     intrinsics,
     jobs,
+    pose_frames,
+    preview,
     reports,
     rigs,
     sessions,
@@ -59,7 +61,17 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app.state.services = services
     install_handlers(app)
     for module in (
-        rigs, sessions, guidance, intrinsics, calibrations, reports, exports, batch, jobs,
+        rigs,
+        preview,
+        sessions,
+        pose_frames,
+        guidance,
+        intrinsics,
+        calibrations,
+        reports,
+        exports,
+        batch,
+        jobs,
         deletion,
     ):
         app.include_router(module.router)

@@ -14,6 +14,7 @@ import sys
 COMMANDS = [
     "plan",
     "decode",
+    "capture",
     "calibrate",
     "report",
     "diff",

@@ -146,6 +146,10 @@ class CaptureRequest(BaseModel):
         {"screen_pose": {"rvec": [0.1, 0.0, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}}
     )
     screen_pose: ScreenPoseIn | None = None
+    noise_dn: float | None = Field(
+        None, gt=0, le=1e4,
+        description="per-frame camera noise sigma in DN; default: estimated from the residuals",
+    )
 
 
 class Pose(BaseModel):

@@ -25,7 +25,7 @@ from api.store import check_id, new_id
 from calibration.maps import load_maps
 from calibration.plan import Plan, plan_from_dict
 from calibration.progress import TaskContext
-from calibration.worker.tasks import decode_task
+from calibration.worker.tasks import decode_task, stream_decode_task
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -111,8 +111,8 @@ def _next_index(s: Any, session_id: str) -> int:
 
 
 def _pose_hooks(pose_id: str, frames: Path | None = None) -> tuple[Any, Any]:
-    """Success and failure hooks of a pose's job; `frames`: the capture folder, whose
-    stored frames are the pose's progress when the job stops early."""
+    """Success and failure hooks of a pose's job; `frames`: the pose folder, whose stored
+    frames are the pose's progress when the job stops early."""
 
     def ok(s: Any, result: dict[str, Any]) -> None:
         p = s.get(PoseRecord, pose_id)
@@ -160,29 +160,44 @@ def _decode(svc: Services, ctx: TaskContext, session_dir: Path, frames: Path, po
 
 
 def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, plan: Plan,
-                   screen_pose: dict[str, Any] | None, job_id: str) -> None:
+                   screen_pose: dict[str, Any] | None, job_id: str,
+                   noise_dn: float | None = None) -> None:
+    """Capture into the pose's frame store while a worker decodes the stored frames live."""
     session_dir = svc.store.dir_for(session_id)
     pose_dir = svc.store.dir_for(pose_id)
-    frames = pose_dir / "frames"
 
     def body(ctx: TaskContext) -> dict[str, Any]:
         handle = svc.rigs.handle(rig_id)
         ctx.progress(0, len(plan.frames), "waiting for rig")
-        with handle.lock:
-            ctx.check_cancelled()
-            _set_pose_status(svc, pose_id, "capturing")
-            if screen_pose is not None:
-                _move_screen(handle, screen_pose)
-            cap = capture_frames(ctx, handle.rig, plan, frames)
-        _set_pose_status(svc, pose_id, "decoding")
         meta = {"pose_id": pose_id, "session_id": session_id, "plan_digest": plan.digest(),
                 "camera": _camera_name(handle.rig)}
-        # a simulated rig knows its sensor's noise model (a real one: estimated per pixel)
-        noise = getattr(handle.simulated, "sensor", None)
-        dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, noise)
-        return {"capture": cap, "decode": dec, "frames": len(stored_indices(frames))}
+        with svc.store.staging(ctx.job_id) as staged:
+            with handle.lock:
+                ctx.check_cancelled()
+                _set_pose_status(svc, pose_id, "capturing")
+                if screen_pose is not None:
+                    _move_screen(handle, screen_pose)
+                # simulated rigs decode like real ones: the noise is the client's noise_dn
+                # or is estimated from the residuals (the simulator's model is ground truth)
+                fut = svc.executor.run_task(
+                    stream_decode_task, str(session_dir / "plan.json"), str(pose_dir),
+                    str(staged / "maps.npz"), job_id=ctx.job_id, on_progress=ctx.progress,
+                    noise=noise_dn, meta=meta)
+                try:
+                    cap = capture_frames(ctx, handle.rig, plan, pose_dir,
+                                         on_frame=svc.preview.publisher(rig_id))
+                except BaseException:
+                    svc.executor.cancel(ctx.job_id)  # the worker stops following the store
+                    raise
+                finally:
+                    svc.preview.capture_ended(rig_id)
+            _set_pose_status(svc, pose_id, "decoding")
+            dec = fut.result()
+            ctx.check_cancelled()
+            svc.store.commit(staged, ["maps.npz"], pose_dir)
+        return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 
-    ok, fail = _pose_hooks(pose_id, frames)
+    ok, fail = _pose_hooks(pose_id, pose_dir)
     svc.jobs.start(job_id, body, ok, fail)
 
 
@@ -220,7 +235,8 @@ def capture_pose(session_id: str, svc: Svc, body: CaptureRequest | None = None) 
                       f"rig {rig_id} is not simulated: screen_pose moves only a simulated screen")
     plan = plan_from_dict(plan_data, f"session {session_id} plan")
     pid, job = _new_pose(svc, session_id, "capture", "capture", screen_pose)
-    _start_capture(svc, session_id, pid, rig_id, plan, screen_pose, job["id"])
+    _start_capture(svc, session_id, pid, rig_id, plan, screen_pose, job["id"],
+                   body.noise_dn if body else None)
     return accepted(job)
 
 
