@@ -226,15 +226,16 @@ def plan_next_pose(points: list[PointSet], image_size: tuple[int, int], screen: 
 
     Returns the suggestion and the fitted model it was planned with.
     """
+    from calibration.fit.classic.options import ParametricOptions
     from calibration.fit.classic.parametric import fit_parametric
-    from calibration.fit.dispatch import PARAMETRIC
+    from calibration.fit.registry import PARAMETRIC
     from calibration.uncertainty import free_parameters
 
     if model_name not in PARAMETRIC:
         raise ValueError(f"model: guidance predicts with a parametric model "
                          f"({', '.join(PARAMETRIC)}), got {model_name!r}")
     model, poses, used, stats = fit_parametric(
-        points, image_size, model_name, {"max_points_per_pose": max_points_per_pose})
+        points, image_size, model_name, ParametricOptions(max_points_per_pose=max_points_per_pose))
     free = free_parameters(model, stats.get("param_std"))
     rt = [(p.rotation, p.translation) for p in poses]
     return suggest_next_pose(model, rt, used, screen, free, max_points_per_pose), model

@@ -155,8 +155,8 @@ def test_delete_pose_calibration_session(env) -> None:
     with svc.db.session() as s:  # end the never-started job as its driver would
         svc.jobs._finish(job.id, "cancelled", "test", None, None, None)
     assert c.delete("/calibrations/cal_0123456789abcdef").status_code == 404
-    job = c.post(f"/sessions/{sid}/calibrations", json={"model": "opencv5",
-                                                          "pose_ids": [poses[2], nxt["id"]]})
+    job = c.post(f"/sessions/{sid}/calibrations", json={  # 3 poses: the model's minimum
+        "model": "opencv5", "pose_ids": [poses[1], poses[2], nxt["id"]]})
     assert job.status_code == 202, job.text
     final = job.json()
     while final["status"] in ("queued", "running"):
