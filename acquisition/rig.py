@@ -272,10 +272,27 @@ def _open_simulated(config: RigConfig, clock: Clock | None) -> Rig:
     return Rig(config, sim.display, sim.camera, sim.screen, sim.clock, settings, simulated=sim)
 
 
+def _check_extras(config: RigConfig) -> None:
+    """Refuse a hardware rig whose backends' pip extras are missing, naming the command."""
+    from calibration.extras import installed, missing_message
+
+    needed = []
+    if getattr(config.display, "backend", None) == "sdl":
+        needed.append("sdl")
+    if getattr(config.camera, "backend", None) == "aravis":
+        needed.append("aravis")
+    if config.trigger_box is not None:
+        needed.append("usb")
+    missing = [e for e in needed if not installed(e)]
+    if missing:
+        raise RigConfigError(missing_message(missing, f"rig {config.name or 'config'!r}"))
+
+
 def open_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
     """Open every device of a rig; on failure, what was opened is closed again."""
     if config.kind == "simulated":
         return _open_simulated(config, clock)
+    _check_extras(config)
     clock = clock if clock is not None else RealClock()
     opened: list[Any] = []
     try:

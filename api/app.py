@@ -15,6 +15,7 @@ from api.problems import install_handlers
 from api.routes import batch, calibrations, exports, jobs, rigs, sessions
 from api.security import BodyLimitMiddleware, TokenMiddleware
 from api.services import Services
+from api.version import phasecal_version
 
 DESCRIPTION = """Camera calibration with an active phase-shift target.
 
@@ -39,7 +40,8 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         yield
         await asyncio.to_thread(services.close)
 
-    app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app = FastAPI(title="phasecal", version=phasecal_version(), description=DESCRIPTION,
+                  lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
     for module in (rigs, sessions, calibrations, exports, batch, jobs):
