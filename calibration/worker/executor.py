@@ -175,6 +175,8 @@ def _run_remote(task_fn: Callable[..., Any], job_id: str, queue: Any, cancel_eve
 class ProcessExecutor:
     """Runs tasks in worker processes (spawned), so GIL-bound numerics never stall the API.
 
+    Workers and the manager process exit when this process dies (`worker.lifetime`).
+
     Progress comes back through a managed queue drained by one thread; cancel flips a
     managed event the task polls through `TaskContext.cancelled()`.
     """
@@ -182,11 +184,20 @@ class ProcessExecutor:
     def __init__(self, max_workers: int | None = None) -> None:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing.managers import SyncManager
+
+        from calibration.worker.lifetime import die_with_parent, guard_args
 
         ctx = mp.get_context("spawn")
         workers = max_workers or max(1, min(2, os.cpu_count() or 1))
-        self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
-        self._manager = ctx.Manager()
+        guard = guard_args()  # workers and the manager die with this process (kill -9 too)
+        self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                         initializer=die_with_parent, initargs=guard)
+        # Spawn every worker now, from this thread: PDEATHSIG follows the spawning thread,
+        # and a worker spawned lazily by a short-lived job thread would die with it.
+        self._pool._launch_processes()
+        self._manager = SyncManager(ctx=ctx)
+        self._manager.start(die_with_parent, guard)
         self._queue = self._manager.Queue()
         self._flags = _CancelFlags()
         self._callbacks: dict[str, ProgressCallback] = {}
