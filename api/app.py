@@ -5,18 +5,32 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
 
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
 from api.problems import install_handlers
-from api.routes import batch, calibrations, exports, jobs, rigs, sessions
+from api.routes import (
+    batch,
+    calibrations,
+    exports,
+    guidance,
+    intrinsics,
+    jobs,
+    reports,
+    rigs,
+    sessions,
+)
 from api.security import BodyLimitMiddleware, TokenMiddleware
 from api.services import Services
 from api.version import phasecal_version
 
+WEB_DIR = Path(__file__).parent / "web"  # the page at `/`: plain HTML/JS/CSS, no build step
 DESCRIPTION = """Camera calibration with an active phase-shift target.
 
 Flow: create a session (rig + plan), capture or import poses (jobs), calibrate chosen
@@ -44,8 +58,17 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                   lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
-    for module in (rigs, sessions, calibrations, exports, batch, jobs):
+    for module in (
+        rigs, sessions, guidance, intrinsics, calibrations, reports, exports, batch, jobs
+    ):
         app.include_router(module.router)
+
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        """The operator's web page (static; it talks to this API with the same token)."""
+        return FileResponse(WEB_DIR / "index.html", media_type="text/html")
+
+    app.mount("/ui", StaticFiles(directory=WEB_DIR), name="ui")
 
     @app.get("/health", tags=["service"])
     def health() -> dict[str, Any]:

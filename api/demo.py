@@ -24,8 +24,6 @@ from api.config import ServiceConfig
 from api.inprocess import running_service
 from calibration.plan import ScreenGeometry
 
-DEFAULT_MODELS = ("opencv-rational", "sgcc")
-
 
 @dataclass
 class DemoRow:
@@ -53,7 +51,7 @@ def demo_rig_config(width: int, height: int, camera: str = "wide_fisheye",
 
 
 def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, height: int = 480,
-             models: tuple[str, ...] = DEFAULT_MODELS, preset: str = "default", seed: int = 7,
+             models: tuple[str, ...], preset: str = "default", seed: int = 7,
              out: TextIO = sys.stdout) -> list[DemoRow]:
     """Run the demo; returns the table rows (also printed to `out`)."""
     root = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="phasecal-demo-"))
@@ -63,10 +61,44 @@ def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, h
         client = PhasecalClient(url)
         try:
             rows = _drive(client, app, root, poses, width, height, models, preset, seed, out)
+            links = _reports(client, rows)
         finally:
             client.close()
     _print_table(rows, root, out)
+    _print_links(links, root, out)
     return rows
+
+
+SERVE_URL = "http://127.0.0.1:8000"  # `phasecal serve`'s default address
+
+
+def _reports(client: PhasecalClient, rows: list[DemoRow]) -> list[tuple[str, str]]:
+    """Draw each calibration's report (and the diff of the first two) while the service runs,
+    so they are stored in the data folder; returns (label, path) pairs for the summary."""
+    done = [r for r in rows if r.status == "succeeded"]
+    links = []
+    for r in done:
+        client.request("GET", f"/calibrations/{r.calibration_id}/report.html")
+        links.append((f"report {r.model}", f"/calibrations/{r.calibration_id}/report.html"))
+    if len(done) >= 2:
+        a, b = done[0].calibration_id, done[1].calibration_id
+        client.get(f"/calibrations/{a}/diff/{b}")
+        links.append((f"diff {done[0].model} vs {done[1].model}",
+                      f"/calibrations/{a}/diff/{b}/diff.png"))
+    return links
+
+
+def _print_links(links: list[tuple[str, str]], root: Path, out: TextIO) -> None:
+    """Where to look: the web page and the reports, once `phasecal serve` runs on the data."""
+    data = root / "data"
+    lines = [f"\nsee it: phasecal serve --data-dir {data}   then open",
+             f"  web page                       {SERVE_URL}/"]
+    for label, path in links:
+        lines.append(f"  {label:<30} {SERVE_URL}{path}")
+        if path.endswith("report.html"):
+            page = data / "calibrations" / path.split("/")[2] / "report" / "report.html"
+            lines.append(f"  {'':<30} (file: {page})")
+    out.write("\n".join(lines) + "\n")
 
 
 def _drive(client: PhasecalClient, app: Any, root: Path, n_poses: int, width: int, height: int,
@@ -180,28 +212,3 @@ def _print_table(rows: list[DemoRow], root: Path, out: TextIO) -> None:
               "residuals.png; sessions, poses with frames and maps.npz); mrcal exports in "
               f"{root / 'exports'}\n")
     out.write(buf.getvalue())
-
-
-HELP = "the whole flow on the simulated rig over HTTP: poses, calibrations, comparison table"
-
-
-def add_arguments(p: Any) -> None:
-    """Arguments of `phasecal demo`."""
-    p.add_argument("--out", default=None, help="output folder (default: a new temp folder)")
-    p.add_argument("--poses", type=int, default=5, help="number of poses (default 5)")
-    p.add_argument("--width", type=int, default=640, help="camera width px")
-    p.add_argument("--height", type=int, default=480, help="camera height px")
-    p.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS),
-                   help=f"models to compare (default {' '.join(DEFAULT_MODELS)})")
-    p.add_argument("--preset", default="default", help="pattern plan preset")
-    p.add_argument("--seed", type=int, default=7, help="seed of the screen poses")
-
-
-def run(args: Any) -> int:
-    """Entry point for `phasecal demo`: 0 when every calibration succeeded."""
-    if args.poses < 3:
-        raise ValueError(f"--poses {args.poses}: a calibration needs at least 3 poses")
-    rows = run_demo(Path(args.out) if args.out else None, poses=args.poses, width=args.width,
-                    height=args.height, models=tuple(args.models), preset=args.preset,
-                    seed=args.seed)
-    return 0 if all(r.status == "succeeded" for r in rows) else 1

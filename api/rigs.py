@@ -168,9 +168,10 @@ def _open(rig_id: str, name: str, config: Any) -> Any:
     """Open a rig's devices; problems name the rig and say whether config or device failed."""
     from acquisition.errors import AcquisitionError
     from acquisition.rig import open_rig
+    from hw_mocks.rig import open_simulated_rig
 
     try:
-        return open_rig(config)
+        return open_rig(config, simulator=open_simulated_rig)
     except (ValueError, TypeError, KeyError) as exc:
         raise Problem(422, "invalid-rig-config",
                       f"rig {rig_id} ({name}): cannot be opened: {exc}") from None

@@ -22,8 +22,8 @@ from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import ModelName, _strict
 from api.services import Services, get_services
 from api.store import new_id
+from calibration.progress import TaskContext
 from calibration.worker.dask_batch import BatchItem, run_batch
-from calibration.worker.executor import TaskContext
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

@@ -24,7 +24,7 @@ from api.schemas import (
 from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.models.base import CameraModel, load_model
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 from calibration.worker.tasks import calibrate_task
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)

@@ -24,7 +24,7 @@ from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.maps import load_maps
 from calibration.plan import Plan, plan_from_dict
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 from calibration.worker.tasks import decode_task
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)

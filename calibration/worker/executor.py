@@ -16,41 +16,9 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Protocol, runtime_checkable
 
-ProgressCallback = Callable[[int, int, str], None]
+from calibration.progress import ProgressFn, TaskContext
 
 DASK_ENV = "PHASECAL_DASK"
-
-
-class JobCancelled(Exception):
-    """Raised inside a task when its job was cancelled; the job ends as `cancelled`."""
-
-
-class TaskContext:
-    """What a running task sees of its job: report progress, poll for cancellation."""
-
-    def __init__(
-        self,
-        job_id: str,
-        on_progress: ProgressCallback | None = None,
-        cancel_event: threading.Event | None = None,
-    ) -> None:
-        self.job_id = job_id
-        self._on_progress = on_progress
-        self._cancel = cancel_event or threading.Event()
-
-    def progress(self, done: int, total: int, stage: str) -> None:
-        """Report `done` of `total` units in `stage` (forwarded to the job manager)."""
-        if self._on_progress is not None:
-            self._on_progress(int(done), int(total), str(stage))
-
-    def cancelled(self) -> bool:
-        """True once the job was asked to stop; tasks poll this between steps."""
-        return self._cancel.is_set()
-
-    def check_cancelled(self) -> None:
-        """Raise `JobCancelled` if the job was asked to stop."""
-        if self.cancelled():
-            raise JobCancelled(f"job {self.job_id} was cancelled")
 
 
 @runtime_checkable
@@ -65,7 +33,7 @@ class Executor(Protocol):
         /,
         *args: Any,
         job_id: str,
-        on_progress: ProgressCallback | None = None,
+        on_progress: ProgressFn | None = None,
         **kwargs: Any,
     ) -> Future: ...
 
@@ -126,7 +94,7 @@ class InProcessExecutor:
         /,
         *args: Any,
         job_id: str,
-        on_progress: ProgressCallback | None = None,
+        on_progress: ProgressFn | None = None,
         **kwargs: Any,
     ) -> Future:
         """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id`."""
@@ -200,7 +168,7 @@ class ProcessExecutor:
         self._manager.start(die_with_parent, guard)
         self._queue = self._manager.Queue()
         self._flags = _CancelFlags()
-        self._callbacks: dict[str, ProgressCallback] = {}
+        self._callbacks: dict[str, ProgressFn] = {}
         self._lock = threading.Lock()
         self._drain = threading.Thread(target=self._forward, name="phasecal-progress",
                                        daemon=True)
@@ -216,7 +184,7 @@ class ProcessExecutor:
         /,
         *args: Any,
         job_id: str,
-        on_progress: ProgressCallback | None = None,
+        on_progress: ProgressFn | None = None,
         **kwargs: Any,
     ) -> Future:
         """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` in a worker."""
