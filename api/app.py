@@ -59,7 +59,15 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app.state.services = services
     install_handlers(app)
     for module in (
-        rigs, sessions, guidance, intrinsics, calibrations, reports, exports, batch, jobs
+        rigs,
+        sessions,
+        guidance,
+        intrinsics,
+        calibrations,
+        reports,
+        exports,
+        batch,
+        jobs,
     ):
         app.include_router(module.router)
 
@@ -73,8 +81,11 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     @app.get("/health", tags=["service"])
     def health() -> dict[str, Any]:
         """Liveness: status, data directory and number of active jobs."""
-        return {"status": "ok", "data_dir": str(services.store.root),
-                "active_jobs": len(services.jobs.active_ids())}
+        return {
+            "status": "ok",
+            "data_dir": str(services.store.root),
+            "active_jobs": len(services.jobs.active_ids()),
+        }
 
     app.add_middleware(IdempotencyMiddleware, db_getter=lambda: services.db)
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)

@@ -225,8 +225,8 @@ def plan_next_pose(points: list[PointSet], image_size: tuple[int, int], screen: 
 
     Returns the suggestion and the fitted model it was planned with.
     """
+    from calibration.fit.classic.parametric import fit_parametric
     from calibration.fit.dispatch import PARAMETRIC
-    from calibration.fit.parametric import fit_parametric
     from calibration.uncertainty import free_parameters
 
     if model_name not in PARAMETRIC:
