@@ -16,6 +16,7 @@ from api.version import phasecal_version
 COMMANDS = [
     "plan",
     "decode",
+    "capture",
     "calibrate",
     "report",
     "diff",

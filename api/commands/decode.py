@@ -29,6 +29,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
+    import numpy as np
+
     from api.cli import UserError
     from api.progress import progress_bar
     from calibration.decode import DecodeOptions, StreamingDecoder, read_frames
@@ -58,8 +60,7 @@ def run(args: argparse.Namespace) -> int:
     save_maps(maps, args.output)
     h, w = maps.shape
     valid = maps.valid_count()
-    sig = maps.sigma_x[maps.mask]
-    med = float(sorted(sig.tolist())[len(sig) // 2]) if valid else float("nan")
+    med = float(np.median(maps.sigma_x[maps.mask])) if valid else float("nan")
     print(
         f"wrote {args.output}: {valid} of {h * w} pixels valid "
         f"({100.0 * valid / (h * w):.1f} %), median sigma_x {med:.3g} px"
