@@ -37,7 +37,8 @@ format: setup
 bench: setup
 	for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
-# Re-resolve pyproject.toml's ranges into constraints.txt (then commit it).
+# Pin new dependencies into constraints.txt (then commit it); `bash scripts/lock.sh --upgrade`
+# re-resolves every pin within pyproject.toml's ranges.
 lock:
 	bash scripts/lock.sh
 
