@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import cv2
@@ -92,7 +93,10 @@ def main() -> None:
                                                   "tvec_mm": list(map(float, p.translation))}),
                              timeout_s=600)
                 pose_id = job["resource"].rsplit("/", 1)[-1]
-                frames.append(work / "data" / "poses" / pose_id / "frames")
+                folder = work / f"frames{len(frames)}"
+                with zipfile.ZipFile(c.download_frames(ses, pose_id, work / "f.zip")) as zf:
+                    zf.extractall(folder)
+                frames.append(folder)
             print(f"served and captured {len(frames)} poses over HTTP")
     finally:
         proc.terminate()
