@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import tracemalloc
+import zipfile
 from pathlib import Path
 from typing import get_type_hints
 
@@ -85,6 +86,9 @@ def test_calibrate_wait_and_streamed_downloads(client, session, poses, tmp_path)
     assert len(out["pixels"]) == 1
     client.download_maps(session, poses[0], tmp_path / "maps.npz")
     assert (tmp_path / "maps.npz").stat().st_size > 1000
+    with zipfile.ZipFile(client.download_frames(session, poses[0], tmp_path / "f.zip")) as zf:
+        names = zf.namelist()
+    assert len(names) == session["frame_count"] and names[0] == "frame_0000.png"
     assert not list(tmp_path.glob("*.part"))
 
 
