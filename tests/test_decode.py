@@ -280,8 +280,9 @@ def test_generic_array_namespace_path_matches_opencv_path(plan):
 
 @pytest.mark.parametrize("noise", [None, 1.5])
 def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
-    """The numba per-pixel finish (large images) equals the array-namespace path."""
+    """The numba per-pixel finish (large images, once loaded) equals the array-namespace path."""
     import calibration.decode.decoder as decoder_module
+    import calibration.decode.kernel  # noqa: F401 - loaded: large decoders use it
 
     stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import sys
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
@@ -113,14 +114,29 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
-        # Large NumPy images take the compiled per-pixel kernel (importing numba costs ~0.3 s,
-        # more than it saves below ~1 Mpixel); other namespaces (CuPy) the xp path.
-        self._compiled = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
+        # Large NumPy images may take the compiled per-pixel kernel; other namespaces (CuPy)
+        # the array-namespace path.
+        self._large = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
 
     @property
     def missing(self) -> list[int]:
         """Plan indices still needed before `finish`."""
         return self._acc.missing
+
+    def prepare(self) -> None:
+        """Load the compiled finish kernel now, for images of >= 1 Mpixel (a live capture
+        calls this while frames arrive). Loading it costs ~1 s of CPU (numba's import and
+        its cached machine code), more than it saves on one 5 Mpixel finish, so a decoder
+        uses it only once it is loaded in the process (long-lived workers, live captures)."""
+        if self._large:
+            from calibration.decode.kernel import warm_up
+
+            warm_up()
+
+    @property
+    def _compiled(self) -> bool:
+        """Finish with the compiled kernel: a large NumPy image and the kernel loaded."""
+        return self._large and "calibration.decode.kernel" in sys.modules
 
     def add(self, index: int, image: np.ndarray) -> None:
         """Fold plan frame `index` into the running sums (any order, each index once)."""
