@@ -5,9 +5,12 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
 
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
@@ -16,15 +19,19 @@ from api.routes import (
     batch,
     calibrations,
     exports,
+    guidance,
+    intrinsics,
     jobs,
     pose_frames,
     preview,
+    reports,
     rigs,
     sessions,
 )
 from api.security import BodyLimitMiddleware, TokenMiddleware
 from api.services import Services
 
+WEB_DIR = Path(__file__).parent / "web"  # the page at `/`: plain HTML/JS/CSS, no build step
 DESCRIPTION = """Camera calibration with an active phase-shift target.
 
 Flow: create a session (rig + plan), capture or import poses (jobs), calibrate chosen
@@ -51,8 +58,18 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
-    for module in (rigs, preview, sessions, pose_frames, calibrations, exports, batch, jobs):
+    for module in (
+        rigs, preview, sessions, pose_frames, guidance, intrinsics, calibrations, reports,
+        exports, batch, jobs,
+    ):
         app.include_router(module.router)
+
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        """The operator's web page (static; it talks to this API with the same token)."""
+        return FileResponse(WEB_DIR / "index.html", media_type="text/html")
+
+    app.mount("/ui", StaticFiles(directory=WEB_DIR), name="ui")
 
     @app.get("/health", tags=["service"])
     def health() -> dict[str, Any]:

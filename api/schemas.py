@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 ModelName = Literal["opencv5", "opencv-rational", "fisheye", "raygrid", "sgcc", "sgcc-noncentral"]
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
-JobKind = Literal["capture", "decode", "calibrate"]
+JobKind = Literal["capture", "decode", "calibrate", "intrinsics"]
 MAX_POINTS = 200_000
 PoseStatus = Literal[
     "pending", "capturing", "decoding", "ready", "flagged", "failed", "cancelled", "interrupted"
@@ -173,6 +173,19 @@ class CalibrationCreate(BaseModel):
     pose_ids: list[str] | None = Field(default=None, max_length=500)
     heldout_pose_ids: list[str] = Field(default_factory=list, max_length=500)
     options: dict[str, Any] = Field(default_factory=dict)
+
+
+class IntrinsicsCreate(BaseModel):
+    """Quick closed-form intrinsics from a session's poses (docs/intrinsics.md)."""
+
+    model_config = _strict({"method": "rectangle", "source": "flats"},
+                           {"method": "rotation", "source": "maps",
+                            "pose_ids": ["pose_0123456789abcdef"]})
+    method: Literal["rectangle", "selfcal", "rotation"]
+    source: Literal["flats", "maps"] = "flats"
+    pose_ids: list[str] | None = Field(default=None, max_length=500)
+    square_pixels: bool = False
+    zero_skew: bool = False
 
 
 class Calibration(BaseModel):

@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from api.cli import UserError
+    from api.progress import progress_bar
     from calibration.decode import DecodeOptions, StreamingDecoder, read_frames
     from calibration.maps import save_maps
     from calibration.plan import read_plan
@@ -51,8 +52,10 @@ def run(args: argparse.Namespace) -> int:
     decoder = StreamingDecoder(
         plan, source.shape, noise=args.noise_dn, saturation_dn=args.saturation_dn, options=options
     )
-    for i, frame in enumerate(source):
-        decoder.add(i, frame)
+    with progress_bar("decode") as update:
+        for i, frame in enumerate(source):
+            decoder.add(i, frame)
+            update(i + 1, source.count, "frames")
     maps = decoder.finish({"frames": str(args.frames)})
     save_maps(maps, args.output)
     h, w = maps.shape
