@@ -8,7 +8,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -18,6 +18,7 @@ from api.problems import install_handlers
 from api.routes import (
     batch,
     calibrations,
+    deletion,
     exports,
     guidance,
     intrinsics,
@@ -28,8 +29,9 @@ from api.routes import (
     rigs,
     sessions,
 )
-from api.security import BodyLimitMiddleware, TokenMiddleware
+from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
+from api.timing import ServerTimingMiddleware
 
 WEB_DIR = Path(__file__).parent / "web"  # the page at `/`: plain HTML/JS/CSS, no build step
 DESCRIPTION = """Camera calibration with an active phase-shift target.
@@ -59,8 +61,18 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app.state.services = services
     install_handlers(app)
     for module in (
-        rigs, preview, sessions, pose_frames, guidance, intrinsics, calibrations, reports,
-        exports, batch, jobs,
+        rigs,
+        preview,
+        sessions,
+        pose_frames,
+        guidance,
+        intrinsics,
+        calibrations,
+        reports,
+        exports,
+        batch,
+        jobs,
+        deletion,
     ):
         app.include_router(module.router)
 
@@ -72,15 +84,19 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app.mount("/ui", StaticFiles(directory=WEB_DIR), name="ui")
 
     @app.get("/health", tags=["service"])
-    def health() -> dict[str, Any]:
-        """Liveness: status, data directory and number of active jobs."""
-        return {"status": "ok", "data_dir": str(services.store.root),
-                "active_jobs": len(services.jobs.active_ids())}
+    def health(request: Request) -> dict[str, Any]:
+        """Liveness: status and number of active jobs; the data directory only for clients
+        that sent the API token (or when the server has none)."""
+        body: dict[str, Any] = {"status": "ok", "active_jobs": len(services.jobs.active_ids())}
+        if token_matches(cfg.token, request.headers.get("authorization")):
+            body["data_dir"] = str(services.store.root)
+        return body
 
     app.add_middleware(IdempotencyMiddleware, db_getter=lambda: services.db)
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)
     if cfg.token:
         app.add_middleware(TokenMiddleware, token=cfg.token)
+    app.add_middleware(ServerTimingMiddleware)  # outermost: times everything above
     return app
 
 

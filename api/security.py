@@ -25,6 +25,13 @@ async def send_problem(send: Any, status: int, slug: str, detail: str,
     await send({"type": "http.response.body", "body": body})
 
 
+def token_matches(token: str | None, authorization: str | None) -> bool:
+    """True if the server has no token, or `authorization` is `Bearer <token>`."""
+    if not token:
+        return True
+    return hmac.compare_digest((authorization or "").encode(), f"Bearer {token}".encode())
+
+
 def _cookie(headers: dict[bytes, bytes], name: bytes) -> bytes:
     """One cookie's value from the Cookie header (b"" if absent)."""
     for part in headers.get(b"cookie", b"").split(b";"):

@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibration.fit.parametric import fit_parametric
+from calibration.fit.classic.parametric import fit_parametric
 from calibration.guidance import plan_next_pose, session_points
 from calibration.uncertainty import free_parameters, parametric_ray_sigma, sensor_grid
 from hw_mocks.cameras import make_truth_camera

@@ -75,7 +75,7 @@ def gather(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
     `result` is result.json (`stats`, `poses` with `rotation` and `translation_mm` of the
     training poses, in `maps` order); held-out poses are located by PnP with the model.
     """
-    from calibration.fit.pnp import estimate_pose
+    from calibration.fit.classic.pnp import estimate_pose
 
     fitted = result.get("poses") or []
     if fitted and len(fitted) != len(maps):

@@ -106,6 +106,8 @@ def test_from_decoded_maps_and_errors(tmp_path, capsys) -> None:
     common = ["--plan", str(tmp_path / "plan.json"), "-o", str(tmp_path / "k.json")]
     assert main(["intrinsics", "--method", "rectangle", "--maps", *m, *common]) == 0
     assert _err(tmp_path / "k.json") < 0.005
+    d = json.loads((tmp_path / "k.json").read_text())  # std from redrawn decoded points
+    assert 0 < d["std"]["fx"] and abs(d["fx"] - CAM.fx) < 5 * d["std"]["fx"] + 0.01
     assert main(["intrinsics", "--method", "rotation", "--maps", *r, *common]) == 0
     assert _err(tmp_path / "k.json") < 0.01
     capsys.readouterr()

@@ -15,7 +15,7 @@ from api.db import TERMINAL_JOB_STATES, JobRecord
 from api.jobs import job_to_dict
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES
-from api.schemas import Job, JobKind, JobPage, JobStatus
+from api.schemas import MAX_OFFSET, Job, JobKind, JobPage, JobStatus
 from api.services import Services, get_services
 from api.store import check_id
 
@@ -36,7 +36,7 @@ def _job(svc: Services, job_id: str) -> dict[str, Any]:
 def list_jobs(svc: Svc, status: JobStatus | None = None, kind: JobKind | None = None,
               session_id: str | None = None,
               limit: Annotated[int, Query(ge=1, le=500)] = 50,
-              offset: Annotated[int, Query(ge=0)] = 0) -> dict[str, Any]:
+              offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> dict[str, Any]:
     """Jobs newest first, filtered by status, kind and session; paginated by limit/offset."""
     conds = []
     if status is not None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import shutil
 import time
-import zipfile
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -16,10 +15,11 @@ from sqlalchemy import func, select
 from api.capture import capture_frames, stored_indices
 from api.db import PoseRecord, SessionRecord
 from api.frames_upload import store_images, store_npy
+from api.maps_upload import validated_maps
 from api.previews import PREVIEW_KINDS, preview_png
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session, pose_to_dict
-from api.schemas import CaptureRequest, Pose, Session, SessionCreate
+from api.schemas import MAX_OFFSET, CaptureRequest, Pose, Session, SessionCreate
 from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.maps import load_maps
@@ -67,7 +67,7 @@ def create_session(body: SessionCreate, svc: Svc) -> JSONResponse:
 
 @router.get("/sessions", response_model=list[Session])
 def list_sessions(svc: Svc, limit: Annotated[int, Query(ge=1, le=500)] = 100,
-                  offset: Annotated[int, Query(ge=0)] = 0) -> list[dict[str, Any]]:
+                  offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> list[dict[str, Any]]:
     """Sessions, newest first."""
     with svc.db.session() as s:
         recs = s.scalars(select(SessionRecord).order_by(SessionRecord.created_at.desc())
@@ -95,13 +95,19 @@ def _new_pose(svc: Services, session_id: str, source: str, kind: str,
     pid = new_id("pose")
     with svc.db.claim_session() as s:
         get_session(s, session_id)
-        index = s.scalar(select(func.count()).where(PoseRecord.session_id == session_id)) or 0
+        index = _next_index(s, session_id)
         job = svc.jobs.create(s, kind, f"/sessions/{session_id}/poses/{pid}", session_id,
                               claims=(pid,))
         s.add(PoseRecord(id=pid, session_id=session_id, index=int(index), source=source,
                          status="pending", job_id=job.id, frames_done=0,
                          screen_pose=screen_pose, created_at=time.time()))
     return pid, svc.jobs.get(job.id) or {}
+
+
+def _next_index(s: Any, session_id: str) -> int:
+    """The next pose index of a session (after the highest: poses can be deleted)."""
+    last = s.scalar(select(func.max(PoseRecord.index)).where(PoseRecord.session_id == session_id))
+    return 0 if last is None else int(last) + 1
 
 
 def _pose_hooks(pose_id: str, frames: Path | None = None) -> tuple[Any, Any]:
@@ -295,12 +301,11 @@ def import_maps(session_id: str, svc: Svc, file: Annotated[UploadFile, File()]) 
     """Import maps decoded elsewhere (`phasecal decode` NPZ) as a ready pose."""
     with svc.db.session() as s:
         plan = plan_from_dict(get_session(s, session_id).plan, f"session {session_id} plan")
+        size = s.execute(select(PoseRecord.width, PoseRecord.height).where(
+            PoseRecord.session_id == session_id, PoseRecord.width.is_not(None)).limit(1)).first()
     data = file.file.read()
-    try:
-        maps = load_maps(data)
-    except (zipfile.BadZipFile, EOFError, KeyError) as exc:
-        raise Problem(422, "invalid-maps",
-                      f"{file.filename}: not a phasecal.maps/1 NPZ file ({exc})") from None
+    maps = validated_maps(data, file.filename or "maps.npz", plan,
+                          svc.config.max_upload_bytes, tuple(size) if size else None)
     digest = maps.meta.get("plan_digest")
     if digest is not None and digest != plan.digest():
         raise Problem(422, "frames-plan-mismatch",
@@ -311,7 +316,7 @@ def import_maps(session_id: str, svc: Svc, file: Annotated[UploadFile, File()]) 
     h, w = maps.shape
     with svc.db.session() as s:
         get_session(s, session_id)
-        index = s.scalar(select(func.count()).where(PoseRecord.session_id == session_id)) or 0
+        index = _next_index(s, session_id)
         rec = PoseRecord(id=pid, session_id=session_id, index=int(index), source="import",
                          status="ready", job_id=None, valid_pixels=maps.valid_count(), width=w,
                          height=h, frames_done=0, created_at=time.time())

@@ -14,21 +14,23 @@ from pathlib import Path
 import numpy as np
 
 from calibration.decode.frames_io import read_frames
-from calibration.fit.classic.estimate import IntrinsicsEstimate, monte_carlo_std
+from calibration.fit.classic.estimate import PARAMS, IntrinsicsEstimate, k_params, monte_carlo_std
 from calibration.fit.classic.homography import fit_homography
-from calibration.fit.classic.lines import intersect, sample_points
+from calibration.fit.classic.lines import Point, intersect, sample_points
 from calibration.fit.classic.quad import Quad, find_quads
 from calibration.fit.classic.rectangle import rectangle_intrinsics, vanishing_points
 from calibration.fit.classic.rotation import interview_homographies, rotation_estimate
 from calibration.fit.classic.selfcal import selfcal_intrinsics
-from calibration.fit.correspondences import point_set, subsample
+from calibration.fit.correspondences import PointSet, point_set, subsample
 from calibration.fit.ransac import DegenerateError
 from calibration.maps import DecodedMaps
+from calibration.models.blas_threads import single_thread_blas
 from calibration.plan import FlatFrame, Plan, ScreenGeometry
 
 METHODS = ("rectangle", "selfcal", "rotation")
 _MAP_POINTS = 3000
 _MC_SAMPLES = 200
+_MAP_DRAWS = 40  # Monte Carlo refits per decoded pose
 
 
 def white_flat_index(plan: Plan) -> int:
@@ -82,7 +84,7 @@ def _quads(images: list[np.ndarray], count: int) -> list[list[Quad]]:
     return out
 
 
-def intrinsics_from_images(
+def _from_images(
     images: list[np.ndarray], method: str, *, square_pixels: bool = False,
     zero_skew: bool = False,
 ) -> IntrinsicsEstimate:
@@ -126,7 +128,30 @@ def _rotation_from_quads(quads: list[Quad], size: tuple[int, int]) -> Intrinsics
     return est
 
 
-def intrinsics_from_maps(
+def _redrawn_homographies(pts: PointSet, draws: int, rng: np.random.Generator) -> np.ndarray:
+    """(draws, 3, 3) homographies refitted with the decoded screen points redrawn from their
+    sigma: the homography's (and its vanishing points') uncertainty by Monte Carlo."""
+    out = np.empty((draws, 3, 3))
+    pitch = np.asarray(pts.pitch_mm)
+    for d in range(draws):
+        noisy = (pts.screen_px + pts.sigma_px * rng.standard_normal(pts.sigma_px.shape)) * pitch
+        out[d] = fit_homography(noisy, pts.pixels)
+    return out
+
+
+def _vps_with_cov(hm: np.ndarray, draws: np.ndarray) -> tuple[Point, Point]:
+    """The homography's two vanishing points with covariances from the redrawn homographies."""
+    out = []
+    for col, base in zip((0, 1), vanishing_points(hm), strict=True):
+        q = draws[:, :, col] / np.linalg.norm(draws[:, :, col], axis=1, keepdims=True)
+        q *= np.sign(q @ base.p)[:, None]
+        proj = np.eye(3) - np.outer(base.p, base.p)
+        dev = (q - base.p) @ proj
+        out.append(Point(base.p, dev.T @ dev / max(len(q) - 1, 1)))
+    return out[0], out[1]
+
+
+def _from_maps(
     maps: list[DecodedMaps], screen: ScreenGeometry, method: str, *,
     square_pixels: bool = False,
 ) -> IntrinsicsEstimate:
@@ -142,17 +167,50 @@ def intrinsics_from_maps(
     if not maps:
         raise ValueError("no decoded poses given")
     h, w = maps[0].shape
-    hs = []
+    rng = np.random.default_rng(0)
+    hs, draws = [], []
     for i, m in enumerate(maps):
         pts = subsample(point_set(m, screen), _MAP_POINTS)
         if len(pts) < 8:
             raise DegenerateError(f"pose {i}: only {len(pts)} decoded points")
         hs.append(fit_homography(pts.screen_mm[:, :2], pts.pixels))
+        draws.append(_redrawn_homographies(pts, _MAP_DRAWS, rng))
     if method == "rectangle":
-        pairs = [vanishing_points(hm) for hm in hs]
+        pairs = [_vps_with_cov(hm, d) for hm, d in zip(hs, draws, strict=True)]
         est = rectangle_intrinsics(pairs, (w, h), square_pixels=square_pixels)
     else:
         est = rotation_estimate(interview_homographies(hs), (w, h))
+        ks = []
+        for d in range(_MAP_DRAWS):
+            try:
+                ks.append(rotation_estimate(interview_homographies([x[d] for x in draws]),
+                                            (w, h)).k)
+            except DegenerateError:
+                continue
+        vals = np.array([[k_params(k)[p] for p in PARAMS] for k in ks])
+        if len(ks) > 1:
+            est.std = dict(zip(PARAMS, vals.std(axis=0, ddof=1).tolist(), strict=True))
+        est.stats.update(mc_samples=_MAP_DRAWS, mc_not_positive_definite=_MAP_DRAWS - len(ks))
     est.stats["image_size"] = [int(w), int(h)]
     est.stats["source"] = "decoded maps"
     return est
+
+
+def intrinsics_from_images(
+    images: list[np.ndarray], method: str, *, square_pixels: bool = False,
+    zero_skew: bool = False,
+) -> IntrinsicsEstimate:
+    """K from images of bright rectangles (white flats of the screen, cards) by `method`
+    (module docstring). Small dense solves only: BLAS runs single-threaded."""
+    with single_thread_blas():
+        return _from_images(images, method, square_pixels=square_pixels, zero_skew=zero_skew)
+
+
+def intrinsics_from_maps(
+    maps: list[DecodedMaps], screen: ScreenGeometry, method: str, *,
+    square_pixels: bool = False,
+) -> IntrinsicsEstimate:
+    """K from decoded poses (`rectangle` or `rotation`), with a Monte Carlo std from the
+    decoded sigmas. BLAS runs single-threaded (small solves; threads only contend)."""
+    with single_thread_blas():
+        return _from_maps(maps, screen, method, square_pixels=square_pixels)
