@@ -81,6 +81,7 @@ def decode_task(
         raise DecodeError(f"{frames_path}: {source.count} frames but the plan has {total}")
     decoder = StreamingDecoder(plan, source.shape, noise=noise, saturation_dn=saturation,
                                options=opts)
+    decoder.prepare()  # workers are long-lived: the compiled kernel is loaded once per worker
     for index, image in enumerate(source):
         ctx.check_cancelled()
         decoder.add(index, image)
@@ -119,6 +120,7 @@ def stream_decode_task(
     ctx.check_cancelled()
     decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                options=opts)
+    decoder.prepare()
     added = np.zeros(total, dtype=bool)
     while not added.all():
         ctx.check_cancelled()
