@@ -90,13 +90,14 @@ class PanelShape:
                 m = q
         ok = (d[..., 2] > 0) & (o[..., 2] < front)
         hit = p - front * m
-        for _ in range(_MAX_ITERS):
-            z = self.depth_mm(screen, hit[..., 0], hit[..., 1])
-            new = p + (z - front)[..., None] * m
-            step = np.nanmax(np.abs(new - hit), initial=0.0)
-            hit = new
-            if step < _TOL_MM:
-                break
+        with np.errstate(over="ignore", invalid="ignore"):  # grazing rays: inf/NaN, not ok
+            for _ in range(_MAX_ITERS):
+                z = self.depth_mm(screen, hit[..., 0], hit[..., 1])
+                new = p + (z - front)[..., None] * m
+                step = np.nanmax(np.abs(new - hit), initial=0.0)
+                hit = new
+                if step < _TOL_MM:
+                    break
         return hit[..., 0], hit[..., 1], ok
 
 

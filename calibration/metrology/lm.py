@@ -23,6 +23,7 @@ from calibration.fit.correspondences import PointSet
 from calibration.fit.result import PoseEstimate
 from calibration.metrology.directions import directions
 from calibration.metrology.screen import ScreenModel
+from calibration.models.blas_threads import single_thread_blas
 from calibration.models.parametric import PinholeFamily
 
 OUTLIER_SIGMAS = 5.0
@@ -113,12 +114,17 @@ class _Problem:
         dqdd = np.zeros((n, 2, 3))
         dqdd[:, 0, 0] = dqdd[:, 1, 1] = 1.0 / d[:, 2]
         dqdd[:, :, 2] = -q / d[:, 2:3]
-        jqd = bmm(jac["q"], dqdd)  # d(panel point)/d(ray direction in the screen frame)
+        if self.screen.mode == "flat":  # dQ/dq = -o_z I
+            jqd = -o[:, 2, None, None] * dqdd
+        else:
+            jqd = bmm(jac["q"], dqdd)  # d(panel point)/d(ray direction in the screen frame)
         ni, ns, _ = self.sizes
         blk = np.empty((n, 2, ni + ns + 6))
         if ni:
             assert jdir is not None
-            blk[:, :, :ni] = bmm(rmul(jqd, rot.T), jdir[idx][:, :, self.free])
+            jd = jdir[idx][:, :, self.free]
+            rows = 2 if not np.any(jd[:, 2]) else 3  # pinhole directions have d_z = 1
+            blk[:, :, :ni] = bmm(rmul(jqd, rot.T)[:, :, :rows], jd[:, :rows])
         if ns:
             blk[:, :, ni:ni + ns] = jac["s"]
         blk[:, :, ni + ns:ni + ns + 3] = cross_rows(jqd, d) + cross_rows(jac["o"], o)
@@ -237,7 +243,15 @@ def fit_dense(model: PinholeFamily, poses: list[PoseEstimate], points: list[Poin
     Converges first on an even subset (at most `subset_points` per pose), then drops
     outliers and polishes on all points; the covariance comes from the last normal matrix.
     """
-    report = progress or (lambda _msg: None)
+    with single_thread_blas():  # small products: threads only contend
+        return _fit_dense(model, poses, points, screen, free, outlier_rounds, max_iter, tol,
+                          subset_points, progress or (lambda _msg: None))
+
+
+def _fit_dense(model: PinholeFamily, poses: list[PoseEstimate], points: list[PointSet],
+               screen: ScreenModel, free: np.ndarray, outlier_rounds: int, max_iter: int,
+               tol: float, subset_points: int, report: Callable[[str], None]) -> DenseFit:
+    """`fit_dense` under a single-threaded BLAS."""
     stride = max(1, -(-max(len(p) for p in points) // subset_points))
     prob = _Problem(model, poses, [p.subset(slice(None, None, stride)) for p in points],
                     screen, free)
