@@ -22,123 +22,36 @@ costs about ceil((P + e + 2m) / P) refresh periods instead of latency + P + e + 
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
 from acquisition.clock import Clock
-from acquisition.errors import (
-    AcquisitionCancelled,
-    AcquisitionError,
-    CameraDisconnected,
-    CameraTimeout,
-)
+from acquisition.errors import AcquisitionError, CameraDisconnected, CameraTimeout
 from acquisition.integrity import (
     IntegrityReport,
-    IntegrityThresholds,
     compare_references,
     reference_indices,
 )
-from acquisition.patterns import DisplayResponse, render_frame
+from acquisition.patterns import render_frame
+from acquisition.pose_types import (
+    AcceptedFrame,
+    ControllerOptions,
+    PoseCapture,
+    Recapture,
+    Status,
+)
 from acquisition.protocols import Camera, CameraSettings, Display, Frame
 from acquisition.sinks import FrameSink
 from calibration.plan import Plan
-
-Status = Literal["complete", "cancelled", "failed", "flagged"]
-
-
-@dataclass(frozen=True)
-class ControllerOptions:
-    """How to run a pose; `latency_s` None means measure it first (setup helper)."""
-
-    latency_s: float | None = None
-    average: int = 1  # frames averaged per pattern (float32 mean when > 1)
-    margin_s: float = 1e-3  # timestamp uncertainty allowed on each side of the window
-    trigger_overhead_s: float = 1e-3  # trigger latency + gap between triggered exposures
-    grab_timeout_s: float = 1.0
-    max_attempts: int = 6  # captures tried per pattern before failing
-    max_reconnects: int = 5
-    backoff_s: float = 0.1  # first reconnect delay, doubled each failure
-    response: DisplayResponse | None = None  # gamma pre-compensation for the patterns
-    dither: str | None = "ordered"
-    integrity: bool = True
-    thresholds: IntegrityThresholds = field(default_factory=IntegrityThresholds)
-    rephase_attempts: int = 3  # free-running: stream restarts to put frames in the windows
-
-
-@dataclass(frozen=True)
-class Progress:
-    """Progress report: frames done of total, estimated seconds left, stage name."""
-
-    done: int
-    total: int
-    eta_s: float | None
-    stage: str
-
-
-@dataclass(frozen=True)
-class Recapture:
-    """One rejected capture attempt of a plan frame and why."""
-
-    index: int
-    reason: str
-
-
-@dataclass(frozen=True)
-class AcceptedFrame:
-    """Timing of an accepted frame (first one if averaged)."""
-
-    sequence: int
-    timestamp_s: float
-    flip_s: float
-
-
-@dataclass
-class PoseCapture:
-    """Result of one pose: which plan frames were accepted, recaptures, timing, integrity."""
-
-    status: Status
-    reason: str
-    total: int
-    accepted: list[int]
-    frames: dict[int, AcceptedFrame]
-    recaptures: list[Recapture]
-    stale_dropped: int
-    reconnects: int
-    latency_s: float
-    started_s: float
-    finished_s: float
-    integrity: IntegrityReport | None = None
-
-    @property
-    def accepted_count(self) -> int:
-        """Number of plan frames handed to the sink."""
-        return len(self.accepted)
-
-    @property
-    def duration_s(self) -> float:
-        """Clock time the sequence took (virtual or real)."""
-        return self.finished_s - self.started_s
+from calibration.progress import Cancel, Cancelled, Progress, is_cancelled
 
 
 class _Failed(AcquisitionError):
     """Internal: the pose cannot be completed (message is the reason)."""
-
-
-Cancel = threading.Event | Callable[[], bool] | None
-
-
-def _is_cancelled(cancel: Cancel) -> bool:
-    """Whether a threading.Event is set or a callable returns True."""
-    if cancel is None:
-        return False
-    if isinstance(cancel, threading.Event):
-        return cancel.is_set()
-    return bool(cancel())
 
 
 class _Runner:
@@ -176,9 +89,9 @@ class _Runner:
         return self.display.show(self.codes(index))
 
     def check_cancel(self) -> None:
-        """Raise `AcquisitionCancelled` once the user asked to stop."""
-        if _is_cancelled(self.cancel):
-            raise AcquisitionCancelled("cancelled by the user")
+        """Raise `Cancelled` once the user asked to stop."""
+        if is_cancelled(self.cancel):
+            raise Cancelled("cancelled by the user")
 
     def fire(self) -> None:
         """One trigger: the trigger box in 'hardware' mode when present, else software."""
@@ -447,7 +360,7 @@ def capture_pose(
             if not report.ok:
                 return result("flagged", report.reason, report)
         return result("complete", "", report)
-    except AcquisitionCancelled:
+    except Cancelled:
         return result("cancelled", f"cancelled after {len(accepted)} of {len(order)} frames "
                                    "(see `accepted` for which)")
     except _Failed as exc:

@@ -24,6 +24,3 @@ class CameraTimeout(CameraError):
 class CameraDisconnected(CameraError):
     """The camera is gone (unplugged, powered off, link lost); reconnect may help."""
 
-
-class AcquisitionCancelled(AcquisitionError):
-    """The user cancelled the acquisition."""

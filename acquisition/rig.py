@@ -1,8 +1,10 @@
 """Rig configuration (TOML or JSON -> `RigConfig`) and opening a rig's devices.
 
 A rig is one display, one camera, the screen geometry (pixel pitch in mm), the camera
-settings to start from and optionally a USB trigger box. `kind = "simulated"` (the
-default) opens the simulated rig of `hw_mocks`; `kind = "hardware"` opens real backends.
+settings to start from and optionally a USB trigger box. `kind = "hardware"` opens real
+backends; `kind = "simulated"` (the default) is opened by the `SimulatorFactory` the caller
+passes (`hw_mocks.rig.open_simulated_rig`, wired in by `api`), so real code never imports
+the simulator.
 See docs/hardware.md and docs/rigs/*.toml for examples.
 """
 
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import json
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -218,6 +221,9 @@ class Rig:
                 part.close()
 
 
+SimulatorFactory = Callable[[RigConfig, Clock | None], Rig]
+
+
 def _pitch(config: RigConfig) -> tuple[float, float]:
     p = config.screen.pitch_mm
     assert p is not None
@@ -263,19 +269,16 @@ def open_camera(cfg: OpenCvConfig | AravisConfig, clock: Clock) -> Camera:
                         trigger_line=cfg.trigger_line, region=cfg.region, clock=clock)
 
 
-def _open_simulated(config: RigConfig, clock: Clock | None) -> Rig:
-    from hw_mocks.rig import SimulatedRig
+def open_rig(config: RigConfig, clock: Clock | None = None, *,
+             simulator: SimulatorFactory | None = None) -> Rig:
+    """Open every device of a rig; on failure, what was opened is closed again.
 
-    sim = SimulatedRig.from_config(config.model_dump(mode="json", exclude_none=True),
-                                   clock=clock)
-    settings = config.settings.to_settings() if config.settings else sim.camera_settings
-    return Rig(config, sim.display, sim.camera, sim.screen, sim.clock, settings, simulated=sim)
-
-
-def open_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
-    """Open every device of a rig; on failure, what was opened is closed again."""
+    Simulated rigs are made by `simulator` (the factory `hw_mocks` provides)."""
     if config.kind == "simulated":
-        return _open_simulated(config, clock)
+        if simulator is None:
+            raise RigConfigError("kind 'simulated': no simulator available here (pass "
+                                 "hw_mocks.rig.open_simulated_rig as `simulator`)")
+        return simulator(config, clock)
     clock = clock if clock is not None else RealClock()
     opened: list[Any] = []
     try:

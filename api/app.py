@@ -12,7 +12,7 @@ from fastapi import FastAPI
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
 from api.problems import install_handlers
-from api.routes import batch, calibrations, jobs, rigs, sessions
+from api.routes import batch, calibrations, exports, jobs, rigs, sessions
 from api.security import BodyLimitMiddleware, TokenMiddleware
 from api.services import Services
 
@@ -42,7 +42,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
-    for module in (rigs, sessions, calibrations, batch, jobs):
+    for module in (rigs, sessions, calibrations, exports, batch, jobs):
         app.include_router(module.router)
 
     @app.get("/health", tags=["service"])

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from calibration.plan import Plan
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 
 FRAME_RE = re.compile(r"^frame_(\d{4,6})\.(png|tif|tiff)$")
 

@@ -22,6 +22,8 @@ COMMANDS = [
     "devices",
     "check",
     "batch",
+    "export",
+    "undistort_points",
 ]
 
 
@@ -42,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name == f"api.commands.{name}":
                 continue
             raise
-        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+        p = sub.add_parser(getattr(mod, "NAME", name), help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser

@@ -21,6 +21,8 @@ class ServiceConfig:
     rig: str = "simulated"
     executor: str | None = None
     max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES
+    rigs_dir: Path | None = None  # operator rig files (*.toml/*.json), one rig each
+    aravis_addresses: tuple[str, ...] = ()  # Aravis cameras GET /devices lists (no broadcast)
 
     @classmethod
     def from_env(cls, **overrides: object) -> ServiceConfig:
@@ -33,6 +35,10 @@ class ServiceConfig:
             values["token"] = env["PHASECAL_TOKEN"]
         if env.get("PHASECAL_RIG"):
             values["rig"] = env["PHASECAL_RIG"]
+        if env.get("PHASECAL_RIGS_DIR"):
+            values["rigs_dir"] = Path(env["PHASECAL_RIGS_DIR"])
+        if env.get("PHASECAL_ARAVIS_ADDRESSES"):
+            values["aravis_addresses"] = tuple(env["PHASECAL_ARAVIS_ADDRESSES"].split(","))
         if env.get("PHASECAL_DASK"):
             values["executor"] = env["PHASECAL_DASK"]
         if env.get("PHASECAL_MAX_UPLOAD_BYTES"):
@@ -43,8 +49,9 @@ class ServiceConfig:
                 )
             values["max_upload_bytes"] = int(raw)
         values.update({k: v for k, v in overrides.items() if v is not None})
-        if "data_dir" in values:
-            values["data_dir"] = Path(str(values["data_dir"]))
+        for key in ("data_dir", "rigs_dir"):
+            if key in values:
+                values[key] = Path(str(values[key]))
         return cls(**values)  # type: ignore[arg-type]
 
     def check_security(self) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -96,6 +97,18 @@ class JobRecord(Base):
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
 
 
+class JobLockRecord(Base):
+    """An active job's claim on a pose or calibration: one active job per resource.
+
+    The primary key makes a second claim fail even if two requests race; rows are
+    removed in the transaction that ends the job (and all of them at restart).
+    """
+
+    __tablename__ = "job_locks"
+    key: Mapped[str] = mapped_column(String(32), primary_key=True)
+    job_id: Mapped[str] = mapped_column(String(32), index=True)
+
+
 class IdempotencyRecord(Base):
     """The stored answer to a POST with an Idempotency-Key, replayed on retry."""
 
@@ -123,11 +136,21 @@ class Database:
         event.listen(self.engine, "connect", _sqlite_pragmas)
         Base.metadata.create_all(self.engine)
         self._factory = sessionmaker(self.engine, expire_on_commit=False)
+        self._claim_lock = threading.Lock()
 
     @contextmanager
     def session(self) -> Iterator[Session]:
         """A transaction: committed on success, rolled back on error."""
         with self._factory() as s, s.begin():
+            yield s
+
+    @contextmanager
+    def claim_session(self) -> Iterator[Session]:
+        """A transaction that checks state and then claims it (e.g. starts a job), serialized
+        with every other such transaction of this process, so check and insert cannot race
+        (SQLite would otherwise refuse the second writer's stale snapshot: 'database is
+        locked')."""
+        with self._claim_lock, self.session() as s:
             yield s
 
     def close(self) -> None:

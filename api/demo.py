@@ -19,12 +19,10 @@ from typing import Any, TextIO
 import cv2
 import numpy as np
 
-from api.client import PhasecalClient
+from api.client import PhasecalClient, ServiceError
 from api.config import ServiceConfig
 from api.inprocess import running_service
 from calibration.plan import ScreenGeometry
-
-DEFAULT_MODELS = ("opencv-rational", "sgcc")
 
 
 @dataclass
@@ -53,7 +51,7 @@ def demo_rig_config(width: int, height: int, camera: str = "wide_fisheye",
 
 
 def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, height: int = 480,
-             models: tuple[str, ...] = DEFAULT_MODELS, preset: str = "default", seed: int = 7,
+             models: tuple[str, ...], preset: str = "default", seed: int = 7,
              out: TextIO = sys.stdout) -> list[DemoRow]:
     """Run the demo; returns the table rows (also printed to `out`)."""
     root = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="phasecal-demo-"))
@@ -75,8 +73,8 @@ def _drive(client: PhasecalClient, app: Any, root: Path, n_poses: int, width: in
 
     print(f"phasecal demo: service at {client.http.base_url}, data in {root / 'data'}", file=out)
     rig_config = demo_rig_config(width, height)
-    rig = client.post("/rigs", {"name": "demo-wide-angle", "config": rig_config})
-    session = client.post("/sessions", {"name": "demo", "rig_id": rig["id"], "preset": preset})
+    rig = client.create_rig("demo-wide-angle", rig_config)
+    session = client.create_session("demo", rig_id=rig["id"], preset=preset)
     print(f"session {session['id']}: {session['frame_count']} patterns per pose", file=out)
     sim = app.state.services.rigs.handle(rig["id"]).simulated
     truth = sim.truth_camera
@@ -84,14 +82,12 @@ def _drive(client: PhasecalClient, app: Any, root: Path, n_poses: int, width: in
     pose_ids: list[str] = []
     for k, pose in enumerate(random_poses(truth, screen, n_poses, np.random.default_rng(seed))):
         rvec, _ = cv2.Rodrigues(np.asarray(pose.rotation, np.float64))
-        body = {"screen_pose": {"rvec": rvec.ravel().tolist(),
-                                "tvec_mm": np.asarray(pose.translation, float).tolist()}}
+        screen_pose = {"rvec": rvec.ravel().tolist(),
+                       "tvec_mm": np.asarray(pose.translation, float).tolist()}
         t0 = time.perf_counter()
-        job = client.wait(client.post(f"/sessions/{session['id']}/poses", body))
-        if job["status"] != "succeeded":
-            raise RuntimeError(f"pose {k}: capture job {job['id']} {job['status']}: {job['error']}")
-        pose_id = job["resource"].rsplit("/", 1)[-1]
-        info = client.get(f"/sessions/{session['id']}/poses/{pose_id}")
+        job = client.wait(client.capture_pose(session, screen_pose))  # JobFailed if it fails
+        pose_id = (job["resource"] or "").rsplit("/", 1)[-1]
+        info = client.get_pose(session, pose_id)
         print(f"pose {k}: {info['valid_pixels']} valid pixels "
               f"({time.perf_counter() - t0:.1f} s)", file=out)
         pose_ids.append(pose_id)
@@ -99,10 +95,9 @@ def _drive(client: PhasecalClient, app: Any, root: Path, n_poses: int, width: in
     rows = []
     for model in models:
         t0 = time.perf_counter()
-        job = client.post(f"/sessions/{session['id']}/calibrations", {"model": model})
-        job = client.wait(job, timeout_s=1800)
-        cal_id = job["resource"].rsplit("/", 1)[-1]
-        cal = client.get(f"/calibrations/{cal_id}")
+        job = client.wait(client.calibrate(session, model), timeout_s=1800, check=False)
+        cal_id = (job["resource"] or "").rsplit("/", 1)[-1]
+        cal = client.get_calibration(cal_id)
         wall = time.perf_counter() - t0
         if cal["status"] != "succeeded":
             rows.append(DemoRow(model, cal["status"], None, None, None, wall, cal_id, cal["error"]))
@@ -110,8 +105,22 @@ def _drive(client: PhasecalClient, app: Any, root: Path, n_poses: int, width: in
         med, p95 = _ray_error(client, cal_id, truth, covered)
         rows.append(DemoRow(model, "succeeded", (cal["stats"] or {}).get("rms_px"), med, p95,
                             wall, cal_id))
-        print(f"calibrated {model}: {wall:.1f} s", file=out)
+        print(f"calibrated {model}: {wall:.1f} s; {_export_mrcal(client, cal_id, model, root)}",
+              file=out)
     return rows
+
+
+def _export_mrcal(client: PhasecalClient, cal_id: str, model: str, root: Path) -> str:
+    """Download the calibration as an mrcal .cameramodel; a one-line account of it."""
+    dest = root / "exports" / f"{model}.cameramodel"
+    dest.parent.mkdir(exist_ok=True)
+    try:
+        info = client.export(cal_id, "mrcal", dest, approximate=True)
+    except ServiceError as exc:
+        return f"no mrcal export ({exc.detail})"
+    resid = info.get("residual")
+    how = "exact" if info.get("exact") else f"spline fit, RMS {resid['rms_px']:.2g} px"
+    return f"mrcal model {dest} ({how})"
 
 
 def _covered_pixels(client: PhasecalClient, session_id: str, pose_ids: list[str],
@@ -121,8 +130,11 @@ def _covered_pixels(client: PhasecalClient, session_id: str, pose_ids: list[str]
 
     union = None
     for pid in pose_ids:
-        data = client.request("GET", f"/sessions/{session_id}/poses/{pid}/maps.npz").content
-        mask = load_maps(data).mask
+        path = Path(tempfile.mkdtemp(prefix="phasecal-maps-")) / f"{pid}.npz"
+        client.download_maps(session_id, pid, path)
+        mask = load_maps(path).mask
+        path.unlink()
+        path.parent.rmdir()
         union = mask if union is None else union | mask
     assert union is not None
     v, u = np.nonzero(union[::stride, ::stride])
@@ -136,7 +148,7 @@ def _ray_error(client: PhasecalClient, cal_id: str, truth: Any,
     The fitted model's camera frame is only defined up to a rotation for generic
     models (gauge), so directions are compared after the best rotation (Kabsch).
     """
-    got = client.post(f"/calibrations/{cal_id}/unproject", {"pixels": pixels.tolist()})
+    got = client.unproject(cal_id, pixels.tolist())
     d_fit = np.array([[np.nan] * 3 if r[0] is None else r for r in got["directions"]], float)
     _, d_true = truth.rays(pixels[:, 0], pixels[:, 1])
     ok = np.isfinite(d_fit).all(axis=1) & np.isfinite(d_true).all(axis=1)
@@ -163,30 +175,6 @@ def _print_table(rows: list[DemoRow], root: Path, out: TextIO) -> None:
         if r.error:
             buf.write(f"  {r.model}: {r.error}\n")
     buf.write(f"\noutputs: {root / 'data'} (calibrations/<id>/model.json, opencv.yaml, "
-              "residuals.png; sessions, poses with frames and maps.npz)\n")
+              "residuals.png; sessions, poses with frames and maps.npz); mrcal exports in "
+              f"{root / 'exports'}\n")
     out.write(buf.getvalue())
-
-
-HELP = "the whole flow on the simulated rig over HTTP: poses, calibrations, comparison table"
-
-
-def add_arguments(p: Any) -> None:
-    """Arguments of `phasecal demo`."""
-    p.add_argument("--out", default=None, help="output folder (default: a new temp folder)")
-    p.add_argument("--poses", type=int, default=5, help="number of poses (default 5)")
-    p.add_argument("--width", type=int, default=640, help="camera width px")
-    p.add_argument("--height", type=int, default=480, help="camera height px")
-    p.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS),
-                   help=f"models to compare (default {' '.join(DEFAULT_MODELS)})")
-    p.add_argument("--preset", default="default", help="pattern plan preset")
-    p.add_argument("--seed", type=int, default=7, help="seed of the screen poses")
-
-
-def run(args: Any) -> int:
-    """Entry point for `phasecal demo`: 0 when every calibration succeeded."""
-    if args.poses < 3:
-        raise ValueError(f"--poses {args.poses}: a calibration needs at least 3 poses")
-    rows = run_demo(Path(args.out) if args.out else None, poses=args.poses, width=args.width,
-                    height=args.height, models=tuple(args.models), preset=args.preset,
-                    seed=args.seed)
-    return 0 if all(r.status == "succeeded" for r in rows) else 1

@@ -18,12 +18,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.db import ACTIVE_JOB_STATES, Database, JobRecord
+from api.db import ACTIVE_JOB_STATES, Database, JobLockRecord, JobRecord
+from api.problems import Problem
 from api.store import new_id
-from calibration.worker.executor import Executor, JobCancelled, TaskContext
+from calibration.progress import Cancelled, TaskContext
+from calibration.worker.executor import Executor
 
 log = logging.getLogger("phasecal.jobs")
 
@@ -95,16 +98,31 @@ class JobManager:
                 rec.error = reason
                 rec.finished_at = now
                 ids.append(rec.id)
+            s.execute(delete(JobLockRecord))
         return ids
 
     def create(self, s: Session, kind: str, resource: str | None, session_id: str | None,
-               total: int = 0) -> JobRecord:
-        """Insert a queued job in the caller's transaction (started later with `start`)."""
+               total: int = 0, claims: tuple[str, ...] = ()) -> JobRecord:
+        """Insert a queued job in the caller's transaction (started later with `start`).
+
+        `claims`: ids of the poses/calibrations the job works on; a resource already
+        claimed by an active job is a 409 (enforced by the job_locks primary key).
+        """
         rec = JobRecord(id=new_id("job"), kind=kind, status="queued", stage="queued", done=0,
                         total=total, resource=resource, session_id=session_id,
                         created_at=time.time())
+        for key in claims:
+            held = s.get(JobLockRecord, key)
+            if held is not None:
+                raise Problem(409, "job-active", f"{key} is in use by active job {held.job_id}; "
+                              "wait for it or cancel it", job_id=held.job_id)
         s.add(rec)
-        s.flush()
+        s.add_all(JobLockRecord(key=key, job_id=rec.id) for key in claims)
+        try:
+            s.flush()
+        except IntegrityError:
+            raise Problem(409, "job-active", f"{', '.join(claims)}: another job was started "
+                          "on it at the same time") from None
         with self._lock:
             self._live[rec.id] = _Live(job_to_dict(rec))
         return rec
@@ -125,7 +143,7 @@ class JobManager:
         try:
             ctx.check_cancelled()
             result = body(ctx)
-        except JobCancelled:
+        except Cancelled:
             self._finish(job_id, *self._stop_reason(), None, on_failure, None)
         except Exception as exc:  # every failure of a job is reported on the job
             if self._live[job_id].cancel.is_set():
@@ -156,6 +174,7 @@ class JobManager:
                 if on_failure is not None:
                     on_failure(s, status, error or "")
                 self._write(s, job_id, final)
+                s.execute(delete(JobLockRecord).where(JobLockRecord.job_id == job_id))
         except Exception as exc:  # a failing hook must still end the job
             log.exception("finishing job %s failed", job_id)
             final = dict(live.record, status="failed",
@@ -163,6 +182,7 @@ class JobManager:
                          finished_at=time.time(), stage="failed")
             with self.db.session() as s:
                 self._write(s, job_id, final)
+                s.execute(delete(JobLockRecord).where(JobLockRecord.job_id == job_id))
         live.record.update(final)
         with self._lock:
             self._recent[job_id] = dict(live.record, eta_s=None)

@@ -62,29 +62,63 @@ def load_default_config(spec: str) -> dict[str, Any]:
     return load_rig_config(path).model_dump(mode="json")
 
 
+def load_rigs_dir(folder: Path) -> dict[str, dict[str, Any]]:
+    """Operator rigs of a folder: every `*.toml`/`*.json` file, named by its stem."""
+    from acquisition.rig import load_rig_config
+
+    if not folder.is_dir():
+        raise ValueError(f"--rigs-dir {folder}: no such folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix in (".toml", ".json"))
+    names = [p.stem for p in files]
+    if DEFAULT_RIG_NAME in names or len(set(names)) != len(names):
+        raise ValueError(f"--rigs-dir {folder}: rig names (file stems) must be unique and not "
+                         f"{DEFAULT_RIG_NAME!r}")
+    return {p.stem: load_rig_config(p).model_dump(mode="json") for p in files}
+
+
 class RigManager:
     """Creates rig records, opens rigs on demand and closes them at shutdown."""
 
-    def __init__(self, db: Database, default_spec: str) -> None:
+    def __init__(self, db: Database, default_spec: str, data_dir: Path,
+                 rigs_dir: Path | None = None, aravis_ids: tuple[str, ...] = ()) -> None:
         self.db = db
+        self.data_dir = data_dir
+        self.aravis_ids = aravis_ids
         self._handles: dict[str, RigHandle] = {}
         self._lock = threading.Lock()
-        config = load_default_config(default_spec)
-        with db.session() as s:
-            rec = s.scalars(select(RigRecord).where(RigRecord.name == DEFAULT_RIG_NAME)).first()
+        operator = {DEFAULT_RIG_NAME: load_default_config(default_spec)}
+        operator.update(load_rigs_dir(rigs_dir) if rigs_dir is not None else {})
+        self.operator_names = frozenset(operator)
+        self.default_id = ""
+        for name, config in operator.items():
+            rid = self._upsert(name, config)
+            self.default_id = self.default_id or rid
+
+    def _upsert(self, name: str, config: dict[str, Any]) -> str:
+        """Store an operator rig under its name (replacing the config of an earlier run)."""
+        with self.db.session() as s:
+            rec = s.scalars(select(RigRecord).where(RigRecord.name == name)).first()
             if rec is None:
-                rec = RigRecord(id=new_id("rig"), name=DEFAULT_RIG_NAME, config=config,
+                rec = RigRecord(id=new_id("rig"), name=name, config=config,
                                 created_at=time.time())
                 s.add(rec)
             else:
                 rec.config = config
-            self.default_id = rec.id
+            return rec.id
 
     def create(self, name: str, config: dict[str, Any]) -> RigRecord:
-        """Validate, open (so a bad config fails here, not at the first capture) and store."""
-        if name == DEFAULT_RIG_NAME:
-            raise Problem(409, "conflict", f"rig name {name!r} is reserved for the server's rig")
-        parsed = parse_rig_config(config, "config")
+        """Validate, open (so a bad config fails here, not at the first capture) and store.
+
+        Rigs from a request may name only listed devices and recordings inside the data
+        directory (`api.rig_policy`); operator rig names are reserved.
+        """
+        from api.rig_policy import check_client_rig
+
+        if name in self.operator_names:
+            raise Problem(409, "conflict", f"rig name {name!r} is reserved for an operator rig "
+                          "(serve --rig / --rigs-dir)")
+        parsed = check_client_rig(parse_rig_config(config, "config"), self.data_dir,
+                                  aravis_ids=self.aravis_ids)
         rig_id = new_id("rig")
         rig = _open(rig_id, name, parsed)
         with self._lock:
@@ -110,7 +144,12 @@ class RigManager:
             if h is not None:
                 return h
         rec = self.record(rig_id)
-        rig = _open(rig_id, rec.name, parse_rig_config(rec.config, f"rig {rig_id}"))
+        parsed = parse_rig_config(rec.config, f"rig {rig_id}")
+        if rec.name not in self.operator_names:  # stored by a client (maybe by an older version)
+            from api.rig_policy import check_client_rig
+
+            parsed = check_client_rig(parsed, self.data_dir, aravis_ids=self.aravis_ids)
+        rig = _open(rig_id, rec.name, parsed)
         with self._lock:
             h = self._handles.setdefault(rig_id, RigHandle(rig_id, rig))
         if h.rig is not rig:
@@ -129,9 +168,10 @@ def _open(rig_id: str, name: str, config: Any) -> Any:
     """Open a rig's devices; problems name the rig and say whether config or device failed."""
     from acquisition.errors import AcquisitionError
     from acquisition.rig import open_rig
+    from hw_mocks.rig import open_simulated_rig
 
     try:
-        return open_rig(config)
+        return open_rig(config, simulator=open_simulated_rig)
     except (ValueError, TypeError, KeyError) as exc:
         raise Problem(422, "invalid-rig-config",
                       f"rig {rig_id} ({name}): cannot be opened: {exc}") from None

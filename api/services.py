@@ -33,19 +33,28 @@ class Services:
         db = Database(store.db_path)
         executor = make_executor(config.executor)
         jobs = JobManager(db, executor)
-        rigs = RigManager(db, config.rig)
+        rigs = RigManager(db, config.rig, store.root, config.rigs_dir,
+                          tuple(config.aravis_addresses))
         services = cls(config, store, db, executor, jobs, rigs)
         services.recover()
         return services
 
     def recover(self) -> None:
-        """Jobs left active by a previous process become interrupted, and so do their targets."""
+        """Jobs left active by a previous process become interrupted, and so do their targets;
+        their staged outputs are removed."""
         from api.recovery import mark_interrupted
 
         stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         reason = f"interrupted: the server stopped while this job was active (restart at {stamp})"
         ids = self.jobs.recover(reason)
-        mark_interrupted(self.db, ids, reason)
+        mark_interrupted(self.db, ids, reason, self.frames_on_disk)
+        self.store.clear_tmp()  # staging of jobs that were cut off (never committed)
+
+    def frames_on_disk(self, pose_id: str) -> int:
+        """How many plan frames of a captured pose are stored (what a resume keeps)."""
+        from api.capture import stored_indices
+
+        return len(stored_indices(self.store.dir_for(pose_id, create=False) / "frames"))
 
     def close(self) -> None:
         """Cancel live jobs, stop the executor, close rigs and the database."""

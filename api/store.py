@@ -11,6 +11,8 @@ import re
 import secrets
 import shutil
 import tempfile
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from api.problems import Problem
@@ -82,6 +84,39 @@ class DataStore:
     def temp_dir(self) -> Path:
         """A fresh scratch folder inside the data directory (same filesystem: renames work)."""
         return Path(tempfile.mkdtemp(dir=self.root / "tmp"))
+
+    @contextmanager
+    def staging(self, job_id: str) -> Iterator[Path]:
+        """A job-owned folder for a worker's outputs, removed when the job ends.
+
+        Workers write only here; the owning server moves finished files into place
+        (`commit`), so a worker that outlives its server never touches a resource folder.
+        """
+        if not ID_RE.match(job_id) or not job_id.startswith("job_"):
+            raise ValueError(f"{job_id!r} is not a job id")
+        path = self.root / "tmp" / job_id
+        path.mkdir(parents=True, exist_ok=True)
+        try:
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+
+    def commit(self, staged: Path, names: Iterable[str], dest: Path) -> None:
+        """Move the named finished files from a staging folder into `dest` (renames)."""
+        dest.mkdir(parents=True, exist_ok=True)
+        for name in names:
+            os.replace(staged / name, dest / name)
+
+    def clear_tmp(self) -> int:
+        """Remove stale scratch and staging left by an earlier process; returns how many."""
+        tmp = self.root / "tmp"
+        stale = list(tmp.iterdir())
+        for p in stale:
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+        return len(stale)
 
     def replace_dir(self, src: Path, dst: Path) -> None:
         """Move a fully written file or folder into place, replacing any previous one."""

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from calibration.fit.sgcc_lm import gauge_constraints
+from calibration.fit.sgcc.lm import gauge_constraints
 from calibration.models.sgcc import SGCCBase, logmap
 
 RayFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # pixels (N,2) -> (o, d)
@@ -61,7 +61,7 @@ def ray_angle_difference(
 def sgcc_gauge_transform(
     rays: RayFn, image_size: tuple[int, int], central: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(Q, t) moving a camera's frame into the sGCC gauge (calibration.fit.sgcc_lm docstring).
+    """(Q, t) moving a camera's frame into the sGCC gauge (calibration.fit.sgcc.lm docstring).
 
     Q: center ray to +z, its u-derivative into the x-z plane. t (non-central only): after
     sliding origins to z = 0, ox(c) = oy(c) = 0 and dox/du(c) + doy/dv(c) = 0 (central

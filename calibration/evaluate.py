@@ -111,7 +111,7 @@ def attach_residuals(result: CalibrationResult, points: list[PointSet],
 def heldout_errors(model: CameraModel, points: list[PointSet], indices: list[int],
                    rng: np.random.Generator) -> dict[str, Any]:
     """Error on poses not used in the fit: pose by robust PnP with the fitted model, then RMS."""
-    from calibration.fit.pnp import estimate_pose
+    from calibration.fit.classic.pnp import estimate_pose
 
     per = []
     for pts, idx in zip(points, indices, strict=True):

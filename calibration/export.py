@@ -1,7 +1,12 @@
-"""Export pinhole-family models: OpenCV FileStorage YAML (cv2.FileStorage) and ROS camera_info."""
+"""Export pinhole-family models: OpenCV FileStorage YAML (cv2.FileStorage) and ROS camera_info.
+
+Both are exact or refused: a model with terms the format cannot carry raises `ModelError`
+naming them (never silently truncated).
+"""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -22,18 +27,43 @@ def _pinhole(model: CameraModel, what: str) -> PinholeFamily:
     return model
 
 
-def export_opencv_yaml(model: CameraModel, path: str | Path) -> None:
-    """Write camera_matrix, distortion_coefficients, image size and model type via FileStorage."""
+def opencv_yaml_text(model: CameraModel) -> str:
+    """FileStorage YAML: model_type, image size, camera_matrix, distortion_coefficients (1xN).
+
+    `model_type` fisheye means the 4 coefficients are cv2.fisheye's (k1..k4), for
+    cv2.fisheye.initUndistortRectifyMap; otherwise they are in cv2's own order (5 or 12).
+    """
     m = _pinhole(model, "OpenCV export")
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs = cv2.FileStorage("out.yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    fs.write("model_type", m.type_name)
+    fs.write("image_width", int(m.image_size[0]))
+    fs.write("image_height", int(m.image_size[1]))
+    fs.write("camera_matrix", m.camera_matrix)
+    fs.write("distortion_coefficients", m.dist.reshape(1, -1))
+    return fs.releaseAndGetString()
+
+
+def export_opencv_yaml(model: CameraModel, path: str | Path) -> None:
+    """Write `opencv_yaml_text` to a file."""
+    Path(path).write_text(opencv_yaml_text(model), encoding="utf-8")
+
+
+def opencv_yaml_model_type(path: str | Path, n_dist: int) -> str:
+    """Phasecal model type of an OpenCV YAML: its model_type, else from the coefficient count."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
-        fs.write("model_type", m.type_name)
-        fs.write("image_width", int(m.image_size[0]))
-        fs.write("image_height", int(m.image_size[1]))
-        fs.write("camera_matrix", m.camera_matrix)
-        fs.write("distortion_coefficients", m.dist.reshape(1, -1))
+        kind = fs.getNode("model_type").string()
     finally:
         fs.release()
+    if kind:
+        if kind not in _ROS_MODELS:
+            raise ModelError(f"{path}: model_type {kind!r}: expected one of {sorted(_ROS_MODELS)}")
+        return kind
+    if n_dist in (4, 5):
+        return "opencv5"
+    if n_dist in (8, 12):
+        return "opencv-rational"
+    raise ModelError(f"{path}: distortion_coefficients: {n_dist} values; expected 4, 5, 8 or 12")
 
 
 def read_opencv_yaml(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
@@ -50,12 +80,30 @@ def read_opencv_yaml(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[in
     return k, d.ravel(), size
 
 
+_ROS_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+
+
 def ros_camera_info_yaml(model: CameraModel, camera_name: str = "camera") -> str:
-    """ROS camera_info YAML text (camera_calibration_parsers layout) for a pinhole-family model."""
+    """ROS camera_info YAML text (camera_calibration_parsers layout) for a pinhole-family model.
+
+    Monocular: R = I and P = [K | 0] (the rectified image keeps K). Thin-prism terms have no
+    ROS distortion model: a model with nonzero s1..s4 is refused.
+    """
     m = _pinhole(model, "ROS export")
+    if not _ROS_NAME.match(camera_name):
+        raise ModelError(f"camera_name: expected letters, digits and '_' (ROS "
+                         f"camera_info_manager's rule), got {camera_name!r}")
     w, h = m.image_size
     k = m.camera_matrix
-    d = m.dist if m.type_name != "opencv-rational" else m.dist[:8]
+    d = m.dist
+    if m.type_name == "opencv-rational":
+        if np.any(d[8:] != 0):
+            raise ModelError(
+                "ROS export: the model has thin-prism terms s1..s4 = "
+                f"{[float(v) for v in d[8:]]}, which no ROS distortion_model carries "
+                "(rational_polynomial has k1..k6, p1, p2); refusing to drop them. Refit "
+                "without them, or use format opencv-yaml or mrcal (OPENCV12)")
+        d = d[:8]
     p = np.hstack([k, np.zeros((3, 1))])
 
     def mat(rows: int, cols: int, data: np.ndarray) -> str:

@@ -44,9 +44,16 @@ def rectify_maps(
     )
 
 
-def undistort_points(model: CameraModel, pixels: np.ndarray, k_virtual: np.ndarray) -> np.ndarray:
-    """Model pixels (N,2) -> virtual-pinhole pixels (N,2) (like cv2.undistortPoints with P)."""
+def undistort_points(model: CameraModel, pixels: np.ndarray, k_virtual: np.ndarray,
+                     rotation: np.ndarray | None = None) -> np.ndarray:
+    """Model pixels (N,2) -> virtual-pinhole pixels (N,2) (cv2.undistortPoints with R and P).
+
+    `rotation` as in `rectify_maps` (virtual from model frame); NaN where the ray does not
+    point in front of the virtual camera. Non-central models: the ray directions are used.
+    """
     _, d = model.unproject(np.asarray(pixels, dtype=np.float64))
+    if rotation is not None:
+        d = d @ np.asarray(rotation, dtype=np.float64).T
     with np.errstate(divide="ignore", invalid="ignore"):
         xy1 = d / d[:, 2:3]
     out = xy1 @ np.asarray(k_virtual, dtype=np.float64).T

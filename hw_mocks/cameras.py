@@ -8,56 +8,13 @@ camera frame x right, y down, z forward; millimetres.
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-_NEWTON_ITERS = 50
-# Newton stops once steps fall below this (normalized units); being quadratic, the
-# remaining error is then far below 1e-12 px.
-_STEP_TOL = 1e-11
-
-
-class TruthCamera(ABC):
-    """A ground-truth camera: per-pixel rays and the projection of 3-D points."""
-
-    width: int
-    height: int
-    is_central: bool
-
-    @abstractmethod
-    def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel coords (any shape) -> (origins (...,3) mm, unit directions (...,3)); NaN: none."""
-
-    @abstractmethod
-    def project(self, points: np.ndarray) -> np.ndarray:
-        """Points (N,3) mm in the camera frame -> pixels (N,2); NaN rows where not imaged."""
-
-    def in_image(self, uv: np.ndarray) -> np.ndarray:
-        """Whether pixel coordinates (...,2) lie on the sensor [-0.5, W-0.5] x [-0.5, H-0.5]."""
-        u, v = uv[..., 0], uv[..., 1]
-        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
-
-    def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
-        """(H,W) u and v coordinates of all pixel centers."""
-        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        return u, v
-
-
-def _normalize(d: np.ndarray) -> np.ndarray:
-    """Unit vectors along the last axis."""
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
-def _as_points(points: np.ndarray) -> np.ndarray:
-    """Validate and convert an (N,3) point array to float64."""
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"points: expected shape (N, 3), got {p.shape}")
-    return p
-
+from hw_mocks.camera_base import NEWTON_ITERS, STEP_TOL, TruthCamera, as_points, normalize
+from hw_mocks.fisheye_camera import EquidistantFisheye, wide_fisheye
 
 # -- pinhole with OpenCV distortion ---------------------------------------------------
 
@@ -139,7 +96,7 @@ class PinholeCamera(TruthCamera):
         rad0, _ = self._radial(xd * xd + yd * yd)
         rad0 = np.where(rad0 > 0.2, rad0, 1.0)  # beyond a sane radial factor: start at xd
         x, y = xd / rad0, yd / rad0  # one fixed-point step: saves a Newton iteration
-        for _ in range(_NEWTON_ITERS):
+        for _ in range(NEWTON_ITERS):
             fx_, fy_, a, b, d = self._distort_with_jacobian(x, y)
             ex, ey = fx_ - xd, fy_ - yd
             det = a * d - b * b
@@ -147,7 +104,7 @@ class PinholeCamera(TruthCamera):
             dy = (a * ey - b * ex) / det
             x -= dx
             y -= dy
-            if np.nanmax(np.abs(dx) + np.abs(dy), initial=0.0) < _STEP_TOL:
+            if np.nanmax(np.abs(dx) + np.abs(dy), initial=0.0) < STEP_TOL:
                 break
         fx_, fy_ = self.distort(x, y)
         bad = (x * x + y * y > self._r2_max) | (np.hypot(fx_ - xd, fy_ - yd) > 1e-12)
@@ -158,12 +115,12 @@ class PinholeCamera(TruthCamera):
         u = np.asarray(u, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
         x, y = self.undistort((u - self.cx) / self.fx, (v - self.cy) / self.fy)
-        d = _normalize(np.stack([x, y, np.ones_like(x)], axis=-1))
+        d = normalize(np.stack([x, y, np.ones_like(x)], axis=-1))
         return np.zeros_like(d), d
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Points in front of the camera -> distorted pixel coordinates; NaN if not imaged."""
-        p = _as_points(points)
+        p = as_points(points)
         z = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             x, y = p[:, 0] / z, p[:, 1] / z
@@ -186,108 +143,6 @@ def mild_pinhole(width: int = 640, height: int = 480) -> PinholeCamera:
         cy=(height - 1) / 2 - 0.009 * height,
         dist=(-0.11, 0.045, 4e-4, -3e-4, -0.008),
     )
-
-
-# -- equidistant fisheye ---------------------------------------------------------------
-
-
-@dataclass
-class EquidistantFisheye(TruthCamera):
-    """Equidistant fisheye (OpenCV fisheye model): r = f * theta * (1 + k1 t^2 + ... k4 t^8).
-
-    `fov_deg` is the full cone angle the lens accepts; rays beyond fov/2 are not imaged.
-    """
-
-    width: int
-    height: int
-    f: float
-    cx: float
-    cy: float
-    k: Sequence[float] = (0.0, 0.0, 0.0, 0.0)
-    fov_deg: float = 180.0
-    is_central: bool = field(default=True, init=False)
-
-    def __post_init__(self) -> None:
-        """Validate and normalize the fields (errors name the field and what was expected)."""
-        kk = np.asarray(self.k, dtype=np.float64).ravel()
-        if kk.size != 4:
-            raise ValueError(f"EquidistantFisheye.k: expected 4 coefficients, got {kk.size}")
-        if not 0 < self.fov_deg < 360:
-            raise ValueError(f"EquidistantFisheye.fov_deg: expected (0, 360), got {self.fov_deg}")
-        self._k = kk
-        self._theta_max = np.radians(self.fov_deg) / 2
-        t = np.linspace(0.0, self._theta_max, 20001)
-        dtd = self._theta_d(t)[1]
-        if np.any(dtd <= 0):
-            raise ValueError("EquidistantFisheye.k: theta_d(theta) must increase within the FOV")
-
-    def _theta_d(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distorted angle theta_d(theta) and its derivative."""
-        k1, k2, k3, k4 = self._k
-        t2 = t * t
-        poly = 1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
-        dpoly = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-        return t * poly, dpoly
-
-    def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel coords -> (zero origins, unit directions); NaN outside the lens' FOV."""
-        d, theta = self.directions_unclipped(u, v)
-        d[theta > self._theta_max + 1e-12] = np.nan
-        return np.zeros_like(d), d
-
-    def directions_unclipped(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Ray directions (...,3) and angles theta by the lens formula, ignoring the FOV.
-
-        NaN only where theta_d(theta) cannot be inverted (beyond the polynomial's range).
-        """
-        du = (np.asarray(u, dtype=np.float64) - self.cx) / self.f
-        dv = (np.asarray(v, dtype=np.float64) - self.cy) / self.f
-        td = np.hypot(du, dv)
-        theta = td.copy()
-        for _ in range(_NEWTON_ITERS):
-            val, der = self._theta_d(theta)
-            step = (val - td) / der
-            theta = theta - step
-            if np.nanmax(np.abs(step), initial=0.0) < _STEP_TOL:
-                break
-        with np.errstate(invalid="ignore", divide="ignore"):
-            cphi = np.where(td > 0, du / td, 1.0)
-            sphi = np.where(td > 0, dv / td, 0.0)
-        st = np.sin(theta)
-        d = np.stack([st * cphi, st * sphi, np.cos(theta)], axis=-1)
-        solved = (np.abs(self._theta_d(theta)[0] - td) < 1e-12) & (theta >= 0) & (theta < np.pi)
-        d[~solved] = np.nan
-        return d, theta
-
-    def project_unclipped(self, points: np.ndarray) -> np.ndarray:
-        """Projection by the lens formula for any direction, ignoring FOV and sensor limits."""
-        p = _as_points(points)
-        rxy = np.hypot(p[:, 0], p[:, 1])
-        theta = np.arctan2(rxy, p[:, 2])
-        td, _ = self._theta_d(theta)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(rxy > 0, td / rxy, 0.0)
-        return np.stack([self.f * scale * p[:, 0] + self.cx, self.f * scale * p[:, 1] + self.cy], 1)
-
-    def project(self, points: np.ndarray) -> np.ndarray:
-        """Points (any direction within the FOV cone) -> pixels; NaN if not imaged."""
-        p = _as_points(points)
-        uv = self.project_unclipped(p)
-        theta = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
-        ok = (theta <= self._theta_max) & self.in_image(uv) & (np.linalg.norm(p, axis=1) > 0)
-        uv[~ok] = np.nan
-        return uv
-
-
-def wide_fisheye(width: int = 640, height: int = 480, fov_deg: float = 150.0) -> EquidistantFisheye:
-    """A fisheye whose farther left/right image edge sees rays at fov/2 from the axis."""
-    k = (0.012, -0.004, 0.0008, -0.0001)
-    cx, cy = (width - 1) / 2 + 0.004 * width, (height - 1) / 2 + 0.006 * height
-    tmp = EquidistantFisheye(width, height, 1.0, cx, cy, k, fov_deg)
-    theta_d_edge, _ = tmp._theta_d(np.radians(fov_deg) / 2)
-    edge_px = max(cx + 0.5, width - 0.5 - cx) + 1e-6
-    f = edge_px / float(theta_d_edge)
-    return EquidistantFisheye(width, height, f, cx, cy, k, fov_deg)
 
 
 # -- smooth non-central camera -----------------------------------------------------------
@@ -371,7 +226,7 @@ class NonCentralCamera(TruthCamera):
         c = 1.0 / (1.0 + dz)
         e1 = np.stack([1 - dx * dx * c, -dx * dy * c, -dx], axis=-1)
         e2 = np.stack([-dx * dy * c, 1 - dy * dy * c, -dy], axis=-1)
-        d = _normalize(d0 + a[..., None] * e1 + b[..., None] * e2)
+        d = normalize(d0 + a[..., None] * e1 + b[..., None] * e2)
         o = np.where(np.isnan(d), np.nan, self._origin(u, v))
         return o, d, imaged & np.isfinite(d[..., 0])
 
@@ -396,7 +251,7 @@ class NonCentralCamera(TruthCamera):
         The Jacobian (central differences) is taken at the start point only: the map is a
         small smooth perturbation of the identity, so the iteration still contracts fast.
         """
-        p = _as_points(points)
+        p = as_points(points)
         uv = self._base_unclipped(p)
         h = 1e-3
         active = np.all(np.isfinite(uv), axis=1)

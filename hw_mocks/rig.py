@@ -16,6 +16,7 @@ import numpy as np
 from acquisition.clock import Clock, RealClock
 from acquisition.errors import DeviceSettingsError
 from acquisition.protocols import CameraSettings
+from acquisition.rig import Rig, RigConfig
 from calibration.plan import ScreenGeometry
 from hw_mocks.camera import CameraFaults, SimulatedCamera
 from hw_mocks.cameras import TruthCamera, make_truth_camera
@@ -139,3 +140,12 @@ def _reject_unknown(part: str, params: dict[str, Any], allowed: set[str]) -> Non
     if unknown:
         raise DeviceSettingsError(f"simulated {part}: unknown parameter(s) {unknown}; "
                                   f"allowed: {sorted(allowed)}")
+
+
+def open_simulated_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
+    """The `acquisition.rig.SimulatorFactory` of this package: a `Rig` around a `SimulatedRig`
+    built from a `kind = "simulated"` config."""
+    sim = SimulatedRig.from_config(config.model_dump(mode="json", exclude_none=True),
+                                   clock=clock)
+    settings = config.settings.to_settings() if config.settings else sim.camera_settings
+    return Rig(config, sim.display, sim.camera, sim.screen, sim.clock, settings, simulated=sim)

@@ -7,10 +7,12 @@
 #     python3-dev (pycairo/PyGObject compile C extensions)
 #   SDL display tests under X: xvfb (read-back through Xvfb -fbdir)
 #   pyusb: libusb-1.0-0
+#   mrcal export tests (the real mrcal loads and projects .cameramodel files; it runs
+#     under the system Python /usr/bin/python3): python3-mrcal
 set -euo pipefail
 packages=(
   gir1.2-aravis-0.8 libaravis-0.8-0 libgirepository1.0-dev libcairo2-dev pkg-config
-  gcc python3-dev xvfb libusb-1.0-0
+  gcc python3-dev xvfb libusb-1.0-0 python3-mrcal
 )
 missing=()
 if command -v dpkg-query >/dev/null 2>&1; then

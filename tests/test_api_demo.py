@@ -21,3 +21,6 @@ def test_demo_small(tmp_path: Path) -> None:
     assert "ray med mrad" in text and str(tmp_path / "demo" / "data") in text
     cal_dir = tmp_path / "demo" / "data" / "calibrations" / row.calibration_id
     assert (cal_dir / "model.json").is_file() and (cal_dir / "residuals.png").is_file()
+    # the typed client downloaded the mrcal export (exact for the OpenCV family)
+    exported = tmp_path / "demo" / "exports" / "opencv5.cameramodel"
+    assert "LENSMODEL_OPENCV5" in exported.read_text()

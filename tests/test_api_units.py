@@ -16,7 +16,8 @@ from api.db import Database
 from api.jobs import JobManager
 from api.problems import Problem
 from api.store import DataStore, check_id, new_id
-from calibration.worker.executor import InProcessExecutor, JobCancelled, TaskContext, make_executor
+from calibration.progress import Cancelled, TaskContext
+from calibration.worker.executor import InProcessExecutor, make_executor
 
 PLAN = {
     "format": "phasecal.plan/1",
@@ -47,7 +48,7 @@ def test_executor_runs_tasks_with_progress_and_cancel() -> None:
     slow = ex.run_task(_count_task, 1000, 0.01, job_id="job_b")
     time.sleep(0.05)
     assert ex.cancel("job_b") is True
-    with pytest.raises(JobCancelled):
+    with pytest.raises(Cancelled):
         slow.result(timeout=10)
     assert ex.cancel("job_b") is False  # forgotten once done
     assert ex.submit(sum, [1, 2, 3]).result() == 6
@@ -275,7 +276,7 @@ def test_process_executor_progress_and_cancel() -> None:
         _wait(lambda: slow.running())
         time.sleep(0.2)
         assert ex.cancel("p2")
-        with pytest.raises(JobCancelled):
+        with pytest.raises(Cancelled):
             slow.result(timeout=60)
     finally:
         ex.shutdown()

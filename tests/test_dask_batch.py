@@ -11,10 +11,12 @@ from pathlib import Path
 
 import cloudpickle
 import dask
+import distributed  # noqa: F401  (its config defaults must exist before dask.config.set below)
 import numpy as np
 import pytest
 
 from api.cli import main as cli_main
+from calibration.progress import Cancelled, TaskContext
 from calibration.worker.dask_batch import (
     BatchError,
     items_from_manifest,
@@ -22,7 +24,7 @@ from calibration.worker.dask_batch import (
     run_batch,
 )
 from calibration.worker.dask_executor import DaskExecutor, start_local_cluster
-from calibration.worker.executor import InProcessExecutor, JobCancelled, TaskContext
+from calibration.worker.executor import InProcessExecutor
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
@@ -173,7 +175,7 @@ def test_cancel_stops_every_item(dex, tmp_path):
     cancel = threading.Event()
     threading.Timer(1.0, cancel.set).start()
     t0 = time.monotonic()
-    with pytest.raises(JobCancelled, match="batch job-cancel was cancelled"):
+    with pytest.raises(Cancelled, match="batch job-cancel was cancelled"):
         run_batch(dex, items, TaskContext("job-cancel", None, cancel), task_fn=fake_calibrate)
     assert time.monotonic() - t0 < 20.0
     assert dex.running_jobs() == []

@@ -15,14 +15,10 @@ import distributed
 import numpy as np
 import pytest
 
+from calibration.progress import Cancelled, TaskContext
 from calibration.worker.dask_context import cancel_event_name
 from calibration.worker.dask_executor import DaskExecutor, WorkerLost
-from calibration.worker.executor import (
-    InProcessExecutor,
-    JobCancelled,
-    TaskContext,
-    make_executor,
-)
+from calibration.worker.executor import InProcessExecutor, make_executor
 
 # Task functions below are defined in this test module, which workers cannot import.
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -59,7 +55,7 @@ def wait_for_cancel_task(ctx: TaskContext, started_path: str, limit_s: float) ->
     while time.monotonic() < t_end:
         if ctx.cancelled():
             Path(started_path + ".end").write_text("cancelled")
-            raise JobCancelled(ctx.job_id)
+            raise Cancelled(ctx.job_id)
         time.sleep(0.02)
     Path(started_path + ".end").write_text("timeout")
     return "timeout"
@@ -155,7 +151,7 @@ def test_cancel_reaches_a_running_task(dex, tmp_path):
     fut = dex.run_task(wait_for_cancel_task, str(started), 45.0, job_id="job-cancel")
     _wait_file(started)
     assert dex.cancel("job-cancel")
-    with pytest.raises(JobCancelled):
+    with pytest.raises(Cancelled):
         fut.result(20.0)
     assert not dex.cancel("job-cancel")
 
@@ -169,11 +165,11 @@ def test_cancel_drops_a_queued_task(dex, tmp_path):
         _wait_file(tmp_path / f"b{i}")
     queued = dex.run_task(counting_task, 1, 0.0, job_id="job-queued")
     assert dex.cancel("job-queued")
-    with pytest.raises(JobCancelled):
+    with pytest.raises(Cancelled):
         queued.result(20.0)
     for i, b in enumerate(blockers):
         dex.cancel(f"job-block{i}")
-        with pytest.raises(JobCancelled):
+        with pytest.raises(Cancelled):
             b.result(20.0)
 
 
@@ -210,7 +206,7 @@ def test_duplicate_job_id_is_refused(dex, tmp_path):
     with pytest.raises(ValueError, match="already running"):
         dex.run_task(counting_task, 1, 0.0, job_id="job-dup")
     dex.cancel("job-dup")
-    with pytest.raises(JobCancelled):
+    with pytest.raises(Cancelled):
         fut.result(20.0)
 
 
@@ -218,7 +214,7 @@ def test_task_cancelled_before_it_started_stops_if_it_runs_anyway(dex, tmp_path)
     started = tmp_path / "s"
     fut = dex.run_task(wait_for_cancel_task, str(started), 45.0, job_id="job-early")
     dex.cancel("job-early")
-    with pytest.raises(JobCancelled):
+    with pytest.raises(Cancelled):
         fut.result(20.0)
     # the flag stays set: Client.cancel cannot stop a task a worker has already begun
     flag = distributed.Event(cancel_event_name("job-early"), client=dex.client)

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calibration.fit.classic.dlt import decompose_projection, dlt_projection, ransac_dlt
+from calibration.fit.classic.homography import fit_homography
+from calibration.fit.classic.pnp import estimate_pose
+from calibration.fit.classic.rotation import interview_homographies, rotation_intrinsics
+from calibration.fit.classic.vanishing import vanishing_intrinsics, vanishing_points
+from calibration.fit.classic.zhang import pose_from_homography, zhang_intrinsics
 from calibration.fit.correspondences import point_set, subsample
-from calibration.fit.dlt import decompose_projection, dlt_projection, ransac_dlt
-from calibration.fit.homography import DegenerateError, fit_homography
-from calibration.fit.pnp import estimate_pose
-from calibration.fit.rotation import interview_homographies, rotation_intrinsics
-from calibration.fit.vanishing import vanishing_intrinsics, vanishing_points
-from calibration.fit.zhang import pose_from_homography, zhang_intrinsics
+from calibration.fit.ransac import DegenerateError
 from calibration.models.parametric import OpenCV5Model
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import PinholeCamera, mild_pinhole

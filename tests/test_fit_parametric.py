@@ -7,7 +7,7 @@ import pytest
 
 from calibration.evaluate import residual_map
 from calibration.fit.dispatch import calibrate
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 from calibration.plan import ScreenGeometry
 from calibration.report import write_residual_report
 from hw_mocks.cameras import PinholeCamera, mild_pinhole, wide_fisheye
@@ -127,10 +127,10 @@ def test_degenerate_views_rejected() -> None:
 
 
 def test_cancel_and_progress(pinhole_fit) -> None:
-    from calibration.worker.executor import JobCancelled
+    from calibration.progress import Cancelled
 
     _, maps, _, _ = pinhole_fit
-    with pytest.raises(JobCancelled, match="cancelled"):
+    with pytest.raises(Cancelled, match="cancelled"):
         calibrate(maps[:3], SCREEN, "opencv5", cancelled=lambda: True)
     seen: list[tuple[int, int, str]] = []
     calibrate(maps[:3], SCREEN, "opencv5", options={"max_points_per_pose": 300},

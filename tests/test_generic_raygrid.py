@@ -240,11 +240,11 @@ def test_cli_calibrate_raygrid(pinhole_fit, tmp_path, capsys):
 
 
 def test_progress_and_cancellation(pinhole_fit):
-    from calibration.worker.executor import JobCancelled
+    from calibration.progress import Cancelled
 
     _, maps, _ = pinhole_fit
     seen = []
-    with pytest.raises(JobCancelled):
+    with pytest.raises(Cancelled):
         calibrate(maps[:3], SCREEN, "raygrid",
                   progress=lambda done, total, msg: seen.append((done, total)),
                   cancelled=lambda: len(seen) >= 1)

@@ -15,7 +15,7 @@ from calibration.compare import (
     sgcc_gauge_transform,
     whitened_coefficient_errors,
 )
-from calibration.fit.generic import calibrate_generic, fit_warnings
+from calibration.fit.sgcc.calibrate import calibrate_generic, fit_warnings
 from calibration.models.base import model_from_dict
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import SplineGrid
@@ -323,11 +323,11 @@ def test_sgcc_on_150_degree_fisheye_within_1p5x_of_fisheye_model():
 
 
 def test_progress_and_cancellation(pinhole_fit):
-    from calibration.worker.executor import JobCancelled
+    from calibration.progress import Cancelled
 
     _, maps, _ = pinhole_fit
     seen = []
-    with pytest.raises(JobCancelled):
+    with pytest.raises(Cancelled):
         calibrate_generic(
             maps[:3],
             SCREEN,
@@ -360,7 +360,9 @@ def test_monomial_form_matches_bspline_basis_and_evaluation():
 def test_normal_equations_equal_dense_jacobian_products(n_comp):
     from scipy.spatial.transform import Rotation
 
-    from calibration.fit.sgcc_lm import LMState, PoseObs, _Problem
+    from calibration.fit.observations import PoseObs
+    from calibration.fit.sgcc.problem import Problem
+    from calibration.fit.sgcc.state import LMState
     from calibration.models.bspline import SplineGrid
 
     rng = np.random.default_rng(n_comp)
@@ -378,7 +380,7 @@ def test_normal_equations_equal_dense_jacobian_products(n_comp):
         [Rotation.from_rotvec(rng.normal(size=3) * 0.1).as_matrix() for _ in obs],
         [np.r_[rng.normal(size=2), -300.0] for _ in obs],
     )
-    prob = _Problem(grid, n_comp, obs)
+    prob = Problem(grid, n_comp, obs)
     wt = rng.uniform(0.2, 1.0, len(prob.s))
     h, grad = prob.normal_equations(st, wt)
     # Dense reference: J row by row (spline: basis weight x dQ/dcomponent; pose: 6 columns).
@@ -405,7 +407,7 @@ def test_normal_equations_equal_dense_jacobian_products(n_comp):
 
 
 def _pixels_of(prob, rows):
-    """Pixel (u, v) of sorted rows of a _Problem, rebuilt from cell and local coordinates."""
+    """Pixel (u, v) of sorted rows of a Problem, rebuilt from cell and local coordinates."""
     cu = prob.grid.cells[0]
     cells = np.concatenate([[c] * (b - a) for ch in prob.chunks for a, b, c in ch.groups])[rows]
     hu, hv = prob.grid.cell_px
@@ -413,9 +415,10 @@ def _pixels_of(prob, rows):
 
 
 def test_subset_phase_reaches_the_full_data_optimum(pinhole_fit):
-    from calibration.fit.generic import observations
-    from calibration.fit.sgcc_init import initial_state
-    from calibration.fit.sgcc_lm import LMOptions, run_lm
+    from calibration.fit.observations import observations
+    from calibration.fit.sgcc.initial import initial_state
+    from calibration.fit.sgcc.lm import run_lm
+    from calibration.fit.sgcc.state import LMOptions
     from calibration.models.bspline import SplineGrid
 
     _, maps, _ = pinhole_fit

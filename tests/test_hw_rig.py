@@ -17,6 +17,7 @@ from acquisition.rig import (
     parse_rig_config,
 )
 from api.cli import main
+from hw_mocks.rig import open_simulated_rig
 from tests.test_hw_opencv import write_sequence
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "rigs"
@@ -69,7 +70,7 @@ def test_open_hardware_rig_from_toml(tmp_path: Path, fb_path: Path) -> None:
     seq = write_sequence(tmp_path / "rec", frames)
     cfg_file = tmp_path / "rig.toml"
     cfg_file.write_text(_hardware_toml(fb_path, seq))
-    rig = open_rig(load_rig_config(cfg_file))
+    rig = open_rig(load_rig_config(cfg_file), simulator=open_simulated_rig)
     try:
         assert (rig.screen.width_px, rig.screen.height_px) == (32, 24)
         assert rig.screen.pitch_mm == (0.25, 0.26)
@@ -129,7 +130,7 @@ def test_failed_open_closes_what_was_opened(tmp_path: Path, fb_path: Path) -> No
     cfg = tmp_path / "rig.toml"
     cfg.write_text(_hardware_toml(fb_path, str(tmp_path / "missing.mkv")))
     with pytest.raises(CameraDisconnected, match="does not exist"):
-        open_rig(load_rig_config(cfg))
+        open_rig(load_rig_config(cfg), simulator=open_simulated_rig)
 
 
 def test_screen_size_must_match_the_display(tmp_path: Path, fb_path: Path) -> None:
@@ -138,7 +139,7 @@ def test_screen_size_must_match_the_display(tmp_path: Path, fb_path: Path) -> No
     cfg = tmp_path / "rig.toml"
     cfg.write_text(_hardware_toml(fb_path, seq).replace("[screen]", "[screen]\nwidth_px = 30"))
     with pytest.raises(RigConfigError, match="30x24 px in the config, the display is 32x24"):
-        open_rig(load_rig_config(cfg))
+        open_rig(load_rig_config(cfg), simulator=open_simulated_rig)
 
 
 def test_list_devices_on_a_fake_system(tmp_path: Path, monkeypatch) -> None:
@@ -177,7 +178,9 @@ def test_devices_command_json(capsys, monkeypatch) -> None:
 
 
 def test_simulated_rig_is_the_default() -> None:
-    rig = open_rig(RigConfig())
+    with pytest.raises(RigConfigError, match="no simulator available"):
+        open_rig(RigConfig())  # acquisition never reaches into hw_mocks by itself
+    rig = open_rig(RigConfig(), simulator=open_simulated_rig)
     try:
         assert rig.simulated is not None and rig.camera is rig.simulated.camera
         assert rig.screen == rig.simulated.screen
@@ -188,7 +191,7 @@ def test_simulated_rig_is_the_default() -> None:
                             "camera": {"model": "wide_fisheye", "width": 64, "height": 48},
                             "settings": {"exposure_s": 0.01, "pixel_format": "Mono12",
                                          "trigger_mode": "software"}})
-    rig = open_rig(cfg)
+    rig = open_rig(cfg, simulator=open_simulated_rig)
     try:
         assert (rig.camera.info.width, rig.camera.info.height) == (64, 48)
         assert rig.settings.exposure_s == 0.01

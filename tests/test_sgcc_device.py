@@ -1,4 +1,4 @@
-"""The sGCC device path (sgcc_device.DeviceProblem, run here with NumPy as the array module)
+"""The sGCC device path (`sgcc.device.DeviceProblem`, run here with NumPy as the array module)
 against the threaded CPU path: same residuals, normal equations and fitted spline."""
 
 from __future__ import annotations
@@ -8,11 +8,13 @@ import importlib.util
 import numpy as np
 import pytest
 
-from calibration.fit import generic, sgcc_lm
-from calibration.fit.generic import calibrate_generic, observations
-from calibration.fit.sgcc_device import DeviceProblem
-from calibration.fit.sgcc_init import initial_state
-from calibration.fit.sgcc_lm import _Problem
+from calibration.fit.observations import observations
+from calibration.fit.sgcc import calibrate as generic
+from calibration.fit.sgcc import lm as sgcc_lm
+from calibration.fit.sgcc.calibrate import calibrate_generic
+from calibration.fit.sgcc.device import DeviceProblem
+from calibration.fit.sgcc.initial import initial_state
+from calibration.fit.sgcc.problem import Problem
 from calibration.models.bspline import SplineGrid
 from calibration.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
@@ -44,7 +46,7 @@ def test_device_problem_equals_threaded_problem(maps, n_comp):
     if n_comp == 4:
         st.coeffs[:, 2:] = rng.normal(size=(grid.size, 2)) * 0.5  # non-zero origins, mm
     st.coeffs[: 4 * grid.n_ctrl[0], 0] += 3.0  # top rows look backwards: ok is False there
-    prob = _Problem(grid, n_comp, obs)
+    prob = Problem(grid, n_comp, obs)
     res, ok = prob.residuals(st)
     assert 0.2 < ok.mean() < 0.95
     wt = rng.uniform(0.1, 2.0, ok.size) * (rng.uniform(size=ok.size) > 0.2) * ok

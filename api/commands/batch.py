@@ -64,7 +64,8 @@ def _missing_inputs(items: list) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
-    from calibration.worker import TaskContext, make_executor
+    from calibration.progress import TaskContext
+    from calibration.worker import make_executor
     from calibration.worker.dask_batch import run_batch
     from calibration.worker.tasks import write_json_atomic
 

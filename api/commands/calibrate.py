@@ -28,13 +28,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
     from calibration.fit.dispatch import MODEL_NAMES, PARAMETRIC, calibrate
-    from calibration.fit.homography import DegenerateError
+    from calibration.fit.ransac import DegenerateError
     from calibration.maps import load_maps
     from calibration.models.base import save_model
     from calibration.plan import read_plan
 
     if args.model not in MODEL_NAMES:
         raise UserError(f"--model: expected one of {', '.join(MODEL_NAMES)}, got {args.model!r}")
+    if (args.export_opencv or args.export_ros) and args.model not in PARAMETRIC:
+        flag = "--export-opencv" if args.export_opencv else "--export-ros"
+        raise UserError(f"{flag}: a {args.model} model has no OpenCV/ROS form; after fitting, "
+                        "use `phasecal export --format opencv-fit|mrcal|remap` instead")
     plan = read_plan(args.plan)
     maps = [load_maps(m) for m in args.maps]
     options = _parse_options(args.option)

@@ -32,12 +32,13 @@ def _open(spec: str) -> Any:
 
     from acquisition.rig import RigConfig, load_rig_config, open_rig
     from api.cli import UserError
+    from hw_mocks.rig import open_simulated_rig
 
     if spec == "simulated":
-        return open_rig(RigConfig())
+        return open_rig(RigConfig(), simulator=open_simulated_rig)
     if not Path(spec).is_file():
         raise UserError(f"--rig {spec}: no such rig config file (or use 'simulated')")
-    return open_rig(load_rig_config(spec))
+    return open_rig(load_rig_config(spec), simulator=open_simulated_rig)
 
 
 def _gamma(levels: np.ndarray, linear: np.ndarray, top: int) -> float:

@@ -12,6 +12,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="bind address (non-loopback needs a token)")
     p.add_argument("--port", type=int, default=8000, help="TCP port")
     p.add_argument("--rig", default=None, help="'simulated' (default) or a rig .toml/.json file")
+    p.add_argument("--rigs-dir", default=None, help="folder of operator rig files "
+                   "(*.toml/*.json, one rig each, named by file stem; or PHASECAL_RIGS_DIR): the "
+                   "only way besides --rig to use devices or paths GET /devices does not list")
+    p.add_argument("--aravis-address", action="append", default=None, metavar="ADDR",
+                   help="an Aravis camera (address or id) GET /devices lists and REST rigs may "
+                        "use; repeatable (or PHASECAL_ARAVIS_ADDRESSES, comma-separated)")
     p.add_argument("--data-dir", default=None, help="data directory (default ./phasecal-data "
                    "or PHASECAL_DATA_DIR)")
     p.add_argument("--token", default=None, help="API token (or PHASECAL_TOKEN); required for "
@@ -30,7 +36,8 @@ def run(args: argparse.Namespace) -> int:
 
     config = ServiceConfig.from_env(host=args.host, port=args.port, rig=args.rig,
                                     data_dir=args.data_dir, token=args.token,
-                                    executor=args.executor)
+                                    executor=args.executor, rigs_dir=args.rigs_dir,
+                                    aravis_addresses=tuple(args.aravis_address or ()) or None)
     if config.executor is None:  # p99 26 ms vs 295 ms with threads (benchmarks/api.py)
         config = dataclasses.replace(config, executor="processes")
     config.check_security()

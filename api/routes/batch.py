@@ -22,8 +22,8 @@ from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import ModelName, _strict
 from api.services import Services, get_services
 from api.store import new_id
+from calibration.progress import TaskContext
 from calibration.worker.dask_batch import BatchItem, run_batch
-from calibration.worker.executor import TaskContext
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -71,31 +71,42 @@ def create_batch(body: BatchCalibrationCreate, svc: Svc) -> JSONResponse:
         raise Problem(422, "validation-error",
                       f"session_ids x models: {n_items} items, at most {MAX_BATCH_ITEMS}")
     plan: list[tuple[str, str, list[str], ModelSetting]] = []
-    with svc.db.session() as s:
+    cal_ids = [new_id("cal") for _ in range(n_items)]
+    with svc.db.claim_session() as s:
         poses = {sid: _ready_poses(s, sid) for sid in session_ids}
-        job = svc.jobs.create(s, "calibrate", "/calibrations", None, total=n_items)
+        job = svc.jobs.create(s, "calibrate", "/calibrations", None, total=n_items,
+                              claims=tuple(cal_ids))
         for sid in session_ids:
             for setting in body.models:
-                cid = new_id("cal")
+                cid = cal_ids[len(plan)]
                 s.add(CalibrationRecord(id=cid, session_id=sid, model=setting.model,
                                         pose_ids=poses[sid], heldout_pose_ids=[],
                                         options=setting.options, status="queued",
                                         job_id=job.id, exports=[], created_at=time.time()))
                 plan.append((cid, sid, poses[sid], setting))
-    items = [
-        BatchItem(name=cid, plan_path=str(svc.store.dir_for(sid) / "plan.json"),
-                  maps_paths=tuple(str(svc.store.file(p, "maps.npz")) for p in pose_ids),
-                  model=setting.model, out_dir=str(svc.store.dir_for(cid)),
-                  options=dict(setting.options))
-        for cid, sid, pose_ids, setting in plan
-    ]
     cids = [cid for cid, *_ in plan]
 
     def run(ctx: TaskContext) -> dict[str, Any]:
         with svc.db.session() as s:
             for cid in cids:
                 s.get(CalibrationRecord, cid).status = "running"
-        return run_batch(svc.executor, items, ctx)
+        # workers write into the job's staging folder; finished items are moved into place
+        with svc.store.staging(ctx.job_id) as staged:
+            items = [
+                BatchItem(name=cid, plan_path=str(svc.store.dir_for(sid) / "plan.json"),
+                          maps_paths=tuple(str(svc.store.file(p, "maps.npz")) for p in pose_ids),
+                          model=setting.model, out_dir=str(staged / cid),
+                          options=dict(setting.options))
+                for cid, sid, pose_ids, setting in plan
+            ]
+            result = run_batch(svc.executor, items, ctx)
+            for outcome in result.get("items", []):
+                if outcome["status"] == "succeeded":
+                    cid = outcome["name"]
+                    names = ["model.json", "result.json", *outcome["result"].get("exports", [])]
+                    svc.store.commit(staged / cid, names, svc.store.dir_for(cid))
+                outcome.pop("out_dir", None)
+        return result
 
     def ok(s: Any, result: dict[str, Any]) -> None:
         for outcome in result.get("items", []):

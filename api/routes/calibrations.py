@@ -24,7 +24,7 @@ from api.schemas import (
 from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.models.base import CameraModel, load_model
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 from calibration.worker.tasks import calibrate_task
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
@@ -80,7 +80,7 @@ def _check_poses(s: Any, session_id: str, ids: list[str], field: str,
 def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JSONResponse:
     """Calibrate chosen poses (default: every ready pose not held out) with one model (a job)."""
     cid = new_id("cal")
-    with svc.db.session() as s:
+    with svc.db.claim_session() as s:
         get_session(s, session_id)
         if body.pose_ids is None:
             pose_ids = list(s.scalars(
@@ -99,7 +99,8 @@ def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JS
         if overlap:
             raise Problem(422, "validation-error",
                           f"heldout_pose_ids: {sorted(overlap)[0]} is also in pose_ids")
-        job = svc.jobs.create(s, "calibrate", f"/calibrations/{cid}", session_id)
+        job = svc.jobs.create(s, "calibrate", f"/calibrations/{cid}", session_id,
+                              claims=(cid,))
         s.add(CalibrationRecord(id=cid, session_id=session_id, model=body.model,
                                 pose_ids=pose_ids, heldout_pose_ids=body.heldout_pose_ids,
                                 options=body.options, status="queued", job_id=job.id,
@@ -112,10 +113,16 @@ def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JS
     def run(ctx: TaskContext) -> dict[str, Any]:
         with svc.db.session() as s:
             s.get(CalibrationRecord, cid).status = "running"
-        fut = svc.executor.run_task(calibrate_task, plan_path, maps, body.model, str(out_dir),
-                                    job_id=ctx.job_id, on_progress=ctx.progress,
-                                    options=body.options, heldout_paths=heldout or None)
-        return fut.result()
+        with svc.store.staging(ctx.job_id) as staged:
+            fut = svc.executor.run_task(calibrate_task, plan_path, maps, body.model,
+                                        str(staged), job_id=ctx.job_id,
+                                        on_progress=ctx.progress, options=body.options,
+                                        heldout_paths=heldout or None)
+            result = fut.result()
+            ctx.check_cancelled()
+            svc.store.commit(staged, ["model.json", "result.json", *result.get("exports", [])],
+                             out_dir)
+        return result
 
     def ok(s: Any, result: dict[str, Any]) -> None:
         c = s.get(CalibrationRecord, cid)

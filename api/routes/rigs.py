@@ -27,14 +27,17 @@ def _rig_dict(r: RigRecord) -> dict[str, Any]:
 
 
 @router.get("/devices", response_model=list[Device])
-def list_devices() -> list[dict[str, Any]]:
+def list_devices(svc: Svc) -> list[dict[str, Any]]:
     """Displays and cameras available here (simulated, and real backends when present).
 
-    Aravis network discovery broadcasts, so it is never run from here.
+    Aravis network discovery broadcasts, so it is never run from here: the operator's
+    `--aravis-address` cameras are probed instead. Rigs created over REST may name only
+    devices listed here (and recordings inside the data directory).
     """
     from acquisition.discovery import list_devices as discover
 
-    return [dataclasses.asdict(d) for d in discover()]
+    found = discover(aravis_addresses=list(svc.config.aravis_addresses))
+    return [dataclasses.asdict(d) for d in found]
 
 
 @router.get("/rigs", response_model=list[Rig])

@@ -24,7 +24,7 @@ from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.maps import load_maps
 from calibration.plan import Plan, plan_from_dict
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 from calibration.worker.tasks import decode_task
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
@@ -93,17 +93,21 @@ def _new_pose(svc: Services, session_id: str, source: str, kind: str,
               screen_pose: dict[str, Any] | None) -> tuple[str, dict[str, Any]]:
     """Insert a pose and its queued job in one transaction."""
     pid = new_id("pose")
-    with svc.db.session() as s:
+    with svc.db.claim_session() as s:
         get_session(s, session_id)
         index = s.scalar(select(func.count()).where(PoseRecord.session_id == session_id)) or 0
-        job = svc.jobs.create(s, kind, f"/sessions/{session_id}/poses/{pid}", session_id)
+        job = svc.jobs.create(s, kind, f"/sessions/{session_id}/poses/{pid}", session_id,
+                              claims=(pid,))
         s.add(PoseRecord(id=pid, session_id=session_id, index=int(index), source=source,
                          status="pending", job_id=job.id, frames_done=0,
                          screen_pose=screen_pose, created_at=time.time()))
     return pid, svc.jobs.get(job.id) or {}
 
 
-def _pose_hooks(pose_id: str) -> tuple[Any, Any]:
+def _pose_hooks(pose_id: str, frames: Path | None = None) -> tuple[Any, Any]:
+    """Success and failure hooks of a pose's job; `frames`: the capture folder, whose
+    stored frames are the pose's progress when the job stops early."""
+
     def ok(s: Any, result: dict[str, Any]) -> None:
         p = s.get(PoseRecord, pose_id)
         dec = result.get("decode", {})
@@ -121,6 +125,8 @@ def _pose_hooks(pose_id: str) -> tuple[Any, Any]:
         p = s.get(PoseRecord, pose_id)
         p.status = status if status in ("cancelled", "interrupted") else "failed"
         p.error = error
+        if frames is not None:
+            p.frames_done = len(stored_indices(frames))
 
     return ok, fail
 
@@ -132,11 +138,19 @@ def _set_pose_status(svc: Services, pose_id: str, status: str) -> None:
 
 def _decode(svc: Services, ctx: TaskContext, session_dir: Path, frames: Path, pose_dir: Path,
             meta: dict[str, Any], noise: Any) -> dict[str, Any]:
-    """Run the decode task on the executor and wait for it (cancel propagates)."""
-    fut = svc.executor.run_task(decode_task, str(session_dir / "plan.json"), str(frames),
-                                str(pose_dir / "maps.npz"), job_id=ctx.job_id,
-                                on_progress=ctx.progress, noise=noise, meta=meta)
-    return fut.result()
+    """Run the decode task on the executor and wait for it (cancel propagates).
+
+    The worker writes into the job's staging folder; only this server moves the maps into
+    the pose folder, once the task succeeded.
+    """
+    with svc.store.staging(ctx.job_id) as staged:
+        fut = svc.executor.run_task(decode_task, str(session_dir / "plan.json"), str(frames),
+                                    str(staged / "maps.npz"), job_id=ctx.job_id,
+                                    on_progress=ctx.progress, noise=noise, meta=meta)
+        result = fut.result()
+        ctx.check_cancelled()
+        svc.store.commit(staged, ["maps.npz"], pose_dir)
+    return result
 
 
 def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, plan: Plan,
@@ -162,7 +176,7 @@ def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, pl
         dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, noise)
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(frames))}
 
-    ok, fail = _pose_hooks(pose_id)
+    ok, fail = _pose_hooks(pose_id, frames)
     svc.jobs.start(job_id, body, ok, fail)
 
 
@@ -207,7 +221,7 @@ def capture_pose(session_id: str, svc: Svc, body: CaptureRequest | None = None) 
 @router.post("/sessions/{session_id}/poses/{pose_id}/resume", status_code=202, response_model=None)
 def resume_pose(session_id: str, pose_id: str, svc: Svc) -> JSONResponse:
     """Resume an interrupted/cancelled/failed capture at the first missing frame (a new job)."""
-    with svc.db.session() as s:
+    with svc.db.claim_session() as s:  # check + claim cannot race with another resume
         pose = get_pose(s, session_id, pose_id)
         sess = get_session(s, session_id)
         if pose.source != "capture":
@@ -215,7 +229,8 @@ def resume_pose(session_id: str, pose_id: str, svc: Svc) -> JSONResponse:
         if pose.status not in ("interrupted", "cancelled", "failed"):
             raise Problem(409, "conflict", f"pose {pose_id} is {pose.status}; only interrupted, "
                           "cancelled or failed captures can be resumed")
-        job = svc.jobs.create(s, "capture", f"/sessions/{session_id}/poses/{pose_id}", session_id)
+        job = svc.jobs.create(s, "capture", f"/sessions/{session_id}/poses/{pose_id}",
+                              session_id, claims=(pose_id,))
         pose.job_id, pose.status, pose.error = job.id, "pending", None
         rig_id, plan_data, screen_pose = sess.rig_id, sess.plan, pose.screen_pose
     plan = plan_from_dict(plan_data, f"session {session_id} plan")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
 import numpy as np
 
@@ -12,6 +11,7 @@ from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.result import CalibrationResult
 from calibration.maps import DecodedMaps
 from calibration.plan import ScreenGeometry
+from calibration.progress import CancelCheck, Cancelled, ProgressFn
 
 MODEL_NAMES = ("opencv5", "opencv-rational", "fisheye", "raygrid", "sgcc", "sgcc-noncentral")
 PARAMETRIC = ("opencv5", "opencv-rational", "fisheye")
@@ -41,18 +41,23 @@ def _check_inputs(maps: list[DecodedMaps], heldout: list[int]) -> tuple[int, int
 def calibrate(
     maps: list[DecodedMaps], screen: ScreenGeometry, model: str, *,
     options: dict | None = None, heldout: list[int] | None = None,
-    progress: Callable[[int, int, str], None] | None = None,
-    cancelled: Callable[[], bool] | None = None,
+    progress: ProgressFn | None = None,
+    cancelled: CancelCheck | None = None,
 ) -> CalibrationResult:
     """Fit `model` to the poses not in `heldout`; report training and held-out statistics."""
     if model not in MODEL_NAMES:
         raise ValueError(f"model: expected one of {list(MODEL_NAMES)}, got {model!r}")
+    if model == "raygrid":
+        from calibration.fit.raygrid.calibrate import calibrate_raygrid
+
+        return calibrate_raygrid(maps, screen, options=options, heldout=heldout,
+                                 progress=progress, cancelled=cancelled)
     if model not in PARAMETRIC:
-        from calibration.fit.generic import calibrate_generic
+        from calibration.fit.sgcc.calibrate import calibrate_generic
 
         return calibrate_generic(maps, screen, model, options=options, heldout=heldout,
                                  progress=progress, cancelled=cancelled)
-    from calibration.fit.parametric import MIN_POSES, fit_parametric
+    from calibration.fit.classic.parametric import MIN_POSES, fit_parametric
 
     held = list(heldout or [])
     size = _check_inputs(maps, held)
@@ -65,9 +70,7 @@ def calibrate(
 
     def report(i: int, n: int, msg: str) -> None:
         if cancelled is not None and cancelled():
-            from calibration.worker.executor import JobCancelled  # the worker's own signal
-
-            raise JobCancelled(f"{model}: calibration cancelled")
+            raise Cancelled(f"{model}: calibration cancelled")
         if progress is not None:
             progress(i, n + 1, msg)
 

@@ -172,7 +172,7 @@ def monomial_basis() -> np.ndarray:
     """Matrix K (16,16): the 16 basis weights of a cell are K @ (t^l s^k)[l*4+k], l, k < 4.
 
     Why: in this form the products of weights become moments of monomials, which is how
-    the sGCC normal equations are accumulated (see calibration/fit/sgcc_lm.py).
+    the sGCC normal equations are accumulated (see calibration/fit/sgcc/problem.py).
     """
     t = np.linspace(0.0, 1.0, 4)
     w, _ = _basis_1d(t)  # (4 points, 4 weights)

@@ -1,19 +1,5 @@
 """Runs heavy decode/calibration work on an executor: threads by default, Dask when configured."""
 
-from calibration.worker.executor import (
-    Executor,
-    InProcessExecutor,
-    JobCancelled,
-    ProgressCallback,
-    TaskContext,
-    make_executor,
-)
+from calibration.worker.executor import Executor, InProcessExecutor, make_executor
 
-__all__ = [
-    "Executor",
-    "InProcessExecutor",
-    "JobCancelled",
-    "ProgressCallback",
-    "TaskContext",
-    "make_executor",
-]
+__all__ = ["Executor", "InProcessExecutor", "make_executor"]

@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from calibration.worker.executor import Executor, JobCancelled, TaskContext
+from calibration.progress import Cancelled, TaskContext
+from calibration.worker.executor import Executor
 
 BATCH_FORMAT = "phasecal.batch/1"
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -144,7 +145,7 @@ def run_batch(
     """Run every item as a sub-task of job `ctx.job_id`; a JSON-able summary per item.
 
     `task_fn(ctx, plan_path, maps_paths, model, out_dir, options=..., heldout_paths=...)`
-    defaults to `calibration.worker.tasks.calibrate_task`. Raises `JobCancelled` when the
+    defaults to `calibration.worker.tasks.calibrate_task`. Raises `Cancelled` when the
     batch was cancelled (after every running item stopped).
     """
     if not items:
@@ -177,7 +178,7 @@ def run_batch(
             for i in pending.values():
                 executor.cancel(sub_ids[i])
     if cancel_sent:
-        raise JobCancelled(f"batch {ctx.job_id} was cancelled")
+        raise Cancelled(f"batch {ctx.job_id} was cancelled")
     results = [o for o in outcomes if o is not None]
     return {
         "items": results,
@@ -193,7 +194,7 @@ def _outcome(item: BatchItem, fut: Future) -> dict[str, Any]:
     exc = fut.exception()
     if exc is None:
         return {**base, "status": "succeeded", "result": fut.result()}
-    status = "cancelled" if isinstance(exc, JobCancelled) else "failed"
+    status = "cancelled" if isinstance(exc, Cancelled) else "failed"
     msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
     return {**base, "status": status, "error": f"{type(exc).__name__}: {msg}" if msg else
             type(exc).__name__}

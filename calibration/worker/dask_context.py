@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from calibration.worker.executor import TaskContext
+from calibration.progress import TaskContext
 
 PROGRESS_TOPIC = "phasecal-progress"
 

@@ -24,8 +24,8 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
+from calibration.progress import Cancelled, ProgressFn
 from calibration.worker.dask_context import PROGRESS_TOPIC, cancel_event_name, run_in_worker
-from calibration.worker.executor import JobCancelled, ProgressCallback
 
 LOCAL_PREFIX = "local"
 DEFAULT_MAX_ARG_BYTES = 1 << 20
@@ -38,7 +38,7 @@ class WorkerLost(RuntimeError):
 class _Job:
     """Client-side bookkeeping of one submitted job."""
 
-    def __init__(self, job_id: str, on_progress: ProgressCallback | None) -> None:
+    def __init__(self, job_id: str, on_progress: ProgressFn | None) -> None:
         self.job_id = job_id
         self.on_progress = on_progress
         self.started = False
@@ -153,7 +153,7 @@ class DaskExecutor:
         /,
         *args: Any,
         job_id: str,
-        on_progress: ProgressCallback | None = None,
+        on_progress: ProgressFn | None = None,
         **kwargs: Any,
     ) -> Future:
         """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` on a worker."""
@@ -216,7 +216,7 @@ class DaskExecutor:
                 job.future.exception()
             else:
                 self.cancel(job.job_id)
-                _set_exception(job.future, JobCancelled(
+                _set_exception(job.future, Cancelled(
                     f"job {job.job_id}: the executor was shut down while it was active"))
         self._closed = True
         self.client.unsubscribe_topic(PROGRESS_TOPIC)
@@ -292,7 +292,7 @@ class DaskExecutor:
 
         what = f"{name} of job {job_id}" if job_id else name
         if dfut.status == "cancelled":
-            _set_exception(out, JobCancelled(f"{what} was cancelled before it started"))
+            _set_exception(out, Cancelled(f"{what} was cancelled before it started"))
             return
         try:
             exc = dfut.exception()

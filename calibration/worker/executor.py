@@ -16,41 +16,9 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Protocol, runtime_checkable
 
-ProgressCallback = Callable[[int, int, str], None]
+from calibration.progress import ProgressFn, TaskContext
 
 DASK_ENV = "PHASECAL_DASK"
-
-
-class JobCancelled(Exception):
-    """Raised inside a task when its job was cancelled; the job ends as `cancelled`."""
-
-
-class TaskContext:
-    """What a running task sees of its job: report progress, poll for cancellation."""
-
-    def __init__(
-        self,
-        job_id: str,
-        on_progress: ProgressCallback | None = None,
-        cancel_event: threading.Event | None = None,
-    ) -> None:
-        self.job_id = job_id
-        self._on_progress = on_progress
-        self._cancel = cancel_event or threading.Event()
-
-    def progress(self, done: int, total: int, stage: str) -> None:
-        """Report `done` of `total` units in `stage` (forwarded to the job manager)."""
-        if self._on_progress is not None:
-            self._on_progress(int(done), int(total), str(stage))
-
-    def cancelled(self) -> bool:
-        """True once the job was asked to stop; tasks poll this between steps."""
-        return self._cancel.is_set()
-
-    def check_cancelled(self) -> None:
-        """Raise `JobCancelled` if the job was asked to stop."""
-        if self.cancelled():
-            raise JobCancelled(f"job {self.job_id} was cancelled")
 
 
 @runtime_checkable
@@ -65,7 +33,7 @@ class Executor(Protocol):
         /,
         *args: Any,
         job_id: str,
-        on_progress: ProgressCallback | None = None,
+        on_progress: ProgressFn | None = None,
         **kwargs: Any,
     ) -> Future: ...
 
@@ -126,7 +94,7 @@ class InProcessExecutor:
         /,
         *args: Any,
         job_id: str,
-        on_progress: ProgressCallback | None = None,
+        on_progress: ProgressFn | None = None,
         **kwargs: Any,
     ) -> Future:
         """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id`."""
@@ -175,6 +143,8 @@ def _run_remote(task_fn: Callable[..., Any], job_id: str, queue: Any, cancel_eve
 class ProcessExecutor:
     """Runs tasks in worker processes (spawned), so GIL-bound numerics never stall the API.
 
+    Workers and the manager process exit when this process dies (`worker.lifetime`).
+
     Progress comes back through a managed queue drained by one thread; cancel flips a
     managed event the task polls through `TaskContext.cancelled()`.
     """
@@ -182,14 +152,23 @@ class ProcessExecutor:
     def __init__(self, max_workers: int | None = None) -> None:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing.managers import SyncManager
+
+        from calibration.worker.lifetime import die_with_parent, guard_args
 
         ctx = mp.get_context("spawn")
         workers = max_workers or max(1, min(2, os.cpu_count() or 1))
-        self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
-        self._manager = ctx.Manager()
+        guard = guard_args()  # workers and the manager die with this process (kill -9 too)
+        self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                         initializer=die_with_parent, initargs=guard)
+        # Spawn every worker now, from this thread: PDEATHSIG follows the spawning thread,
+        # and a worker spawned lazily by a short-lived job thread would die with it.
+        self._pool._launch_processes()
+        self._manager = SyncManager(ctx=ctx)
+        self._manager.start(die_with_parent, guard)
         self._queue = self._manager.Queue()
         self._flags = _CancelFlags()
-        self._callbacks: dict[str, ProgressCallback] = {}
+        self._callbacks: dict[str, ProgressFn] = {}
         self._lock = threading.Lock()
         self._drain = threading.Thread(target=self._forward, name="phasecal-progress",
                                        daemon=True)
@@ -205,7 +184,7 @@ class ProcessExecutor:
         /,
         *args: Any,
         job_id: str,
-        on_progress: ProgressCallback | None = None,
+        on_progress: ProgressFn | None = None,
         **kwargs: Any,
     ) -> Future:
         """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` in a worker."""

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from calibration.worker.executor import JobCancelled, TaskContext
+from calibration.progress import Cancelled, TaskContext
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:
@@ -157,4 +157,4 @@ def _write_exports(result: Any, out: Path) -> list[str]:
     return written
 
 
-__all__ = ["JobCancelled", "calibrate_task", "decode_task", "write_json_atomic"]
+__all__ = ["Cancelled", "calibrate_task", "decode_task", "write_json_atomic"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError, ransac
 
 
 def _normalizer(p: np.ndarray) -> np.ndarray:
@@ -66,26 +66,8 @@ def ransac_dlt(
     *, iterations: int = 500,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Robust DLT: best 6-point model by inlier count, refit on all inliers; (P, inlier mask)."""
-    n = points.shape[0]
-    if n < 6:
-        raise DegenerateError(f"DLT needs >= 6 points, got {n}")
-    best = np.zeros(n, dtype=bool)
-    for _ in range(iterations):
-        idx = rng.choice(n, 6, replace=False)
-        try:
-            p = dlt_projection(points[idx], pixels[idx])
-        except DegenerateError:
-            continue
-        inl = np.linalg.norm(project_with(p, points) - pixels, axis=1) < threshold_px
-        if inl.sum() > best.sum():
-            best = inl
-    if best.sum() < 6:
-        raise DegenerateError("RANSAC DLT: no consensus set of >= 6 inliers")
-    inl = best
-    for _ in range(10):  # refit on the consensus set until it is stable
-        p = dlt_projection(points[inl], pixels[inl])
-        new = np.linalg.norm(project_with(p, points) - pixels, axis=1) < threshold_px
-        if new.sum() < 6 or np.array_equal(new, inl):
-            break
-        inl = new
-    return p, inl
+    return ransac(
+        points.shape[0], 6, lambda i: dlt_projection(points[i], pixels[i]),
+        lambda p: np.linalg.norm(project_with(p, points) - pixels, axis=1), threshold_px, rng,
+        iterations=iterations, what="DLT",
+    )

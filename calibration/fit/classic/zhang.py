@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 
 
 def _v(h: np.ndarray, i: int, j: int) -> np.ndarray:

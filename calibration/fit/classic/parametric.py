@@ -10,7 +10,7 @@ model and pose parameters, weights from the decoded sigmas).
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -19,9 +19,10 @@ import numpy as np
 
 from calibration.evaluate import pose_residuals, screen_jacobian
 from calibration.fit.correspondences import PointSet, subsample
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 from calibration.fit.result import PoseEstimate
 from calibration.models.parametric import PARAMETRIC_MODELS, PinholeFamily
+from calibration.progress import ProgressFn
 
 DEFAULTS: dict[str, Any] = {
     "max_points_per_pose": 2000,  # OpenCV's dense solver slows down quadratically beyond this
@@ -175,7 +176,7 @@ def _opencv_single_threaded() -> Iterator[None]:
 def fit_parametric(
     points: list[PointSet], image_size: tuple[int, int], model_name: str,
     options: dict[str, Any] | None = None,
-    progress: Callable[[int, int, str], None] | None = None,
+    progress: ProgressFn | None = None,
 ) -> tuple[PinholeFamily, list[PoseEstimate], list[PointSet], dict[str, Any]]:
     """Fit one OpenCV-family model; returns (model, poses, used point sets, fit stats)."""
     if model_name not in PARAMETRIC_MODELS:

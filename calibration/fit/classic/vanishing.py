@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 
 
 def vanishing_points(homography: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

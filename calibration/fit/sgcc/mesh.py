@@ -15,15 +15,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibration.fit.sgcc_init import OpenCVFit, initial_state
-from calibration.fit.sgcc_lm import (
-    LMOptions,
-    PoseObs,
-    _Problem,
-    _sigma_norm,
-    gauge_constraints,
-    run_lm,
-)
+from calibration.fit.observations import PoseObs
+from calibration.fit.sgcc.initial import OpenCVFit, initial_state
+from calibration.fit.sgcc.lm import _sigma_norm, gauge_constraints, run_lm
+from calibration.fit.sgcc.problem import Problem
+from calibration.fit.sgcc.state import LMOptions
 from calibration.models.bspline import SplineGrid
 
 CANDIDATE_CELLS = (10, 14, 20)  # cells along the image's longer side
@@ -73,7 +69,7 @@ def choose_mesh(
             break
         out = run_lm(grid, n_comp, train, initial_state(train, grid, n_comp, cv_fit),
                      replace(lm, subset_pixels=n_train))
-        prob = _Problem(grid, n_comp, val)
+        prob = Problem(grid, n_comp, val)
         res, ok = prob.residuals(out.state)
         s = _sigma_norm(prob, res)
         s = s[ok & (s <= _VALIDATION_CUT)]

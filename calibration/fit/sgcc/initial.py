@@ -7,7 +7,9 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from calibration.fit.sgcc_lm import LMState, PoseObs, gauge_constraints
+from calibration.fit.observations import PoseObs
+from calibration.fit.sgcc.lm import gauge_constraints
+from calibration.fit.sgcc.state import LMState
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import logmap

@@ -5,9 +5,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from calibration.fit.classic.homography import ransac_homography
+from calibration.fit.classic.zhang import pose_from_homography
 from calibration.fit.correspondences import PointSet
-from calibration.fit.homography import DegenerateError, ransac_homography
-from calibration.fit.zhang import pose_from_homography
+from calibration.fit.ransac import DegenerateError
 from calibration.models.base import CameraModel
 
 # Rays within this angle of the optical axis are used (x/z stays well conditioned).

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.fit.homography import DegenerateError
+from calibration.fit.ransac import DegenerateError
 
 _SYM = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 

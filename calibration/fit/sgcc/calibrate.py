@@ -1,19 +1,19 @@
 """Calibrate generic camera models (sgcc, sgcc-noncentral) from decoded maps.
 
 Entry point `calibrate_generic`; `calibration.fit.dispatch` forwards these model names here.
-Options (dict, all optional): `cells` [cu, cv] (default 10x10) or "auto" (`sgcc_mesh`: the
+Options (dict, all optional): `cells` [cu, cv] (default 10x10) or "auto" (`sgcc/mesh.py`: the
 coarsest of 10/14/20 cells along the longer side that fits as well as the best, judged on
 validation points), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
-CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc_device.py`).
+CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`).
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -22,10 +22,12 @@ import numpy as np
 from calibration.decode.arrays import array_module
 from calibration.evaluate import summarize
 from calibration.fit.heldout import split_heldout
+from calibration.fit.observations import PoseObs, observations
 from calibration.fit.result import CalibrationResult, PoseEstimate
-from calibration.fit.sgcc_init import initial_state, opencv_init, pose_from_model
-from calibration.fit.sgcc_lm import LMOptions, LMResult, LMState, PoseObs, run_lm
-from calibration.fit.sgcc_mesh import choose_mesh
+from calibration.fit.sgcc.initial import initial_state, opencv_init, pose_from_model
+from calibration.fit.sgcc.lm import run_lm
+from calibration.fit.sgcc.mesh import choose_mesh
+from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import (
@@ -36,22 +38,12 @@ from calibration.models.sgcc import (
     expmap_jacobian,
 )
 from calibration.plan import ScreenGeometry
+from calibration.progress import CancelCheck, ProgressFn
 
 GENERIC_MODELS = ("sgcc", "sgcc-noncentral")
 _OPTION_KEYS = {"cells", "max_iterations", "huber_k", "cut_sigmas", "smooth", "xp"}
 _FEW_VIEWS = 0.1  # warn when more of the seen pixels than this have fewer than 3 views
 _MESH_HINT_RATIO = 1.1  # noise-floor ratio above which a finer mesh is suggested
-
-
-def observations(maps: Sequence[DecodedMaps], screen: ScreenGeometry) -> list[PoseObs]:
-    """Valid pixels of each pose with screen points and sigmas converted to mm."""
-    pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
-    out = []
-    for m in maps:
-        pix, scr, sig = m.correspondences()
-        ok = np.all(np.isfinite(scr), axis=1) & np.all(np.isfinite(sig) & (sig > 0), axis=1)
-        out.append(PoseObs(pix[ok], scr[ok] * pitch, sig[ok] * pitch))
-    return out
 
 
 def _is_mesh(cells: Any) -> bool:
@@ -167,8 +159,8 @@ def _fit(
     grid: SplineGrid,
     init: LMState,
     lm: LMOptions,
-    progress: Callable[[int, int, str], None] | None,
-    cancelled: Callable[[], bool] | None,
+    progress: ProgressFn | None,
+    cancelled: CancelCheck | None,
 ) -> tuple[SGCCBase, LMResult]:
     """Run LM and wrap the converged spline as a model with its covariance."""
     out = run_lm(grid, cls.n_components, obs, init, lm, progress=progress, cancelled=cancelled)
@@ -250,20 +242,14 @@ def calibrate_generic(
     *,
     options: dict[str, Any] | None = None,
     heldout: Sequence[int] | None = None,
-    progress: Callable[[int, int, str], None] | None = None,
-    cancelled: Callable[[], bool] | None = None,
+    progress: ProgressFn | None = None,
+    cancelled: CancelCheck | None = None,
 ) -> CalibrationResult:
     """Fit an sGCC model to the poses not in `heldout` (indices); held-out poses are validated.
 
     `progress(done, total, message)` is called once per LM iteration; `cancelled()`
-    returning True aborts with the worker's `JobCancelled`.
+    returning True aborts with `calibration.progress.Cancelled`.
     """
-    if model == "raygrid":
-        from calibration.fit.raygrid_fit import calibrate_raygrid
-
-        return calibrate_raygrid(
-            maps, screen, options=options, heldout=heldout, progress=progress, cancelled=cancelled
-        )
     if model not in GENERIC_MODELS:
         raise ValueError(f"model: expected one of {list(GENERIC_MODELS)}, got {model!r}")
     maps, held_maps, held = split_heldout(maps, heldout, "generic")

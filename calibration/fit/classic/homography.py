@@ -4,11 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-_REFITS = 10
-
-
-class DegenerateError(ValueError):
-    """The data cannot determine the estimate (too few points, collinear or rank-deficient)."""
+from calibration.fit.ransac import DegenerateError, ransac
 
 
 def _normalizer(p: np.ndarray) -> np.ndarray:
@@ -62,28 +58,8 @@ def ransac_homography(
     *, iterations: int = 500,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Robust H: best 4-point model by inlier count (dst error < threshold), refit on inliers."""
-    n = src.shape[0]
-    if n < 4:
-        raise DegenerateError(f"homography needs >= 4 points, got {n}")
-    best = np.zeros(n, dtype=bool)
-    for _ in range(iterations):
-        idx = rng.choice(n, 4, replace=False)
-        try:
-            h = fit_homography(src[idx], dst[idx])
-        except DegenerateError:
-            continue
-        err = np.linalg.norm(apply_homography(h, src) - dst, axis=1)
-        inl = err < threshold
-        if inl.sum() > best.sum():
-            best = inl
-    if best.sum() < 4:
-        raise DegenerateError("RANSAC homography: no consensus set of >= 4 inliers")
-    # Refit on the consensus set until it stops growing (minimal samples extrapolate poorly).
-    inl = best
-    for _ in range(_REFITS):
-        h = fit_homography(src[inl], dst[inl])
-        new = np.linalg.norm(apply_homography(h, src) - dst, axis=1) < threshold
-        if new.sum() < 4 or np.array_equal(new, inl):
-            break
-        inl = new
-    return h, inl
+    return ransac(
+        src.shape[0], 4, lambda i: fit_homography(src[i], dst[i]),
+        lambda h: np.linalg.norm(apply_homography(h, src) - dst, axis=1), threshold, rng,
+        iterations=iterations, what="homography",
+    )

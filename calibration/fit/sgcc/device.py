@@ -1,6 +1,6 @@
 """sGCC residuals and normal equations on an array module (NumPy or CuPy): the GPU path.
 
-`_Problem` (sgcc_lm) loops in Python over (pose, cell) groups of a few thousand pixels:
+`Problem` (sgcc/problem.py) loops in Python over (pose, cell) groups of a few thousand pixels:
 right for threaded NumPy, but thousands of tiny kernel launches per iteration on a GPU.
 Here each span of up to `_CHUNK` sorted pixels of one pose is a few whole-array operations.
 Its monomials are the values of a sparse design matrix A (n, S k): row p holds the k
@@ -13,7 +13,7 @@ so with no loop over segments
 The sorted per-pixel inputs stay on the device for the whole fit phase. Per call the host
 sends the cell polynomials, the poses and (normal equations) the weights (N,), and gets back
 the residuals (2,N) and ok mask, or the per-segment moments; the small dense assembly and
-the solves stay on the host (`_Problem.assemble`).
+the solves stay on the host (`Problem.assemble`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from calibration.decode.arrays import to_host
-from calibration.fit.sgcc_lm import LMState, _Problem, pose_terms, ray_terms, spline_terms
+from calibration.fit.sgcc.problem import Problem, pose_terms, ray_terms, spline_terms
+from calibration.fit.sgcc.state import LMState
 
 _CHUNK = 1 << 19  # pixels per span: about 2 KB of device temporaries each (moments)
 
@@ -65,10 +66,10 @@ def _monomials(ps: Any, pt: Any, degree: int) -> Any:
 
 
 class DeviceProblem:
-    """`_Problem`'s residuals and normal equations, same meaning and results, computed with
+    """`Problem`'s residuals and normal equations, same meaning and results, computed with
     array module `xp` (CuPy on a GPU; NumPy works too, single-threaded, for testing)."""
 
-    def __init__(self, prob: _Problem, xp: ModuleType, chunk: int = _CHUNK) -> None:
+    def __init__(self, prob: Problem, xp: ModuleType, chunk: int = _CHUNK) -> None:
         self.prob, self.xp, self.sparse = prob, xp, _sparse(xp)
         self.n_spline, self.inv_sigma, self.unsort = prob.n_spline, prob.inv_sigma, prob.unsort
         seg = prob.segments
@@ -132,7 +133,7 @@ class DeviceProblem:
     def normal_equations(
         self, st: LMState, wt: np.ndarray, spline: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
-        """J^T W J and J^T W e (host) as `_Problem.normal_equations`, weights wt (N,) host."""
+        """J^T W J and J^T W e (host) as `Problem.normal_equations`, weights wt (N,) host."""
         xp, prob = self.xp, self.prob
         c, nt, n_seg = prob.c, len(prob.tri[0]), len(prob.segments.start)
         poly, poses = self._send(st)

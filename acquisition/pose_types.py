@@ -1,0 +1,76 @@
+"""What the acquisition controller takes and returns for one pose: options, per-frame
+timing, recaptures and the pose's result (kept apart so callers need not import the loop)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from acquisition.integrity import IntegrityReport, IntegrityThresholds
+from acquisition.patterns import DisplayResponse
+
+Status = Literal["complete", "cancelled", "failed", "flagged"]
+
+
+@dataclass(frozen=True)
+class ControllerOptions:
+    """How to run a pose; `latency_s` None means measure it first (setup helper)."""
+
+    latency_s: float | None = None
+    average: int = 1  # frames averaged per pattern (float32 mean when > 1)
+    margin_s: float = 1e-3  # timestamp uncertainty allowed on each side of the window
+    trigger_overhead_s: float = 1e-3  # trigger latency + gap between triggered exposures
+    grab_timeout_s: float = 1.0
+    max_attempts: int = 6  # captures tried per pattern before failing
+    max_reconnects: int = 5
+    backoff_s: float = 0.1  # first reconnect delay, doubled each failure
+    response: DisplayResponse | None = None  # gamma pre-compensation for the patterns
+    dither: str | None = "ordered"
+    integrity: bool = True
+    thresholds: IntegrityThresholds = field(default_factory=IntegrityThresholds)
+    rephase_attempts: int = 3  # free-running: stream restarts to put frames in the windows
+
+
+@dataclass(frozen=True)
+class Recapture:
+    """One rejected capture attempt of a plan frame and why."""
+
+    index: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class AcceptedFrame:
+    """Timing of an accepted frame (first one if averaged)."""
+
+    sequence: int
+    timestamp_s: float
+    flip_s: float
+
+
+@dataclass
+class PoseCapture:
+    """Result of one pose: which plan frames were accepted, recaptures, timing, integrity."""
+
+    status: Status
+    reason: str
+    total: int
+    accepted: list[int]
+    frames: dict[int, AcceptedFrame]
+    recaptures: list[Recapture]
+    stale_dropped: int
+    reconnects: int
+    latency_s: float
+    started_s: float
+    finished_s: float
+    integrity: IntegrityReport | None = None
+
+    @property
+    def accepted_count(self) -> int:
+        """Number of plan frames handed to the sink."""
+        return len(self.accepted)
+
+    @property
+    def duration_s(self) -> float:
+        """Clock time the sequence took (virtual or real)."""
+        return self.finished_s - self.started_s

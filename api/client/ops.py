@@ -1,0 +1,263 @@
+"""One description per REST operation (method, path, body), shared by the sync and the async
+client so each resource is written once (`api.client.sync`, `api.client.aio` run them)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+from urllib.parse import quote
+
+from api.client import types as t
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Op(Generic[T]):
+    """A REST call: JSON body or params in, JSON (typed `T`) out."""
+
+    method: str
+    path: str
+    json: Any = None
+    params: dict[str, Any] | None = None
+    ok: tuple[int, ...] = field(default=(200, 201, 202))
+
+
+def ident(value: str | dict[str, Any], key: str = "id") -> str:
+    """An id given as a string or as the resource dict; URL-quoted."""
+    raw = value[key] if isinstance(value, dict) else value
+    return quote(str(raw), safe="")
+
+
+def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in d.items() if v is not None}
+
+
+# -- service, rigs ---------------------------------------------------------------------------
+def health() -> Op[dict[str, Any]]:
+    """Service liveness."""
+    return Op("GET", "/health")
+
+
+def list_devices() -> Op[list[dict[str, Any]]]:
+    """Devices the server can see."""
+    return Op("GET", "/devices")
+
+
+def list_rigs() -> Op[list[t.Rig]]:
+    """All rigs."""
+    return Op("GET", "/rigs")
+
+
+def create_rig(name: str, config: dict[str, Any]) -> Op[t.Rig]:
+    """Register a rig configuration."""
+    return Op("POST", "/rigs", json={"name": name, "config": config})
+
+
+def get_rig(rig: str | t.Rig) -> Op[t.Rig]:
+    """One rig."""
+    return Op("GET", f"/rigs/{ident(rig)}")
+
+
+def move_screen(rig: str | t.Rig, rvec: Sequence[float], tvec_mm: Sequence[float]
+                ) -> Op[dict[str, Any]]:
+    """Move a simulated rig's screen (X_cam = R S + t)."""
+    return Op("PUT", f"/rigs/{ident(rig)}/screen-pose",
+              json={"rvec": list(rvec), "tvec_mm": list(tvec_mm)})
+
+
+def camera_settings(rig: str | t.Rig, **settings: Any) -> Op[dict[str, Any]]:
+    """Read (no arguments) or change exposure_s / gain_db / pixel_format of a rig's camera."""
+    if not settings:
+        return Op("GET", f"/rigs/{ident(rig)}/camera/settings")
+    return Op("PUT", f"/rigs/{ident(rig)}/camera/settings", json=settings)
+
+
+# -- sessions, poses ----------------------------------------------------------------------
+def create_session(name: str = "", rig_id: str | None = None, preset: str | None = None,
+                   plan: dict[str, Any] | None = None) -> Op[t.Session]:
+    """A session on a rig (default: the server's) with a plan or plan preset."""
+    return Op("POST", "/sessions", json=_drop_none(
+        {"name": name, "rig_id": rig_id, "preset": preset, "plan": plan}))
+
+
+def list_sessions(limit: int = 100, offset: int = 0) -> Op[list[t.Session]]:
+    """Sessions, newest first."""
+    return Op("GET", "/sessions", params={"limit": limit, "offset": offset})
+
+
+def get_session(session: str | t.Session) -> Op[t.Session]:
+    """One session."""
+    return Op("GET", f"/sessions/{ident(session)}")
+
+
+def get_plan(session: str | t.Session) -> Op[dict[str, Any]]:
+    """The session's phasecal.plan/1 document."""
+    return Op("GET", f"/sessions/{ident(session)}/plan")
+
+
+def capture_pose(session: str | t.Session, screen_pose: dict[str, Any] | None = None
+                 ) -> Op[t.Job]:
+    """Capture (and decode) one pose; returns the job."""
+    body = {"screen_pose": screen_pose} if screen_pose is not None else {}
+    return Op("POST", f"/sessions/{ident(session)}/poses", json=body)
+
+
+def resume_pose(session: str | t.Session, pose: str | t.Pose) -> Op[t.Job]:
+    """Resume an interrupted or cancelled capture."""
+    return Op("POST", f"/sessions/{ident(session)}/poses/{ident(pose)}/resume", json={})
+
+
+def list_poses(session: str | t.Session) -> Op[list[t.Pose]]:
+    """The session's poses."""
+    return Op("GET", f"/sessions/{ident(session)}/poses")
+
+
+def get_pose(session: str | t.Session, pose: str | t.Pose) -> Op[t.Pose]:
+    """One pose."""
+    return Op("GET", f"/sessions/{ident(session)}/poses/{ident(pose)}")
+
+
+# -- calibrations ---------------------------------------------------------------------------
+def calibrate(session: str | t.Session, model: str, pose_ids: list[str] | None = None,
+              heldout_pose_ids: list[str] | None = None,
+              options: dict[str, Any] | None = None) -> Op[t.Job]:
+    """Start a calibration job of `model` on the session's poses."""
+    body = _drop_none({"model": model, "pose_ids": pose_ids,
+                       "heldout_pose_ids": heldout_pose_ids, "options": options})
+    return Op("POST", f"/sessions/{ident(session)}/calibrations", json=body)
+
+
+def list_calibrations(session_id: str | None = None, limit: int = 100, offset: int = 0
+                      ) -> Op[list[t.Calibration]]:
+    """Calibrations, newest first, optionally of one session."""
+    return Op("GET", "/calibrations",
+              params=_drop_none({"session_id": session_id, "limit": limit, "offset": offset}))
+
+
+def get_calibration(cal: str | t.Calibration) -> Op[t.Calibration]:
+    """One calibration (statistics once it succeeded)."""
+    return Op("GET", f"/calibrations/{ident(cal)}")
+
+
+def project(cal: str | t.Calibration, points: Iterable[Sequence[float]]) -> Op[dict[str, Any]]:
+    """Camera-frame points (mm) -> `{"pixels": ...}` (None rows where unseen)."""
+    return Op("POST", f"/calibrations/{ident(cal)}/project",
+              json={"points": [list(map(float, p)) for p in points]})
+
+
+def unproject(cal: str | t.Calibration, pixels: Iterable[Sequence[float]]) -> Op[dict[str, Any]]:
+    """Pixels -> `{"origins": ..., "directions": ...}`."""
+    return Op("POST", f"/calibrations/{ident(cal)}/unproject",
+              json={"pixels": [list(map(float, p)) for p in pixels]})
+
+
+def undistort_points(cal: str | t.Calibration, pixels: Iterable[Sequence[float]],
+                     pinhole: Sequence[float] | None = None,
+                     rotation: Sequence[float] | None = None,
+                     align_to: str | None = None) -> Op[dict[str, Any]]:
+    """Pixels -> virtual-pinhole pixels `{"pixels": ...}` (docs/exports.md)."""
+    body = _drop_none({"pixels": [list(map(float, p)) for p in pixels],
+                       "pinhole": None if pinhole is None else list(pinhole),
+                       "rotation": None if rotation is None else list(rotation),
+                       "align_to": align_to})
+    return Op("POST", f"/calibrations/{ident(cal)}/undistort-points", json=body)
+
+
+def create_batch(body: dict[str, Any]) -> Op[t.Job]:
+    """Re-calibrate sessions x model settings as one job (docs/scaleout.md)."""
+    return Op("POST", "/batches/calibrations", json=body)
+
+
+# -- jobs ----------------------------------------------------------------------------------
+def get_job(job: str | t.Job) -> Op[t.Job]:
+    """One job's state."""
+    return Op("GET", f"/jobs/{ident(job)}")
+
+
+def list_jobs(status: str | None = None, kind: str | None = None,
+              session_id: str | None = None, limit: int = 50, offset: int = 0
+              ) -> Op[t.JobPage]:
+    """Jobs, newest first, filtered."""
+    return Op("GET", "/jobs", params=_drop_none({"status": status, "kind": kind,
+                                                 "session_id": session_id, "limit": limit,
+                                                 "offset": offset}))
+
+
+def cancel_job(job: str | t.Job) -> Op[t.Job]:
+    """Ask a queued/running job to stop (409 problem if it already ended)."""
+    return Op("POST", f"/jobs/{ident(job)}/cancel", json={})
+
+
+# -- paths of streamed transfers --------------------------------------------------------------
+def file_path(cal: str | t.Calibration, name: str) -> str:
+    """Path of a stored calibration file (model.json, result.json, residuals.png, ...)."""
+    return f"/calibrations/{ident(cal)}/files/{quote(name, safe='')}"
+
+
+def export_request(cal: str | t.Calibration, fmt: str, **params: Any) -> tuple[str, dict]:
+    """(path, params) of `GET /calibrations/{id}/export`."""
+    q = _drop_none({"format": fmt, **params})
+    return f"/calibrations/{ident(cal)}/export", {
+        k: (",".join(map(str, v)) if isinstance(v, list | tuple) else v) for k, v in q.items()}
+
+
+def maps_path(session: str | t.Session, pose: str | t.Pose) -> str:
+    """Path of a pose's decoded maps NPZ."""
+    return f"/sessions/{ident(session)}/poses/{ident(pose)}/maps.npz"
+
+
+def job_events_path(job: str | t.Job) -> str:
+    """Path of a job's server-sent event stream."""
+    return f"/jobs/{ident(job)}/events"
+
+
+def job_id(job: str | t.Job | dict[str, Any]) -> str:
+    """The id of a job given as id or dict."""
+    return str(job["id"] if isinstance(job, dict) else job)
+
+
+# -- multipart uploads from files (streamed: httpx reads open files in chunks) ---------------
+Opener = Callable[[], tuple[list[tuple[str, Any]], list[Any]]]
+
+
+def upload_files(field_name: str, paths: Sequence[str | Path]) -> Opener:
+    """A function opening the files afresh (for each retry): (httpx files, handles to close)."""
+    ps = [Path(p) for p in paths]
+    for p in ps:
+        if not p.is_file():
+            raise FileNotFoundError(f"upload: file not found: {p}")
+
+    def opener() -> tuple[list[tuple[str, Any]], list[Any]]:
+        handles = [p.open("rb") for p in ps]
+        files = [(field_name, (p.name, fh, "application/octet-stream"))
+                 for p, fh in zip(ps, handles, strict=True)]
+        return files, handles
+
+    return opener
+
+
+# -- server-sent events ------------------------------------------------------------------------
+class SSEDecoder:
+    """Feed SSE text lines; complete events come back as (event, data), keepalives as
+    ("keepalive", {}) so a waiting client can check its deadline."""
+
+    def __init__(self) -> None:
+        self.event, self.data = "message", []  # type: tuple[str, list[str]]
+
+    def feed(self, line: str) -> tuple[str, dict[str, Any]] | None:
+        """One line without its newline -> an event when it completes one."""
+        if line.startswith(":"):
+            return ("keepalive", {})
+        if line.startswith("event:"):
+            self.event = line[6:].strip()
+        elif line.startswith("data:"):
+            self.data.append(line[5:].lstrip())
+        elif line == "" and self.data:
+            out = (self.event, json.loads("\n".join(self.data)))
+            self.event, self.data = "message", []
+            return out
+        return None

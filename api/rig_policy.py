@@ -1,0 +1,114 @@
+"""What a rig created over REST may name: listed devices and recordings in the data directory.
+
+A request body must never make the server open or write an arbitrary path (a framebuffer
+"device" that is an ordinary file would be overwritten with pattern pixels). Rigs with
+other devices or paths come only from files the operator gives the server
+(`serve --rig FILE`, `serve --rigs-dir DIR`).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+from api.problems import Problem
+
+OPERATOR_ONLY = "give such a rig in an operator rig file (serve --rig FILE or --rigs-dir DIR)"
+SDL_DRIVER_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+
+
+def listed_devices(dev_root: Path, sysfs_root: Path, aravis_ids: tuple[str, ...]) -> set[str]:
+    """Device ids this machine lists in `GET /devices` that a rig config can name."""
+    from acquisition.discovery import _framebuffers, _v4l2
+
+    found = {d.id for d in _framebuffers(dev_root, sysfs_root / "graphics")}
+    found |= {d.id for d in _v4l2(dev_root, sysfs_root / "video4linux")}
+    return found | set(aravis_ids)
+
+
+def _refuse(field: str, detail: str) -> Problem:
+    return Problem(422, "forbidden-path", f"{field}: {detail}", field=field)
+
+
+def recording_in_data_dir(source: str, data_dir: Path, field: str) -> str:
+    """`source` as an absolute path inside `data_dir` (relative paths are taken from there).
+
+    Refuses `..`, absolute paths outside the data directory and symlinks leading out; an
+    image-sequence pattern (`frame_%04d.png`) is checked for its folder and every file it
+    matches now.
+    """
+    from acquisition.camera.opencv_capture import is_recording
+
+    root = data_dir.resolve()
+    raw = Path(source)
+    if "://" in source:
+        raise _refuse(field, f"{source!r}: URLs (network streams) cannot be named over REST; "
+                      + OPERATOR_ONLY)
+    if ".." in raw.parts:
+        raise _refuse(field, f"{source!r} contains '..'; name a recording inside the data "
+                      "directory")
+    if not is_recording(source):
+        raise _refuse(field, f"{source!r} is neither a device listed by GET /devices nor a "
+                      "recording (.mkv/.avi/.mp4/.mov or a frame_%04d.png pattern); "
+                      + OPERATOR_ONLY)
+    path = raw if raw.is_absolute() else root / raw
+    resolved = path.parent.resolve() / path.name
+    if "%" not in path.name:
+        resolved = path.resolve()
+    if not resolved.is_relative_to(root) or resolved == root:
+        raise _refuse(field, f"{source!r} lies outside the data directory (symlinks are "
+                      f"followed); recordings must be inside it, or {OPERATOR_ONLY}")
+    if "%" in path.name:
+        glob = re.sub(r"%0?\d*d", "*", path.name)
+        for match in resolved.parent.glob(glob):
+            if not match.resolve().is_relative_to(root):
+                raise _refuse(field, f"{match.name} is a symlink leading out of the data "
+                              "directory")
+    return str(resolved)
+
+
+def check_client_rig(config: Any, data_dir: Path, *, dev_root: Path = Path("/dev"),
+                     sysfs_root: Path = Path("/sys/class"),
+                     aravis_ids: tuple[str, ...] = ()) -> Any:
+    """Refuse (422 naming the field) devices and paths a REST client may not name.
+
+    `config` is a validated `acquisition.rig.RigConfig`; the returned copy has recording
+    paths made absolute (inside the data directory).
+    """
+    if config.kind == "simulated":
+        return config
+    listed: set[str] | None = None
+
+    def is_listed(device: str) -> bool:
+        nonlocal listed
+        if listed is None:
+            listed = listed_devices(dev_root, sysfs_root, aravis_ids)
+        return device in listed
+
+    display, camera = config.display, config.camera
+    if display.backend == "framebuffer":
+        if display.sysfs_root is not None:
+            raise _refuse("config.display.sysfs_root", f"a sysfs folder cannot be set over "
+                          f"REST; {OPERATOR_ONLY}")
+        if not is_listed(display.device):
+            raise _refuse("config.display.device", f"{display.device!r} is not a framebuffer "
+                          f"listed by GET /devices; {OPERATOR_ONLY}")
+    elif display.backend == "sdl" and display.video_driver is not None:
+        if not SDL_DRIVER_RE.match(display.video_driver):
+            raise _refuse("config.display.video_driver",
+                          f"{display.video_driver!r} is not an SDL video driver name")
+    if camera.backend == "opencv":
+        src = camera.source
+        device = str(dev_root / f"video{src}") if isinstance(src, int) else src
+        if not is_listed(device):
+            if isinstance(src, int):
+                raise _refuse("config.camera.source", f"camera index {src} ({device}) is not "
+                              "listed by GET /devices")
+            src = recording_in_data_dir(src, data_dir, "config.camera.source")
+            camera = camera.model_copy(update={"source": src})
+    elif camera.backend == "aravis" and not is_listed(camera.device):
+        raise _refuse("config.camera.device", f"{camera.device!r} is not an Aravis device "
+                      "listed by GET /devices (the operator lists addresses with serve "
+                      f"--aravis-address); {OPERATOR_ONLY}")
+    return config.model_copy(update={"camera": camera})

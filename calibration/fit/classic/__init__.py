@@ -1,0 +1,1 @@
+"""Classic parametric models (OpenCV families) and their closed-form estimators."""

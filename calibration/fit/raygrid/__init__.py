@@ -1,0 +1,1 @@
+"""Raygrid fit: per-pixel rays and screen poses jointly (Sturm-Ramalingam)."""

@@ -1,0 +1,310 @@
+"""Levenberg–Marquardt for sGCC ray-field splines and screen poses (PHYSICS.md section 5).
+
+Residual of pixel p in pose j: the model ray, moved into the screen frame
+(o_s = Rc o + tc, r_s = Rc r with Rc = R_j^T, tc = -R_j^T t_j), meets the plane z = 0 at
+Q; e = (Q - S_p) / sigma_p (screen mm over screen mm: a Mahalanobis distance).
+Normal equations: every residual touches the 16 control points of its cell and its pose's
+6 parameters, so they are accumulated per (pose, cell) group from monomial moments with
+small matrix products (see `Problem`; no loop over pixels). Large fits converge on an
+even subset first (`run_lm`). Robustness: Huber weights (k = 3) with a hard cut at
+`cut` sigmas (redescending; pixels beyond it are treated as outliers).
+
+Gauge (explicit, linear constraints kept exact by stepping in their null space):
+- per pixel: r is unit by construction (exp-map coordinates), o_z = 0;
+- rotation of the camera frame: a(c) = b(c) = 0 and db/du(c) = 0 at the sensor center c
+  (the center ray is +z and its u-derivative lies in the x-z plane);
+- translation (non-central only): ox(c) = oy(c) = 0 and dox/du(c) + doy/dv(c) = 0.
+A weak second-difference prior (relative weight `smooth`) defines control points without
+data; where data exist it is negligible, where they do not its large covariance shows it.
+`LMOptions.xp = "cupy"` moves the per-pixel work to a GPU (`calibration/fit/sgcc/device.py`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, null_space
+from scipy.spatial.transform import Rotation
+
+from calibration.decode.arrays import array_module
+from calibration.fit.observations import PoseObs
+from calibration.fit.sgcc.problem import Problem
+from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
+from calibration.models.blas_threads import single_thread_blas
+from calibration.models.bspline import (
+    SplineGrid,
+    second_differences,
+)
+from calibration.progress import CancelCheck, Cancelled, ProgressFn
+
+if TYPE_CHECKING:
+    from calibration.fit.sgcc.device import DeviceProblem
+
+
+_DAMPING_TRIES = 12  # LM damping increases per iteration before giving up
+_GAUSS_NEWTON_BELOW = 1e-6  # Jacobi-scaled damping under which the undamped step goes first
+
+
+def _robust(s: np.ndarray, k: float, cut: float) -> tuple[np.ndarray, np.ndarray]:
+    """Truncated-Huber cost per residual norm s and its IRLS weight."""
+    hub = np.where(s <= k, s * s, 2 * k * s - k * k)
+    cost = np.minimum(hub, 2 * k * cut - k * k)
+    wt = np.where(s <= k, 1.0, k / np.maximum(s, 1e-300)) * (s <= cut)
+    return cost, wt
+
+
+def gauge_constraints(grid: SplineGrid, n_comp: int, n_total: int) -> np.ndarray:
+    """Rows of the linear gauge constraints (see module docstring) on the parameter vector."""
+    w_img, h_img = grid.image_size
+    cu, cv = (w_img - 1) / 2, (h_img - 1) / 2
+    idx, w, wdu, wdv = grid.basis(np.array([cu]), np.array([cv]), derivatives=True)
+    idx, w, wdu, wdv = idx[0], w[0], wdu[0], wdv[0]
+    rows = []
+
+    def row(comp_weights: list[tuple[int, np.ndarray]]) -> np.ndarray:
+        r = np.zeros(n_total)
+        for comp, weights in comp_weights:
+            r[idx * n_comp + comp] += weights
+        return r
+
+    rows += [row([(0, w)]), row([(1, w)]), row([(1, wdu)])]
+    if n_comp == 4:
+        rows += [row([(2, w)]), row([(3, w)]), row([(2, wdu), (3, wdv)])]
+    return np.array(rows)
+
+
+def _apply_pose_step(st: LMState, dp: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Poses after the left-multiplied update exp(omega), + dt."""
+    rcs, tcs = [], []
+    for j, (rc, tc) in enumerate(zip(st.rc, st.tc, strict=True)):
+        om, dt = dp[6 * j : 6 * j + 3], dp[6 * j + 3 : 6 * j + 6]
+        rot = Rotation.from_rotvec(om).as_matrix()
+        rcs.append(rot @ rc)
+        tcs.append(rot @ tc + dt)
+    return rcs, tcs
+
+
+@dataclass
+class _Loop:
+    """LM state carried across iterations and phases."""
+
+    state: LMState
+    z: np.ndarray  # free directions (gauge null space or poses only)
+    prior_base: np.ndarray
+    mu: float = 1e-3
+    it: int = 0
+    history: list[float] = field(default_factory=list)
+    converged: bool = False
+    cut: float = np.inf
+    lam_prior: float = 0.0
+    res: np.ndarray | None = None  # residuals (2,N) and ok mask of `state`
+    ok: np.ndarray | None = None
+    hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
+
+
+def _make_problem(
+    grid: SplineGrid, n_comp: int, obs: list[PoseObs], xp: str
+) -> Problem | DeviceProblem:
+    """The fit's per-pixel problem: threaded NumPy ("numpy") or `DeviceProblem` on the array
+    module named by xp ("cupy"; `array_module` says clearly when it is missing)."""
+    prob = Problem(grid, n_comp, obs)
+    if xp == "numpy":
+        return prob
+    from calibration.fit.sgcc.device import DeviceProblem  # it imports this module
+
+    return DeviceProblem(prob, array_module(xp))
+
+
+def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
+    """Every k-th point of each pose (about `target` in all), or None when not worth it."""
+    k = sum(len(o.pixels) for o in obs) // max(target, 1)
+    if k < 4:
+        return None
+    return [PoseObs(o.pixels[::k], o.screen_mm[::k], o.sigma_mm[::k]) for o in obs]
+
+
+def _sigma_norm(prob: Problem | DeviceProblem, res: np.ndarray) -> np.ndarray:
+    """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas)."""
+    r0, r1 = res[0] * prob.inv_sigma[0], res[1] * prob.inv_sigma[1]
+    return np.sqrt(r0 * r0 + r1 * r1)
+
+
+def _cost(
+    prob: Problem | DeviceProblem,
+    res: np.ndarray,
+    ok: np.ndarray,
+    x: np.ndarray,
+    lp: _Loop,
+    k: float,
+) -> float:
+    """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
+    cost, _ = _robust(_sigma_norm(prob, res), k, lp.cut)
+    cost = np.where(ok, cost, 2 * k * lp.cut)
+    return float(cost.sum() + lp.lam_prior * x @ lp.prior_base @ x)
+
+
+def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
+    """(mu, Cholesky factor of hs + mu I) to try in turn: first the undamped Gauss-Newton
+    system once damping has fallen below `_GAUSS_NEWTON_BELOW` (the quadratic model has
+    proven good: weak modes then converge in one step instead of one decade of mu per
+    iteration), then damping growing tenfold. Non-positive-definite systems are skipped."""
+    mus = [0.0] if mu <= _GAUSS_NEWTON_BELOW else []
+    mus += [mu * 10.0**k for k in range(_DAMPING_TRIES)]
+    for m in mus:
+        try:
+            yield m, cho_factor(hs + m * np.eye(len(hs)))
+        except np.linalg.LinAlgError:
+            continue
+
+
+def _iterate(
+    prob: Problem | DeviceProblem,
+    lp: _Loop,
+    options: LMOptions,
+    last_it: int,
+    progress: ProgressFn | None,
+    cancelled: CancelCheck | None,
+) -> None:
+    """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place."""
+    ns = prob.n_spline
+    res, ok = prob.residuals(lp.state)
+    lp.converged = False
+    first = True
+    while lp.it < last_it:
+        lp.it += 1
+        if cancelled is not None and cancelled():
+            raise Cancelled("sgcc: calibration cancelled")
+        st = lp.state
+        s = _sigma_norm(prob, res)
+        med = float(np.median(s[ok])) if ok.any() else 1.0
+        lp.cut = max(options.cut_sigmas, 4.0 * 1.4826 * med)
+        _, wt = _robust(s, options.huber_k, lp.cut)
+        h, grad = prob.normal_equations(st, wt * ok, spline=not options.fix_spline)
+        if first:
+            diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
+            lp.lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
+            first = False
+        x = st.coeffs.ravel()
+        h[:ns, :ns] += lp.lam_prior * lp.prior_base
+        grad[:ns] += lp.lam_prior * lp.prior_base @ x
+        hr = lp.hr = lp.z.T @ h @ lp.z
+        gr = lp.z.T @ grad
+        cost0 = _cost(prob, res, ok, x, lp, options.huber_k)
+        # The covariance is inflated by chi^2/dof when the model misfits; so is the tolerance.
+        chi2_scale = max(1.0, cost0 / max(2 * int(ok.sum()) - len(hr), 1))
+        accepted = False
+        cost1 = cost0
+        jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
+        hs = hr * jac_scale[:, None] * jac_scale[None, :]
+        gs = gr * jac_scale
+        near_optimum = False
+        for mu, factor in _damped_factors(hs, lp.mu):
+            ds = cho_solve(factor, -gs)
+            if mu == 0.0:  # -g^T dx: the chi^2 drop a full Gauss-Newton step predicts
+                near_optimum = float(-gs @ ds) <= options.chi2_tol * chi2_scale
+            step = lp.z @ (jac_scale * ds)
+            rcs, tcs = _apply_pose_step(st, step[ns:])
+            cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs)
+            res1, ok1 = prob.residuals(cand)
+            cost1 = _cost(prob, res1, ok1, cand.coeffs.ravel(), lp, options.huber_k)
+            if cost1 <= cost0:
+                lp.state, res, ok = cand, res1, ok1
+                lp.mu = max((mu or lp.mu) / 10, 1e-15)
+                accepted = True
+                break
+        else:
+            lp.mu *= 10.0**_DAMPING_TRIES
+        lp.history.append(cost1 if accepted else cost0)
+        if progress is not None:
+            msg = f"LM iteration {lp.it}, cost {lp.history[-1]:.6g}"
+            progress(lp.it, options.max_iterations, msg)
+        small = (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300)
+        if not accepted or small or near_optimum:
+            lp.converged = True
+            break
+    lp.res, lp.ok = res, ok
+
+
+def run_lm(
+    grid: SplineGrid,
+    n_comp: int,
+    obs: list[PoseObs],
+    init: LMState,
+    options: LMOptions,
+    *,
+    progress: ProgressFn | None = None,
+    cancelled: CancelCheck | None = None,
+) -> LMResult:
+    """Minimize the robust, uncertainty-weighted screen-plane residual; state and covariance.
+
+    Large problems first converge on an even subset of about `options.subset_pixels`
+    points (cheap iterations, at most half of `max_iterations`); the final iterations,
+    the outlier decisions and the covariance use every point. At convergence the
+    covariance reuses the last iteration's normal equations: exact when its step was
+    rejected, else evaluated one Gauss-Newton step (chi^2 change <= chi2_tol, well inside
+    the uncertainty) before the final state.
+    BLAS runs single-threaded here: the dense solves are small and threads only contend.
+    """
+    with single_thread_blas():
+        return _run(grid, n_comp, obs, init, options, progress, cancelled)
+
+
+def _run(
+    grid: SplineGrid,
+    n_comp: int,
+    obs: list[PoseObs],
+    init: LMState,
+    options: LMOptions,
+    progress: ProgressFn | None,
+    cancelled: CancelCheck | None,
+) -> LMResult:
+    """Body of `run_lm`."""
+    ns = grid.size * n_comp
+    n = ns + 6 * len(obs)
+    if options.fix_spline:
+        z = np.zeros((n, 6 * len(obs)))
+        z[ns:, :] = np.eye(6 * len(obs))
+    else:
+        z = null_space(gauge_constraints(grid, n_comp, n))
+    dmat = second_differences(grid)
+    lp = _Loop(
+        LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc]),
+        z,
+        np.kron(dmat.T @ dmat, np.eye(n_comp)),
+    )
+    sub = _subset(obs, options.subset_pixels)
+    if sub is not None:
+        _iterate(_make_problem(grid, n_comp, sub, options.xp), lp, options,
+                 options.max_iterations // 2, progress, cancelled)
+    prob = _make_problem(grid, n_comp, obs, options.xp)
+    _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
+    st, res, ok = lp.state, lp.res, lp.ok
+    s = _sigma_norm(prob, res)
+    cost_terms, wt = _robust(s, options.huber_k, lp.cut)
+    wt = wt * ok
+    hr = lp.hr
+    if not lp.converged or hr is None:  # the last normal equations are not at `st`
+        h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)
+        h[:ns, :ns] += lp.lam_prior * lp.prior_base
+        hr = z.T @ h @ z
+    dscale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
+    min_eig = float(np.linalg.eigvalsh(hr * dscale[:, None] * dscale[None, :])[0])
+    inl = wt > 0
+    dof = max(2 * int(inl.sum()) - hr.shape[0], 1)
+    chi2_dof = float(np.sum(s[inl] ** 2) / dof)
+    cov = z @ np.linalg.inv(hr) @ z.T * max(1.0, chi2_dof)
+    return LMResult(
+        state=st,
+        iterations=lp.it,
+        converged=lp.converged,
+        cost=float(cost_terms[ok].sum()),
+        covariance=cov,
+        min_eig=min_eig,
+        residuals=prob.unsort(res),
+        inliers=prob.unsort(inl),
+        chi2_dof=chi2_dof,
+        history=lp.history,
+    )

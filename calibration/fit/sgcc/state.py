@@ -1,0 +1,52 @@
+"""State of the sGCC Levenberg-Marquardt fit: options, parameter state, converged result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class LMOptions:
+    """Knobs of the LM loop (all have working defaults)."""
+
+    max_iterations: int = 60
+    huber_k: float = 3.0
+    cut_sigmas: float = 8.0
+    smooth: float = 1e-10
+    rel_tol: float = 1e-10
+    # Converged when the undamped Gauss-Newton step would lower the chi^2 by at most this
+    # (times chi^2/dof where that exceeds 1, as the covariance is): the state is then within
+    # sqrt(chi2_tol) joint standard deviations of the optimum, and the step taken from there
+    # leaves only a second-order remainder.
+    chi2_tol: float = 1.0
+    fix_spline: bool = False
+    subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
+    # Array module of the per-pixel work: "numpy" (threaded CPU) or "cupy" (GPU, sgcc/device.py).
+    xp: str = "numpy"
+
+
+@dataclass
+class LMState:
+    """Spline components (size, C) and camera->screen transforms of each pose."""
+
+    coeffs: np.ndarray
+    rc: list[np.ndarray]  # (3,3) each
+    tc: list[np.ndarray]  # (3,) each
+
+
+@dataclass
+class LMResult:
+    """Converged state plus what the statistics need."""
+
+    state: LMState
+    iterations: int
+    converged: bool
+    cost: float
+    covariance: np.ndarray  # full parameter covariance (spline then poses)
+    min_eig: float  # smallest eigenvalue of the Jacobi-scaled reduced normal equations
+    residuals: list[np.ndarray]  # per pose (N,2) screen mm (Q - S)
+    inliers: list[np.ndarray]  # per pose bool (N,)
+    chi2_dof: float
+    history: list[float] = field(default_factory=list)
