@@ -14,8 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from calibration.fit.classic.parametric import fit_parametric
+from calibration.fit.classic.pnp import estimate_pose
 from calibration.fit.correspondences import PointSet
-from calibration.fit.parametric import fit_parametric
 from calibration.fit.result import PoseEstimate
 from calibration.metrology.lm import DenseFit, fit_dense, flat_equivalent
 from calibration.metrology.screen import ScreenModel
@@ -88,3 +89,20 @@ def fit_parametric_dense(
         "opencv_shift_sigma": dict(zip(names, shift.tolist(), strict=True)),
     })
     return dense.model, dense.poses, flat_equivalent(dense, dense.points), stats, dense
+
+
+def heldout_points(dense: DenseFit, points: list[PointSet], rng: np.random.Generator
+                   ) -> list[PointSet]:
+    """Held-out poses' points moved to where a flat bare screen shows them.
+
+    The correction needs the pose: robust PnP on the raw points first, then the points are
+    corrected with that pose (the correction varies slowly with the pose, so one pass is
+    enough; `heldout_errors` re-estimates the pose from the corrected points).
+    """
+    if dense.screen.mode == "flat":
+        return points
+    poses = []
+    for pts in points:
+        r, t, _ = estimate_pose(dense.model, pts, rng)
+        poses.append(PoseEstimate(r, t))
+    return flat_equivalent(dense, points, poses)
