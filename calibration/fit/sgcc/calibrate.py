@@ -7,9 +7,8 @@ validation points), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
 CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`),
-`family_prior` ("auto", the default for sgcc: where the best dense parametric fit is as good
-as the free spline, refit with the prior centred on it, calibration.metrology.family_prior;
-"off", the default for sgcc-noncentral).
+`family_prior` ("off", default; "auto": where a dense parametric fit is as good as the free
+spline, refit with the prior centred on it, calibration.metrology.family_prior).
 """
 
 from __future__ import annotations
@@ -278,7 +277,7 @@ def calibrate_generic(
     maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
     opts = dict(options or {})
-    prior_mode = opts.pop("family_prior", "auto" if model == "sgcc" else "off")
+    prior_mode = opts.pop("family_prior", "off")
     if prior_mode not in PRIOR_MODES:
         raise ValueError(f"options.family_prior: expected one of {list(PRIOR_MODES)}, "
                          f"got {prior_mode!r}")
