@@ -188,7 +188,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--seeds", type=int, default=6)
-    ap.add_argument("--step", type=int, default=2, help="table 2: every step-th pixel")
+    ap.add_argument("--step", type=int, default=2,
+                    help="table 2 (at twice --width/--height): every step-th pixel")
     ap.add_argument("--tables", type=int, nargs="+", default=[1, 2],
                     help="3: sgcc on identical pixels (at twice --width/--height)")
     args = ap.parse_args()
@@ -196,7 +197,7 @@ def main() -> None:
     if 1 in args.tables:
         table1(args.width, args.height, args.seeds)
     if 2 in args.tables:
-        table2(args.width, args.height, args.step)
+        table2(2 * args.width, 2 * args.height, args.step)
     if 3 in args.tables:
         table3(2 * args.width, 2 * args.height, args.seeds)
 
