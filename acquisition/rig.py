@@ -17,7 +17,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PositiveFloat,
+    ValidationError,
+    model_validator,
+)
 
 from acquisition.clock import Clock, RealClock
 from acquisition.protocols import Camera, CameraSettings, Display
@@ -37,7 +44,7 @@ class _Strict(BaseModel):
 class ScreenConfig(_Strict):
     """The screen's pixel pitch (mm) and, optionally, its size (default: the display's)."""
 
-    pitch_mm: float | tuple[float, float] | None = None
+    pitch_mm: PositiveFloat | tuple[PositiveFloat, PositiveFloat] | None = None
     width_px: int | None = Field(default=None, gt=0)
     height_px: int | None = Field(default=None, gt=0)
 

@@ -5,17 +5,35 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
 
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
 from api.problems import install_handlers
-from api.routes import batch, calibrations, exports, jobs, rigs, sessions
-from api.security import BodyLimitMiddleware, TokenMiddleware
+from api.routes import (
+    batch,
+    calibrations,
+    deletion,
+    exports,
+    guidance,
+    intrinsics,
+    jobs,
+    pose_frames,
+    preview,
+    reports,
+    rigs,
+    sessions,
+)
+from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
+from api.timing import ServerTimingMiddleware
 
+WEB_DIR = Path(__file__).parent / "web"  # the page at `/`: plain HTML/JS/CSS, no build step
 DESCRIPTION = """Camera calibration with an active phase-shift target.
 
 Flow: create a session (rig + plan), capture or import poses (jobs), calibrate chosen
@@ -42,19 +60,43 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
-    for module in (rigs, sessions, calibrations, exports, batch, jobs):
+    for module in (
+        rigs,
+        preview,
+        sessions,
+        pose_frames,
+        guidance,
+        intrinsics,
+        calibrations,
+        reports,
+        exports,
+        batch,
+        jobs,
+        deletion,
+    ):
         app.include_router(module.router)
 
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        """The operator's web page (static; it talks to this API with the same token)."""
+        return FileResponse(WEB_DIR / "index.html", media_type="text/html")
+
+    app.mount("/ui", StaticFiles(directory=WEB_DIR), name="ui")
+
     @app.get("/health", tags=["service"])
-    def health() -> dict[str, Any]:
-        """Liveness: status, data directory and number of active jobs."""
-        return {"status": "ok", "data_dir": str(services.store.root),
-                "active_jobs": len(services.jobs.active_ids())}
+    def health(request: Request) -> dict[str, Any]:
+        """Liveness: status and number of active jobs; the data directory only for clients
+        that sent the API token (or when the server has none)."""
+        body: dict[str, Any] = {"status": "ok", "active_jobs": len(services.jobs.active_ids())}
+        if token_matches(cfg.token, request.headers.get("authorization")):
+            body["data_dir"] = str(services.store.root)
+        return body
 
     app.add_middleware(IdempotencyMiddleware, db_getter=lambda: services.db)
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)
     if cfg.token:
         app.add_middleware(TokenMiddleware, token=cfg.token)
+    app.add_middleware(ServerTimingMiddleware)  # outermost: times everything above
     return app
 
 

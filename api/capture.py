@@ -1,92 +1,120 @@
-"""Capture a pose on a rig into a frames folder (resumable), then decode on the executor.
+"""Capture a pose on a rig into its raw frame store (resumable) while a worker decodes it.
 
-Frames go to `frame_NNNN.png` files (FORMATS.md folder layout), each written
-atomically as it is accepted, so a capture cut off by a restart resumes at the first
-missing frame and the folder can also be decoded by `phasecal decode`.
+Each accepted frame is copied into the pose's `FrameStore` (`frames.npy` + `frames.done`,
+memory-mapped: no encoding or fsync on the capture loop); the decode worker follows the
+store and folds frames in as they arrive, so the pose is ready shortly after its last
+frame. A capture cut off by a cancel, an error or a restart resumes at the missing frames.
+Poses captured by earlier versions as `frames/frame_NNNN.png` are moved into the store
+when resumed.
 """
 
 from __future__ import annotations
 
-import os
 import re
+import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
+from calibration.decode.frame_store import FrameStore
 from calibration.plan import Plan
 from calibration.progress import TaskContext
 
 FRAME_RE = re.compile(r"^frame_(\d{4,6})\.(png|tif|tiff)$")
+LEGACY_FRAMES = "frames"  # folder of PNG frames written before the frame store
 
 
-class PngFrameSink:
-    """A `FrameSink` writing each accepted frame to `frame_NNNN.png` atomically."""
-
-    def __init__(self, folder: Path) -> None:
-        self.folder = folder
-        folder.mkdir(parents=True, exist_ok=True)
-
-    def add(self, index: int, image: np.ndarray) -> None:
-        """Store frame `index` (uint8/uint16, 2-D)."""
-        img = np.asarray(image)
-        if img.dtype not in (np.uint8, np.uint16):
-            raise ValueError(f"frame {index}: expected uint8/uint16 image, got {img.dtype}")
-        ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        if not ok:
-            raise OSError(f"frame {index}: PNG encoding failed")
-        path = self.folder / f"frame_{index:04d}.png"
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            fh.write(buf.tobytes())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-
-
-def stored_indices(folder: Path) -> set[int]:
-    """Plan indices already captured in `folder`."""
+def _legacy_indices(folder: Path) -> set[int]:
     if not folder.is_dir():
         return set()
     return {int(m.group(1)) for p in folder.iterdir() if (m := FRAME_RE.match(p.name))}
 
 
-class _SkipSink:
-    """Forwards frames not yet stored; counts progress over the whole plan."""
+def stored_indices(pose_dir: Path) -> set[int]:
+    """Plan indices already captured for the pose (frame store, or a legacy PNG folder)."""
+    store = FrameStore(pose_dir)
+    if store.exists():
+        return {int(i) for i in store.stored()}
+    return _legacy_indices(pose_dir / LEGACY_FRAMES)
 
-    def __init__(self, sink: PngFrameSink, have: set[int], ctx: TaskContext, total: int) -> None:
-        self.sink, self.have, self.ctx, self.total = sink, set(have), ctx, total
+
+def frames_path(pose_dir: Path) -> Path:
+    """What `decode_task` reads for a captured pose: the store's .npy or a legacy folder."""
+    store = FrameStore(pose_dir)
+    return store.frames_path if store.frames_path.is_file() else pose_dir / LEGACY_FRAMES
+
+
+def _import_legacy(store: FrameStore, pose_dir: Path) -> None:
+    """Move a legacy PNG capture's frames into the store (then drop the PNGs)."""
+    import cv2
+
+    folder = pose_dir / LEGACY_FRAMES
+    for index in sorted(_legacy_indices(folder)):
+        path = next(folder.glob(f"frame_{index:04d}.*"))
+        store.add(index, cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+    store.flush()
+    for p in folder.iterdir():
+        p.unlink()
+    folder.rmdir()
+
+
+class StoreSink:
+    """A `FrameSink`: stores frames not yet stored, reports progress over the whole plan."""
+
+    def __init__(self, store: FrameStore, ctx: TaskContext, total: int,
+                 on_frame: Any = None) -> None:
+        self.store, self.ctx, self.total = store, ctx, total
+        self.have = {int(i) for i in store.stored()}
+        self.on_frame = on_frame
+        self.store_s = 0.0  # time spent storing frames (on the capture thread)
 
     def add(self, index: int, image: np.ndarray) -> None:
         if index not in self.have:
-            self.sink.add(index, image)
+            t0 = time.perf_counter()
+            self.store.add(index, image)
+            self.store_s += time.perf_counter() - t0
             self.have.add(index)
+            if self.on_frame is not None:
+                self.on_frame(self.store, index)
         self.ctx.progress(len(self.have), self.total, "capture")
 
 
-def capture_frames(ctx: TaskContext, rig: Any, plan: Plan, folder: Path) -> dict[str, Any]:
-    """Run the controller for the plan frames missing in `folder`; raise on failure/cancel."""
+def capture_frames(ctx: TaskContext, rig: Any, plan: Plan, pose_dir: Path,
+                   on_frame: Any = None) -> dict[str, Any]:
+    """Run the controller for the plan frames missing from the pose's store; raise on
+    failure/cancel. `on_frame(store, index)` is called after each stored frame."""
     from acquisition.controller import capture_pose
 
-    have = stored_indices(folder)
     total = len(plan.frames)
-    ctx.progress(len(have), total, "capture")
-    missing = [i for i in range(total) if i not in have]
+    store = FrameStore(pose_dir, total)
+    if (pose_dir / LEGACY_FRAMES).is_dir():
+        _import_legacy(store, pose_dir)
+    sink = StoreSink(store, ctx, total, on_frame)
+    have = len(sink.have)
+    ctx.progress(have, total, "capture")
+    missing = [i for i in range(total) if i not in sink.have]
     if not missing:
-        return {"captured": 0, "resumed_from": len(have)}
-    sink = _SkipSink(PngFrameSink(folder), have, ctx, total)
-    result = capture_pose(rig, plan, sink, indices=missing, progress=None,
-                          cancelled=ctx.cancelled)
+        return {"captured": 0, "resumed_from": have}
+    t0 = time.perf_counter()
+    try:
+        result = capture_pose(rig, plan, sink, indices=missing, progress=None,
+                              cancelled=ctx.cancelled)
+    finally:
+        captured_at = time.time()
+        store.close()  # durable at the end of the pose, whatever happened
+    timing = {"capture_s": round(time.perf_counter() - t0, 4), "store_s": round(sink.store_s, 4),
+              "captured_at": captured_at,
+              "recaptures": len(getattr(result, "recaptures", []) or [])}
     ctx.check_cancelled()
     status = getattr(result, "status", "complete")
     if status not in ("complete", "flagged"):
         reason = getattr(result, "reason", "") or status
         raise RuntimeError(f"capture {status}: {reason}")
-    left = [i for i in range(total) if i not in stored_indices(folder)]
+    left = [i for i in range(total) if i not in sink.have]
     if left:
         raise RuntimeError(f"capture ended with {len(left)} plan frames missing (first {left[0]})")
-    out: dict[str, Any] = {"captured": len(missing), "resumed_from": len(have)}
+    out: dict[str, Any] = {"captured": len(missing), "resumed_from": have, **timing}
     if status == "flagged":
         out["flagged"] = getattr(result, "reason", "")
     return out

@@ -14,7 +14,11 @@ import sys
 COMMANDS = [
     "plan",
     "decode",
+    "capture",
     "calibrate",
+    "report",
+    "diff",
+    "intrinsics",
     "project",
     "unproject",
     "serve",

@@ -31,6 +31,8 @@ class ServiceConfig:
         values: dict[str, object] = {}
         if env.get("PHASECAL_DATA_DIR"):
             values["data_dir"] = Path(env["PHASECAL_DATA_DIR"])
+        if env.get("PHASECAL_TOKEN_FILE"):
+            values["token"] = read_token_file(env["PHASECAL_TOKEN_FILE"])
         if env.get("PHASECAL_TOKEN"):
             values["token"] = env["PHASECAL_TOKEN"]
         if env.get("PHASECAL_RIG"):
@@ -71,3 +73,19 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+def read_token_file(path: str | Path) -> str:
+    """The API token from a file (first line, surrounding whitespace dropped).
+
+    A token file or PHASECAL_TOKEN keeps the token out of `ps` (a `--token` argument is
+    visible to every user of the machine).
+    """
+    p = Path(path)
+    try:
+        token = p.read_text(encoding="utf-8").strip().splitlines()
+    except OSError as exc:
+        raise ValueError(f"token file {p}: cannot be read ({exc.strerror})") from None
+    if not token or not token[0].strip():
+        raise ValueError(f"token file {p}: empty")
+    return token[0].strip()

@@ -61,10 +61,44 @@ def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, h
         client = PhasecalClient(url)
         try:
             rows = _drive(client, app, root, poses, width, height, models, preset, seed, out)
+            links = _reports(client, rows)
         finally:
             client.close()
     _print_table(rows, root, out)
+    _print_links(links, root, out)
     return rows
+
+
+SERVE_URL = "http://127.0.0.1:8000"  # `phasecal serve`'s default address
+
+
+def _reports(client: PhasecalClient, rows: list[DemoRow]) -> list[tuple[str, str]]:
+    """Draw each calibration's report (and the diff of the first two) while the service runs,
+    so they are stored in the data folder; returns (label, path) pairs for the summary."""
+    done = [r for r in rows if r.status == "succeeded"]
+    links = []
+    for r in done:
+        client.request("GET", f"/calibrations/{r.calibration_id}/report.html")
+        links.append((f"report {r.model}", f"/calibrations/{r.calibration_id}/report.html"))
+    if len(done) >= 2:
+        a, b = done[0].calibration_id, done[1].calibration_id
+        client.get(f"/calibrations/{a}/diff/{b}")
+        links.append((f"diff {done[0].model} vs {done[1].model}",
+                      f"/calibrations/{a}/diff/{b}/diff.png"))
+    return links
+
+
+def _print_links(links: list[tuple[str, str]], root: Path, out: TextIO) -> None:
+    """Where to look: the web page and the reports, once `phasecal serve` runs on the data."""
+    data = root / "data"
+    lines = [f"\nsee it: phasecal serve --data-dir {data}   then open",
+             f"  web page                       {SERVE_URL}/"]
+    for label, path in links:
+        lines.append(f"  {label:<30} {SERVE_URL}{path}")
+        if path.endswith("report.html"):
+            page = data / "calibrations" / path.split("/")[2] / "report" / "report.html"
+            lines.append(f"  {'':<30} (file: {page})")
+    out.write("\n".join(lines) + "\n")
 
 
 def _drive(client: PhasecalClient, app: Any, root: Path, n_poses: int, width: int, height: int,

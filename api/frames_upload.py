@@ -59,10 +59,16 @@ def store_images(files: list[tuple[str, bytes]], plan: Plan, folder: Path) -> tu
     if missing:
         raise Problem(422, "invalid-frames", f"images: frame {missing[0]} is missing")
     shape: tuple[int, int] | None = None
+    dtype, first = None, ""
     folder.mkdir(parents=True, exist_ok=True)
     for idx in sorted(by_index):
         name, data = by_index[idx]
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if not data:
+            raise Problem(422, "invalid-frames", f"{name}: empty file")
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        except cv2.error:
+            img = None
         if img is None:
             raise Problem(422, "invalid-frames", f"{name}: not a readable PNG/TIFF image")
         if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
@@ -70,10 +76,14 @@ def store_images(files: list[tuple[str, bytes]], plan: Plan, folder: Path) -> tu
                           f"{name}: expected a single-channel 8- or 16-bit image, got "
                           f"{img.dtype} with shape {img.shape}")
         if shape is None:
-            shape = (int(img.shape[0]), int(img.shape[1]))
+            shape, dtype, first = (int(img.shape[0]), int(img.shape[1])), img.dtype, name
         elif img.shape != shape:
             raise Problem(422, "invalid-frames",
-                          f"{name}: shape {img.shape} differs from frame 0 {shape}")
+                          f"{name}: shape {img.shape} differs from {first} {shape}")
+        elif img.dtype != dtype:
+            raise Problem(422, "invalid-frames",
+                          f"{name}: {img.dtype} differs from {first} ({dtype}); one pose has "
+                          "one bit depth")
         ext = ".png" if name.lower().endswith(".png") else ".tif"
         (folder / f"frame_{idx:04d}{ext}").write_bytes(data)
     assert shape is not None

@@ -47,6 +47,7 @@ class _Live:
     stage_done0: int = 0
     persisted_at: float = 0.0
     subscribers: list[asyncio.Queue] = field(default_factory=list)
+    seq: int = 0  # events published so far: the SSE event id (resume with Last-Event-ID)
 
 
 def job_to_dict(rec: JobRecord) -> dict[str, Any]:
@@ -300,12 +301,20 @@ class JobManager:
     def _publish(self, job_id: str, event: str) -> None:
         loop = self._loop
         live = self._live.get(job_id)
+        if live is not None:
+            live.seq += 1
         if loop is None or live is None or not live.subscribers:
             return
         payload = dict(live.record)
         payload["eta_s"] = _eta(live, payload)
+        payload["_seq"] = live.seq
         for q in list(live.subscribers):
             loop.call_soon_threadsafe(_offer, q, (event, payload))
+
+    def event_seq(self, job_id: str) -> int | None:
+        """Events published so far for a live job (None once it is over)."""
+        live = self._live.get(job_id)
+        return None if live is None else live.seq
 
 
 def _offer(q: asyncio.Queue, item: tuple[str, dict[str, Any]]) -> None:

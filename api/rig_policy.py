@@ -68,6 +68,36 @@ def recording_in_data_dir(source: str, data_dir: Path, field: str) -> str:
     return str(resolved)
 
 
+MAX_SIM_PIXELS = 4096 * 4096  # a simulated camera's sensor (times supersample**2 when rendering)
+MAX_SUPERSAMPLE = 8
+MAX_SCREEN_PX = 16384
+
+
+def _check_simulated_size(config: Any) -> None:
+    """Bound what a simulated rig from a request allocates when it renders (memory)."""
+    cam = config.camera.model_dump()
+    values = {"config.camera.width": cam.get("width", 160),
+              "config.camera.height": cam.get("height", 120),
+              "config.camera.supersample": cam.get("supersample", 2),
+              "config.screen.width_px": config.screen.width_px or 1,
+              "config.screen.height_px": config.screen.height_px or 1}
+    for field, v in values.items():
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise Problem(422, "invalid-rig-config", f"{field}: expected a positive integer, "
+                          f"got {v!r}", field=field)
+    w, h = values["config.camera.width"], values["config.camera.height"]
+    s = values["config.camera.supersample"]
+    limits = ((w * h <= MAX_SIM_PIXELS, "config.camera.width",
+               f"{w}x{h} px exceeds {MAX_SIM_PIXELS} pixels"),
+              (s <= MAX_SUPERSAMPLE, "config.camera.supersample", f"{s} exceeds {MAX_SUPERSAMPLE}"),
+              (max(values["config.screen.width_px"], values["config.screen.height_px"])
+               <= MAX_SCREEN_PX, "config.screen.width_px", f"exceeds {MAX_SCREEN_PX} px"))
+    for ok, field, detail in limits:
+        if not ok:
+            raise Problem(422, "invalid-rig-config", f"{field}: {detail} for a simulated rig "
+                          f"created over REST; {OPERATOR_ONLY}", field=field)
+
+
 def check_client_rig(config: Any, data_dir: Path, *, dev_root: Path = Path("/dev"),
                      sysfs_root: Path = Path("/sys/class"),
                      aravis_ids: tuple[str, ...] = ()) -> Any:
@@ -77,6 +107,7 @@ def check_client_rig(config: Any, data_dir: Path, *, dev_root: Path = Path("/dev
     paths made absolute (inside the data directory).
     """
     if config.kind == "simulated":
+        _check_simulated_size(config)
         return config
     listed: set[str] | None = None
 

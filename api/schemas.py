@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 ModelName = Literal["opencv5", "opencv-rational", "fisheye", "raygrid", "sgcc", "sgcc-noncentral"]
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
-JobKind = Literal["capture", "decode", "calibrate"]
+JobKind = Literal["capture", "decode", "calibrate", "intrinsics"]
 MAX_POINTS = 200_000
+MAX_OFFSET = 1_000_000_000  # list offsets (SQLite integers overflow past 2**63)
+# Numbers in request bodies are typed strictly: `false` or "1" is not a number, NaN and
+# infinities are refused (JSON has none, but Python's parser accepts NaN/Infinity).
+Num = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+Coord = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1e9, le=1e9)]
 PoseStatus = Literal[
     "pending", "capturing", "decoding", "ready", "flagged", "failed", "cancelled", "interrupted"
 ]
@@ -94,8 +99,8 @@ class CameraSettingsModel(BaseModel):
     model_config = _strict(
         {"exposure_s": 0.01, "gain_db": 0.0, "pixel_format": "Mono8"}
     )
-    exposure_s: float | None = Field(default=None, gt=0, le=10)
-    gain_db: float | None = Field(default=None, ge=0, le=48)
+    exposure_s: Num | None = Field(default=None, gt=0, le=10)
+    gain_db: Num | None = Field(default=None, ge=0, le=48)
     pixel_format: str | None = Field(default=None, min_length=1, max_length=32)
 
 
@@ -105,8 +110,10 @@ class ScreenPoseIn(BaseModel):
     model_config = _strict(
         {"rvec": [0.1, -0.05, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}
     )
-    rvec: list[float] = Field(min_length=3, max_length=3, description="rotation vector, radians")
-    tvec_mm: list[float] = Field(min_length=3, max_length=3, description="translation, mm")
+    rvec: list[Annotated[Num, Field(ge=-10, le=10)]] = Field(
+        min_length=3, max_length=3, description="rotation vector, radians")
+    tvec_mm: list[Annotated[Num, Field(ge=-1e6, le=1e6)]] = Field(
+        min_length=3, max_length=3, description="translation, mm")
 
 
 class SessionCreate(BaseModel):
@@ -139,6 +146,10 @@ class CaptureRequest(BaseModel):
         {"screen_pose": {"rvec": [0.1, 0.0, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}}
     )
     screen_pose: ScreenPoseIn | None = None
+    noise_dn: float | None = Field(
+        None, gt=0, le=1e4,
+        description="per-frame camera noise sigma in DN; default: estimated from the residuals",
+    )
 
 
 class Pose(BaseModel):
@@ -171,6 +182,19 @@ class CalibrationCreate(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict)
 
 
+class IntrinsicsCreate(BaseModel):
+    """Quick closed-form intrinsics from a session's poses (docs/intrinsics.md)."""
+
+    model_config = _strict({"method": "rectangle", "source": "flats"},
+                           {"method": "rotation", "source": "maps",
+                            "pose_ids": ["pose_0123456789abcdef"]})
+    method: Literal["rectangle", "selfcal", "rotation"]
+    source: Literal["flats", "maps"] = "flats"
+    pose_ids: list[str] | None = Field(default=None, max_length=500)
+    square_pixels: bool = False
+    zero_skew: bool = False
+
+
 class Calibration(BaseModel):
     """A calibration and, once done, its statistics and exports."""
 
@@ -193,7 +217,7 @@ class ProjectRequest(BaseModel):
     model_config = _strict(
         {"points": [[0.0, 0.0, 1000.0], [100.0, 50.0, 800.0]]}
     )
-    points: list[tuple[float, float, float]] = Field(max_length=MAX_POINTS)
+    points: list[tuple[Coord, Coord, Coord]] = Field(max_length=MAX_POINTS)
 
 
 class ProjectResponse(BaseModel):
@@ -208,7 +232,7 @@ class UnprojectRequest(BaseModel):
     model_config = _strict(
         {"pixels": [[320.0, 240.0], [10.5, 20.25]]}
     )
-    pixels: list[tuple[float, float]] = Field(max_length=MAX_POINTS)
+    pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS)
 
 
 class UnprojectResponse(BaseModel):

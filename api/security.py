@@ -5,11 +5,14 @@ from __future__ import annotations
 import hmac
 import json
 from typing import Any
+from urllib.parse import unquote_to_bytes
 
 from api.problems import MEDIA_TYPE, problem_body
 
 Scope = dict[str, Any]
-OPEN_PATHS = ("/health",)
+OPEN_PATHS = ("/health", "/")
+OPEN_PREFIXES = ("/ui/",)  # the web page's static files: they hold no data
+TOKEN_COOKIE = b"phasecal_token"
 
 
 async def send_problem(send: Any, status: int, slug: str, detail: str,
@@ -22,19 +25,44 @@ async def send_problem(send: Any, status: int, slug: str, detail: str,
     await send({"type": "http.response.body", "body": body})
 
 
+def token_matches(token: str | None, authorization: str | None) -> bool:
+    """True if the server has no token, or `authorization` is `Bearer <token>`."""
+    if not token:
+        return True
+    return hmac.compare_digest((authorization or "").encode(), f"Bearer {token}".encode())
+
+
+def _cookie(headers: dict[bytes, bytes], name: bytes) -> bytes:
+    """One cookie's value from the Cookie header (b"" if absent)."""
+    for part in headers.get(b"cookie", b"").split(b";"):
+        key, _, value = part.strip().partition(b"=")
+        if key == name:
+            return value
+    return b""
+
+
 class TokenMiddleware:
-    """Requires `Authorization: Bearer <token>` on every request except /health."""
+    """Requires `Authorization: Bearer <token>` on every request except /health and the web
+    page's static files. GET/HEAD may carry the token in the `phasecal_token` cookie instead
+    (set by the page, SameSite=Strict): images, reports and SSE streams that a browser loads
+    by URL cannot send a header. Anything that changes state needs the header."""
 
     def __init__(self, app: Any, token: str) -> None:
         self.app = app
         self.expected = f"Bearer {token}".encode()
+        self.token = token.encode()
 
     async def __call__(self, scope: Scope, receive: Any, send: Any) -> None:
-        if scope["type"] != "http" or scope["path"] in OPEN_PATHS:
+        path = scope.get("path", "")
+        if scope["type"] != "http" or path in OPEN_PATHS or path.startswith(OPEN_PREFIXES):
             await self.app(scope, receive, send)
             return
-        got = dict(scope.get("headers", [])).get(b"authorization", b"")
-        if not hmac.compare_digest(got, self.expected):
+        headers = dict(scope.get("headers", []))
+        got = headers.get(b"authorization", b"")
+        ok = hmac.compare_digest(got, self.expected)
+        if not ok and scope.get("method") in ("GET", "HEAD"):
+            ok = hmac.compare_digest(unquote_to_bytes(_cookie(headers, TOKEN_COOKIE)), self.token)
+        if not ok:
             await send_problem(send, 401, "unauthorized",
                                "missing or wrong API token: send 'Authorization: Bearer <token>'",
                                [(b"www-authenticate", b"Bearer")])

@@ -10,6 +10,7 @@ from fastapi import Request
 from api.config import ServiceConfig
 from api.db import Database
 from api.jobs import JobManager
+from api.live_preview import LivePreview
 from api.rigs import RigManager
 from api.store import DataStore
 from calibration.worker.executor import Executor, make_executor
@@ -25,6 +26,7 @@ class Services:
     executor: Executor
     jobs: JobManager
     rigs: RigManager
+    preview: LivePreview
 
     @classmethod
     def build(cls, config: ServiceConfig) -> Services:
@@ -35,7 +37,7 @@ class Services:
         jobs = JobManager(db, executor)
         rigs = RigManager(db, config.rig, store.root, config.rigs_dir,
                           tuple(config.aravis_addresses))
-        services = cls(config, store, db, executor, jobs, rigs)
+        services = cls(config, store, db, executor, jobs, rigs, LivePreview())
         services.recover()
         return services
 
@@ -54,7 +56,7 @@ class Services:
         """How many plan frames of a captured pose are stored (what a resume keeps)."""
         from api.capture import stored_indices
 
-        return len(stored_indices(self.store.dir_for(pose_id, create=False) / "frames"))
+        return len(stored_indices(self.store.dir_for(pose_id, create=False)))
 
     def close(self) -> None:
         """Cancel live jobs, stop the executor, close rigs and the database."""

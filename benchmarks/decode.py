@@ -4,11 +4,14 @@ Run: .venv/bin/python benchmarks/decode.py [--xp numpy|cupy] [--repeats N]
 Prints Mpixel-frames/s for the streaming accumulation (`add`), for `finish`, end to end,
 and the ratio to a NumPy sum over the same uint8 bytes measured on this machine; then
 finish alone: Mpixel/s, its share of the pose's decode time and of the capture time.
+Each stage also shows its CPU seconds (all threads): on a shared, loaded machine wall
+times inflate, CPU seconds much less; `uptime`'s load is printed with the table.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -68,22 +71,28 @@ def timed(fn, repeats: int) -> float:
     return best
 
 
+CPU: dict[str, float] = {}  # stage row name -> CPU seconds of its best run
+
+
 def run_numpy(
     plan: Plan, stack: np.ndarray, repeats: int, noise: float | None
-) -> tuple[float, float, float]:
-    """(setup, add, finish) seconds on the CPU; setup allocates the sums before capture."""
+) -> tuple[float, float, float, tuple[float, float, float]]:
+    """(setup, add, finish) best wall seconds and the CPU seconds of the best end-to-end run."""
     setup = add = finish = float("inf")
+    cpu = (0.0, 0.0, 0.0)
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         dec = StreamingDecoder(plan, (H, W), noise=noise)
-        t1 = time.perf_counter()
+        c1, t1 = time.process_time(), time.perf_counter()
         for i in range(stack.shape[0]):
             dec.add(i, stack[i])
-        t2 = time.perf_counter()
+        c2, t2 = time.process_time(), time.perf_counter()
         dec.finish()
-        t3 = time.perf_counter()
+        c3, t3 = time.process_time(), time.perf_counter()
+        if t3 - t0 < setup + add + finish:
+            cpu = (c1 - c0, c2 - c1, c3 - c2)
         setup, add, finish = min(setup, t1 - t0), min(add, t2 - t1), min(finish, t3 - t2)
-    return setup, add, finish
+    return setup, add, finish, cpu
 
 
 def run_cupy(plan: Plan, stack: np.ndarray, repeats: int) -> list[tuple[str, float]]:
@@ -112,10 +121,39 @@ def run_cupy(plan: Plan, stack: np.ndarray, repeats: int) -> list[tuple[str, flo
             ("cupy add, from pinned host", timed(from_host, repeats))]
 
 
+def cli_vs_library(plan: Plan, stack: np.ndarray) -> tuple[float, float]:
+    """Wall seconds of `phasecal decode` (a fresh process: imports, reading, decoding,
+    writing the maps) and of the library reading + decoding the same .npy in this process."""
+    import subprocess
+    import tempfile
+
+    from calibration.decode import read_frames
+    from calibration.plan import write_plan
+
+    with tempfile.TemporaryDirectory(prefix="phasecal-decode-") as tmp:
+        plan_path, frames_path = Path(tmp) / "plan.json", Path(tmp) / "frames.npy"
+        write_plan(plan, plan_path)
+        np.save(frames_path, stack)
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "api.cli", "decode", "--plan", str(plan_path),
+                        "--frames", str(frames_path), "-o", str(Path(tmp) / "maps.npz")],
+                       check=True, cwd=Path(__file__).resolve().parents[1],
+                       stdout=subprocess.DEVNULL)
+        cli = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        source = read_frames(frames_path)
+        dec = StreamingDecoder(plan, source.shape)
+        for i, frame in enumerate(source):
+            dec.add(i, frame)
+        dec.finish()
+        return cli, time.perf_counter() - t0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--xp", default="numpy", choices=["numpy", "cupy"])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--no-cli", action="store_true", help="skip the phasecal decode comparison")
     args = ap.parse_args()
     plan = bench_plan()
     npf = H * W * len(plan.frames) / 1e6  # Mpixel-frames
@@ -134,11 +172,12 @@ def main() -> int:
         if args.xp == "numpy":
             for noise in (1.0, None):
                 tag = f"{clip}, noise {'given' if noise else 'from residuals'}"
-                t_setup, t_add, t_fin = run_numpy(plan, stack, args.repeats, noise)
-                rows.append((f"setup: allocate sums ({tag})", t_setup))
-                rows.append((f"add: streaming accumulation ({tag})", t_add))
-                rows.append((f"finish ({tag})", t_fin))
-                rows.append((f"end to end ({tag})", t_setup + t_add + t_fin))
+                t_setup, t_add, t_fin, cpu = run_numpy(plan, stack, args.repeats, noise)
+                names = [f"setup: allocate sums ({tag})", f"add: streaming accumulation ({tag})",
+                         f"finish ({tag})", f"end to end ({tag})"]
+                rows += list(zip(names, (t_setup, t_add, t_fin, t_setup + t_add + t_fin),
+                                 strict=True))
+                CPU.update(zip(names, (*cpu, sum(cpu)), strict=True))
                 finishes.append((tag, t_fin, t_setup + t_add + t_fin))
         else:
             tag = clip
@@ -146,10 +185,13 @@ def main() -> int:
     floor_rate = npf / floor
     print(f"decode benchmark: {W}x{H}, {len(plan.frames)} uint8 frames "
           f"({npf:.0f} Mpixel-frames), xp={args.xp}")
-    print(f"{'stage':66s} {'seconds':>9s} {'Mpix-frames/s':>14s} {'vs floor':>9s}")
+    print(f"load: {os.getloadavg()[0]:.2f} (1 min) on {os.cpu_count()} CPUs")
+    print(f"{'stage':66s} {'seconds':>9s} {'Mpix-frames/s':>14s} {'vs floor':>9s} "
+          f"{'CPU s':>7s}")
     for name, t in rows:
         rate = npf / t
-        print(f"{name:66s} {t:9.3f} {rate:14.0f} {rate / floor_rate:9.2f}")
+        cpu = f"{CPU[name]:7.3f}" if name in CPU else f"{'':7s}"
+        print(f"{name:66s} {t:9.3f} {rate:14.0f} {rate / floor_rate:9.2f} {cpu}")
     if finishes:
         capture = len(plan.frames) / CAPTURE_HZ
         print(f"\nfinish alone ({H * W / 1e6:.1f} Mpixel pose; capture of {len(plan.frames)} "
@@ -159,6 +201,10 @@ def main() -> int:
         for tag, t_fin, total in finishes:
             print(f"{tag:44s} {t_fin:9.3f} {H * W / 1e6 / t_fin:9.2f} {t_fin / total:10.0%} "
                   f"{t_fin / capture:11.0%}")
+    if args.xp == "numpy" and not args.no_cli:
+        cli, lib = cli_vs_library(plan, make_stack(plan, False))
+        print(f"\nphasecal decode {cli:.2f} s vs library read + decode {lib:.2f} s "
+              f"(noise from residuals): {cli / lib:.2f}x")
     return 0
 
 

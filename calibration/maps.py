@@ -72,36 +72,43 @@ class DecodedMaps:
                 f"{source}: meta.format: expected {MAPS_FORMAT!r}, got {self.meta.get('format')!r}"
             )
 
-    def to_npz_bytes(self) -> bytes:
-        """Serialize to NPZ bytes (FORMATS.md layout)."""
-        buf = io.BytesIO()
+    def _arrays(self) -> dict[str, np.ndarray]:
+        """The NPZ members (FORMATS.md layout); arrays already of the right dtype are not copied."""
         arrays: dict[str, np.ndarray] = {
-            "x": self.x.astype(np.float64),
-            "y": self.y.astype(np.float64),
-            "sigma_x": self.sigma_x.astype(np.float32),
-            "sigma_y": self.sigma_y.astype(np.float32),
-            "mask": self.mask.astype(bool),
-            "modulation_x": self.modulation_x.astype(np.float32),
-            "modulation_y": self.modulation_y.astype(np.float32),
+            "x": np.asarray(self.x, dtype=np.float64),
+            "y": np.asarray(self.y, dtype=np.float64),
+            "sigma_x": np.asarray(self.sigma_x, dtype=np.float32),
+            "sigma_y": np.asarray(self.sigma_y, dtype=np.float32),
+            "mask": np.asarray(self.mask, dtype=bool),
+            "modulation_x": np.asarray(self.modulation_x, dtype=np.float32),
+            "modulation_y": np.asarray(self.modulation_y, dtype=np.float32),
         }
         if self.blur_x is not None:
-            arrays["blur_x"] = self.blur_x.astype(np.float32)
+            arrays["blur_x"] = np.asarray(self.blur_x, dtype=np.float32)
         if self.blur_y is not None:
-            arrays["blur_y"] = self.blur_y.astype(np.float32)
-        meta = {**self.meta, "format": MAPS_FORMAT}
-        arrays["meta"] = np.array(json.dumps(meta))
-        np.savez_compressed(buf, **arrays)
+            arrays["blur_y"] = np.asarray(self.blur_y, dtype=np.float32)
+        arrays["meta"] = np.array(json.dumps({**self.meta, "format": MAPS_FORMAT}))
+        return arrays
+
+    def write_npz(self, fh: Any, compress: bool = False) -> None:
+        """Write the NPZ to an open binary file. Stored (uncompressed) by default: deflate
+        costs seconds on a 5 Mpixel pose for ~2x smaller files; np.load reads either."""
+        (np.savez_compressed if compress else np.savez)(fh, **self._arrays())
+
+    def to_npz_bytes(self, compress: bool = False) -> bytes:
+        """Serialize to NPZ bytes (FORMATS.md layout)."""
+        buf = io.BytesIO()
+        self.write_npz(buf, compress)
         return buf.getvalue()
 
 
-def save_maps(maps: DecodedMaps, path: str | Path) -> None:
+def save_maps(maps: DecodedMaps, path: str | Path, compress: bool = False) -> None:
     """Write maps as NPZ atomically (temp file in the same folder, then rename)."""
     p = Path(path)
-    data = maps.to_npz_bytes()
     fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent or ".")
     try:
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+            maps.write_npz(fh, compress)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, p)

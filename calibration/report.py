@@ -39,10 +39,14 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     """Save a 3-panel PNG of all training-pose residuals (camera px)."""
     if not result.residuals:
         raise ValueError("report: the result holds no residuals to plot")
-    pix = np.concatenate([result.residual_pixels[i] for i in sorted(result.residuals)])
-    res = np.concatenate([result.residuals[i] for i in sorted(result.residuals)])
+    order = sorted(result.residuals)
+    pix = np.concatenate([result.residual_pixels[i] for i in order])
+    res = np.concatenate([result.residuals[i] for i in order])
+    expected_of = {p["pose"]: p.get("expected_rms_px") for p in result.stats.get("per_pose", [])}
+    exp = np.concatenate([np.full(len(result.residuals[i]), expected_of.get(i) or np.nan)
+                          for i in order])
     ok = np.all(np.isfinite(res), axis=1)
-    pix, res = pix[ok], res[ok]
+    pix, res, exp = pix[ok], res[ok], exp[ok]
     mag = np.linalg.norm(res, axis=1)
     w, h = result.model.image_size
     stats = result.stats
@@ -68,8 +72,14 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     rms = np.sqrt(np.bincount(idx, weights=mag**2, minlength=20) / np.maximum(cnt, 1))
     mids = 0.5 * (edges[1:] + edges[:-1])
     ax.plot(mids[cnt > 0], rms[cnt > 0], "o-", label="RMS residual")
-    if stats.get("expected_rms_px"):
-        ax.axhline(stats["expected_rms_px"], color="r", ls="--", label="expected (noise floor)")
+    # Each point's own expected noise (its pose's noise floor), binned like the residuals:
+    # wide-angle edges are expected to be noisier, so one global line would mislead.
+    has = np.isfinite(exp)
+    ecnt = np.bincount(idx[has], minlength=20)
+    erms = np.sqrt(np.bincount(idx[has], weights=exp[has] ** 2, minlength=20)
+                   / np.maximum(ecnt, 1))
+    if has.any():
+        ax.plot(mids[ecnt > 0], erms[ecnt > 0], "r--", label="expected (noise floor)")
     ax.set(xlabel="radius from principal point / image center (px)", ylabel="RMS |residual| (px)",
            title="radial residual profile")
     ax.legend()

@@ -32,7 +32,7 @@ _DISPLAY_KEYS = {"refresh_hz", "latency_periods", "gamma", "bit_depth", "vsync_p
 _OPTICS_KEYS = {"blur_sigma_screen_px", "vignetting", "irradiance_scale", "ambient", "supersample"}
 _SENSOR_KEYS = {"bit_depth", "full_well_e", "read_noise_e", "black_level_dn"}
 _CAMERA_KEYS = {"trigger_modes", "default_frame_rate_hz", "max_frame_rate_hz", "buffer_depth",
-                "timestamp_jitter_s", "trigger_latency_s", "readout_s", "seed"}
+                "timestamp_jitter_s", "trigger_latency_s", "readout_s", "seed", "replay"}
 
 
 class SimulatedRig:

@@ -9,10 +9,12 @@
 #   pyusb: libusb-1.0-0
 #   mrcal export tests (the real mrcal loads and projects .cameramodel files; it runs
 #     under the system Python /usr/bin/python3): python3-mrcal
+#   web page end-to-end test (selenium): chromium chromium-driver
 set -euo pipefail
 packages=(
   gir1.2-aravis-0.8 libaravis-0.8-0 libgirepository1.0-dev libcairo2-dev pkg-config
   gcc python3-dev xvfb libusb-1.0-0 python3-mrcal
+  chromium chromium-driver
 )
 missing=()
 if command -v dpkg-query >/dev/null 2>&1; then
@@ -32,5 +34,8 @@ if [ "$(id -u)" -ne 0 ] || ! command -v apt-get >/dev/null 2>&1; then
 fi
 echo "install-system-deps: installing ${missing[*]}"
 export DEBIAN_FRONTEND=noninteractive
-apt-get update -qq
-apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+# Fresh machines often run unattended upgrades at boot: wait (up to 10 min) for the dpkg
+# and list locks instead of failing at once.
+apt_wait=(-o DPkg::Lock::Timeout=600)
+apt-get "${apt_wait[@]}" update -qq
+apt-get "${apt_wait[@]}" install -y -qq --no-install-recommends "${missing[@]}" >/dev/null

@@ -44,7 +44,7 @@ def test_simultaneous_resumes_start_one_job(tmp_path: Path) -> None:
         final = _wait(c, job["id"], lambda j: j["status"] not in ("queued", "running"))
         assert final["status"] == "cancelled"
         pose = c.get(final["resource"]).json()
-        on_disk = len(stored_indices(data / "poses" / pose["id"] / "frames"))
+        on_disk = len(stored_indices(data / "poses" / pose["id"]))
         assert on_disk >= 3 and pose["frames_done"] == on_disk
 
         barrier = threading.Barrier(3)

@@ -121,3 +121,13 @@ def test_operator_rigs_folder_may_name_any_path(tmp_path) -> None:
         assert listed["bench"]["config"]["display"]["device"] == "/tmp/fb-test"
         r = c.post("/rigs", json={"name": "bench", "config": {"kind": "simulated"}})
         assert r.status_code == 409
+
+
+@pytest.mark.parametrize(("camera", "field"), [
+    ({"width": 100_000, "height": 100_000}, "config.camera.width"),
+    ({"supersample": 64}, "config.camera.supersample"),
+    ({"width": "160"}, "config.camera.width"),
+])
+def test_simulated_rigs_over_rest_are_bounded(app_client, camera, field) -> None:
+    _refused_size = app_client.post("/rigs", json={"name": "huge", "config": {"camera": camera}})
+    assert _refused_size.status_code == 422 and _refused_size.json()["field"] == field

@@ -276,3 +276,27 @@ def test_generic_array_namespace_path_matches_opencv_path(plan):
     np.testing.assert_allclose(got.x[got.mask], ref.x[ref.mask], atol=1e-4)
     np.testing.assert_allclose(got.sigma_x[got.mask], ref.sigma_x[ref.mask], rtol=1e-3)
     check_honest(got, x, y)
+
+
+@pytest.mark.parametrize("noise", [None, 1.5])
+def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
+    """The numba per-pixel finish (large images) equals the array-namespace path."""
+    import calibration.decode.decoder as decoder_module
+
+    stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    ref = decode_stack(plan, stack, noise=noise)
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    got = decode_stack(plan, stack, noise=noise)
+    assert got.meta["pixel_counts"] == ref.meta["pixel_counts"]
+    np.testing.assert_array_equal(got.mask, ref.mask)
+    for key in ("x", "y"):
+        np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=1e-6,
+                                   equal_nan=True)
+    for key in ("sigma_x", "sigma_y", "modulation_x", "modulation_y"):
+        np.testing.assert_allclose(getattr(got, key), getattr(ref, key), rtol=1e-5,
+                                   equal_nan=True)
+    for key in ("blur_x", "blur_y"):
+        np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=5e-3,
+                                   equal_nan=True)
+    check_honest(got, x, y)

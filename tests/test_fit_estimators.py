@@ -8,8 +8,8 @@ import pytest
 from calibration.fit.classic.dlt import decompose_projection, dlt_projection, ransac_dlt
 from calibration.fit.classic.homography import fit_homography
 from calibration.fit.classic.pnp import estimate_pose
+from calibration.fit.classic.rectangle import rectangle_intrinsics, vanishing_points
 from calibration.fit.classic.rotation import interview_homographies, rotation_intrinsics
-from calibration.fit.classic.vanishing import vanishing_intrinsics, vanishing_points
 from calibration.fit.classic.zhang import pose_from_homography, zhang_intrinsics
 from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.ransac import DegenerateError
@@ -30,6 +30,11 @@ def _angle_deg(r1: np.ndarray, r2: np.ndarray) -> float:
 def _ideal() -> PinholeCamera:
     """A distortion-free pinhole (square pixels, offset principal point)."""
     return PinholeCamera(640, 480, fx=520.0, fy=520.0, cx=331.0, cy=233.5)
+
+
+def cam_size(cam: PinholeCamera) -> tuple[int, int]:
+    """(width, height) of a truth camera."""
+    return (cam.width, cam.height)
 
 
 def _homographies(cam, poses, rng, sigma=0.05) -> list[np.ndarray]:
@@ -120,11 +125,13 @@ def test_vanishing_point_intrinsics_six_views() -> None:
     rng = np.random.default_rng(6)
     cam = _ideal()
     hs = _homographies(cam, random_poses(cam, SCREEN, 6, rng), rng)
-    k = vanishing_intrinsics([vanishing_points(h) for h in hs])
-    assert abs(k[0, 0] / cam.fx - 1) < 0.02
-    assert abs(k[0, 2] - cam.cx) < 0.02 * cam.fx and abs(k[1, 2] - cam.cy) < 0.02 * cam.fx
+    for square in (True, False):
+        k = rectangle_intrinsics([vanishing_points(h) for h in hs], cam_size(cam),
+                                 square_pixels=square).k
+        assert abs(k[0, 0] / cam.fx - 1) < 0.02 and abs(k[1, 1] / cam.fy - 1) < 0.02
+        assert abs(k[0, 2] - cam.cx) < 0.02 * cam.fx and abs(k[1, 2] - cam.cy) < 0.02 * cam.fx
     with pytest.raises(DegenerateError, match=">= 4 views"):
-        vanishing_intrinsics([vanishing_points(h) for h in hs[:3]])
+        rectangle_intrinsics([vanishing_points(h) for h in hs[:3]], cam_size(cam))
 
 
 def test_rotation_only_self_calibration() -> None:

@@ -121,6 +121,8 @@ class AsyncPhasecalClient:
     list_poses = _method(ops.list_poses)
     get_pose = _method(ops.get_pose)
     calibrate = _method(ops.calibrate)
+    quick_intrinsics = _method(ops.quick_intrinsics)
+    get_intrinsics = _method(ops.get_intrinsics)
     list_calibrations = _method(ops.list_calibrations)
     get_calibration = _method(ops.get_calibration)
     project = _method(ops.project)

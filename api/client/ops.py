@@ -131,6 +131,20 @@ def calibrate(session: str | t.Session, model: str, pose_ids: list[str] | None =
     return Op("POST", f"/sessions/{ident(session)}/calibrations", json=body)
 
 
+def quick_intrinsics(session: str | t.Session, method: str, source: str = "flats",
+                     pose_ids: list[str] | None = None, square_pixels: bool = False,
+                     zero_skew: bool = False) -> Op[t.Job]:
+    """Start a quick-intrinsics job (rectangle, selfcal, rotation) on white flats or maps."""
+    body = _drop_none({"method": method, "source": source, "pose_ids": pose_ids,
+                       "square_pixels": square_pixels, "zero_skew": zero_skew})
+    return Op("POST", f"/sessions/{ident(session)}/intrinsics", json=body)
+
+
+def get_intrinsics(session: str | t.Session) -> Op[dict[str, Any]]:
+    """The session's latest quick-intrinsics result (phasecal.intrinsics/1)."""
+    return Op("GET", f"/sessions/{ident(session)}/intrinsics")
+
+
 def list_calibrations(session_id: str | None = None, limit: int = 100, offset: int = 0
                       ) -> Op[list[t.Calibration]]:
     """Calibrations, newest first, optionally of one session."""

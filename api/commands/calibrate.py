@@ -27,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from api.cli import UserError
+    from api.progress import progress_bar
     from calibration.fit.dispatch import MODEL_NAMES, PARAMETRIC, calibrate
     from calibration.fit.ransac import DegenerateError
     from calibration.maps import load_maps
@@ -50,8 +51,9 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--max-points: expected >= 50, got {args.max_points}")
         options["max_points_per_pose"] = args.max_points
     try:
-        result = calibrate(maps, plan.screen, args.model, options=options or None,
-                           heldout=args.heldout)
+        with progress_bar(f"calibrate {args.model}") as update:
+            result = calibrate(maps, plan.screen, args.model, options=options or None,
+                               heldout=args.heldout, progress=update)
     except DegenerateError as exc:
         raise UserError(f"calibration failed: {exc}") from None
     save_model(result.model, args.output)

@@ -29,7 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
+    import numpy as np
+
     from api.cli import UserError
+    from api.progress import progress_bar
     from calibration.decode import DecodeOptions, StreamingDecoder, read_frames
     from calibration.maps import save_maps
     from calibration.plan import read_plan
@@ -49,14 +52,15 @@ def run(args: argparse.Namespace) -> int:
     decoder = StreamingDecoder(
         plan, source.shape, noise=args.noise_dn, saturation_dn=args.saturation_dn, options=options
     )
-    for i, frame in enumerate(source):
-        decoder.add(i, frame)
+    with progress_bar("decode") as update:
+        for i, frame in enumerate(source):
+            decoder.add(i, frame)
+            update(i + 1, source.count, "frames")
     maps = decoder.finish({"frames": str(args.frames)})
     save_maps(maps, args.output)
     h, w = maps.shape
     valid = maps.valid_count()
-    sig = maps.sigma_x[maps.mask]
-    med = float(sorted(sig.tolist())[len(sig) // 2]) if valid else float("nan")
+    med = float(np.median(maps.sigma_x[maps.mask])) if valid else float("nan")
     print(
         f"wrote {args.output}: {valid} of {h * w} pixels valid "
         f"({100.0 * valid / (h * w):.1f} %), median sigma_x {med:.3g} px"

@@ -20,8 +20,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "use; repeatable (or PHASECAL_ARAVIS_ADDRESSES, comma-separated)")
     p.add_argument("--data-dir", default=None, help="data directory (default ./phasecal-data "
                    "or PHASECAL_DATA_DIR)")
-    p.add_argument("--token", default=None, help="API token (or PHASECAL_TOKEN); required for "
-                   "non-loopback hosts")
+    p.add_argument("--token", default=None, help="API token (visible in ps: prefer "
+                   "--token-file or PHASECAL_TOKEN); required for non-loopback hosts")
+    p.add_argument("--token-file", default=None, metavar="FILE",
+                   help="read the API token from FILE's first line (or PHASECAL_TOKEN_FILE)")
     p.add_argument("--executor", default=None,
                    help="'processes' (default: local worker processes, so numerics never stall "
                         "the API), 'threads' (in the server process), or a Dask scheduler "
@@ -32,10 +34,11 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from api.app import create_app
-    from api.config import ServiceConfig
+    from api.config import ServiceConfig, read_token_file
 
+    token = read_token_file(args.token_file) if args.token_file else args.token
     config = ServiceConfig.from_env(host=args.host, port=args.port, rig=args.rig,
-                                    data_dir=args.data_dir, token=args.token,
+                                    data_dir=args.data_dir, token=token,
                                     executor=args.executor, rigs_dir=args.rigs_dir,
                                     aravis_addresses=tuple(args.aravis_address or ()) or None)
     if config.executor is None:  # p99 26 ms vs 295 ms with threads (benchmarks/api.py)

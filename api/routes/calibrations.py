@@ -14,6 +14,7 @@ from api.db import CalibrationRecord, PoseRecord
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import (
+    MAX_OFFSET,
     Calibration,
     CalibrationCreate,
     ProjectRequest,
@@ -30,6 +31,7 @@ from calibration.worker.tasks import calibrate_task
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
 
+MIN_POINT_NORM_MM = 1e-6  # closer to the camera centre than this: no direction, a NaN row
 EXPORTS = {
     "model.json": "application/json",
     "result.json": "application/json",
@@ -140,7 +142,8 @@ def create_calibration(session_id: str, body: CalibrationCreate, svc: Svc) -> JS
 @router.get("/calibrations", response_model=list[Calibration])
 def list_calibrations(svc: Svc, session_id: str | None = None,
                       limit: Annotated[int, Query(ge=1, le=500)] = 100,
-                      offset: Annotated[int, Query(ge=0)] = 0) -> list[dict[str, Any]]:
+                      offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+                      ) -> list[dict[str, Any]]:
     """Calibrations, newest first, optionally of one session."""
     with svc.db.session() as s:
         q = select(CalibrationRecord)
@@ -199,7 +202,13 @@ def _listify(a: np.ndarray) -> list[list[float | None]]:
 def project(cal_id: str, body: ProjectRequest, svc: Svc) -> dict[str, Any]:
     """Camera-frame points (mm) -> pixels with the fitted model."""
     pts = _rows(body.points, 3)
-    return {"pixels": _listify(_model(svc, cal_id).project(pts))}
+    model = _model(svc, cal_id)
+    # the camera centre (0,0,0) has no direction: a NaN row (FORMATS.md), not a failed fit
+    seen = np.linalg.norm(pts, axis=1) > MIN_POINT_NORM_MM
+    pixels = np.full((len(pts), 2), np.nan)
+    if seen.any():
+        pixels[seen] = model.project(pts[seen])
+    return {"pixels": _listify(pixels)}
 
 
 @router.post("/calibrations/{cal_id}/unproject", response_model=UnprojectResponse)

@@ -12,7 +12,7 @@ from pydantic import BaseModel, Field
 from api.problems import Problem
 from api.routes.calibrations import _listify, _model, _rows
 from api.routes.common import PROBLEM_RESPONSES
-from api.schemas import MAX_POINTS, _strict
+from api.schemas import MAX_POINTS, Coord, Num, _strict
 from api.services import Services, get_services
 from calibration.formats import (
     FILE_NAMES,
@@ -82,10 +82,10 @@ class UndistortRequest(BaseModel):
     """Model pixels and the virtual pinhole they are mapped to (default: the model's K)."""
 
     model_config = _strict({"pixels": [[320.0, 240.0]], "pinhole": [400.0, 400.0, 320.0, 240.0]})
-    pixels: list[tuple[float, float]] = Field(max_length=MAX_POINTS)
-    pinhole: tuple[float, float, float, float] | None = Field(
+    pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS)
+    pinhole: tuple[Num, Num, Num, Num] | None = Field(
         None, description="FX, FY, CX, CY of the virtual pinhole")
-    rotation: list[float] | None = Field(None, description="3 (Rodrigues) or 9 numbers")
+    rotation: list[Num] | None = Field(None, description="3 (Rodrigues) or 9 numbers")
     align_to: str | None = Field(None, description="calibration id whose frame to use")
 
 

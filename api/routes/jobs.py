@@ -15,7 +15,7 @@ from api.db import TERMINAL_JOB_STATES, JobRecord
 from api.jobs import job_to_dict
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES
-from api.schemas import Job, JobKind, JobPage, JobStatus
+from api.schemas import MAX_OFFSET, Job, JobKind, JobPage, JobStatus
 from api.services import Services, get_services
 from api.store import check_id
 
@@ -36,7 +36,7 @@ def _job(svc: Services, job_id: str) -> dict[str, Any]:
 def list_jobs(svc: Svc, status: JobStatus | None = None, kind: JobKind | None = None,
               session_id: str | None = None,
               limit: Annotated[int, Query(ge=1, le=500)] = 50,
-              offset: Annotated[int, Query(ge=0)] = 0) -> dict[str, Any]:
+              offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> dict[str, Any]:
     """Jobs newest first, filtered by status, kind and session; paginated by limit/offset."""
     conds = []
     if status is not None:
@@ -74,26 +74,42 @@ def cancel_job(job_id: str, svc: Svc) -> dict[str, Any]:
     return svc.jobs.get(job_id) or job
 
 
-def _sse(event: str, data: dict[str, Any]) -> str:
-    return f"event: {event}\ndata: {json.dumps(data)}\n\n"
+def _sse(event: str, data: dict[str, Any], event_id: int | str | None = None) -> str:
+    head = f"id: {event_id}\n" if event_id is not None else ""
+    return f"{head}event: {event}\ndata: {json.dumps(data)}\n\n"
+
+
+def _last_event_id(request: Request) -> int:
+    """The Last-Event-ID a reconnecting client sent (0 if none or not ours)."""
+    raw = request.headers.get("last-event-id", "")
+    return int(raw) if raw.isdigit() else 0
 
 
 @router.get("/jobs/{job_id}/events", response_class=StreamingResponse,
             responses={200: {"content": {"text/event-stream": {}},
                              "description": "progress events until an `end` event"}})
 async def job_events(job_id: str, request: Request) -> StreamingResponse:
-    """Server-sent events: `progress` on every change, then `end` with the final state."""
+    """Server-sent events: `progress` on every change, then `end` with the final state.
+
+    Every event has an `id` (the job's event count; `end` for the last). A client that
+    reconnects with `Last-Event-ID` gets the current state if it changed since that event,
+    then the live events: progress events are snapshots, so nothing is lost by the gap.
+    """
     svc: Services = request.app.state.services
+    seq0 = svc.jobs.event_seq(job_id) or 0  # read first: `first` is at least this new
     first = await asyncio.to_thread(_job, svc, job_id)
     queue = svc.jobs.subscribe(job_id)
+    seen = _last_event_id(request)
 
     async def stream() -> AsyncIterator[str]:
         try:
+            yield "retry: 1000\n\n"
             if queue is None:
                 final = await asyncio.to_thread(_job, svc, job_id)
-                yield _sse("end", final)
+                yield _sse("end", final, "end")
                 return
-            yield _sse("progress", first)
+            if seq0 == 0 or seq0 > seen:
+                yield _sse("progress", first, seq0)
             while True:
                 try:
                     event, data = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
@@ -102,11 +118,14 @@ async def job_events(job_id: str, request: Request) -> StreamingResponse:
                         return
                     yield ": keepalive\n\n"
                     continue
+                seq = data.get("_seq")
+                data = {k: v for k, v in data.items() if k != "_seq"}  # shared by listeners
                 if event == "end":
                     final = await asyncio.to_thread(_job, svc, job_id)
-                    yield _sse("end", final)
+                    yield _sse("end", final, "end")
                     return
-                yield _sse(event, data)
+                if seq is None or seq > seen:
+                    yield _sse(event, data, seq)
         finally:
             if queue is not None:
                 svc.jobs.unsubscribe(job_id, queue)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import shutil
 import time
-import zipfile
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -16,16 +15,17 @@ from sqlalchemy import func, select
 from api.capture import capture_frames, stored_indices
 from api.db import PoseRecord, SessionRecord
 from api.frames_upload import store_images, store_npy
+from api.maps_upload import validated_maps
 from api.previews import PREVIEW_KINDS, preview_png
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session, pose_to_dict
-from api.schemas import CaptureRequest, Pose, Session, SessionCreate
+from api.schemas import MAX_OFFSET, CaptureRequest, Pose, Session, SessionCreate
 from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.maps import load_maps
 from calibration.plan import Plan, plan_from_dict
 from calibration.progress import TaskContext
-from calibration.worker.tasks import decode_task
+from calibration.worker.tasks import decode_task, stream_decode_task
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -67,7 +67,7 @@ def create_session(body: SessionCreate, svc: Svc) -> JSONResponse:
 
 @router.get("/sessions", response_model=list[Session])
 def list_sessions(svc: Svc, limit: Annotated[int, Query(ge=1, le=500)] = 100,
-                  offset: Annotated[int, Query(ge=0)] = 0) -> list[dict[str, Any]]:
+                  offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> list[dict[str, Any]]:
     """Sessions, newest first."""
     with svc.db.session() as s:
         recs = s.scalars(select(SessionRecord).order_by(SessionRecord.created_at.desc())
@@ -95,7 +95,7 @@ def _new_pose(svc: Services, session_id: str, source: str, kind: str,
     pid = new_id("pose")
     with svc.db.claim_session() as s:
         get_session(s, session_id)
-        index = s.scalar(select(func.count()).where(PoseRecord.session_id == session_id)) or 0
+        index = _next_index(s, session_id)
         job = svc.jobs.create(s, kind, f"/sessions/{session_id}/poses/{pid}", session_id,
                               claims=(pid,))
         s.add(PoseRecord(id=pid, session_id=session_id, index=int(index), source=source,
@@ -104,9 +104,15 @@ def _new_pose(svc: Services, session_id: str, source: str, kind: str,
     return pid, svc.jobs.get(job.id) or {}
 
 
+def _next_index(s: Any, session_id: str) -> int:
+    """The next pose index of a session (after the highest: poses can be deleted)."""
+    last = s.scalar(select(func.max(PoseRecord.index)).where(PoseRecord.session_id == session_id))
+    return 0 if last is None else int(last) + 1
+
+
 def _pose_hooks(pose_id: str, frames: Path | None = None) -> tuple[Any, Any]:
-    """Success and failure hooks of a pose's job; `frames`: the capture folder, whose
-    stored frames are the pose's progress when the job stops early."""
+    """Success and failure hooks of a pose's job; `frames`: the pose folder, whose stored
+    frames are the pose's progress when the job stops early."""
 
     def ok(s: Any, result: dict[str, Any]) -> None:
         p = s.get(PoseRecord, pose_id)
@@ -154,29 +160,44 @@ def _decode(svc: Services, ctx: TaskContext, session_dir: Path, frames: Path, po
 
 
 def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, plan: Plan,
-                   screen_pose: dict[str, Any] | None, job_id: str) -> None:
+                   screen_pose: dict[str, Any] | None, job_id: str,
+                   noise_dn: float | None = None) -> None:
+    """Capture into the pose's frame store while a worker decodes the stored frames live."""
     session_dir = svc.store.dir_for(session_id)
     pose_dir = svc.store.dir_for(pose_id)
-    frames = pose_dir / "frames"
 
     def body(ctx: TaskContext) -> dict[str, Any]:
         handle = svc.rigs.handle(rig_id)
         ctx.progress(0, len(plan.frames), "waiting for rig")
-        with handle.lock:
-            ctx.check_cancelled()
-            _set_pose_status(svc, pose_id, "capturing")
-            if screen_pose is not None:
-                _move_screen(handle, screen_pose)
-            cap = capture_frames(ctx, handle.rig, plan, frames)
-        _set_pose_status(svc, pose_id, "decoding")
         meta = {"pose_id": pose_id, "session_id": session_id, "plan_digest": plan.digest(),
                 "camera": _camera_name(handle.rig)}
-        # a simulated rig knows its sensor's noise model (a real one: estimated per pixel)
-        noise = getattr(handle.simulated, "sensor", None)
-        dec = _decode(svc, ctx, session_dir, frames, pose_dir, meta, noise)
-        return {"capture": cap, "decode": dec, "frames": len(stored_indices(frames))}
+        with svc.store.staging(ctx.job_id) as staged:
+            with handle.lock:
+                ctx.check_cancelled()
+                _set_pose_status(svc, pose_id, "capturing")
+                if screen_pose is not None:
+                    _move_screen(handle, screen_pose)
+                # simulated rigs decode like real ones: the noise is the client's noise_dn
+                # or is estimated from the residuals (the simulator's model is ground truth)
+                fut = svc.executor.run_task(
+                    stream_decode_task, str(session_dir / "plan.json"), str(pose_dir),
+                    str(staged / "maps.npz"), job_id=ctx.job_id, on_progress=ctx.progress,
+                    noise=noise_dn, meta=meta)
+                try:
+                    cap = capture_frames(ctx, handle.rig, plan, pose_dir,
+                                         on_frame=svc.preview.publisher(rig_id))
+                except BaseException:
+                    svc.executor.cancel(ctx.job_id)  # the worker stops following the store
+                    raise
+                finally:
+                    svc.preview.capture_ended(rig_id)
+            _set_pose_status(svc, pose_id, "decoding")
+            dec = fut.result()
+            ctx.check_cancelled()
+            svc.store.commit(staged, ["maps.npz"], pose_dir)
+        return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 
-    ok, fail = _pose_hooks(pose_id, frames)
+    ok, fail = _pose_hooks(pose_id, pose_dir)
     svc.jobs.start(job_id, body, ok, fail)
 
 
@@ -214,7 +235,8 @@ def capture_pose(session_id: str, svc: Svc, body: CaptureRequest | None = None) 
                       f"rig {rig_id} is not simulated: screen_pose moves only a simulated screen")
     plan = plan_from_dict(plan_data, f"session {session_id} plan")
     pid, job = _new_pose(svc, session_id, "capture", "capture", screen_pose)
-    _start_capture(svc, session_id, pid, rig_id, plan, screen_pose, job["id"])
+    _start_capture(svc, session_id, pid, rig_id, plan, screen_pose, job["id"],
+                   body.noise_dn if body else None)
     return accepted(job)
 
 
@@ -279,12 +301,11 @@ def import_maps(session_id: str, svc: Svc, file: Annotated[UploadFile, File()]) 
     """Import maps decoded elsewhere (`phasecal decode` NPZ) as a ready pose."""
     with svc.db.session() as s:
         plan = plan_from_dict(get_session(s, session_id).plan, f"session {session_id} plan")
+        size = s.execute(select(PoseRecord.width, PoseRecord.height).where(
+            PoseRecord.session_id == session_id, PoseRecord.width.is_not(None)).limit(1)).first()
     data = file.file.read()
-    try:
-        maps = load_maps(data)
-    except (zipfile.BadZipFile, EOFError, KeyError) as exc:
-        raise Problem(422, "invalid-maps",
-                      f"{file.filename}: not a phasecal.maps/1 NPZ file ({exc})") from None
+    maps = validated_maps(data, file.filename or "maps.npz", plan,
+                          svc.config.max_upload_bytes, tuple(size) if size else None)
     digest = maps.meta.get("plan_digest")
     if digest is not None and digest != plan.digest():
         raise Problem(422, "frames-plan-mismatch",
@@ -295,7 +316,7 @@ def import_maps(session_id: str, svc: Svc, file: Annotated[UploadFile, File()]) 
     h, w = maps.shape
     with svc.db.session() as s:
         get_session(s, session_id)
-        index = s.scalar(select(func.count()).where(PoseRecord.session_id == session_id)) or 0
+        index = _next_index(s, session_id)
         rec = PoseRecord(id=pid, session_id=session_id, index=int(index), source="import",
                          status="ready", job_id=None, valid_pixels=maps.valid_count(), width=w,
                          height=h, frames_done=0, created_at=time.time())

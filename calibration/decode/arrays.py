@@ -29,6 +29,13 @@ def to_host(arr: Any) -> np.ndarray:
     return np.asarray(get() if callable(get) else arr)
 
 
+def chi2_isf(p: float, dof: Any) -> Any:
+    """Chi-square inverse survival function (scipy.special: scipy.stats costs ~1 s to import)."""
+    from scipy.special import gammainccinv
+
+    return 2.0 * gammainccinv(np.asarray(dof, dtype=np.float64) / 2.0, p)
+
+
 def special(xp: ModuleType) -> ModuleType:
     """`cupyx.scipy.special` for CuPy, else `scipy.special` (NumPy-compatible namespaces)."""
     if getattr(xp, "__name__", "") == "cupy":

@@ -17,11 +17,10 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
 from calibration.decode.accumulate import DecodeError, FrameAccumulator
-from calibration.decode.arrays import array_module, to_host
-from calibration.decode.blur import fit_blur
+from calibration.decode.arrays import array_module, chi2_isf, to_host
+from calibration.decode.axes import decode_axes_compiled, decode_axes_xp
 from calibration.decode.noise import (
     LinearVariance,
     NoiseModel,
@@ -32,20 +31,30 @@ from calibration.decode.noise import (
 )
 from calibration.decode.options import DecodeOptions
 from calibration.decode.phase import SetFit, fit_set
-from calibration.decode.unwrap import fuse_axis
-from calibration.decode.validity import REASONS, AxisChecks, classify, mark_screen_edges
+from calibration.decode.validity import REASONS, mark_screen_edges
 from calibration.maps import MAPS_FORMAT, DecodedMaps
 from calibration.plan import Plan
 
-# Periods finer than the coarsest enter the fusion and the blur fit only above this
-# modulation SNR: below it the phase noise is no longer Gaussian (the linearized sigma lies).
-MIN_PERIOD_SNR = 4.0
 # The photon-transfer fit uses only pixels without clipped steps when at least this many exist.
 _MIN_CLEAN_PIXELS = 2000
 # Larger images fit the photon-transfer line on evenly spread pieces of this many pixels,
 # about _NOISE_SAMPLE in all (the fit needs ~1e5 pixels; the rest only costs time).
 _NOISE_PIECE = 1 << 14
 _NOISE_SAMPLE = 1 << 20
+_COMPILED_MIN_PIXELS = 1 << 20
+
+
+def _output_planes(npix: int, axes: list[str]) -> dict[str, np.ndarray]:
+    """(2, npix) output arrays (rows x, y) for the compiled kernel; absent axes stay NaN."""
+    planes = {}
+    for name, dtype in (("position", np.float64), ("sigma", np.float32),
+                        ("modulation", np.float32), ("blur", np.float32)):
+        arr = np.empty((2, npix), dtype=dtype)
+        for row, axis in enumerate(("x", "y")):
+            if axis not in axes:
+                arr[row] = np.nan
+        planes[name] = arr
+    return planes
 
 
 @functools.lru_cache(maxsize=8)
@@ -53,7 +62,7 @@ def _chi2_tail(max_dof: int) -> np.ndarray:
     """Per-dof ratio chi2.isf(1e-6, d)/d for d = 0..max_dof (inf for d = 0)."""
     d = np.arange(max_dof + 1, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = chi2_dist.isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
+        ratio = chi2_isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
     ratio[0] = np.inf
     return ratio
 
@@ -104,6 +113,9 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
+        # Large NumPy images take the compiled per-pixel kernel (importing numba costs ~0.3 s,
+        # more than it saves below ~1 Mpixel); other namespaces (CuPy) the xp path.
+        self._compiled = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
 
     @property
     def missing(self) -> list[int]:
@@ -132,20 +144,26 @@ class StreamingDecoder:
         axes = self.plan.axes()
         # Chunks write every pixel of the plan's axes: no NaN pre-fill there (first-touch
         # page faults of ~300 MB of outputs then happen in the worker threads, in parallel).
-        nan_filled = functools.partial(np.full, fill_value=np.nan)
-        out = {
-            f"{kind}{axis}": (np.empty if axis in axes else nan_filled)(
-                npix, dtype=np.float64 if kind == "" else np.float32
-            )
-            for axis in ("x", "y")
-            for kind in ("", "sigma_", "modulation_", "blur_")
-        }
+        planes = _output_planes(npix, axes) if self._compiled else None
+        if planes is not None:
+            out = {f"{kind}{axis}": planes[kind.rstrip("_") or "position"][row]
+                   for row, axis in enumerate(("x", "y"))
+                   for kind in ("", "sigma_", "modulation_", "blur_")}
+        else:
+            nan_filled = functools.partial(np.full, fill_value=np.nan)
+            out = {
+                f"{kind}{axis}": (np.empty if axis in axes else nan_filled)(
+                    npix, dtype=np.float64 if kind == "" else np.float32
+                )
+                for axis in ("x", "y")
+                for kind in ("", "sigma_", "modulation_", "blur_")
+            }
         reason = np.zeros(npix, dtype=np.uint8)
         step = self.options.chunk_pixels
         if self._variance is None:
             self._estimate_noise(npix)
         chunks = [slice(s, min(s + step, npix)) for s in range(0, npix, step)]
-        self._map(lambda sl: self._finish_chunk(sl, axes, out, reason), chunks)
+        self._map(lambda sl: self._finish_chunk(sl, out, planes, reason), chunks)
         mark_screen_edges(reason.reshape(h, w))
         counts = {name: int((reason == code).sum()) for code, name in enumerate(REASONS)}
         if counts["valid"] == 0:
@@ -294,9 +312,10 @@ class StreamingDecoder:
             f.use_step_levels(xp, ptc, var, ~excess)
         return per_set, ptc  # the flats are not subject to the cosine-fit model error
 
-    def _finish_chunk(self, sl: slice, axes: list[str], out: dict, reason: np.ndarray) -> None:
-        """Decode one flattened pixel range into `out` and `reason`."""
-        xp, acc, opt = self.xp, self._acc, self.options
+    def _finish_chunk(self, sl: slice, out: dict, planes: dict | None,
+                      reason: np.ndarray) -> None:
+        """Decode one flattened pixel range into `out` (or `planes`) and `reason`."""
+        xp, acc = self.xp, self._acc
         fits = [fit_set(xp, s, sl, residuals=self._variance is None) for s in acc.sets]
         variances, level_var = self._noise_variances(fits, sl)
         bright = acc.bright.reshape(-1)[sl] / acc.n_bright
@@ -305,59 +324,12 @@ class StreamingDecoder:
         contrast_var = var_b / acc.n_bright + var_d / acc.n_dark
         contrast_snr = (bright - dark) / xp.sqrt(contrast_var)
         contrast_snr = xp.where(xp.isfinite(contrast_snr), contrast_snr, 0.0)
-        checks: list[AxisChecks] = []
-        for axis in axes:
-            idx = [k for k, s in enumerate(acc.sets) if s.layout.axis == axis]
-            periods = [acc.sets[k].layout.period_px for k in idx]
-            pos, sig, use, mods, mod_sig = [], [], [], [], []
-            for k, period in zip(idx, periods, strict=True):
-                f, var = fits[k], variances[k]
-                s_b = xp.sqrt(var * f.modulation_var())
-                mod = f.modulation
-                sig_c = (period / (2.0 * math.pi)) * xp.sqrt(var * f.phase_var())
-                usable = f.ok & (mod >= MIN_PERIOD_SNR * s_b) & xp.isfinite(sig_c)
-                pos.append(f.position(xp, period))
-                sig.append(xp.where(usable, sig_c, period))
-                use.append(usable)
-                mods.append(mod)
-                mod_sig.append(s_b)
-            post = fuse_axis(xp, pos, sig, periods, use, self.plan.screen.extent_px(axis))
-            amps = [acc.sets[k].layout.amplitude for k in idx]
-            blur, _ = fit_blur(xp, mods, mod_sig, amps, periods, MIN_PERIOD_SNR)
-            limits = xp.asarray(
-                [math.inf]
-                + [float(chi2_dist.isf(opt.consistency_p, d)) for d in range(1, len(idx))]
-            )
-            checks.append(
-                AxisChecks(
-                    anchor_ok=fits[idx[0]].ok,
-                    anchor_snr=mods[0] / xp.where(mod_sig[0] > 0, mod_sig[0], xp.inf),
-                    ambiguity=post.ambiguity,
-                    chi2=post.chi2,
-                    chi2_limit=limits[post.dof.astype(xp.int64)],
-                    position=post.position,
-                    sigma=post.sigma,
-                    blur=blur,
-                    extent_px=self.plan.screen.extent_px(axis),
-                )
-            )
-            out[axis][sl] = to_host(post.position)
-            out[f"sigma_{axis}"][sl] = to_host(post.sigma)
-            out[f"modulation_{axis}"][sl] = to_host(mods[-1])
-            out[f"blur_{axis}"][sl] = to_host(blur)
-        reason[sl] = to_host(
-            classify(
-                xp,
-                contrast_snr,
-                checks,
-                min_contrast_snr=opt.min_contrast_snr,
-                min_modulation_snr=opt.min_modulation_snr,
-                max_ambiguity=opt.max_ambiguity,
-                screen_margin_sigma=opt.screen_margin_sigma,
-                edge_margin_blur=opt.edge_margin_blur,
-                max_sigma_px=opt.max_sigma_px,
-            )
-        )
+        if planes is not None:
+            reason[sl] = decode_axes_compiled(self.plan, acc.sets, fits, variances,
+                                              contrast_snr, self.options, planes, sl)
+        else:
+            reason[sl] = decode_axes_xp(xp, self.plan, acc.sets, fits, variances, contrast_snr,
+                                        self.options, out, sl)
 
 
 def decode_stack(

@@ -72,6 +72,12 @@ def _from_npy(path: Path) -> FrameSource:
         raise DecodeError(
             f"{path}: dtype {stack.dtype} not supported; expected uint8, uint16 or float32"
         )
+    done = path.with_suffix(".done")  # a capture's frame store marks each stored frame
+    if done.is_file():
+        stored = int(np.count_nonzero(np.fromfile(done, dtype=np.uint8)))
+        if stored != stack.shape[0]:
+            raise DecodeError(f"{path}: incomplete capture, {stored} of {stack.shape[0]} "
+                              f"frames stored ({done.name}); resume the capture first")
     return FrameSource(path, int(stack.shape[0]), tuple(stack.shape[1:]), stack.dtype)
 
 

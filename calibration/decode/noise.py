@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 
 @runtime_checkable
@@ -113,7 +113,8 @@ def fit_photon_transfer(
     # Each ratio over its own dof's chi-square median (dof differ between pixels: clipped
     # steps leave fewer), so every bin's median estimates the variance itself.
     dofs = np.arange(1, int(d.max()) + 1)
-    ratio = rss[good] / d / (chi2.median(dofs) / dofs)[d - 1]
+    median = 2.0 * gammaincinv(dofs / 2.0, 0.5)  # chi-square medians
+    ratio = rss[good] / d / (median / dofs)[d - 1]
     edges = np.unique(np.quantile(m, np.linspace(0.0, 1.0, bins + 1)))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
     xs, ys, ws = [], [], []
@@ -128,7 +129,13 @@ def fit_photon_transfer(
     if len(xs) < 4:
         return None
     x, y, w = np.array(xs), np.array(ys), np.array(ws, dtype=np.float64)
-    slope, offset = np.polyfit(x, y, 1, w=np.sqrt(w) / y)
+    wt = w / y**2  # the polyfit weights squared: relative errors of the bin medians
+    slope, offset = np.polyfit(x, y, 1, w=np.sqrt(wt))
     if slope < 0:
         slope, offset = 0.0, float(np.average(y, weights=w))
+    elif offset < floor:
+        # Constrained least squares: the offset at its floor, the slope refitted. (Clamping the
+        # offset alone would lift the whole line where the levels span a narrow range.)
+        offset = floor
+        slope = max(float(np.sum(wt * x * (y - floor)) / np.sum(wt * x * x)), 0.0)
     return LinearVariance(offset=max(float(offset), floor), slope=float(slope))

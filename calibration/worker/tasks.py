@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from calibration.progress import Cancelled, TaskContext
 
 
@@ -32,6 +34,24 @@ def write_json_atomic(path: str | Path, data: Any) -> None:
         raise
 
 
+def _decoder_setup(options: dict[str, Any] | None) -> tuple[Any, Any]:
+    """(DecodeOptions, saturation_dn) from a JSON-able options dict (None: defaults)."""
+    from calibration.decode import DecodeOptions
+
+    opts = dict(options or {})
+    saturation = opts.pop("saturation_dn", None)
+    try:
+        return DecodeOptions(**opts), saturation
+    except TypeError as exc:
+        raise ValueError(f"decode options: {exc}") from None
+
+
+def _summary(maps: Any, t0: float) -> dict[str, Any]:
+    h, w = maps.shape
+    return {"valid_pixels": maps.valid_count(), "width": w, "height": h,
+            "wall_s": round(time.perf_counter() - t0, 3)}
+
+
 def decode_task(
     ctx: TaskContext,
     plan_path: str,
@@ -40,11 +60,13 @@ def decode_task(
     *,
     noise: Any = None,
     meta: dict[str, Any] | None = None,
+    options: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Decode captured frames (`.npy` stack or image folder) to a maps NPZ at `out_path`.
 
     `noise` is the camera's per-frame noise: sigma in DN, a sensor noise model (anything
     with `noise_sigma_dn(mean)`), or None to estimate it from the fit residuals.
+    `options`: `DecodeOptions` fields and `saturation_dn`.
     """
     from calibration.decode import DecodeError, StreamingDecoder, read_frames
     from calibration.maps import save_maps
@@ -52,11 +74,13 @@ def decode_task(
 
     t0 = time.perf_counter()
     plan = read_plan(plan_path)
+    opts, saturation = _decoder_setup(options)
     source = read_frames(frames_path)
     total = len(plan.frames)
     if source.count != total:
         raise DecodeError(f"{frames_path}: {source.count} frames but the plan has {total}")
-    decoder = StreamingDecoder(plan, source.shape, noise=noise)
+    decoder = StreamingDecoder(plan, source.shape, noise=noise, saturation_dn=saturation,
+                               options=opts)
     for index, image in enumerate(source):
         ctx.check_cancelled()
         decoder.add(index, image)
@@ -64,13 +88,52 @@ def decode_task(
     ctx.progress(total, total, "unwrap")
     maps = decoder.finish(dict(meta or {}))
     save_maps(maps, out_path)
-    h, w = maps.shape
-    return {
-        "valid_pixels": maps.valid_count(),
-        "width": w,
-        "height": h,
-        "wall_s": round(time.perf_counter() - t0, 3),
-    }
+    return _summary(maps, t0)
+
+
+def stream_decode_task(
+    ctx: TaskContext,
+    plan_path: str,
+    store_dir: str,
+    out_path: str,
+    *,
+    noise: Any = None,
+    meta: dict[str, Any] | None = None,
+    options: dict[str, Any] | None = None,
+    poll_s: float = 0.002,
+) -> dict[str, Any]:
+    """Decode a pose while it is captured: follow its `FrameStore` and fold in each frame
+    as soon as it is stored (frames stored before the task started, e.g. by an interrupted
+    capture, come first). Ends with the maps once every plan frame is in; the capture side
+    cancels the job if it fails. Reports progress only for the final stage."""
+    from calibration.decode import StreamingDecoder
+    from calibration.decode.frame_store import FrameStore
+    from calibration.maps import save_maps
+    from calibration.plan import read_plan
+
+    plan = read_plan(plan_path)
+    opts, saturation = _decoder_setup(options)
+    total = len(plan.frames)
+    store = FrameStore(store_dir, total)
+    store.wait_open(ctx.cancelled)
+    ctx.check_cancelled()
+    decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
+                               options=opts)
+    added = np.zeros(total, dtype=bool)
+    while not added.all():
+        ctx.check_cancelled()
+        new = np.setdiff1d(store.stored(), np.flatnonzero(added), assume_unique=True)
+        if new.size == 0:
+            time.sleep(poll_s)
+            continue
+        for index in new.tolist():
+            decoder.add(index, store.frame(index))
+            added[index] = True
+    t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
+    ctx.progress(total, total, "unwrap")
+    maps = decoder.finish(dict(meta or {}))
+    save_maps(maps, out_path)
+    return _summary(maps, t0)
 
 
 def calibrate_task(

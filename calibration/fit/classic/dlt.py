@@ -63,11 +63,13 @@ def decompose_projection(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def ransac_dlt(
     points: np.ndarray, pixels: np.ndarray, threshold_px: float, rng: np.random.Generator,
-    *, iterations: int = 500,
+    *, iterations: int = 10000, confidence: float = 0.999,
+    stats: dict[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Robust DLT: best 6-point model by inlier count, refit on all inliers; (P, inlier mask)."""
+    """Robust DLT: best 6-point model by inlier count, adaptive termination at `confidence`,
+    refit on all inliers; (P, inlier mask)."""
     return ransac(
         points.shape[0], 6, lambda i: dlt_projection(points[i], pixels[i]),
         lambda p: np.linalg.norm(project_with(p, points) - pixels, axis=1), threshold_px, rng,
-        iterations=iterations, what="DLT",
+        iterations=iterations, confidence=confidence, what="DLT", stats=stats,
     )

@@ -55,11 +55,13 @@ def apply_homography(h: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 def ransac_homography(
     src: np.ndarray, dst: np.ndarray, threshold: float, rng: np.random.Generator,
-    *, iterations: int = 500,
+    *, iterations: int = 10000, confidence: float = 0.999,
+    stats: dict[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Robust H: best 4-point model by inlier count (dst error < threshold), refit on inliers."""
+    """Robust H: best 4-point model by inlier count (dst error < threshold), adaptive
+    termination at `confidence`, refit on the inliers; (H, inlier mask)."""
     return ransac(
         src.shape[0], 4, lambda i: fit_homography(src[i], dst[i]),
         lambda h: np.linalg.norm(apply_homography(h, src) - dst, axis=1), threshold, rng,
-        iterations=iterations, what="homography",
+        iterations=iterations, confidence=confidence, what="homography", stats=stats,
     )

@@ -1,0 +1,113 @@
+"""`phasecal capture`: capture one pose on a rig into POSE_DIR (raw frames + decoded maps)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+HELP = "capture one pose on a rig (simulated or a rig .toml/.json) into POSE_DIR"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", required=True, help="'simulated' or a rig config (.toml/.json)")
+    p.add_argument("--plan", required=True, help="pattern plan (phasecal.plan/1 JSON)")
+    p.add_argument("--noise-dn", type=float, metavar="SIGMA",
+                   help="per-frame camera noise sigma in DN (default: estimated from residuals)")
+    p.add_argument("-o", "--output", required=True, metavar="POSE_DIR",
+                   help="pose folder: plan.json, frames.npy + frames.done (raw frames, "
+                        "resumed if present), maps.npz")
+
+
+class _Bar:
+    """Progress on standard error: a one-line bar on a terminal, nothing otherwise."""
+
+    def __init__(self) -> None:
+        self.tty = sys.stderr.isatty()
+
+    def __call__(self, done: int, total: int, stage: str) -> None:
+        if self.tty and total:
+            filled = int(30 * done / total)
+            sys.stderr.write(f"\r{stage:8s} [{'#' * filled}{'.' * (30 - filled)}] "
+                             f"{done}/{total}")
+            sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.tty:
+            sys.stderr.write("\n")
+
+
+def _open(spec: str) -> Any:
+    from acquisition.rig import load_rig_config, open_rig, parse_rig_config
+    from hw_mocks.rig import open_simulated_rig
+
+    config = (parse_rig_config({"kind": "simulated"}, "--rig simulated") if spec == "simulated"
+              else load_rig_config(spec))
+    return open_rig(config, simulator=open_simulated_rig)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from api.capture import capture_frames
+    from api.cli import UserError
+    from calibration.plan import read_plan
+    from calibration.progress import TaskContext
+    from calibration.worker.tasks import stream_decode_task
+
+    if args.noise_dn is not None and not args.noise_dn > 0:
+        raise UserError(f"--noise-dn: must be > 0 DN, got {args.noise_dn}")
+    plan = read_plan(args.plan)
+    pose_dir = Path(args.output)
+    pose_dir.mkdir(parents=True, exist_ok=True)
+    rig = _open(args.rig)
+    bar = _Bar()
+    try:
+        screen = rig.screen
+        if (screen.width_px, screen.height_px) != (plan.screen.width_px, plan.screen.height_px):
+            raise UserError(f"{args.plan}: plan screen {plan.screen.width_px}x"
+                            f"{plan.screen.height_px} px differs from the rig's display "
+                            f"{screen.width_px}x{screen.height_px} px")
+        (pose_dir / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
+        cancel = threading.Event()
+        ctx = TaskContext("capture", bar, cancel)
+        decoded: dict[str, Any] = {}
+
+        def decode() -> None:
+            try:
+                decoded["result"] = stream_decode_task(
+                    TaskContext("decode", None, cancel), str(pose_dir / "plan.json"),
+                    str(pose_dir), str(pose_dir / "maps.npz"), noise=args.noise_dn,
+                    meta={"camera": str(getattr(getattr(rig.camera, "info", None), "name",
+                                                "unknown"))})
+            except BaseException as exc:  # reported by the main thread
+                decoded["error"] = exc
+
+        worker = threading.Thread(target=decode, name="phasecal-decode")
+        worker.start()
+        try:
+            cap = capture_frames(ctx, rig, plan, pose_dir)
+            last_frame = time.perf_counter()
+        except BaseException:
+            cancel.set()
+            raise
+        finally:
+            bar.close()
+            if cancel.is_set():
+                worker.join()
+        worker.join()
+        if "error" in decoded:
+            raise UserError(f"decode: {decoded['error']}")
+        ready = time.perf_counter() - last_frame
+    finally:
+        rig.close()
+    res = decoded["result"]
+    total = res["width"] * res["height"]
+    print(f"wrote {pose_dir}: {len(plan.frames)} frames (captured {cap['captured']}, "
+          f"resumed from {cap['resumed_from']}), maps.npz {res['valid_pixels']} of {total} "
+          f"pixels valid ({100.0 * res['valid_pixels'] / total:.1f} %), ready {ready:.2f} s "
+          "after the last frame" + (f"; FLAGGED: {cap['flagged']}" if cap.get("flagged") else ""))
+    return 0

@@ -1,0 +1,92 @@
+"""DELETE for poses, calibrations and sessions: records and files; 409 while a job uses them.
+
+Deletes run in `Database.claim_session`, serialized with every job start, so a job cannot
+claim a resource between the check and the delete.
+"""
+
+from __future__ import annotations
+
+import shutil
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Response
+from sqlalchemy import delete, select
+
+from api.db import ACTIVE_JOB_STATES, CalibrationRecord, JobLockRecord, PoseRecord, SessionRecord
+from api.problems import Problem
+from api.routes.common import PROBLEM_RESPONSES, get_pose, get_session
+from api.services import Services, get_services
+from api.store import check_id
+
+router = APIRouter(tags=["deletion"], responses=PROBLEM_RESPONSES)
+Svc = Annotated[Services, Depends(get_services)]
+
+
+def _busy(s: Any, ids: list[str], what: str) -> None:
+    """409 if an active job claimed any of `ids`."""
+    if not ids:
+        return
+    held = s.scalars(select(JobLockRecord).where(JobLockRecord.key.in_(ids))).first()
+    if held is not None:
+        raise Problem(409, "job-active", f"{what}: {held.key} is in use by active job "
+                      f"{held.job_id}; cancel it or wait for it to end", job_id=held.job_id)
+
+
+def _used_by_active_calibration(s: Any, session_id: str, pose_ids: set[str], what: str) -> None:
+    """409 if a queued/running calibration of the session reads one of `pose_ids`."""
+    for c in s.scalars(select(CalibrationRecord).where(
+            CalibrationRecord.session_id == session_id,
+            CalibrationRecord.status.in_(ACTIVE_JOB_STATES))):
+        used = pose_ids & set(c.pose_ids or []) | pose_ids & set(c.heldout_pose_ids or [])
+        if used:
+            raise Problem(409, "job-active", f"{what}: pose {sorted(used)[0]} is read by "
+                          f"calibration {c.id} ({c.status}, job {c.job_id})", job_id=c.job_id)
+
+
+def _remove_folders(svc: Services, ids: list[str]) -> None:
+    for ident in ids:
+        shutil.rmtree(svc.store.dir_for(ident, create=False), ignore_errors=True)
+
+
+@router.delete("/sessions/{session_id}/poses/{pose_id}", status_code=204, response_class=Response)
+def delete_pose(session_id: str, pose_id: str, svc: Svc) -> Response:
+    """Delete a pose (record, frames, maps); 409 while a job captures, decodes or reads it."""
+    with svc.db.claim_session() as s:
+        pose = get_pose(s, session_id, pose_id)
+        _busy(s, [pose_id], f"pose {pose_id}")
+        _used_by_active_calibration(s, session_id, {pose_id}, f"pose {pose_id}")
+        s.delete(pose)
+    _remove_folders(svc, [pose_id])
+    return Response(status_code=204)
+
+
+@router.delete("/calibrations/{cal_id}", status_code=204, response_class=Response)
+def delete_calibration(cal_id: str, svc: Svc) -> Response:
+    """Delete a calibration (record, model, exports); 409 while its job runs."""
+    check_id(cal_id, "cal", "calibration")
+    with svc.db.claim_session() as s:
+        cal = s.get(CalibrationRecord, cal_id)
+        if cal is None:
+            raise Problem(404, "not-found", f"calibration {cal_id!r} does not exist")
+        _busy(s, [cal_id], f"calibration {cal_id}")
+        s.delete(cal)
+    _remove_folders(svc, [cal_id])
+    return Response(status_code=204)
+
+
+@router.delete("/sessions/{session_id}", status_code=204, response_class=Response)
+def delete_session(session_id: str, svc: Svc) -> Response:
+    """Delete a session with its poses and calibrations (records and files); 409 while any
+    job uses one of them."""
+    with svc.db.claim_session() as s:
+        get_session(s, session_id)
+        pose_ids = list(s.scalars(select(PoseRecord.id)
+                                  .where(PoseRecord.session_id == session_id)))
+        cal_ids = list(s.scalars(select(CalibrationRecord.id)
+                                 .where(CalibrationRecord.session_id == session_id)))
+        _busy(s, pose_ids + cal_ids, f"session {session_id}")
+        s.execute(delete(CalibrationRecord).where(CalibrationRecord.session_id == session_id))
+        s.execute(delete(PoseRecord).where(PoseRecord.session_id == session_id))
+        s.execute(delete(SessionRecord).where(SessionRecord.id == session_id))
+    _remove_folders(svc, [*pose_ids, *cal_ids, session_id])
+    return Response(status_code=204)

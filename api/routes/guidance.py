@@ -1,0 +1,103 @@
+"""Pose guidance: the predicted ray uncertainty of a session and the next pose to capture."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Query
+from fastapi.responses import Response
+from sqlalchemy import select
+
+from api.db import PoseRecord
+from api.problems import Problem
+from api.routes.common import PROBLEM_RESPONSES, get_session
+from api.services import Services, get_services
+
+router = APIRouter(tags=["guidance"], responses=PROBLEM_RESPONSES)
+Svc = Annotated[Services, Depends(get_services)]
+Model = Annotated[str, Query(description="parametric model the prediction uses",
+                             pattern="^(opencv5|opencv-rational|fisheye)$")]
+_lock = threading.Lock()
+
+
+def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, list[str]]:
+    """Cached guidance for the session's current ready poses (computed on first request)."""
+    from calibration.guidance import plan_next_pose, session_points
+    from calibration.maps import load_maps
+    from calibration.plan import read_plan
+    from calibration.report_plots import guidance_png
+
+    with svc.db.session() as s:
+        get_session(s, session_id)
+        ids = list(s.scalars(select(PoseRecord.id).where(
+            PoseRecord.session_id == session_id, PoseRecord.status == "ready")
+            .order_by(PoseRecord.index)))
+    if len(ids) < 3:
+        raise Problem(409, "not-enough-poses", f"session {session_id}: guidance needs >= 3 ready "
+                      f"poses to fit a model (has {len(ids)}); capture varied, tilted poses first")
+    key = hashlib.sha1(json.dumps([model, *ids]).encode()).hexdigest()[:16]
+    final = svc.store.dir_for(session_id) / "guidance" / key
+    with _lock:
+        if (final / "next-pose.json").is_file():
+            return final, ids
+        plan = read_plan(svc.store.dir_for(session_id) / "plan.json")
+        maps = [load_maps(svc.store.file(p, "maps.npz")) for p in ids]
+        h, w = maps[0].shape
+        try:
+            sug, _ = plan_next_pose(session_points(maps, plan.screen), (w, h), plan.screen, model)
+        except ValueError as exc:
+            raise Problem(422, "guidance-failed", f"session {session_id}: {exc}") from None
+        tmp = svc.store.temp_dir()
+        out = {"session_id": session_id, "model": model, "poses_used": ids, **sug.to_json()}
+        (tmp / "next-pose.json").write_text(json.dumps(out))
+        guidance_png(sug.map_before, sug.map_after, sug.outline_px, (w, h),
+                     f"next pose: {sug.distance_mm:.0f} mm, tilt {sug.tilt_deg:.0f} deg "
+                     f"towards {sug.tilt_azimuth_deg:.0f} deg", tmp / "next-pose.png")
+        final.parent.mkdir(parents=True, exist_ok=True)
+        svc.store.replace_dir(tmp, final)
+    return final, ids
+
+
+@router.get("/sessions/{session_id}/next-pose")
+def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational") -> dict[str, Any]:
+    """The screen pose that most reduces the worst predicted ray uncertainty over the sensor,
+    planned from the session's own ready poses (>= 3): `screen_pose` (rvec rad, tvec_mm) for
+    `POST /sessions/{id}/poses` on a simulated or robotic rig, the placement in words
+    (distance, tilt, where its centre appears), and the predicted worst 1-sigma now and after."""
+    folder, _ = _guidance_dir(svc, session_id, model)
+    out = json.loads((folder / "next-pose.json").read_text())
+    out["image"] = f"/sessions/{session_id}/next-pose.png?model={model}"
+    return out
+
+
+@router.get("/sessions/{session_id}/next-pose.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}})
+def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational") -> Response:
+    """Predicted ray-uncertainty maps now and after the suggested pose, with its outline."""
+    folder, _ = _guidance_dir(svc, session_id, model)
+    return Response((folder / "next-pose.png").read_bytes(), media_type="image/png")
+
+
+@router.get("/sessions/{session_id}/coverage.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}})
+def coverage_image(session_id: str, svc: Svc) -> Response:
+    """How many of the session's decoded poses saw each camera pixel (a colour bar counts)."""
+    import numpy as np
+
+    from calibration.maps import load_maps
+    from calibration.report_plots import count_png
+
+    with svc.db.session() as s:
+        get_session(s, session_id)
+        ids = list(s.scalars(select(PoseRecord.id).where(
+            PoseRecord.session_id == session_id,
+            PoseRecord.status.in_(("ready", "flagged")))))
+    if not ids:
+        raise Problem(409, "not-enough-poses", f"session {session_id} has no decoded poses yet")
+    counts = np.sum([load_maps(svc.store.file(p, "maps.npz")).mask for p in ids], axis=0)
+    return Response(count_png(counts, f"sensor coverage by {len(ids)} poses"),
+                    media_type="image/png")

@@ -1,0 +1,111 @@
+"""Quick intrinsics of a session: the papers' closed-form methods on its poses' white flats
+(before any decoding) or decoded maps, as a job; the latest result is kept per session."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import JSONResponse
+from sqlalchemy import select
+
+from api.db import PoseRecord
+from api.problems import Problem
+from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
+from api.schemas import IntrinsicsCreate
+from api.services import Services, get_services
+from api.store import check_id
+from calibration.fit.classic.quick import white_flat_index
+from calibration.plan import plan_from_dict
+from calibration.progress import TaskContext
+from calibration.worker.intrinsics_task import intrinsics_task
+
+router = APIRouter(tags=["intrinsics"], responses=PROBLEM_RESPONSES)
+Svc = Annotated[Services, Depends(get_services)]
+RESULT = "intrinsics.json"
+
+
+def _flat_source(svc: Services, pose: PoseRecord, index: int) -> str:
+    """The pose's captured frames (folder or stack) if its white flat frame is stored."""
+    folder = svc.store.dir_for(pose.id)
+    stack = folder / "frames.npy"
+    if stack.is_file():
+        return str(stack)
+    frames = folder / "frames"
+    if any((frames / f"frame_{index:04d}.{ext}").is_file() for ext in ("png", "tif", "tiff")):
+        return str(frames)
+    raise Problem(409, "no-white-flat", f"pose {pose.id} has no stored white flat frame "
+                  f"(plan frame {index}); imported maps carry none: use source=maps")
+
+
+def _poses(s: Any, session_id: str, ids: list[str] | None, source: str) -> list[PoseRecord]:
+    """The chosen poses of the session (default: all that have what `source` needs)."""
+    if ids is None:
+        recs = list(s.scalars(select(PoseRecord).where(PoseRecord.session_id == session_id)
+                              .order_by(PoseRecord.index)))
+        if source == "maps":
+            recs = [p for p in recs if p.status in ("ready", "flagged")]
+        return recs
+    out = []
+    for pid in dict.fromkeys(ids):
+        check_id(pid, "pose", "pose")
+        p = s.get(PoseRecord, pid)
+        if p is None or p.session_id != session_id:
+            raise Problem(422, "validation-error",
+                          f"pose_ids: pose {pid!r} is not a pose of session {session_id}")
+        if source == "maps" and p.status not in ("ready", "flagged"):
+            raise Problem(409, "not-ready", f"pose_ids: pose {pid} is {p.status}; its maps "
+                          "exist once it is ready (or use source=flats)")
+        out.append(p)
+    return out
+
+
+@router.post("/sessions/{session_id}/intrinsics", status_code=202, response_model=None,
+             responses={202: {"description": "intrinsics job accepted; Location: /jobs/<id>"}})
+def start_intrinsics(session_id: str, body: IntrinsicsCreate, svc: Svc) -> JSONResponse:
+    """Estimate K from the session's white flats or maps (rectangle, selfcal or rotation)."""
+    with svc.db.session() as s:
+        plan = plan_from_dict(get_session(s, session_id).plan, f"session {session_id} plan")
+        poses = _poses(s, session_id, body.pose_ids, body.source)
+        need = {"rectangle": 3 if body.square_pixels else 4, "selfcal": 3, "rotation": 3}
+        if len(poses) < need[body.method]:
+            raise Problem(409, "too-few-poses", f"{body.method} needs >= {need[body.method]} "
+                          f"poses with {body.source}; session {session_id} has {len(poses)}")
+        if body.source == "flats":
+            index = white_flat_index(plan)
+            paths = [_flat_source(svc, p, index) for p in poses]
+        else:
+            paths = [str(svc.store.file(p.id, "maps.npz")) for p in poses]
+        # one quick-intrinsics job per session at a time (409 job-active otherwise)
+        job = svc.jobs.create(s, "intrinsics", f"/sessions/{session_id}/intrinsics", session_id,
+                              claims=(f"{session_id}:intrinsics",))
+    plan_path = str(svc.store.dir_for(session_id) / "plan.json")
+    out = svc.store.dir_for(session_id) / RESULT
+    pose_ids = [p.id for p in poses]
+
+    def run(ctx: TaskContext) -> dict[str, Any]:
+        tmp = str(out.with_name(f"{job.id}.json"))
+        fut = svc.executor.run_task(intrinsics_task, plan_path, paths, body.source, body.method,
+                                    tmp, job_id=ctx.job_id, on_progress=ctx.progress,
+                                    square_pixels=body.square_pixels, zero_skew=body.zero_skew)
+        result = {**fut.result(), "pose_ids": pose_ids, "source": body.source}
+        svc.store.write_bytes(out, json.dumps(result, indent=1).encode())
+        Path(tmp).unlink(missing_ok=True)
+        return result
+
+    svc.jobs.start(job.id, run, lambda s, r: None, lambda s, st, e: None)
+    return accepted(svc.jobs.get(job.id) or {})
+
+
+@router.get("/sessions/{session_id}/intrinsics")
+def read_intrinsics(session_id: str, svc: Svc) -> dict[str, Any]:
+    """The session's latest quick-intrinsics result (phasecal.intrinsics/1)."""
+    with svc.db.session() as s:
+        get_session(s, session_id)
+    path = svc.store.dir_for(session_id) / RESULT
+    if not path.is_file():
+        raise Problem(404, "not-found", f"session {session_id} has no intrinsics yet; POST "
+                      f"/sessions/{session_id}/intrinsics to estimate them")
+    return json.loads(path.read_text())

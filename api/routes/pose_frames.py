@@ -1,0 +1,129 @@
+"""A pose's stored frames: decode them again with other options, export them as PNG/TIFF."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, BackgroundTasks, Depends, Query
+from fastapi.responses import FileResponse, JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from api.capture import frames_path, stored_indices
+from api.db import PoseRecord
+from api.problems import Problem
+from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session
+from api.services import Services, get_services
+from calibration.plan import plan_from_dict
+from calibration.progress import TaskContext
+from calibration.worker.tasks import decode_task
+
+router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
+Svc = Annotated[Services, Depends(get_services)]
+OPTION_NAMES = ("max_sigma_px", "min_contrast_snr", "min_modulation_snr", "max_ambiguity",
+                "consistency_p", "screen_margin_sigma", "edge_margin_blur",
+                "saturation_margin", "saturation_dn")
+
+
+class DecodeRequest(BaseModel):
+    """Decode a pose's stored frames again (the new maps replace the old ones on success)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"noise_dn": 1.5, "options": {"max_sigma_px": 0.5}}]})
+    noise_dn: float | None = Field(None, gt=0, le=1e4, description="per-frame noise sigma "
+                                   "in DN; default: estimated from the residuals")
+    options: dict[str, float] = Field(default_factory=dict, description="DecodeOptions "
+                                      f"fields and saturation_dn: {', '.join(OPTION_NAMES)}")
+
+
+def _frames_of(svc: Services, session_id: str, pose_id: str) -> tuple[PoseRecord, Path, int]:
+    """The pose, its frames path and plan frame count; 409 unless every frame is stored."""
+    with svc.db.session() as s:
+        pose = get_pose(s, session_id, pose_id)
+        total = len(plan_from_dict(get_session(s, session_id).plan, "plan").frames)
+    pose_dir = svc.store.dir_for(pose_id, create=False)
+    path = frames_path(pose_dir)
+    if pose.source == "capture":
+        have = len(stored_indices(pose_dir))
+        if have < total:
+            raise Problem(409, "frames-incomplete", f"pose {pose_id}: {have} of {total} frames "
+                          "stored; resume the capture first")
+    elif not path.exists():
+        raise Problem(409, "no-frames", f"pose {pose_id} was imported as maps: it has no frames")
+    return pose, path, total
+
+
+@router.post("/sessions/{session_id}/poses/{pose_id}/decode", status_code=202,
+             response_model=None)
+def redecode_pose(session_id: str, pose_id: str, svc: Svc,
+                  body: DecodeRequest | None = None) -> JSONResponse:
+    """Decode a pose's stored frames again with other options (a job)."""
+    req = body or DecodeRequest()
+    unknown = sorted(set(req.options) - set(OPTION_NAMES))
+    if unknown:
+        raise Problem(422, "validation-error", f"options: unknown {unknown}; expected any of "
+                      f"{list(OPTION_NAMES)}")
+    _, path, _ = _frames_of(svc, session_id, pose_id)
+    with svc.db.claim_session() as s:
+        pose = get_pose(s, session_id, pose_id)
+        if pose.status not in ("ready", "flagged", "failed"):
+            raise Problem(409, "conflict", f"pose {pose_id} is {pose.status}; only ready, "
+                          "flagged or failed poses are decoded again")
+        job = svc.jobs.create(s, "decode", f"/sessions/{session_id}/poses/{pose_id}",
+                              session_id, claims=(pose_id,))
+        before = pose.status
+    pose_dir = svc.store.dir_for(pose_id)
+    plan_path = svc.store.dir_for(session_id) / "plan.json"
+    meta = {"pose_id": pose_id, "session_id": session_id, "redecoded": True,
+            "decode_options": {"noise_dn": req.noise_dn, **req.options}}
+
+    def body_fn(ctx: TaskContext) -> dict[str, Any]:
+        with svc.store.staging(ctx.job_id) as staged:
+            fut = svc.executor.run_task(decode_task, str(plan_path), str(path),
+                                        str(staged / "maps.npz"), job_id=ctx.job_id,
+                                        on_progress=ctx.progress, noise=req.noise_dn,
+                                        meta=meta, options=dict(req.options))
+            dec = fut.result()
+            ctx.check_cancelled()
+            svc.store.commit(staged, ["maps.npz"], pose_dir)
+        return {"decode": dec}
+
+    def ok(s: Any, result: dict[str, Any]) -> None:
+        p = s.get(PoseRecord, pose_id)
+        p.status = "ready" if before != "flagged" else "flagged"
+        p.error = None if before != "flagged" else p.error
+        p.valid_pixels = result["decode"]["valid_pixels"]
+
+    def fail(s: Any, status: str, error: str) -> None:
+        pass  # the old maps stay in place and the pose keeps its state; the job has the error
+
+    svc.jobs.start(job.id, body_fn, ok, fail)
+    return accepted(svc.jobs.get(job.id) or {})
+
+
+@router.get("/sessions/{session_id}/poses/{pose_id}/frames.zip", response_class=FileResponse,
+            responses={200: {"content": {"application/zip": {}}}})
+def export_frames(session_id: str, pose_id: str, svc: Svc, background: BackgroundTasks,
+                  format: Annotated[Literal["png", "tiff"], Query()] = "png") -> FileResponse:
+    """The pose's frames as frame_NNNN.png (or .tif) images in a zip (FORMATS.md folder)."""
+    import cv2
+    import numpy as np
+
+    from calibration.decode import read_frames
+
+    _, path, _ = _frames_of(svc, session_id, pose_id)
+    source = read_frames(path)
+    if source.dtype == np.float32 and format == "png":
+        raise Problem(422, "unsupported-format", "float32 frames cannot be PNG: use format=tiff")
+    scratch = svc.store.temp_dir()
+    out = scratch / f"{pose_id}-frames.zip"
+    ext = ".png" if format == "png" else ".tif"
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as zf:
+        for i, frame in enumerate(source):
+            ok, buf = cv2.imencode(ext, np.asarray(frame))
+            if not ok:
+                raise Problem(500, "export-failed", f"frame {i}: {ext} encoding failed")
+            zf.writestr(f"frame_{i:04d}{ext}", buf.tobytes())
+    background.add_task(lambda: (out.unlink(missing_ok=True), scratch.rmdir()))
+    return FileResponse(out, media_type="application/zip", filename=out.name)

@@ -1,0 +1,162 @@
+"""Raw frame store of one pose: `frames.npy` (F, H, W), memory-mapped, plus `frames.done`.
+
+`frames.npy` is the FORMATS.md `.npy` stack (np.load and `phasecal decode` read it);
+`frames.done` holds one byte per plan frame, set to 1 after that frame's pixels were
+copied in. Storing a frame is a memory copy into the page cache (no encoding, no fsync
+on the capture loop): the data survive a killed process at once, and a background
+flusher makes them durable on disk at a bounded interval and when the store is closed
+(pixels first, then the markers, so a durable marker implies durable pixels). A reader
+in another process (the decode worker) maps the same files and follows the markers.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.decode.accumulate import ACCEPTED_DTYPES, DecodeError
+
+FRAMES_NAME = "frames.npy"
+DONE_NAME = "frames.done"
+
+
+class FrameStore:
+    """Writer and reader of one pose's raw frames (a `FrameSink` when writing)."""
+
+    def __init__(self, folder: str | Path, count: int | None = None, *,
+                 flush_interval_s: float = 2.0) -> None:
+        self.folder = Path(folder)
+        self.count = count  # plan frames; None: read from an existing store
+        self.flush_interval_s = flush_interval_s
+        self._frames: np.memmap | None = None
+        self._writable = False
+        self._done: np.memmap | None = None
+        self._dirty = False
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._flusher: threading.Thread | None = None
+        self.last_index: int | None = None  # the frame stored last (live preview)
+
+    # -- paths and state ---------------------------------------------------------------
+    @property
+    def frames_path(self) -> Path:
+        return self.folder / FRAMES_NAME
+
+    @property
+    def done_path(self) -> Path:
+        return self.folder / DONE_NAME
+
+    def exists(self) -> bool:
+        """True once the first frame created the files."""
+        return self.frames_path.is_file() and self.done_path.is_file()
+
+    def _open(self, writable: bool) -> bool:
+        """Map existing files; False when there are none yet."""
+        if self._frames is not None and (self._writable or not writable):
+            return True
+        if not self.exists():
+            return False
+        mode = "r+" if writable else "r"
+        frames = np.load(self.frames_path, mmap_mode=mode, allow_pickle=False)
+        if self.count is None and frames.ndim == 3:
+            self.count = int(frames.shape[0])
+        if frames.ndim != 3 or frames.shape[0] != self.count:
+            raise DecodeError(f"{self.frames_path}: shape {frames.shape} does not hold "
+                              f"{self.count} plan frames")
+        self._done = np.memmap(self.done_path, dtype=np.uint8, mode=mode, shape=(self.count,))
+        self._frames, self._writable = frames, writable
+        return True
+
+    def stored(self) -> np.ndarray:
+        """Indices of the frames stored so far (ascending)."""
+        if not self._open(writable=False):
+            return np.empty(0, dtype=np.int64)
+        return np.flatnonzero(self._done)
+
+    def frame(self, index: int) -> np.ndarray:
+        """A read-only view of stored frame `index` (no copy)."""
+        if not self._open(writable=False):
+            raise DecodeError(f"{self.frames_path}: no frames stored")
+        view = self._frames[index]
+        view.flags.writeable = False
+        return view
+
+    # -- writing -----------------------------------------------------------------------
+    def _create(self, image: np.ndarray) -> None:
+        """Create both files for frames like `image` (temp names, then renames)."""
+        if self.count is None:
+            raise DecodeError(f"{self.folder}: the number of plan frames is needed to create "
+                              "a frame store")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        shape = (self.count, *image.shape)
+        done_tmp = self.done_path.with_name(DONE_NAME + ".tmp")
+        with open(done_tmp, "wb") as fh:
+            fh.truncate(self.count)
+        os.replace(done_tmp, self.done_path)
+        tmp = self.frames_path.with_name(FRAMES_NAME + ".tmp")
+        np.lib.format.open_memmap(tmp, mode="w+", dtype=image.dtype, shape=shape).flush()
+        os.replace(tmp, self.frames_path)
+
+    def add(self, index: int, image: np.ndarray) -> None:
+        """Store plan frame `index`: copy into the mapped file, then mark it stored."""
+        img = np.asarray(image)
+        if img.ndim != 2 or img.dtype not in ACCEPTED_DTYPES:
+            raise DecodeError(f"frame {index}: expected a 2-D uint8/uint16/float32 image, "
+                              f"got {img.dtype} {img.shape}")
+        with self._lock:
+            if not self._open(writable=True):
+                self._create(img)
+                self._open(writable=True)
+            if self._frames.shape[1:] != img.shape or self._frames.dtype != img.dtype:
+                raise DecodeError(f"frame {index}: {img.dtype} {img.shape} differs from the "
+                                  f"stored frames ({self._frames.dtype} "
+                                  f"{self._frames.shape[1:]})")
+            self._frames[index] = img
+            self._done[index] = 1
+            self._dirty = True
+            self.last_index = int(index)
+            if self._flusher is None and self.flush_interval_s > 0:
+                self._flusher = threading.Thread(target=self._flush_loop, daemon=True,
+                                                 name="frame-store-flush")
+                self._flusher.start()
+
+    def flush(self) -> None:
+        """Make the stored frames durable: pixels first, then the markers."""
+        with self._lock:
+            if self._frames is None or not self._dirty:
+                return
+            self._dirty = False
+            frames, done = self._frames, self._done
+        frames.flush()
+        done.flush()
+
+    def _flush_loop(self) -> None:
+        while not self._stop.wait(self.flush_interval_s):
+            self.flush()
+
+    def close(self) -> None:
+        """Stop the flusher and flush what is left (end of the pose's capture)."""
+        self._stop.set()
+        if self._flusher is not None:
+            self._flusher.join()
+            self._flusher = None
+        self.flush()
+
+    def wait_open(self, cancelled: Any, poll_s: float = 0.005) -> None:
+        """Block until the writer created the files (polling `cancelled()`)."""
+        while not self._open(writable=False):
+            if cancelled():
+                return
+            time.sleep(poll_s)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of the stored frames."""
+        if not self._open(writable=False):
+            raise DecodeError(f"{self.frames_path}: no frames stored")
+        return tuple(self._frames.shape[1:])  # type: ignore[return-value]

@@ -1,0 +1,147 @@
+"""Per-pixel ray uncertainty: parametric models from their Fisher information, sGCC from its
+own covariance; also the information a planned pose would add (for pose guidance).
+
+Parametric: the weighted Jacobian of every pose's projections over (model, pose) parameters
+gives the normal matrix; the poses are marginalized out (Schur complement), so the model's
+covariance is `inv(sum_j A_j - B_j C_j^-1 B_j^T)`, the same weighting as `param_std`. A
+pixel's ray sigma is `sqrt(trace(J_d cov J_d^T))`, J_d the derivative of its unit ray
+direction over the model parameters (numerical, central differences).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from calibration.evaluate import screen_jacobian
+from calibration.fit.correspondences import PointSet
+from calibration.models.base import CameraModel
+
+_POSE_PARAMS = 6
+
+
+def sensor_grid(image_size: tuple[int, int], nx: int = 40, ny: int = 30) -> np.ndarray:
+    """(ny*nx, 2) pixel centres of an even grid over the sensor (corners included)."""
+    w, h = image_size
+    uu, vv = np.meshgrid(np.linspace(0, w - 1, nx), np.linspace(0, h - 1, ny))
+    return np.stack([uu.ravel(), vv.ravel()], axis=1)
+
+
+def free_parameters(model: CameraModel, param_std: dict[str, float] | None) -> np.ndarray:
+    """Indices of the fitted parameters: those with a non-zero std in the fit's `param_std`."""
+    names = model.param_names() if hasattr(model, "param_names") else []
+    n = model.get_params().size
+    if not param_std or len(names) != n:
+        return np.arange(n)
+    return np.array([i for i, k in enumerate(names) if param_std.get(k, 1.0) != 0.0], np.int64)
+
+
+def _project(model: CameraModel, rvec: np.ndarray, tvec: np.ndarray,
+             screen_mm: np.ndarray) -> np.ndarray:
+    rot = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
+    return model.project(screen_mm @ rot.T + tvec)
+
+
+def camera_sigma(model: CameraModel, rotation: np.ndarray, translation: np.ndarray,
+                 points: PointSet) -> np.ndarray:
+    """(N,) expected isotropic camera-px sigma of each point (decoded sigma pushed forward)."""
+    jac = screen_jacobian(model, rotation, translation, points)
+    return np.sqrt(0.5 * np.einsum("nij,nj,nij->n", jac, points.sigma_px**2, jac))
+
+
+def pose_information(model: CameraModel, rotation: np.ndarray, translation: np.ndarray,
+                     points: PointSet, free: np.ndarray) -> np.ndarray:
+    """Information (p, p) on the model's free parameters from one pose, its pose marginalized."""
+    base = model.get_params()
+    rvec = cv2.Rodrigues(np.asarray(rotation, np.float64))[0].ravel()
+    tvec = np.asarray(translation, np.float64).ravel()
+    s = points.screen_mm
+    weight = np.repeat(1.0 / camera_sigma(model, rotation, translation, points), 2)
+    cols = []
+    try:
+        for i in free:
+            step = 1e-6 * max(abs(base[i]), 1e-3)
+            v = base.copy()
+            v[i] += step
+            model.set_params(v)
+            plus = _project(model, rvec, tvec, s)
+            v[i] -= 2 * step
+            model.set_params(v)
+            cols.append((plus - _project(model, rvec, tvec, s)).ravel() / (2 * step))
+    finally:
+        model.set_params(base)
+    pose = np.concatenate([rvec, tvec])
+    for k in range(_POSE_PARAMS):
+        step = 1e-6 if k < 3 else 1e-3 * max(abs(pose[k]), 1.0)
+        p, m = pose.copy(), pose.copy()
+        p[k] += step
+        m[k] -= step
+        cols.append((_project(model, p[:3], p[3:], s) - _project(model, m[:3], m[3:], s)).ravel()
+                    / (2 * step))
+    jac = np.stack(cols, axis=1) * weight[:, None]
+    jac = jac[np.all(np.isfinite(jac), axis=1)]
+    normal = jac.T @ jac
+    npar = len(free)
+    a, b, c = normal[:npar, :npar], normal[:npar, npar:], normal[npar:, npar:]
+    return a - b @ np.linalg.solve(c, b.T)
+
+
+def covariance(information: np.ndarray) -> np.ndarray:
+    """Inverse of an information matrix, scaled for conditioning (inf where singular)."""
+    scale = np.sqrt(np.clip(np.diag(information), 1e-300, None))
+    try:
+        inv = np.linalg.inv(information / np.outer(scale, scale))
+    except np.linalg.LinAlgError:
+        return np.full_like(information, np.inf)
+    return inv / np.outer(scale, scale)
+
+
+def direction_jacobian(model: CameraModel, pixels: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(N, 3, p) derivative of each pixel's unit ray direction over the free parameters."""
+    base = model.get_params()
+    out = np.empty((len(pixels), 3, len(free)))
+    try:
+        for col, i in enumerate(free):
+            step = 1e-6 * max(abs(base[i]), 1e-3)
+            v = base.copy()
+            v[i] += step
+            model.set_params(v)
+            _, plus = model.unproject(pixels)
+            v[i] -= 2 * step
+            model.set_params(v)
+            _, minus = model.unproject(pixels)
+            out[:, :, col] = (plus - minus) / (2 * step)
+    finally:
+        model.set_params(base)
+    return out
+
+
+def ray_sigma(jd: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N,) 1-sigma ray direction angle (rad) from `direction_jacobian` and a covariance."""
+    var = np.einsum("nap,pq,naq->n", jd, cov, jd)
+    return np.sqrt(np.clip(var, 0.0, None))
+
+
+def parametric_ray_sigma(model: CameraModel, poses: list[tuple[np.ndarray, np.ndarray]],
+                         points: list[PointSet], pixels: np.ndarray, free: np.ndarray,
+                         chi2: float = 1.0) -> np.ndarray:
+    """(N,) ray sigma (rad) at `pixels` of a parametric fit to `points` seen from `poses`."""
+    info = sum(pose_information(model, r, t, p, free) for (r, t), p in zip(poses, points,
+                                                                              strict=True))
+    return ray_sigma(direction_jacobian(model, pixels, free), covariance(info) * chi2)
+
+
+def model_ray_sigma(model: CameraModel, pixels: np.ndarray,
+                    poses: list[tuple[np.ndarray, np.ndarray]] | None = None,
+                    points: list[PointSet] | None = None,
+                    param_std: dict[str, float] | None = None) -> tuple[np.ndarray, str]:
+    """Ray sigma (rad) at pixels and how it was obtained: sGCC covariance or parametric Fisher."""
+    if hasattr(model, "ray_std") and getattr(model, "covariance", None) is not None:
+        ang, _ = model.ray_std(pixels)
+        return ang, "sGCC full coefficient covariance"
+    if poses and points and hasattr(model, "param_names"):
+        free = free_parameters(model, param_std)
+        return (parametric_ray_sigma(model, poses, points, pixels, free),
+                f"parametric Fisher information ({len(free)} model parameters, "
+                f"{len(poses)} poses marginalized)")
+    return np.full(len(pixels), np.nan), "not available for this model"

@@ -1,0 +1,52 @@
+"""SSE job events carry ids; a client reconnecting with Last-Event-ID resumes after it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import httpx
+
+from api.client import PhasecalClient
+from api.config import ServiceConfig
+from api.inprocess import running_service
+from tests.test_api_session import small_rig
+
+
+def _events(response: httpx.Response, limit: int | None = None) -> list[tuple[str, str, dict]]:
+    """(id, event, data) of each event until `end` or `limit` events."""
+    out, ev, eid = [], {}, ""
+    for line in response.iter_lines():
+        if line.startswith("id: "):
+            eid = line[4:]
+        elif line.startswith("event: "):
+            ev["name"] = line[7:]
+        elif line.startswith("data: "):
+            out.append((eid, ev.pop("name", "message"), json.loads(line[6:])))
+            if out[-1][1] == "end" or (limit and len(out) >= limit):
+                break
+    return out
+
+
+def test_sse_ids_and_resume_from_last_event_id(tmp_path: Path) -> None:
+    with running_service(ServiceConfig(data_dir=tmp_path / "data")) as (url, _):
+        client = PhasecalClient(url)
+        rig = client.post("/rigs", {"name": "slow", "config": small_rig(slow=True)})
+        ses = client.post("/sessions", {"name": "sse", "rig_id": rig["id"], "preset": "fast"})
+        job = client.post(f"/sessions/{ses['id']}/poses", {})
+        path = f"{url}/jobs/{job['id']}/events"
+        with httpx.stream("GET", path, timeout=120) as r:
+            first = _events(r, limit=3)
+        ids = [int(e[0]) for e in first]
+        assert ids == sorted(ids) and len(set(ids)) == len(ids), first
+        last = ids[-1]
+        with httpx.stream("GET", path, timeout=300, headers={"Last-Event-ID": str(last)}) as r:
+            rest = _events(r)
+        assert rest[-1][:2] == ("end", "end") and rest[-1][2]["status"] == "succeeded"
+        numeric = [int(e[0]) for e in rest[:-1]]
+        assert all(i > last for i in numeric), (last, numeric)  # nothing replayed
+        assert numeric == sorted(numeric)
+        # Once the job is over, a reconnect gets just the final state.
+        with httpx.stream("GET", path, timeout=30, headers={"Last-Event-ID": str(last)}) as r:
+            assert [e[:2] for e in _events(r)] == [("end", "end")]
+        client.close()
