@@ -142,6 +142,8 @@ def test_calibrate_fits_a_bowed_glazed_screen(tmp_path, capsys) -> None:
     base = ["calibrate", "--plan", str(tmp_path / "plan.json"), "--maps", *names,
             "--model", "opencv5", "-o", str(tmp_path / "m.json"), "--heldout", "5"]
     assert main([*base, "--option", 'screen="fit"', "--option", "glass_index=1.52"]) == 0
+    printed = capsys.readouterr().out
+    assert "screen: bow_x_mm " in printed and "(glass index 1.52)" in printed
     stats = json.loads((tmp_path / "m.json").read_text())["stats"]
     scr = stats["screen"]
     assert scr["mode"] == "fit"
