@@ -8,15 +8,15 @@ Logs, pipes and CI output stay free of bar redraws.
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
-Update = Callable[[int, int, str], None]
+from calibration.progress import ProgressFn
 
 
 @contextmanager
-def progress_bar(label: str, stream: TextIO | None = None) -> Iterator[Update]:
+def progress_bar(label: str, stream: TextIO | None = None) -> Iterator[ProgressFn]:
     """A live bar on `stream` (default stderr) if it is a terminal; else a no-op callback."""
     out = stream if stream is not None else sys.stderr
     if not out.isatty():
@@ -39,6 +39,6 @@ def progress_bar(label: str, stream: TextIO | None = None) -> Iterator[Update]:
 
         def update(done: int, total: int, stage: str) -> None:
             prog.update(task, completed=done, total=total if total > 0 else None,
-                        description=f"{label}: {stage}" if stage else label)
+                        description=f"{label}: {stage}" if stage not in ("", label) else label)
 
         yield update

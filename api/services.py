@@ -35,8 +35,13 @@ class Services:
         db = Database(store.db_path)
         executor = make_executor(config.executor)
         jobs = JobManager(db, executor)
-        rigs = RigManager(db, config.rig, store.root, config.rigs_dir,
-                          tuple(config.aravis_addresses))
+        try:
+            rigs = RigManager(db, config.rig, store.root, config.rigs_dir,
+                              tuple(config.aravis_addresses))
+        except BaseException:  # a bad --rig/--rigs-dir: stop the workers before failing
+            executor.shutdown(wait=False)
+            db.close()
+            raise
         services = cls(config, store, db, executor, jobs, rigs, LivePreview())
         services.recover()
         return services

@@ -7,8 +7,9 @@ and kept if it lands on the screen, and those points (with the session's median 
 sigma, counted as the fit would count a real pose's pixels) are added to the normal
 equations. The candidate whose predicted ray-sigma map has the smallest maximum over the
 sensor (pixels within 70 degrees of the optical axis) wins. Candidates place the screen
-centre on the ray of a pixel of a 5x5 grid over the image, at 0.7/1/1.4/2x the session's
-median distance, fronto-parallel or tilted by 25 or 45 degrees towards 4 azimuths; a
+centre on the ray of a pixel of a 5x5 grid over the image, at 0.5/0.7/1/1.4/2x the
+session's median distance, fronto-parallel or tilted by 25, 45 or 60 degrees towards 4
+azimuths; a
 candidate must show the whole screen inside the image, in front of the camera and seen at
 less than 70 degrees from its normal.
 """
@@ -33,8 +34,8 @@ from calibration.uncertainty import (
 )
 
 _FRACTIONS = (0.15, 0.33, 0.5, 0.67, 0.85)
-_DISTANCE_FACTORS = (0.7, 1.0, 1.4, 2.0)
-_TILTS = ((0.0, 0.0), *((t, a) for t in (25.0, 45.0) for a in (0.0, 90.0, 180.0, 270.0)))
+_DISTANCE_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0)
+_TILTS = ((0.0, 0.0), *((t, a) for t in (25.0, 45.0, 60.0) for a in (0.0, 90.0, 180.0, 270.0)))
 _MAX_VIEW_ANGLE_DEG = 70.0
 _SAMPLE_GRID = (32, 24)  # image samples per candidate
 _MAP_GRID = (32, 24)  # sensor grid of the predicted ray-sigma map

@@ -35,7 +35,7 @@ def _log_norm(finite: np.ndarray) -> LogNorm:
     if not pos.size:
         return LogNorm(1e-3, 1.0)
     lo, hi = float(np.percentile(pos, 1)), float(pos.max())
-    return LogNorm(lo, max(hi, lo * 10))
+    return LogNorm(lo, max(hi, lo * 1.01))
 
 
 def subplots(ncols: int, figsize: tuple[float, float]) -> tuple[Figure, Any]:
@@ -222,8 +222,9 @@ def guidance_png(before: np.ndarray, after: np.ndarray, outline: np.ndarray,
     for ax, img, name in ((axes[0], before, "now"), (axes[1], after, "after the suggested pose")):
         im = ax.imshow(img * 1e6, extent=(0, w, h, 0), cmap="inferno", norm=norm,
                        interpolation="bilinear")
-        ax.set(aspect="equal", xlim=(0, w), ylim=(h, 0),
-               title=f"predicted ray 1-sigma {name}: worst {np.nanmax(img) * 1e6:.3g} urad")
+        ax.set(aspect="equal", xlim=(0, w), ylim=(h, 0))
+        ax.set_title(f"predicted ray 1-sigma {name}\nworst {np.nanmax(img) * 1e6:.3g} urad "
+                     "(blank: beyond 70 deg)", fontsize=9)
         fig.colorbar(im, ax=ax, label="urad (log scale)")
     closed = np.vstack([outline, outline[:1]])
     axes[1].plot(closed[:, 0], closed[:, 1], "c-", lw=2, label="suggested screen")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -15,7 +17,7 @@ from acquisition.patterns import build_plan
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.poses import random_poses
 from hw_mocks.synthetic import synthetic_maps
-from tests.api_server import ServerProcess
+from tests.api_server import ROOT, ServerProcess
 
 
 def descendants(pid: int) -> set[int]:
@@ -114,3 +116,27 @@ def test_kill9_mid_fit_leaves_no_worker_and_no_committed_output(tmp_path: Path) 
         children = descendants(srv.proc.pid) if srv.proc else set()
         srv.stop()
         assert not wait_gone(children), "a gracefully stopped server left processes running"
+
+
+def _run_python(code: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *(["-c", code] if code else []), *args],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+
+
+def test_an_unused_process_executor_stops_and_exits() -> None:
+    """Workers spawned up front are stopped by shutdown() and at interpreter exit (they hung
+    both when the pool's manager thread had never started)."""
+    code = ("from calibration.worker.executor import ProcessExecutor\n"
+            "ProcessExecutor().shutdown(wait=False)\n"
+            "ProcessExecutor()\n")
+    done = _run_python(code)
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_serve_with_a_bad_rigs_dir_exits_1(tmp_path: Path) -> None:
+    done = _run_python("", "-m", "api.cli", "serve", "--port", "1", "--data-dir",
+                       str(tmp_path / "d"), "--rigs-dir", str(tmp_path / "missing"))
+    assert done.returncode == 1
+    assert done.stderr.strip().splitlines() == [
+        f"phasecal serve: error: --rigs-dir {tmp_path / 'missing'}: no such folder"]

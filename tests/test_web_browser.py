@@ -3,8 +3,9 @@ driven by selenium; nothing is downloaded at run time).
 
 With an API token set: the page takes the token, opens a session on the simulated rig,
 captures a pose with the suggested screen placement and shows the progress from the SSE
-stream until it succeeds, calibrates, and opens the report. Screenshots are saved under
-test-artifacts/web/ (ignored by git) and checked: not blank, the key elements present.
+stream until it succeeds, cancels a second capture, calibrates, and opens the report.
+Screenshots are saved under test-artifacts/web/ (ignored by git) and checked: not blank,
+the key elements present.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ def browser(tmp_path: Path):
 
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
+    opts.page_load_strategy = "eager"  # do not wait for never-ending MJPEG previews
     for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--no-first-run", "--window-size=1280,1800",
                  f"--user-data-dir={tmp_path / 'chromium-profile'}"):
@@ -99,7 +101,11 @@ def test_page_capture_progress_calibrate_report(browser, tmp_path: Path) -> None
         _wait(d, lambda d: "Worst predicted ray sigma" in d.find_element(By.ID,
                                                                           "next-pose-text").text)
         _wait(d, lambda d: _loaded(d, "#next-pose-img") and _loaded(d, "#coverage"))
-        assert "no preview" in d.find_element(By.CSS_SELECTOR, ".preview").text
+        # Each rig shows its live preview, or says clearly that there is none (404).
+        for box in d.find_elements(By.CSS_SELECTOR, ".preview"):
+            shown = d.execute_script("const i = arguments[0].querySelector('img');"
+                                     "return !!i && i.naturalWidth > 0;", box)
+            assert shown or "no preview" in box.text
 
         # Capture from the page at the suggested pose; progress comes from the SSE stream.
         d.find_element(By.ID, "use-suggestion").click()
@@ -123,6 +129,15 @@ def test_page_capture_progress_calibrate_report(browser, tmp_path: Path) -> None
         _wait(d, lambda d: all(_loaded(d, f"#pose-maps img:nth-of-type({i})")
                                for i in (1, 2, 3, 4)))
         _shot(d, "2-session-after-capture")
+
+        # Start another capture and cancel it from the page.
+        d.find_element(By.ID, "capture-btn").click()
+        _wait(d, lambda d: d.find_element(By.ID, "progress-text").get_attribute("data-status")
+              == "running")
+        d.find_element(By.ID, "cancel-btn").click()
+        _wait(d, lambda d: d.find_element(By.ID, "progress-text").get_attribute("data-status")
+              in ("cancelled", "succeeded"))
+        assert "cancelled" in d.find_element(By.ID, "progress-text").text
 
         Select(d.find_element(By.ID, "calibrate-model")).select_by_visible_text("opencv5")
         d.find_element(By.ID, "calibrate-btn").click()

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import threading
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -22,24 +22,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "resumed if present), maps.npz")
 
 
-class _Bar:
-    """Progress on standard error: a one-line bar on a terminal, nothing otherwise."""
-
-    def __init__(self) -> None:
-        self.tty = sys.stderr.isatty()
-
-    def __call__(self, done: int, total: int, stage: str) -> None:
-        if self.tty and total:
-            filled = int(30 * done / total)
-            sys.stderr.write(f"\r{stage:8s} [{'#' * filled}{'.' * (30 - filled)}] "
-                             f"{done}/{total}")
-            sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.tty:
-            sys.stderr.write("\n")
-
-
 def _open(spec: str) -> Any:
     from acquisition.rig import load_rig_config, open_rig, parse_rig_config
     from hw_mocks.rig import open_simulated_rig
@@ -54,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
 
     from api.capture import capture_frames
     from api.cli import UserError
+    from api.progress import progress_bar
     from calibration.plan import read_plan
     from calibration.progress import TaskContext
     from calibration.worker.tasks import stream_decode_task
@@ -64,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
     pose_dir = Path(args.output)
     pose_dir.mkdir(parents=True, exist_ok=True)
     rig = _open(args.rig)
-    bar = _Bar()
+    bars = ExitStack()  # the progress bar (rich, on a terminal only) ends with the capture
+    bar = bars.enter_context(progress_bar("capture"))
     try:
         screen = rig.screen
         if (screen.width_px, screen.height_px) != (plan.screen.width_px, plan.screen.height_px):
@@ -95,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
             cancel.set()
             raise
         finally:
-            bar.close()
+            bars.close()
             if cancel.is_set():
                 worker.join()
         worker.join()
@@ -103,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"decode: {decoded['error']}")
         ready = time.perf_counter() - last_frame
     finally:
+        bars.close()
         rig.close()
     res = decoded["result"]
     total = res["width"] * res["height"]

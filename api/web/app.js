@@ -62,7 +62,10 @@ function previewBox(rig) {
     };
     img.src = `/rigs/${rig.id}/camera/preview?ts=${Date.now()}`;
   };
-  tryLoad();
+  // An MJPEG stream never finishes loading: start it after the page's load event, which it
+  // would otherwise hold back forever.
+  if (document.readyState === "complete") tryLoad();
+  else window.addEventListener("load", tryLoad, { once: true });
   return box;
 }
 

@@ -164,6 +164,9 @@ class ProcessExecutor:
         # Spawn every worker now, from this thread: PDEATHSIG follows the spawning thread,
         # and a worker spawned lazily by a short-lived job thread would die with it.
         self._pool._launch_processes()
+        # A first task starts the pool's manager thread (spawning nothing more: every worker
+        # exists); without it shutdown() and interpreter exit never stop the workers.
+        self._pool.submit(os.getpid).result()
         self._manager = SyncManager(ctx=ctx)
         self._manager.start(die_with_parent, guard)
         self._queue = self._manager.Queue()
@@ -213,7 +216,10 @@ class ProcessExecutor:
     def _forward(self) -> None:
         """Deliver progress in order; a job's callback is dropped after its last report."""
         while True:
-            item = self._queue.get()
+            try:
+                item = self._queue.get()
+            except (EOFError, OSError):  # the manager is gone (interpreter exit)
+                return
             if item is None:
                 return
             if item[0] == _FORGET:
