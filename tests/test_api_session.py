@@ -204,3 +204,21 @@ def test_generic_options_through_the_api(client: PhasecalClient, session: dict,
                                    "options": {"xp": "torch"}}), timeout_s=300, check=False)
     assert bad["status"] == "failed"
     assert "options.xp: expected 'numpy' or 'cupy', got 'torch'" in bad["error"]
+
+
+def test_screen_options_through_the_api(client: PhasecalClient, session: dict,
+                                        captured: list[str]) -> None:
+    """A parametric REST job takes `screen: "fit"` and `glass_index`: the screen estimate with
+    its 1-sigma is stored with the calibration; a bad value fails with the option's name."""
+    final = client.wait(client.post(f"/sessions/{session['id']}/calibrations",
+                                    {"model": "opencv5", "pose_ids": captured,
+                                     "options": {"screen": "fit", "glass_index": 1.5}}),
+                        timeout_s=300)
+    assert final["status"] == "succeeded", final["error"]
+    scr = client.get(final["resource"])["stats"]["screen"]
+    assert scr["mode"] == "fit" and scr["glass_index"] == 1.5
+    assert set(scr["std"]) == {"bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm"}
+    bad = client.wait(client.post(f"/sessions/{session['id']}/calibrations",
+                                  {"model": "opencv5", "pose_ids": captured,
+                                   "options": {"glass_index": 9}}), timeout_s=300, check=False)
+    assert bad["status"] == "failed" and "options.glass_index" in bad["error"]

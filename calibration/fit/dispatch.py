@@ -57,7 +57,8 @@ def calibrate(
 
         return calibrate_generic(maps, screen, model, options=options, heldout=heldout,
                                  progress=progress, cancelled=cancelled)
-    from calibration.fit.classic.parametric import MIN_POSES, fit_parametric
+    from calibration.fit.classic.parametric import MIN_POSES
+    from calibration.metrology.refine import fit_parametric_dense, heldout_points
 
     held = list(heldout or [])
     size = _check_inputs(maps, held)
@@ -74,8 +75,8 @@ def calibrate(
         if progress is not None:
             progress(i, n + 1, msg)
 
-    fitted, poses, used, stats = fit_parametric([pts[i] for i in train], size, model, options,
-                                                report)
+    fitted, poses, used, stats, dense = fit_parametric_dense(
+        [pts[i] for i in train], size, model, screen, options, report)
     result = CalibrationResult(model=fitted, poses=poses)
     report(1, 1, f"{model}: evaluating")
     per_pose = attach_residuals(result, used, train)
@@ -86,11 +87,14 @@ def calibrate(
         rng = np.random.default_rng(int(stats["options"]["seed"]))
         cap = int(stats["options"]["max_points_per_pose"])
         held_pts = [subsample(pts[i], cap) for i in held]
+        if dense is not None:  # moved to where a flat bare screen shows them
+            held_pts = heldout_points(dense, held_pts, rng)
         stats["heldout"] = heldout_errors(fitted, held_pts, held, rng)
     stats["wall_s"] = time.perf_counter() - t0
     result.stats = stats
     fitted.stats = {k: stats[k] for k in ("rms_px", "expected_rms_px", "noise_floor_ratio",
-                                          "model_adequate", "param_std", "per_pose")}
+                                          "model_adequate", "param_std", "per_pose",
+                                          "screen", "reduced_chi2")}
     if held:
         fitted.stats["heldout"] = stats["heldout"]
     return result
