@@ -1,18 +1,19 @@
 # Set-up is idempotent: every target that runs code first makes sure the virtual
-# environment (and, on Debian as root, the system packages) match pyproject.toml.
+# environment (and, on Debian as root, the system packages) match pyproject.toml, with
+# every extra (hardware backends, Dask; not gpu) at the exact versions of constraints.txt.
 VENV ?= .venv
 PYTHON ?= python3
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 PYTEST_WORKERS ?= 2
 
-.PHONY: setup demo test lint format bench clean
+.PHONY: setup demo test lint format bench lock clean
 
-$(STAMP): pyproject.toml scripts/install-system-deps.sh
+$(STAMP): pyproject.toml constraints.txt scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[all,dev]'
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -35,6 +36,11 @@ format: setup
 
 bench: setup
 	for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# Pin new dependencies into constraints.txt (then commit it); `bash scripts/lock.sh --upgrade`
+# re-resolves every pin within pyproject.toml's ranges.
+lock:
+	bash scripts/lock.sh
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

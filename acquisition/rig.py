@@ -282,6 +282,22 @@ def open_camera(cfg: OpenCvConfig | AravisConfig, clock: Clock) -> Camera:
                         trigger_line=cfg.trigger_line, region=cfg.region, clock=clock)
 
 
+def _check_extras(config: RigConfig) -> None:
+    """Refuse a hardware rig whose backends' pip extras are missing, naming the command."""
+    from calibration.extras import installed, missing_message
+
+    needed = []
+    if getattr(config.display, "backend", None) == "sdl":
+        needed.append("sdl")
+    if getattr(config.camera, "backend", None) == "aravis":
+        needed.append("aravis")
+    if config.trigger_box is not None:
+        needed.append("usb")
+    missing = [e for e in needed if not installed(e)]
+    if missing:
+        raise RigConfigError(missing_message(missing, f"rig {config.name or 'config'!r}"))
+
+
 def open_rig(config: RigConfig, clock: Clock | None = None, *,
              simulator: SimulatorFactory | None = None) -> Rig:
     """Open every device of a rig; on failure, what was opened is closed again.
@@ -292,6 +308,7 @@ def open_rig(config: RigConfig, clock: Clock | None = None, *,
             raise RigConfigError("kind 'simulated': no simulator available here (pass "
                                  "hw_mocks.rig.open_simulated_rig as `simulator`)")
         return simulator(config, clock)
+    _check_extras(config)
     clock = clock if clock is not None else RealClock()
     opened: list[Any] = []
     try:

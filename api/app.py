@@ -32,6 +32,7 @@ from api.routes import (
 from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
 from api.timing import ServerTimingMiddleware
+from api.version import phasecal_version
 
 WEB_DIR = Path(__file__).parent / "web"  # the page at `/`: plain HTML/JS/CSS, no build step
 DESCRIPTION = """Camera calibration with an active phase-shift target.
@@ -57,7 +58,8 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         yield
         await asyncio.to_thread(services.close)
 
-    app = FastAPI(title="phasecal", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app = FastAPI(title="phasecal", version=phasecal_version(), description=DESCRIPTION,
+                  lifespan=lifespan)
     app.state.services = services
     install_handlers(app)
     for module in (

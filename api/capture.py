@@ -69,12 +69,14 @@ class StoreSink:
         self.have = {int(i) for i in store.stored()}
         self.on_frame = on_frame
         self.store_s = 0.0  # time spent storing frames (on the capture thread)
+        self.last_stored_at: float | None = None  # wall time the newest frame was stored
 
     def add(self, index: int, image: np.ndarray) -> None:
         if index not in self.have:
             t0 = time.perf_counter()
             self.store.add(index, image)
             self.store_s += time.perf_counter() - t0
+            self.last_stored_at = time.time()
             self.have.add(index)
             if self.on_frame is not None:
                 self.on_frame(self.store, index)
@@ -102,10 +104,9 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
         result = capture_pose(rig, plan, sink, indices=missing, progress=None,
                               cancelled=ctx.cancelled)
     finally:
-        captured_at = time.time()
         store.close()  # durable at the end of the pose, whatever happened
     timing = {"capture_s": round(time.perf_counter() - t0, 4), "store_s": round(sink.store_s, 4),
-              "captured_at": captured_at,
+              "captured_at": sink.last_stored_at,  # the last frame, not the controller's end
               "recaptures": len(result.recaptures)}
     ctx.check_cancelled()
     status = result.status

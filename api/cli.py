@@ -10,6 +10,8 @@ import argparse
 import importlib
 import sys
 
+from api.version import phasecal_version
+
 # Order shown in --help. A module listed here that does not exist yet is skipped.
 COMMANDS = [
     "plan",
@@ -40,6 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="phasecal", description="Camera calibration with an active phase-shift target."
     )
+    parser.add_argument("--version", action="version",
+                        version=f"phasecal {phasecal_version()} (Python {sys.version.split()[0]})")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
         try:
@@ -56,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `phasecal` console script."""
+    from calibration.extras import MissingExtra
     from calibration.maps import MapsError
     from calibration.models.base import ModelError
     from calibration.plan import PlanError
@@ -63,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args._run(args) or 0)
-    except (UserError, PlanError, MapsError, ModelError, FileNotFoundError, ValueError) as exc:
+    except (UserError, PlanError, MapsError, ModelError, MissingExtra, FileNotFoundError,
+            ValueError) as exc:
         print(f"phasecal {args.command}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

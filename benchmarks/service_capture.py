@@ -1,7 +1,8 @@
 """Live capture through the service: `phasecal serve` over HTTP, a simulated rig at 60 Hz.
 
 Run: .venv/bin/python benchmarks/service_capture.py [--sizes 640x480,2448x2048] [--poses N]
-The rig runs on the real clock (60 Hz display, software-triggered 8-bit camera) and
+The rig runs on the real clock (60 Hz display, software-triggered 8-bit camera with a
+6 DN black level, so dark pattern phases do not clip at 0 DN) and
 replays frames it rendered before: one untimed pose fills the simulated camera's replay
 cache, so the timed poses measure the service (controller, frame store, streaming decode
 in a worker process, job bookkeeping), not the simulator's renderer. Per pose it prints
@@ -53,7 +54,8 @@ def rig_config(width: int, height: int) -> dict:
     return {"kind": "simulated", "clock": "real",
             "display": {"refresh_hz": REFRESH_HZ},
             "camera": {"model": "mild_pinhole", "width": width, "height": height,
-                       "bit_depth": 8, "replay": True, "max_frame_rate_hz": 240.0},
+                       "bit_depth": 8, "black_level_dn": 6, "replay": True,
+                       "max_frame_rate_hz": 240.0},
             "settings": {"exposure_s": 0.004, "pixel_format": "Mono8",
                          "trigger_mode": "software"}}
 

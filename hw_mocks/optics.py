@@ -10,6 +10,7 @@ import numpy as np
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.optics_sampling import ScreenSampler
+from hw_mocks.panel import PanelShape
 from hw_mocks.scene import ScreenPose, screen_points, subpixel_offsets
 
 
@@ -40,6 +41,7 @@ class OpticalSetup:
     irradiance_scale: float = 2.0e5  # electrons/s per pixel for linear light 1.0 at the center
     ambient: float = 0.0  # constant stray light, electrons/s per pixel
     supersample: int = 2  # s x s sub-samples per pixel (pixel-area integration)
+    panel: PanelShape | None = None  # shaped panel behind cover glass (None: ideal screen)
     _sampler: ScreenSampler | None = field(default=None, init=False, repr=False)
     _gain: np.ndarray | None = field(default=None, init=False, repr=False)
     _visible: np.ndarray | None = field(default=None, init=False, repr=False)
@@ -66,7 +68,8 @@ class OpticalSetup:
         """Compute and cache the sub-sample screen points, the sampler and per-pixel gain."""
         if self._sampler is None:
             s = self.supersample
-            x, y = screen_points(self.camera, self.pose, self.screen, supersample=s)
+            x, y = screen_points(self.camera, self.pose, self.screen, supersample=s,
+                                 panel=self.panel)
             self._sampler = ScreenSampler(x, y, self.screen, s, self.blur_sigma_screen_px)
             h, w = self.camera.height, self.camera.width
             self._visible = np.isfinite(x).reshape(h, s, w, s).all(axis=(1, 3))
@@ -108,7 +111,7 @@ class OpticalSetup:
     def _compute_truth(self) -> dict[str, Any]:
         """Build the truth dictionary (see `truth`)."""
         self._prepare()
-        x, y = screen_points(self.camera, self.pose, self.screen)
+        x, y = screen_points(self.camera, self.pose, self.screen, panel=self.panel)
         # Footprint of a pixel on the screen: Jacobian of (x, y) over (u, v).
         jxu, jxv = np.gradient(x, axis=1), np.gradient(x, axis=0)
         jyu, jyv = np.gradient(y, axis=1), np.gradient(y, axis=0)
@@ -137,4 +140,5 @@ class OpticalSetup:
             "vignetting": vignetting_map(self.camera, self.vignetting),
             "irradiance_gain": self._gain,
             "pose": self.pose,
+            "panel": self.panel or PanelShape(),
         }

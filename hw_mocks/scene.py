@@ -9,6 +9,7 @@ import numpy as np
 
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
+from hw_mocks.panel import PanelShape
 
 # Samples intersected per batch: small enough for the temporaries to stay in cache.
 _ROW_CHUNK_SAMPLES = 1 << 16
@@ -60,25 +61,31 @@ class ScreenPose:
 
 
 def screen_points_at(
-    camera: TruthCamera, pose: ScreenPose, screen: ScreenGeometry, u: np.ndarray, v: np.ndarray
+    camera: TruthCamera, pose: ScreenPose, screen: ScreenGeometry, u: np.ndarray, v: np.ndarray,
+    panel: PanelShape | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Screen px (x, y) seen along the rays of pixel coords (u, v); NaN where the screen is missed.
 
     Missed means: no ray, the ray runs parallel to or away from the screen, the screen
     is seen from behind (camera on its back side), or the hit lies beyond the screen's
-    extent [-0.5, W-0.5] x [-0.5, H-0.5].
+    extent [-0.5, W-0.5] x [-0.5, H-0.5]. `panel` (default: ideal, flat and bare) adds
+    the emitting layer's shape and the cover glass (hw_mocks.panel, exact refraction).
     """
     origins, dirs = camera.rays(u, v)
     r = pose.rotation
     o_s = (origins - pose.translation) @ r  # into the screen frame
     d_s = dirs @ r
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = -o_s[..., 2] / d_s[..., 2]
-    hit = o_s + lam[..., None] * d_s
-    x = hit[..., 0] / screen.pitch_mm[0]
-    y = hit[..., 1] / screen.pitch_mm[1]
-    # The screen emits towards -z of its frame (z = x cross y points into the screen).
-    ok = (o_s[..., 2] < 0) & (d_s[..., 2] > 0) & (lam > 0)
+    if panel is not None and not panel.is_ideal:
+        hx, hy, ok = panel.trace(screen, o_s, d_s)
+        x, y = hx / screen.pitch_mm[0], hy / screen.pitch_mm[1]
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = -o_s[..., 2] / d_s[..., 2]
+        hit = o_s + lam[..., None] * d_s
+        x = hit[..., 0] / screen.pitch_mm[0]
+        y = hit[..., 1] / screen.pitch_mm[1]
+        # The screen emits towards -z of its frame (z = x cross y points into the screen).
+        ok = (o_s[..., 2] < 0) & (d_s[..., 2] > 0) & (lam > 0)
     ok &= (x >= -0.5) & (x <= screen.width_px - 0.5) & (y >= -0.5) & (y <= screen.height_px - 0.5)
     return np.where(ok, x, np.nan), np.where(ok, y, np.nan)
 
@@ -91,14 +98,15 @@ def subpixel_offsets(supersample: int) -> np.ndarray:
 
 
 def screen_points(
-    camera: TruthCamera, pose: ScreenPose, screen: ScreenGeometry, *, supersample: int = 1
+    camera: TruthCamera, pose: ScreenPose, screen: ScreenGeometry, *, supersample: int = 1,
+    panel: PanelShape | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Screen px (x, y) that each camera pixel center (or sub-sample) sees; NaN if none.
 
     supersample=1 gives (H, W) arrays for pixel centers. supersample=s gives (H*s, W*s)
     arrays on the sub-sample grid: sub-sample (j, i) of pixel (v, u) is at index
     [v*s + j, u*s + i] and at camera coordinates (u + off[i], v + off[j]) with
-    off = `subpixel_offsets(s)`.
+    off = `subpixel_offsets(s)`. `panel`: as in `screen_points_at`.
     """
     s = int(supersample)
     off = subpixel_offsets(s)
@@ -110,5 +118,6 @@ def screen_points(
     rows = max(1, _ROW_CHUNK_SAMPLES // us.size)
     for r0 in range(0, vs.size, rows):
         vv, uu = np.meshgrid(vs[r0 : r0 + rows], us, indexing="ij")
-        x[r0 : r0 + rows], y[r0 : r0 + rows] = screen_points_at(camera, pose, screen, uu, vv)
+        x[r0 : r0 + rows], y[r0 : r0 + rows] = screen_points_at(camera, pose, screen, uu, vv,
+                                                              panel)
     return x, y

@@ -11,6 +11,7 @@ from calibration.maps import MAPS_FORMAT, DecodedMaps
 from calibration.plan import Plan, ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.optics import OpticalSetup
+from hw_mocks.panel import PanelShape
 from hw_mocks.scene import ScreenPose, screen_points
 from hw_mocks.sensor import SensorModel
 
@@ -28,19 +29,21 @@ def synthetic_maps(
     outlier_fraction: float = 0.0,
     valid_fraction: float = 1.0,
     pose_id: str = "",
+    panel: PanelShape | None = None,
 ) -> tuple[DecodedMaps, dict[str, Any]]:
     """Exact screen points of each pixel plus Gaussian noise of `sigma_px`, as DecodedMaps.
 
     `valid_fraction` keeps a random subset of the visible pixels in the mask;
     `outlier_fraction` of the kept pixels get a uniformly random screen point instead
     (gross decoding errors that slipped through; marked in truth["outliers"]).
+    `panel` bends and refracts the rays (a shaped panel behind cover glass; default ideal).
     """
     if sigma_px < 0:
         raise ValueError(f"sigma_px: expected >= 0, got {sigma_px}")
     for name, value in (("outlier_fraction", outlier_fraction), ("valid_fraction", valid_fraction)):
         if not 0.0 <= value <= 1.0:
             raise ValueError(f"{name}: expected in [0, 1], got {value}")
-    x_true, y_true = screen_points(camera, pose, screen)
+    x_true, y_true = screen_points(camera, pose, screen, panel=panel)
     visible = np.isfinite(x_true)
     mask = visible & (rng.random(visible.shape) < valid_fraction)
     x = x_true + sigma_px * rng.standard_normal(x_true.shape)
@@ -75,6 +78,7 @@ def synthetic_maps(
         "outliers": outliers,
         "pose": pose,
         "camera": camera,
+        "panel": panel or PanelShape(),
     }
     return maps, truth
 

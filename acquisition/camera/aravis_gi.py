@@ -12,7 +12,7 @@ ARAVIS_API = "0.8"
 ARAVIS_SONAME = "libaravis-0.8.so.0"
 INSTALL_HINT = (
     "install Aravis: `bash scripts/install-system-deps.sh` (Debian: gir1.2-aravis-0.8) "
-    "and `pip install 'PyGObject<3.51'`"
+    "and phasecal's aravis extra: `pip install 'phasecal[aravis]'`"
 )
 
 

@@ -224,6 +224,11 @@ def maps_path(session: str | t.Session, pose: str | t.Pose) -> str:
     return f"/sessions/{ident(session)}/poses/{ident(pose)}/maps.npz"
 
 
+def frames_zip_path(session: str | t.Session, pose: str | t.Pose) -> str:
+    """Path of a pose's captured frames as a zip of frame_NNNN images."""
+    return f"/sessions/{ident(session)}/poses/{ident(pose)}/frames.zip"
+
+
 def job_events_path(job: str | t.Job) -> str:
     """Path of a job's server-sent event stream."""
     return f"/jobs/{ident(job)}/events"

@@ -175,6 +175,12 @@ class PhasecalClient:
         self.download(ops.maps_path(session, pose), dest)
         return Path(dest)
 
+    def download_frames(self, session: str | t.Session, pose: str | t.Pose, dest: str | Path,
+                        image_format: str = "png") -> Path:
+        """A pose's captured frames as a zip of frame_NNNN.png (or .tif) images to `dest`."""
+        self.download(ops.frames_zip_path(session, pose), dest, params={"format": image_format})
+        return Path(dest)
+
     def export(self, cal: str | t.Calibration, fmt: str, dest: str | Path,
                **params: Any) -> dict[str, Any]:
         """`GET /calibrations/{id}/export` to `dest`; returns the export info (exact, residual)."""

@@ -73,6 +73,12 @@ def run(args: argparse.Namespace) -> int:
         tried = ", ".join(f"{r['cells'][0]}x{r['cells'][1]}: {r['validation_chi2']:.4g}"
                           for r in st["mesh_choice"])
         print(f"  mesh {st['cells'][0]}x{st['cells'][1]} chosen (validation chi2 {tried})")
+    scr = st.get("screen") or {}
+    if scr.get("mode") == "fit":
+        print("  screen: " + ", ".join(
+            f"{k} {scr[k]:.4g} +- {scr['std'][k]:.2g}"
+            for k in ("bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm")
+        ) + f" (glass index {scr['glass_index']:g})")
     for warning in st.get("warnings", []):
         print(f"  warning: {warning}")
     if args.report:

@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from calibration.extras import install_command
+
 
 def array_module(name: str | ModuleType | None) -> ModuleType:
     """`numpy` (default) or `cupy` by name or module; a clear error when CuPy is missing."""
@@ -19,7 +21,8 @@ def array_module(name: str | ModuleType | None) -> ModuleType:
         try:
             return importlib.import_module("cupy")
         except ImportError as exc:
-            raise ValueError(f"xp: 'cupy' requested but not importable ({exc})") from None
+            raise ValueError(f"xp: 'cupy' requested but not importable ({exc}); "
+                             f"{install_command(['gpu'])}") from None
     raise ValueError(f"xp: expected 'numpy' or 'cupy', got {name!r}")
 
 

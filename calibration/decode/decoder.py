@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import sys
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
@@ -114,14 +115,29 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
-        # Large NumPy images take the compiled per-pixel kernel (importing numba costs ~0.3 s,
-        # more than it saves below ~1 Mpixel); other namespaces (CuPy) the xp path.
-        self._compiled = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
+        # Large NumPy images may take the compiled per-pixel kernel; other namespaces (CuPy)
+        # the array-namespace path.
+        self._large = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
 
     @property
     def missing(self) -> list[int]:
         """Plan indices still needed before `finish`."""
         return self._acc.missing
+
+    def prepare(self) -> None:
+        """Load the compiled finish kernel now, for images of >= 1 Mpixel (a live capture
+        calls this while frames arrive). Loading it costs ~1 s of CPU (numba's import and
+        its cached machine code), more than it saves on one 5 Mpixel finish, so a decoder
+        uses it only once it is loaded in the process (long-lived workers, live captures)."""
+        if self._large:
+            from calibration.decode.kernel import warm_up
+
+            warm_up()
+
+    @property
+    def _compiled(self) -> bool:
+        """Finish with the compiled kernel: a large NumPy image and the kernel loaded."""
+        return self._large and "calibration.decode.kernel" in sys.modules
 
     def add(self, index: int, image: np.ndarray) -> None:
         """Fold plan frame `index` into the running sums (any order, each index once)."""
@@ -257,7 +273,8 @@ class StreamingDecoder:
 
         def one(k: int) -> None:
             sl, to = pieces[k], slice(int(offsets[k]), int(offsets[k + 1]))
-            fits = [fit_set(self.xp, s, sl, residuals=True) for s in acc.sets]
+            skip = self._sees_no_screen(sl)
+            fits = [fit_set(self.xp, s, sl, residuals=True, skip=skip) for s in acc.sets]
             r, d, m = self._residuals(fits, sl)
             rss[to], dof[to], mean[to] = to_host(r), to_host(d), to_host(m)
             clean[to] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
@@ -279,6 +296,16 @@ class StreamingDecoder:
             return [slice(s, min(s + step, npix)) for s in range(0, npix, step)]
         starts = np.linspace(0, npix - _NOISE_PIECE, _NOISE_SAMPLE // _NOISE_PIECE)
         return [slice(int(s), int(s) + _NOISE_PIECE) for s in starts]
+
+    def _sees_no_screen(self, sl: slice) -> Any:
+        """Pixels whose flat contrast fails `min_contrast_snr` even at the smallest credible
+        noise (the floor): `no_screen` whatever the noise estimate, so their clipped steps
+        (a dark surround reading 0 DN) need no least-squares fit, the costliest part."""
+        acc = self._acc
+        bright = acc.bright.reshape(-1)[sl] / acc.n_bright
+        dark = acc.dark.reshape(-1)[sl] / acc.n_dark
+        floor_sigma = math.sqrt(self._floor * (1.0 / acc.n_bright + 1.0 / acc.n_dark))
+        return ~((bright - dark) >= self.options.min_contrast_snr * floor_sigma)
 
     @property
     def _floor(self) -> float:
@@ -317,7 +344,9 @@ class StreamingDecoder:
                       reason: np.ndarray) -> None:
         """Decode one flattened pixel range into `out` (or `planes`) and `reason`."""
         xp, acc = self.xp, self._acc
-        fits = [fit_set(xp, s, sl, residuals=self._variance is None) for s in acc.sets]
+        skip = self._sees_no_screen(sl)
+        fits = [fit_set(xp, s, sl, residuals=self._variance is None, skip=skip)
+                for s in acc.sets]
         variances, level_var = self._noise_variances(fits, sl)
         bright = acc.bright.reshape(-1)[sl] / acc.n_bright
         dark = acc.dark.reshape(-1)[sl] / acc.n_dark
@@ -341,9 +370,8 @@ def decode_stack(
     saturation_dn: float | None = None,
     options: DecodeOptions | None = None,
     xp: ModuleType | str | None = np,
-    meta: dict[str, Any] | None = None,
-    progress: ProgressFn | None = None,
-    cancelled: CancelCheck | None = None,
+    meta: dict[str, Any] | None = None, progress: ProgressFn | None = None,
+    cancelled: CancelCheck | None = None, prepare: bool = False,
 ) -> DecodedMaps:
     """The one decode loop: frames in plan order (an (F, H, W) stack, a `FrameSource` or any
     sized iterable of 2-D frames) to maps; progress per frame, `Cancelled` between frames."""
@@ -361,6 +389,8 @@ def decode_stack(
                                   f"got frame shape {getattr(frame, 'shape', None)}")
             dec = StreamingDecoder(plan, tuple(frame.shape), noise=noise,
                                    saturation_dn=saturation_dn, options=options, xp=xp)
+            if prepare:
+                dec.prepare()
         dec.add(i, frame)
         if progress is not None:
             progress(i + 1, count, "decode")

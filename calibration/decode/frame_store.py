@@ -76,7 +76,7 @@ class FrameStore:
         """Indices of the frames stored so far (ascending)."""
         if not self._open(writable=False):
             return np.empty(0, dtype=np.int64)
-        return np.flatnonzero(self._done)
+        return np.flatnonzero(np.array(self._done))  # a snapshot: the writer may be adding
 
     def frame(self, index: int) -> np.ndarray:
         """A read-only view of stored frame `index` (no copy)."""

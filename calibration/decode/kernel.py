@@ -188,3 +188,15 @@ def _axis_rule(anchor_ok, anchor_snr, amb, chi2, limit, mu, sigma, blur, extent,
     if not sigma <= params[P_MAX_SIGMA]:
         return 8
     return 99
+
+
+def warm_up() -> None:
+    """Load (or compile) the kernel for the argument types the decoder passes, on one pixel:
+    a live capture does this while frames arrive, not after the last one."""
+    f32 = np.ones((1, 1), dtype=np.float32)
+    planes = [np.zeros((2, 2), dtype=dt)[:, :1] for dt in (np.float64, np.float32, np.float32,
+                                                            np.float32)]
+    finish_pixels(f32, f32, f32, f32, f32, f32, f32, np.ones((1, 1), dtype=np.bool_),
+                  np.zeros(1, dtype=np.int64), np.ones(1), np.ones(1), np.ones(1),
+                  np.full(2, np.inf), np.ones(2), np.ones(7), *planes,
+                  np.zeros(1, dtype=np.uint8))

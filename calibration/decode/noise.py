@@ -105,7 +105,9 @@ def fit_photon_transfer(
     of residual degrees of freedom instead of its own handful; an even subsample of at most
     ~2 `max_pixels` pixels (~30000 per bin) is plenty. None when < 4 bins have data.
     """
-    good = np.flatnonzero(np.isfinite(mean) & np.isfinite(rss) & (dof >= 1))
+    # Pixels reading one constant value (rss 0: e.g. a black level under the noise, off
+    # the screen) say nothing about the line and would collapse the level quantiles.
+    good = np.flatnonzero(np.isfinite(mean) & np.isfinite(rss) & (dof >= 1) & (rss > 0))
     if good.size < 64:
         return None
     good = good[:: max(1, good.size // max_pixels)]  # an even subsample bounds the work
@@ -123,8 +125,11 @@ def fit_photon_transfer(
         count = int(sel.sum())
         if count < 16:
             continue
+        level = float(np.median(ratio[sel]))
+        if not level > 0:  # mostly constant readings (a black level under the noise): they
+            continue  # say nothing about the line, and 1/y weights would be infinite
         xs.append(float(np.median(m[sel])))
-        ys.append(float(np.median(ratio[sel])))
+        ys.append(level)
         ws.append(count)
     if len(xs) < 4:
         return None

@@ -177,7 +177,8 @@ def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) 
     return _Pattern(nan, n, full, np.zeros(full), np.zeros((2, steps)))
 
 
-def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False) -> SetFit:
+def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False,
+            skip: Any = None) -> SetFit:
     """Fit the cosine model of one period group on the flattened pixel range `sl`.
 
     The model also includes the set's extra harmonics (`harmonic_orders`): with all steps
@@ -186,6 +187,9 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False
     Results are float32 (the sums are float32); `residuals` also computes, in float64,
     the part of `sum v^2` the fit explains (the residual is a small difference of large
     sums). The covariance factors are scalars unless some pixel has clipped steps.
+    `skip` (bool per chunk pixel) marks pixels that cannot be valid whatever their fit
+    (they see no screen): with clipped steps they get no least-squares fit, like pixels
+    whose every step clipped.
     """
     n = sums.layout.steps
     count = 3 + len(sums.extra)
@@ -216,7 +220,11 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False
         return fit
     bits = sums.excluded.reshape(-1)[sl]
     every = (1 << n) - 1
-    dead = xp.nonzero(bits == every)[0]  # every step clipped (e.g. a black border): no fit
+    # every step clipped (e.g. a black border), or clipped and seeing no screen: no fit
+    dead = bits == every
+    if skip is not None:
+        dead = dead | ((bits != 0) & skip)
+    dead = xp.nonzero(dead)[0]
     if dead.shape[0]:
         for arr in (fit.mean, fit.level, fit.alpha, fit.beta, fit.dof):
             arr[dead] = 0.0
@@ -224,7 +232,8 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False
             explained[dead] = 0.0
         fit.ok[dead] = False
         fit.clipped[dead] = True
-    idx = xp.nonzero((bits != 0) & (bits != every))[0]
+    partial = (bits != 0) & (bits != every)
+    idx = xp.nonzero(partial & ~skip if skip is not None else partial)[0]
     if idx.shape[0] == 0:
         return fit
     uniq, inv = xp.unique(bits[idx], return_inverse=True)

@@ -24,6 +24,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
+from calibration.extras import require
 from calibration.progress import Cancelled, ProgressFn
 from calibration.worker.dask_context import PROGRESS_TOPIC, cancel_event_name, run_in_worker
 
@@ -66,6 +67,7 @@ def start_local_cluster(n_workers: int = 2) -> Any:
     bind it to a free loopback port so it neither clashes with a running cluster on 8787
     nor listens beyond 127.0.0.1.
     """
+    require("dask", "a local Dask cluster")
     from distributed import LocalCluster
 
     return LocalCluster(
@@ -102,6 +104,7 @@ class DaskExecutor:
         progress_interval_s: float = 0.05,
         max_arg_bytes: int = DEFAULT_MAX_ARG_BYTES,
     ) -> None:
+        require("dask", "the Dask executor")
         from distributed import Client
 
         self._cluster: Any = None

@@ -55,7 +55,8 @@ def decode_task(
     t0 = time.perf_counter()
     opts, saturation = _decoder_setup(options)
     maps = decode_frames(read_plan(plan_path), frames_path, noise=noise, saturation_dn=saturation,
-                         options=opts, meta=meta, progress=ctx.progress, cancelled=ctx.cancelled)
+                         options=opts, meta=meta, progress=ctx.progress, cancelled=ctx.cancelled,
+                         prepare=True)  # long-lived workers: load the compiled kernel once
     save_maps(maps, out_path)
     return _summary(maps, t0)
 
@@ -88,6 +89,7 @@ def stream_decode_task(
     ctx.check_cancelled()
     decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                options=opts)
+    decoder.prepare()
     added = np.zeros(total, dtype=bool)
     while not added.all():
         ctx.check_cancelled()

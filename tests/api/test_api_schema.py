@@ -32,7 +32,8 @@ def test_openapi_conformance(case: schemathesis.Case) -> None:
 # The same fuzzing with the ids of real resources (a session with imported maps, its poses,
 # an sGCC calibration, its job, the default rig), so cases get past the 404 for unknown ids
 # and reach body validation, project/unproject on a fitted model, maps and previews.
-# Operations that start captures or fits, or delete the fixtures, stay in the run above.
+# Operations that start captures or fits, delete the fixtures or stream without end stay in
+# the run above.
 # Schemathesis runs an app's lifespan when it loads the schema, and the shutdown stops the
 # app's executor: the fixture creates the resources through a second app on the same data
 # directory (records in SQLite, files on disk), which the fuzzed app then serves.
@@ -43,7 +44,7 @@ LIVE = schemathesis.openapi.from_asgi("/openapi.json", LIVE_APP).exclude(method=
     path_regex=r"/(poses|poses/import|poses/\{pose_id\}/resume|calibrations)$",
     method="POST").exclude(path="/batches/calibrations").exclude(
     # The live MJPEG preview is an endless stream by design (bounded only by `frames`);
-    # tests/test_live_capture.py checks it with bounded streams.
+    # tests/api/test_live_capture.py checks it with bounded streams.
     path="/rigs/{rig_id}/camera/preview")
 
 

@@ -203,3 +203,21 @@ def test_generic_options_through_the_api(client: PhasecalClient, session: dict,
         client.post(f"/sessions/{session['id']}/calibrations",
                     {"model": "sgcc", "pose_ids": captured, "options": {"xp": "torch"}})
     assert bad.value.status == 422 and "options.xp" in str(bad.value)
+
+
+def test_screen_options_through_the_api(client: PhasecalClient, session: dict,
+                                        captured: list[str]) -> None:
+    """A parametric REST job takes `screen: "fit"` and `glass_index`: the screen estimate with
+    its 1-sigma is stored with the calibration; a bad value is a 422 naming the option."""
+    final = client.wait(client.post(f"/sessions/{session['id']}/calibrations",
+                                    {"model": "opencv5", "pose_ids": captured,
+                                     "options": {"screen": "fit", "glass_index": 1.5}}),
+                        timeout_s=300)
+    assert final["status"] == "succeeded", final["error"]
+    scr = client.get(final["resource"])["stats"]["screen"]
+    assert scr["mode"] == "fit" and scr["glass_index"] == 1.5
+    assert set(scr["std"]) == {"bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm"}
+    with pytest.raises(ServiceError) as bad:
+        client.post(f"/sessions/{session['id']}/calibrations",
+                    {"model": "opencv5", "pose_ids": captured, "options": {"glass_index": 9}})
+    assert bad.value.status == 422 and "glass_index" in str(bad.value)

@@ -122,3 +122,35 @@ def test_cli_errors(workdir, capsys) -> None:
     assert main(["project", "--model", str(d / "ok.json"), "--points", str(d / "bad.npy"),
                  "-o", str(d / "o.npy")]) == 1
     assert "expected a numeric (N, 3)" in capsys.readouterr().err
+
+
+def test_calibrate_fits_a_bowed_glazed_screen(tmp_path, capsys) -> None:
+    """`--option screen="fit"` on maps of a bowed panel behind glass: the CLI stores the
+    screen estimate (within 3 sigma of the hw_mocks truth) in model.json; bad values exit 1."""
+    from hw_mocks.panel import PanelShape
+
+    plan = build_plan(1920, 1080, 0.2745)
+    write_plan(plan, tmp_path / "plan.json")
+    cam = mild_pinhole(240, 180)
+    rng = np.random.default_rng(5)
+    real = PanelShape(bow_x_mm=0.5, bow_y_mm=0.3, glass_mm=1.5)
+    names = []
+    for i, pose in enumerate(random_poses(cam, plan.screen, 6, rng)):
+        maps, _ = synthetic_maps(cam, pose, plan.screen, sigma_px=0.05, rng=rng, panel=real)
+        save_maps(maps, tmp_path / f"p{i}.npz")
+        names.append(str(tmp_path / f"p{i}.npz"))
+    base = ["calibrate", "--plan", str(tmp_path / "plan.json"), "--maps", *names,
+            "--model", "opencv5", "-o", str(tmp_path / "m.json"), "--heldout", "5"]
+    assert main([*base, "--option", 'screen="fit"', "--option", "glass_index=1.52"]) == 0
+    printed = capsys.readouterr().out
+    assert "screen: bow_x_mm " in printed and "(glass index 1.52)" in printed
+    stats = json.loads((tmp_path / "m.json").read_text())["stats"]
+    scr = stats["screen"]
+    assert scr["mode"] == "fit"
+    for key, true in (("bow_x_mm", 0.5), ("bow_y_mm", 0.3), ("glass_mm", 1.5)):
+        assert abs(scr[key] - true) < 3 * scr["std"][key]
+    assert 0.8 < stats["noise_floor_ratio"] < 1.2  # flat-equivalent residuals at the noise
+    assert stats["heldout"]["noise_floor_ratio"] < 1.5
+    capsys.readouterr()
+    assert main([*base, "--option", 'screen="curved"']) == 1
+    assert "options.screen: expected one of ['flat', 'fit']" in capsys.readouterr().err

@@ -7,6 +7,7 @@ import asyncio
 import gc
 import importlib.util
 import tracemalloc
+import zipfile
 from pathlib import Path
 from typing import get_type_hints
 
@@ -86,6 +87,9 @@ def test_calibrate_wait_and_streamed_downloads(client, session, poses, tmp_path)
     assert len(out["pixels"]) == 1
     client.download_maps(session, poses[0], tmp_path / "maps.npz")
     assert (tmp_path / "maps.npz").stat().st_size > 1000
+    with zipfile.ZipFile(client.download_frames(session, poses[0], tmp_path / "f.zip")) as zf:
+        names = zf.namelist()
+    assert len(names) == session["frame_count"] and names[0] == "frame_0000.png"
     assert not list(tmp_path.glob("*.part"))
 
 

@@ -326,3 +326,13 @@ def test_cli_export_and_undistort_points(tmp_path):
     ref = cv2.undistortPoints(np.load(tmp_path / "px.npy").reshape(-1, 1, 2), K,
                               np.array(RATIONAL), R=None, P=K, criteria=CRITERIA)
     assert np.max(np.abs(np.load(tmp_path / "u.npy") - ref[:, 0, :])) < 1e-6
+
+
+def test_calibrate_refuses_opencv_export_of_a_generic_model_before_fitting(tmp_path, capsys):
+    from api.cli import main
+
+    rc = main(["calibrate", "--plan", str(tmp_path / "none.json"), "--maps", "x.npz",
+               "--model", "sgcc", "--export-opencv", str(tmp_path / "cam.yaml"),
+               "-o", str(tmp_path / "m.json")])
+    assert rc == 1
+    assert "no OpenCV/ROS form" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """Calibrate the OpenCV-family models (opencv5, opencv-rational, fisheye) from decoded maps:
-validate the inputs, fit (`parametric.fit_parametric`), evaluate training and held-out poses."""
+validate the inputs, fit (OpenCV init, then the weighted fit on every pixel,
+`calibration.metrology.refine`), evaluate training and held-out poses."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import numpy as np
 
 from calibration.evaluate import attach_residuals, heldout_errors, summarize
 from calibration.fit.classic.options import MIN_POSES, ParametricOptions
-from calibration.fit.classic.parametric import fit_parametric
 from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.result import CalibrationResult
 from calibration.maps import DecodedMaps
@@ -60,8 +60,10 @@ def calibrate_parametric(
         if progress is not None:
             progress(i, n + 1, msg)
 
-    fitted, poses, used, stats = fit_parametric([pts[i] for i in train], size, model, options,
-                                                report)
+    from calibration.metrology.refine import fit_parametric_dense, heldout_points
+
+    fitted, poses, used, stats, dense = fit_parametric_dense(
+        [pts[i] for i in train], size, model, screen, options, report)
     result = CalibrationResult(model=fitted, poses=poses)
     report(1, 1, f"{model}: evaluating")
     per_pose = attach_residuals(result, used, train)
@@ -71,11 +73,14 @@ def calibrate_parametric(
     if held:
         rng = np.random.default_rng(options.seed)
         held_pts = [subsample(pts[i], options.max_points_per_pose) for i in held]
+        if dense is not None:  # moved to where a flat bare screen shows them
+            held_pts = heldout_points(dense, held_pts, rng)
         stats["heldout"] = heldout_errors(fitted, held_pts, held, rng)
     stats["wall_s"] = time.perf_counter() - t0
     result.stats = stats
     fitted.stats = {k: stats[k] for k in ("rms_px", "expected_rms_px", "noise_floor_ratio",
-                                          "model_adequate", "param_std", "per_pose")}
+                                          "model_adequate", "param_std", "per_pose",
+                                          "screen", "reduced_chi2")}
     if held:
         fitted.stats["heldout"] = stats["heldout"]
     return result

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 
 MIN_POSES = 3
 
@@ -19,3 +21,20 @@ class ParametricOptions(BaseModel):
     outlier_rounds: int = Field(default=2, ge=0, le=10,
                                 description="refits after dropping points beyond 5 robust sigmas")
     seed: int = Field(default=0, ge=0, description="seed of the held-out point subsampling")
+    points: Literal["all", "sampled"] = Field(
+        default="all",
+        description='"all": refine on every valid pixel weighted by its decoded sigma; '
+                    '"sampled": OpenCV\'s fit on max_points_per_pose points only')
+    screen: Literal["flat", "fit"] = Field(
+        default="flat",
+        description='"flat": an ideal bare flat screen; "fit": panel bow/twist and cover-glass '
+                    "thickness estimated with the camera (needs points \"all\")")
+    glass_index: float = Field(default=1.52, gt=1.0, le=2.5, strict=True,
+                               description="refractive index of the cover glass (known)")
+
+    @model_validator(mode="after")
+    def _screen_needs_all_points(self) -> ParametricOptions:
+        """The screen model is estimated only by the weighted fit on every pixel."""
+        if self.screen == "fit" and self.points != "all":
+            raise ValueError('screen "fit" needs options.points = "all" (the weighted fit)')
+        return self

@@ -6,7 +6,9 @@ coarsest of 10/14/20 cells along the longer side that fits as well as the best, 
 validation points), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
-CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`).
+CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`),
+`family_prior` ("off", default; "auto": where a dense parametric fit is as good as the free
+spline, refit with the prior centred on it, calibration.metrology.family_prior).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -31,6 +34,7 @@ from calibration.fit.sgcc.mesh import choose_mesh
 from calibration.fit.sgcc.options import SgccOptions
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
+from calibration.metrology.family_prior import PRIOR_WEIGHT, prior_state
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import (
     SGCCBase,
@@ -137,6 +141,22 @@ def _fit(
     return model, out
 
 
+def _centred_on_family(
+    cls: type[SGCCBase], obs: list[PoseObs], screen: ScreenGeometry, grid: SplineGrid,
+    lm: LMOptions, free: tuple[SGCCBase, LMResult], cv_fit: tuple,
+    progress: ProgressFn | None, cancelled: CancelCheck | None,
+) -> tuple[SGCCBase, LMResult, dict[str, Any]]:
+    """Refit with the prior centred on the best parametric family if it fits as well as the
+    free spline (calibration.metrology.family_prior); else the free fit and the verdict."""
+    fitted, out = free
+    n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
+    state, info = prior_state(obs, screen, grid, cls.n_components, out.chi2_dof, n_res, cv_fit)
+    if info["adequate"]:
+        centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=state.coeffs.ravel())
+        fitted, out = _fit(cls, obs, grid, state, centred, progress, cancelled)
+    return fitted, out, info
+
+
 def _heldout(
     model: SGCCBase, obs: list[PoseObs], indices: list[int], lm: LMOptions, pitch_mm: np.ndarray
 ) -> dict[str, Any]:
@@ -223,6 +243,7 @@ def calibrate_generic(
     maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
     cells, lm = opts.cells, _lm_options(opts)
+    prior_mode = opts.family_prior
     h, w = maps[0].shape
     obs = observations(maps, screen)
     for j, ob in enumerate(obs):
@@ -236,6 +257,10 @@ def calibrate_generic(
     grid = SplineGrid((w, h), cells)
     init = initial_state(obs, grid, cls.n_components, cv_fit)
     fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
+    prior = None
+    if prior_mode == "auto":
+        fitted, out, prior = _centred_on_family(cls, obs, screen, grid, lm, (fitted, out),
+                                                cv_fit, progress, cancelled)
     pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
     dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)
@@ -277,6 +302,8 @@ def calibrate_generic(
     }
     if mesh_choice is not None:
         stats["mesh_choice"] = mesh_choice
+    if prior is not None:
+        stats["family_prior"] = prior
     stats["warnings"] = fit_warnings(model, views, len(uncovered), grid,
                                      stats["noise_floor_ratio"])
     if held_maps:

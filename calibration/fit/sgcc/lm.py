@@ -100,6 +100,7 @@ class _Loop:
     converged: bool = False
     cut: float = np.inf
     lam_prior: float = 0.0
+    prior_mean: np.ndarray | float = 0.0  # centre of the prior (LMOptions.prior_mean)
     res: np.ndarray | None = None  # residuals (2,N) and ok mask of `state`
     ok: np.ndarray | None = None
     hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
@@ -143,7 +144,8 @@ def _cost(
     """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
     cost, _ = _robust(_sigma_norm(prob, res), k, lp.cut)
     cost = np.where(ok, cost, 2 * k * lp.cut)
-    return float(cost.sum() + lp.lam_prior * x @ lp.prior_base @ x)
+    dx = x - lp.prior_mean
+    return float(cost.sum() + lp.lam_prior * dx @ lp.prior_base @ dx)
 
 
 def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
@@ -189,7 +191,7 @@ def _iterate(
             first = False
         x = st.coeffs.ravel()
         h[:ns, :ns] += lp.lam_prior * lp.prior_base
-        grad[:ns] += lp.lam_prior * lp.prior_base @ x
+        grad[:ns] += lp.lam_prior * lp.prior_base @ (x - lp.prior_mean)
         hr = lp.hr = lp.z.T @ h @ lp.z
         gr = lp.z.T @ grad
         cost0 = _cost(prob, res, ok, x, lp, options.huber_k)
@@ -275,6 +277,8 @@ def _run(
         z,
         np.kron(dmat.T @ dmat, np.eye(n_comp)),
     )
+    if options.prior_mean is not None:
+        lp.prior_mean = np.asarray(options.prior_mean, dtype=np.float64).ravel()
     sub = _subset(obs, options.subset_pixels)
     if sub is not None:
         _iterate(_make_problem(grid, n_comp, sub, options.xp), lp, options,

@@ -27,6 +27,10 @@ class SgccOptions(BaseModel):
                           description="relative weight of the second-difference prior")
     xp: Literal["numpy", "cupy"] = Field(
         default="numpy", description='"numpy": threaded CPU; "cupy": per-pixel work on a GPU')
+    family_prior: Literal["off", "auto"] = Field(
+        default="off",
+        description='"auto": where a dense parametric fit is as good as the free spline, refit '
+                    "with the smoothness prior centred on it (calibration.metrology.family_prior)")
 
     @field_validator("cells", mode="before")
     @classmethod

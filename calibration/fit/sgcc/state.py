@@ -25,6 +25,10 @@ class LMOptions:
     subset_pixels: int = 100_000  # early iterations on about this many points (large fits)
     # Array module of the per-pixel work: "numpy" (threaded CPU) or "cupy" (GPU, sgcc/device.py).
     xp: str = "numpy"
+    # Centre of the second-difference prior (flattened spline coefficients; None: zero, a
+    # prior on the spline itself). calibration.metrology.family_prior centres it on a
+    # parametric family's ray field where that family fits as well as the spline.
+    prior_mean: np.ndarray | None = None
 
 
 @dataclass

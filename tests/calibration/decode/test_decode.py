@@ -280,8 +280,9 @@ def test_generic_array_namespace_path_matches_opencv_path(plan):
 
 @pytest.mark.parametrize("noise", [None, 1.5])
 def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
-    """The numba per-pixel finish (large images) equals the array-namespace path."""
+    """The numba per-pixel finish (large images, once loaded) equals the array-namespace path."""
     import calibration.decode.decoder as decoder_module
+    import calibration.decode.kernel  # noqa: F401 - loaded: large decoders use it
 
     stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
@@ -300,3 +301,17 @@ def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
         np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=5e-3,
                                    equal_nan=True)
     check_honest(got, x, y)
+
+
+def test_photon_transfer_with_constant_pixels_at_the_black_level():
+    """Pixels reading one constant value (residual 0: a black level under the noise floor)
+    used to put an infinite weight into the line fit (LinAlgError); their bin sits at the
+    quantization floor and the line follows the others."""
+    from calibration.decode.noise import fit_photon_transfer
+
+    rng = np.random.default_rng(3)
+    mean = np.concatenate([np.full(8000, 6.0), rng.uniform(20.0, 200.0, 30000)])
+    var = np.where(mean > 6.0, 0.1 + 0.02 * mean, 0.0)
+    rss = var * rng.chisquare(7, mean.size)
+    line = fit_photon_transfer(mean, rss, np.full(mean.size, 7.0), 1.0 / 12.0)
+    assert line is not None and abs(line.slope - 0.02) < 0.003, line

@@ -1,0 +1,61 @@
+"""sGCC with its prior centred on an adequate parametric family (option family_prior)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.compare import ray_angle_difference
+from calibration.fit.sgcc.calibrate import calibrate_generic
+from calibration.plan import ScreenGeometry
+from hw_mocks import cameras, poses, synthetic
+
+SCREEN = ScreenGeometry(1920, 1080, (0.2745, 0.2745))
+
+
+def _fit_both(cam, seed: int):
+    """Free and family-centred sgcc fits of the same maps, with their ray errors."""
+    rng = np.random.default_rng(seed)
+    ps = poses.random_poses(cam, SCREEN, 6, rng)
+    maps = [synthetic.synthetic_maps(cam, p, SCREEN, rng=rng, sigma_px=0.05)[0] for p in ps]
+    seen = np.logical_or.reduce([m.mask for m in maps])
+    v, u = np.nonzero(seen[::3, ::3])
+    pix = np.stack([u * 3, v * 3], 1).astype(float)
+    out = []
+    for mode in ("off", "auto"):
+        res = calibrate_generic(maps, SCREEN, "sgcc", options={"family_prior": mode})
+        err = ray_angle_difference(res.model.unproject, lambda p: cam.rays(p[:, 0], p[:, 1]),
+                                   (cam.width, cam.height), pixels=pix)["rms_rad"]
+        out.append((res, err))
+    return out
+
+
+def test_family_prior_used_where_the_family_is_exact() -> None:
+    """A mild pinhole: the rational family passes the test and the ray error drops."""
+    (free, e_free), (centred, e_centred) = _fit_both(cameras.mild_pinhole(200, 150), 3)
+    info = centred.stats["family_prior"]
+    assert info["adequate"] and info["family"] == "opencv-rational"
+    assert info["chi2_gain"] <= info["chi2_gain_limit"]
+    assert "family_prior" not in free.stats
+    assert e_centred < 0.8 * e_free
+    assert 0.8 < centred.stats["noise_floor_ratio"] < 1.2
+
+
+def test_family_prior_refused_outside_every_family() -> None:
+    """Local bumps no parametric family has: the test fails and the free fit stands."""
+    (_, e_free), (centred, e_centred) = _fit_both(cameras.smooth_noncentral(200, 150,
+                                                                            bumps=True), 3)
+    info = centred.stats["family_prior"]
+    assert not info["adequate"] and info["weight"] is None
+    assert info["chi2_gain"] > info["chi2_gain_limit"]
+    assert e_centred == pytest.approx(e_free, rel=1e-9)
+
+
+def test_family_prior_option_is_checked() -> None:
+    """A bad value names the option."""
+    cam = cameras.mild_pinhole(80, 60)
+    rng = np.random.default_rng(0)
+    maps = [synthetic.synthetic_maps(cam, p, SCREEN, rng=rng)[0]
+            for p in poses.random_poses(cam, SCREEN, 4, rng)]
+    with pytest.raises(ValueError, match="family_prior"):
+        calibrate_generic(maps, SCREEN, "sgcc", options={"family_prior": "yes"})
