@@ -85,7 +85,10 @@ def test_fresh_venv_without_extras_runs_the_flow(tmp_path):
                     str(src / "constraints.txt"), str(src)], check=True)
     work = tmp_path / "work"
     work.mkdir()
-    r = subprocess.run([str(venv / "bin" / "python"), str(src / "tests" / "fresh_venv_flow.py"),
-                        str(work)], capture_output=True, text=True, cwd=work, timeout=1200)
+    # -P: the script's folder (tests/, whose test packages mirror api/ and calibration/) must
+    # not shadow the installed packages.
+    r = subprocess.run([str(venv / "bin" / "python"), "-P",
+                        str(src / "tests" / "fresh_venv_flow.py"), str(work)],
+                       capture_output=True, text=True, cwd=work, timeout=1200)
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     assert "fresh venv flow: ok" in r.stdout

@@ -153,4 +153,5 @@ def test_calibrate_fits_a_bowed_glazed_screen(tmp_path, capsys) -> None:
     assert stats["heldout"]["noise_floor_ratio"] < 1.5
     capsys.readouterr()
     assert main([*base, "--option", 'screen="curved"']) == 1
-    assert "options.screen: expected one of ['flat', 'fit']" in capsys.readouterr().err
+    assert "options.screen: Input should be 'flat' or 'fit', got 'curved'" in (
+        capsys.readouterr().err)
