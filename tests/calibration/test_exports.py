@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import subprocess
 from pathlib import Path
 
@@ -63,7 +64,8 @@ def _mrcal_available() -> bool:
     return probe.returncode == 0
 
 
-needs_mrcal = pytest.mark.skipif(not _mrcal_available(),
+# Skipped locally without mrcal; in CI (CI set) never skipped, so a missing install step fails.
+needs_mrcal = pytest.mark.skipif(not os.environ.get("CI") and not _mrcal_available(),
                                  reason="python3-mrcal (scripts/install-system-deps.sh) missing")
 
 
