@@ -91,6 +91,11 @@ class ScreenTrace:
         return pts, jo, jq, js
 
 
+def _cross(a: Any, b: Any) -> Any:
+    """Cross products of feature-major 3-vectors (3,n) x (3,n), on any array module."""
+    return a[[1, 2, 0]] * b[[2, 0, 1]] - a[[2, 0, 1]] * b[[1, 2, 0]]
+
+
 def panel_ray_terms(
     xp: ModuleType, comps: Any, rc: Any, tc: Any, screen: Any, jacobian: bool,
     panel: tuple[ScreenTrace, Any],
@@ -122,7 +127,7 @@ def panel_ray_terms(
         g[:, 2:] = (jo[:, :, None, :] * rc[None, :, :2, None]).sum(axis=1)
     jp = xp.empty((2, 6 + N_SCREEN, len(rz)))
     for i in range(2):  # d/d(omega) = -(dQ/do_s [o_s]x + dQ/dr_s [r_s]x), row-wise o x row
-        jp[i, :3] = xp.cross(o_s, jo[i], axis=0) + xp.cross(r_s, jr_s[i], axis=0)
+        jp[i, :3] = _cross(o_s, jo[i]) + _cross(r_s, jr_s[i])
     jp[:, 3:6] = jo
     jp[:, 6:] = js
     return res, ok, g, jp
