@@ -202,7 +202,7 @@ class _Runner:
 
     def run(self, order: Sequence[int], accept: Callable[[int, np.ndarray, AcceptedFrame], None]
             ) -> None:
-        """Capture `order`, each accepted frame handed to `accept` exactly once.
+        """Capture `order`, each position's accepted frame handed to `accept` once, in order.
 
         Event loop over three kinds of timed actions, earliest first: show the next
         pattern (so it flips right after the last shown pattern's exposures end), begin
@@ -274,8 +274,8 @@ class _Runner:
             if not frames:
                 failed = order[done]  # the oldest pattern not yet accepted
                 self.recaptures.append(Recapture(failed, reason))
-                attempts[failed] = attempts.get(failed, 0) + 1
-                if attempts[failed] >= self.opts.max_attempts:
+                attempts[done] = attempts.get(done, 0) + 1  # by position: indices may repeat
+                if attempts[done] >= self.opts.max_attempts:
                     raise _Failed(f"plan frame {failed}: no valid frame after "
                                   f"{self.opts.max_attempts} attempts (last: {reason})")
                 pos = done  # re-show the failed pattern; later in-flight flips are wasted
@@ -323,11 +323,17 @@ def capture_pose(
     wall0 = time.monotonic()
     runner = _Runner(display, camera, clock, applied, plan, opts, latency, rig.trigger, cancelled)
     refs = reference_indices(plan) if opts.integrity else None
+    if refs is not None and not all(r in order for r in refs):
+        refs = None  # a resumed capture without the references cannot repeat them
+    repeats: dict[int, np.ndarray] = {}  # the references again, right after the plan frames
     originals: dict[int, np.ndarray] = {}
     accepted: list[int] = []
     frames: dict[int, AcceptedFrame] = {}
 
     def accept(i: int, image: np.ndarray, info: AcceptedFrame) -> None:
+        if len(accepted) == len(order):  # positions past the plan frames: the repeats
+            repeats[i] = image
+            return
         sink.add(i, image)
         accepted.append(i)
         frames[i] = info
@@ -336,21 +342,18 @@ def capture_pose(
         if progress is not None:
             done = len(accepted)
             eta = (time.monotonic() - wall0) / done * (len(order) - done)
-            progress(Progress(done, len(order), eta, "capture"))
+            progress(Progress(done, len(order), eta, "capture" if done < len(order)
+                              else "integrity"))
 
     def result(status: Status, reason: str, report: IntegrityReport | None = None) -> PoseCapture:
         return PoseCapture(status, reason, len(order), accepted, frames, runner.recaptures,
                            runner.stale, runner.reconnects, latency, started, clock.now(), report)
 
     camera.start()
-    try:
-        runner.run(order, accept)
+    try:  # one pipelined run: the repeats follow the last plan frame without a restart
+        runner.run(order + list(refs or ()), accept)
         report = None
-        if refs is not None and all(r in originals for r in refs):
-            if progress is not None:
-                progress(Progress(len(accepted), len(order), None, "integrity"))
-            repeats: dict[int, np.ndarray] = {}
-            runner.run(list(refs), lambda i, img, _info: repeats.__setitem__(i, img))
+        if refs is not None:
             report = compare_references(tuple(originals[r] for r in refs),  # type: ignore[arg-type]
                                         tuple(repeats[r] for r in refs),  # type: ignore[arg-type]
                                         opts.thresholds)

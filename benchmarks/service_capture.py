@@ -17,8 +17,8 @@ the service does count against R. `x N*P` is the same time over N refresh period
 camera can reach 1.0 there). Capture time is taken both ways: `server` is the job's
 controller run (`capture_s`: camera set-up, plan frames, integrity repeats and check);
 `client` is from the POST to the last stored plan frame (same clock, same machine). S is
-the time from the last stored plan frame to the job's success as the client's 10 ms
-poll sees it (maps written and committed).
+the time from the last stored plan frame to the job's success as the client sees it (its
+`end` server-sent event: maps written and committed).
 Per pose the server-side stages after the last frame are printed: `tail` (controller: the
 integrity repeats and check), `lag` (decode worker catching up with the last frame),
 `finish` (decoder finish), `write` (maps NPZ, fsync), `commit` (rename into the pose).
@@ -29,6 +29,7 @@ Last line: `service capture: worst R x vsync floor; pose ready S s after the las
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import subprocess
@@ -86,18 +87,27 @@ def vsync_floor(frames: int) -> float:
 
 
 def capture(c: httpx.Client, session: str) -> tuple[dict, float, float]:
-    """One pose: the finished job, the client's POST time and when it saw the job succeed."""
+    """One pose: the finished job, the client's POST time and when it learnt the job ended.
+
+    The client follows the job's server-sent events (`GET /jobs/{id}/events`) to its `end`
+    event, as a live client would; polling `GET /jobs/{id}` every few ms instead costs the
+    server a request per poll on the cores the capture uses.
+    """
     t0 = time.time()
     job = c.post(f"/sessions/{session}/poses", json={}).raise_for_status().json()
-    while True:
-        j = c.get(f"/jobs/{job['id']}").json()
-        if j["status"] not in ("queued", "running"):
-            break
-        time.sleep(0.01)
+    final: dict | None = None
+    with c.stream("GET", f"/jobs/{job['id']}/events", timeout=600) as events:
+        event = ""
+        for line in events.iter_lines():
+            if line.startswith("event: "):
+                event = line[len("event: "):]
+            elif line.startswith("data: ") and event == "end":
+                final = json.loads(line[len("data: "):])
+                break
     seen = time.time()
-    if j["status"] != "succeeded":
-        raise SystemExit(f"capture failed: {j['error']}")
-    return j, t0, seen
+    if final is None or final["status"] != "succeeded":
+        raise SystemExit(f"capture failed: {final and final['error']}")
+    return final, t0, seen
 
 
 def bench_size(c: httpx.Client, width: int, height: int, poses: int) -> list[dict]:

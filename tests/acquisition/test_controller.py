@@ -245,3 +245,17 @@ def test_slow_frame_delivery_and_stores_keep_one_pattern_per_two_refreshes(laten
     assert res.recaptures == [] and mis_synced(r, res) == []
     flips = np.array(sorted(info.flip_s for info in res.frames.values()))
     assert np.round(np.diff(flips) * 60).astype(int).tolist() == [2] * (len(PLAN.frames) - 1)
+
+
+def test_integrity_repeats_follow_the_plan_frames_in_one_pipeline():
+    """The three reference repeats are shown right after the last plan frame, two refreshes
+    apart like every pattern (no restart of the pipeline: latency + a refresh saved)."""
+    r = make_rig(2, timestamp_jitter_s=0.0)
+    s = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=s,
+                       options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete" and res.integrity is not None and res.integrity.ok
+    shown = [h.flip_s for h in r.display.history() if h.image_id > 0]
+    assert len(shown) == len(PLAN.frames) + 3 and res.recaptures == []
+    assert np.round(np.diff(shown) * 60).astype(int).tolist() == [2] * (len(shown) - 1)
+    assert sorted(res.accepted) == list(range(len(PLAN.frames)))
