@@ -4,6 +4,7 @@ moves the finished maps into the pose folder, once the task succeeded."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -119,7 +120,9 @@ class CaptureJob(PoseJob):
             set_pose_status(svc, self.pose_id, "decoding")
             dec = fut.result()
             ctx.check_cancelled()
+            decoded_at = time.time()
             svc.store.commit(staged, ["maps.npz"], pose_dir)
+            dec["commit_s"] = round(time.time() - decoded_at, 4)
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 
 
