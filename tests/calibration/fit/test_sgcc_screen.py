@@ -205,3 +205,15 @@ def test_screen_fit_on_the_device_path(monkeypatch) -> None:
     for key in TRUTH:
         assert abs(got.stats["screen"][key] - ref.stats["screen"][key]) < \
             1e-4 * ref.stats["screen"]["std"][key]
+
+
+def test_auto_mesh_validates_through_the_fitted_screen() -> None:
+    """cells "auto" with screen "fit": the validation residuals see the fitted screen, so the
+    chosen mesh's validation chi2 is at the noise level (a bare plane would leave ~2.5)."""
+    cam = cameras.mild_pinhole(W, H)
+    res = calibrate_generic(_maps(cam, REAL, True), SCREEN, "sgcc",
+                            options={"cells": "auto", "screen": "fit"})
+    chosen = next(r for r in res.stats["mesh_choice"] if r["cells"] == res.stats["cells"])
+    assert chosen["validation_chi2"] < 1.1
+    scr = res.stats["screen"]
+    assert abs(scr["glass_mm"] - 1.5) < 3 * scr["std"]["glass_mm"]
