@@ -41,12 +41,11 @@ class ScreenTrace:
         return cls(0.5 * (geometry.width_px - 1) * px, 0.5 * (geometry.height_px - 1) * py,
                    0.5 * geometry.width_px * px, 0.5 * geometry.height_px * py, float(index))
 
-    def _shape(self, params: Any, x: Any, y: Any) -> tuple[Any, Any, Any, Any, Any]:
-        """Normalised coordinates xi, eta (n,) and depth z_s with its x/y slopes (n,)."""
+    def _depth(self, params: Any, x: Any, y: Any) -> tuple[Any, Any, Any]:
+        """Normalised coordinates xi, eta (n,) and the panel depth z_s (n,) there."""
         bx, by, tw = (float(v) for v in params[:3])
         xi, eta = (x - self.cx) / self.ax, (y - self.cy) / self.ay
-        zs = bx * (xi * xi - 1 / 3) + by * (eta * eta - 1 / 3) + tw * xi * eta
-        return xi, eta, zs, (2 * bx * xi + tw * eta) / self.ax, (2 * by * eta + tw * xi) / self.ay
+        return xi, eta, bx * (xi * xi - 1 / 3) + by * (eta * eta - 1 / 3) + tw * xi * eta
 
     def trace(self, xp: ModuleType, params: Any, o: Any, q: Any) -> tuple[Any, Any, Any, Any]:
         """Panel points Q (2,n) mm of rays with origins o (3,n) and slopes q = r_xy/r_z (2,n)
@@ -61,12 +60,14 @@ class ScreenTrace:
         base = o[:2] - (h + o[2]) * q
         pts = base + h * m
         for _ in range(_FIXED_POINT_ITERS):
-            new = base + (self._shape(params, pts[0], pts[1])[2] + h) * m
+            new = base + (self._depth(params, pts[0], pts[1])[2] + h) * m
             step = float(xp.max(xp.abs(new - pts))) if pts.size else 0.0
             pts = new
             if step < _FIXED_POINT_TOL_MM:
                 break
-        xi, eta, zs, gx, gy = self._shape(params, pts[0], pts[1])
+        xi, eta, zs = self._depth(params, pts[0], pts[1])
+        bx, by, tw = (float(v) for v in params[:3])
+        gx, gy = (2 * bx * xi + tw * eta) / self.ax, (2 * by * eta + tw * xi) / self.ay
         cc = zs + h
         # A = (I - m g^T)^-1 = I + m g^T / (1 - g.m) (Sherman-Morrison): dQ/d(base).
         den = 1.0 / (1.0 - (gx * m[0] + gy * m[1]))
@@ -120,11 +121,11 @@ def panel_ray_terms(
     jr_s = xp.empty((2, 3, len(rz)))
     jr_s[:, 0], jr_s[:, 1] = jq[:, 0] / rz, jq[:, 1] / rz
     jr_s[:, 2] = -(jq[:, 0] * slope[0] + jq[:, 1] * slope[1]) / rz
-    mrc = (jr_s[:, :, None, :] * rc[None, :, :, None]).sum(axis=1)  # (2,3,n): dQ/dr_s Rc
+    mrc = xp.tensordot(rc, jr_s, axes=([0], [1])).transpose(1, 0, 2)  # (2,3,n): dQ/dr_s Rc
     g = xp.empty((2, c, len(rz)))
     g[:, :2] = (mrc[:, :, None, :] * jr[None]).sum(axis=1)
     if c == 4:
-        g[:, 2:] = (jo[:, :, None, :] * rc[None, :, :2, None]).sum(axis=1)
+        g[:, 2:] = xp.tensordot(rc[:, :2], jo, axes=([0], [1])).transpose(1, 0, 2)
     jp = xp.empty((2, 6 + N_SCREEN, len(rz)))
     for i in range(2):  # d/d(omega) = -(dQ/do_s [o_s]x + dQ/dr_s [r_s]x), row-wise o x row
         jp[i, :3] = _cross(o_s, jo[i]) + _cross(r_s, jr_s[i])
