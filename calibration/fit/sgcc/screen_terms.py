@@ -9,11 +9,13 @@ feature-major ((k, n) arrays) and on any array module, so the threaded CPU path
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calibration.metrology.screen import ScreenModel
 from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
@@ -152,16 +154,17 @@ GAUGE_NONCENTRAL = ("; sgcc-noncentral: the glass's lateral shift depends only o
                     "spread of normals and distances between poses, and their std says how well")
 
 
-def normal_spread_deg(rcs: list[np.ndarray]) -> float:
-    """Largest angle (degrees) between two poses' screen normals in the camera frame."""
-    normals = np.array([rc[2] for rc in rcs])  # Rc = R^T: row 2 is the normal R e_z
+def normal_spread_deg(rvecs: Sequence[np.ndarray]) -> float:
+    """Largest angle (degrees) between two poses' screen normals in the camera frame, from the
+    poses' rotation vectors (screen -> camera, OpenCV's rvecs)."""
+    normals = np.array([Rotation.from_rotvec(np.ravel(r)).as_matrix()[:, 2] for r in rvecs])
     cos = np.clip(normals @ normals.T, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos.min())))
 
 
-def holds_glass(n_comp: int, rcs: list[np.ndarray]) -> bool:
+def holds_glass(n_comp: int, spread_deg: float) -> bool:
     """Whether the glass thickness is a gauge freedom: non-central, one screen normal."""
-    return n_comp == 4 and normal_spread_deg(rcs) < MIN_NORMAL_SPREAD_DEG
+    return n_comp == 4 and spread_deg < MIN_NORMAL_SPREAD_DEG
 
 
 def screen_stats(geometry: ScreenGeometry, mode: str, index: float, params: np.ndarray | None,
