@@ -255,9 +255,10 @@ class StreamingDecoder:
         rss = self._acc.squares.reshape(-1)[sl].astype(xp.float64)
         dof = xp.zeros_like(rss)
         level = xp.zeros_like(rss)
-        leaks = nyquist_power(xp, fits, self._acc.sets) if self._leak else [0.0] * len(fits)
-        for f, r2, power in zip(fits, self._leak or leaks, leaks, strict=True):
-            rss = rss - xp.where(f.ok, f.explained, 0.0) - r2 * power  # `harmonic_leak`
+        for f, s, r2 in zip(fits, self._acc.sets, self._leak or [0.0] * len(fits), strict=True):
+            rss = rss - xp.where(f.ok, f.explained, 0.0)
+            if r2:  # the display harmonic in the residual is not noise (`harmonic_leak`)
+                rss = rss - r2 * nyquist_power(xp, [f], [s])[0]
             dof = dof + xp.where(f.ok, f.dof, 0.0)
             level = level + xp.where(f.ok, f.dof * f.level, 0.0)
         return xp.maximum(rss, 0.0), dof, level / xp.maximum(dof, 1.0)

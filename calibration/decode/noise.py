@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -139,12 +140,12 @@ def nyquist_power_of(xp: Any, alpha: Any, beta: Any, steps: int, clipped: Any) -
     """
     if steps % 2:
         return xp.zeros(alpha.shape, dtype=xp.float32)
-    b2 = alpha.astype(xp.float64) ** 2 + beta.astype(xp.float64) ** 2
-    u = xp.where(b2 > 0, beta / xp.sqrt(xp.where(b2 > 0, b2, 1.0)), 1.0)  # cos(phi)
+    b2 = alpha * alpha + beta * beta  # float32: a relative precision of 1e-7 is plenty here
+    u = beta / xp.sqrt(xp.where(b2 > 0, b2, xp.float32(1.0)))  # cos(phi)
     prev, cheb = xp.ones_like(u), u  # Chebyshev T_k(cos phi) = cos(k phi)
     for _ in range(steps // 2 - 1):
-        prev, cheb = cheb, 2.0 * u * cheb - prev
-    return xp.where(clipped, 0.0, steps * b2 * cheb * cheb).astype(xp.float32)
+        prev, cheb = cheb, xp.float32(2.0) * u * cheb - prev
+    return xp.where(clipped, xp.float32(0.0), xp.float32(steps) * b2 * cheb * cheb)
 
 
 def phase_level(xp: Any, fit: Any, sums: Any, sl: slice) -> Any:
@@ -169,7 +170,7 @@ def phase_level(xp: Any, fit: Any, sums: Any, sl: slice) -> Any:
 
 
 def harmonic_leak(rss: np.ndarray, dof: np.ndarray, level: np.ndarray, power: np.ndarray,
-                  first: LinearVariance | None, max_rows: int = 1 << 18) -> np.ndarray | None:
+                  first: LinearVariance | None, max_rows: int = 1 << 16) -> np.ndarray | None:
     """Per set, the squared harmonic ratio r^2 of the display's harmonic N/2 in the residuals.
 
     Display gamma without a LUT puts harmonics into the light, phase-locked to the
@@ -182,8 +183,9 @@ def harmonic_leak(rss: np.ndarray, dof: np.ndarray, level: np.ndarray, power: np
     `nyquist_power`, (sets, pixels)); the caller subtracts `r^2 power` before fitting the
     noise line. Rows: relative weights from the `first` (contaminated) line; pixels with
     residuals over 10x it (model errors) left out. A ratio not 5 standard errors above 0 is
-    taken as 0 (an 8-step plan's harmonic 4 is usually that small: subtracting a fitted
-    noise-level ratio would only take noise away). None without an even-N set.
+    taken as 0 (subtracting a fitted noise-level ratio would only take noise away). None
+    without an even-N set, or when the harmonic is under 1 % of the residual variance
+    (gamma 2.2's harmonic 4 in an 8-step plan: ~0.1 %).
     """
     if first is None or not power.any() or rss.size < 1000:
         return None
@@ -193,16 +195,16 @@ def harmonic_leak(rss: np.ndarray, dof: np.ndarray, level: np.ndarray, power: np
     ok = rss < 10.0 * dof * var
     w = 1.0 / (dof * var)[ok]
     design = np.column_stack([dof[ok] * w, dof[ok] * level[ok] * w, *(p[ok] * w for p in power)])
-    coef, _, rank, _ = np.linalg.lstsq(design, rss[ok] * w, rcond=None)
-    if rank < design.shape[1]:  # a set without even steps or without pixels: no ratio
-        used = np.flatnonzero(np.abs(design).sum(axis=0) > 0)
-        coef = np.zeros(design.shape[1])
-        coef[used] = np.linalg.lstsq(design[:, used], rss[ok] * w, rcond=None)[0]
-    scatter = np.sum((design @ coef - rss[ok] * w) ** 2) / max(design.shape[0] - rank, 1)
+    used = np.flatnonzero(np.abs(design).sum(axis=0) > 0)  # sets with even steps and pixels
+    coef = np.zeros(design.shape[1])
+    coef[used] = np.linalg.lstsq(design[:, used], rss[ok] * w, rcond=None)[0]
+    scatter = np.sum((design @ coef - rss[ok] * w) ** 2) / max(design.shape[0] - used.size, 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         err = np.sqrt(scatter / np.einsum("ij,ij->j", design, design))  # uncorrelated approx
     r2 = np.where(coef[2:] > 5.0 * err[2:], coef[2:], 0.0)
-    return r2 if r2.any() else None
+    # Under 1 % of the residual variance (an 8-step plan's harmonic 4): not worth its cost.
+    share = float(np.sum(r2 * power[:, ok].mean(axis=1)) / np.mean(dof[ok] * var[ok]))
+    return r2 if share >= 0.01 else None
 
 
 def sample_pieces(npix: int, chunk: int, piece: int, total: int) -> list[slice]:
@@ -279,21 +281,25 @@ def fit_photon_transfer(
     ratio = rss[good] / d / (median / dofs)[d - 1]
     edges = np.unique(np.quantile(m, np.linspace(0.0, 1.0, bins + 1)))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
-    count = np.bincount(which, minlength=len(edges) - 1)
-    keep = [b for b in range(len(edges) - 1) if count[b] >= 16]  # a loop over 16 bins
-    x = np.array([float(np.median(m[which == b])) for b in keep])
+    order = np.argsort(which, kind="stable")  # each bin a contiguous slice
+    m, ratio = m[order], ratio[order]
+    bounds = np.searchsorted(which[order], np.arange(len(edges)))
+    # a loop over 16 bins, not over pixels
+    bins_ = [slice(int(lo), int(hi)) for lo, hi in itertools.pairwise(bounds) if hi - lo >= 16]
+    count = np.array([b.stop - b.start for b in bins_], dtype=np.float64)
+    x = np.array([float(np.median(m[b])) for b in bins_])
     line: LinearVariance | None = None
     for _ in range(2):
         # Second pass: each ratio over the first line at its own level, so a bin whose levels
         # (hence variances) span a factor of several still gives the line at its median level
         # (the plain median of such a mixture sat 6 % low in the darkest bin).
-        scale = np.ones(m.shape) if line is None else line.variance(m)
+        rel = ratio if line is None else ratio / line.variance(m)
         at = np.ones(x.shape) if line is None else line.variance(x)
-        y = np.array([float(np.median(ratio[which == b] / scale[which == b])) for b in keep]) * at
+        y = np.array([float(np.median(rel[b])) for b in bins_]) * at
         ok = y > 0  # mostly constant readings (a black level under the noise) say nothing
         if ok.sum() < 4:  # about the line, and 1/y weights would be infinite
             return line
-        line = _weighted_line(x[ok], y[ok], count[keep][ok].astype(np.float64), floor, low)
+        line = _weighted_line(x[ok], y[ok], count[ok], floor, low)
     return line
 
 
