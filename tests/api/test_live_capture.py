@@ -23,7 +23,7 @@ from api.demo import demo_rig_config
 from calibration.decode import DecodeError, read_frames
 from calibration.decode.frame_store import FrameStore
 from calibration.maps import load_maps
-from hw_mocks.scene import screen_points
+from hw_mocks.truth import SimulatorTruth
 from tests.api.test_api_session import SCREEN, screen_poses, small_rig
 
 KILLED_WRITER = """
@@ -139,10 +139,8 @@ def test_simulated_capture_decodes_honestly_without_the_simulator_noise_model(se
     assert final["status"] == "succeeded", final["error"]
     maps = load_maps(c.get(f"{final['resource']}/maps.npz").content)
     assert maps.meta["decoder"]["noise"] == "residual"
-    sim = c.app.state.services.rigs.handle(rig["id"]).simulated
-    x_true, y_true = screen_points(sim.truth_camera, sim.camera.optics.pose, sim.screen)
-    z = np.concatenate([((maps.x - x_true) / maps.sigma_x)[maps.mask],
-                        ((maps.y - y_true) / maps.sigma_y)[maps.mask]])
+    # compared from outside the service with the rig's twin (hw_mocks.truth)
+    z = SimulatorTruth.from_config(config).normalized_errors(maps)
     assert z.size > 4000
     assert 0.8 <= z.std() <= 1.25, z.std()
     assert np.mean(np.abs(z) > 5) <= 1e-3
