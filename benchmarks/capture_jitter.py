@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import acquisition.controller as controller
+import acquisition.pattern_cache as pattern_cache
 from acquisition.patterns import build_plan
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
@@ -60,20 +61,20 @@ def pose(latency: int, jitter_s: float, render_s: float, store_s: float, seed: i
     sim = SimulatedRig(mild_pinhole(80, 60), SCREEN, clock=clock,
                        display={"latency_periods": latency, "history_s": 1e9})
     plan = build_plan(SCREEN.width_px, SCREEN.height_px, SCREEN.pitch_mm)
-    render = controller.render_frame
+    render = pattern_cache.render_frame
 
     def costly_render(*args, **kwargs):
         clock.advance(render_s)
         return render(*args, **kwargs)
 
-    controller.render_frame = costly_render
+    pattern_cache.render_frame = costly_render
     try:
         res = controller.capture_pose(
             sim.rig, plan, CostlySink(clock, store_s),
             settings=sim.with_settings(exposure_s=EXPOSURE, trigger_mode="software"),
             options=controller.ControllerOptions(latency_s=latency * P))
     finally:
-        controller.render_frame = render
+        pattern_cache.render_frame = render
     if res.status != "complete":
         raise SystemExit(f"capture {res.status}: {res.reason}")
     floor = latency * P + P + len(plan.frames) * math.ceil((P + EXPOSURE) / P - 1e-9) * P
