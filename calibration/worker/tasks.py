@@ -97,9 +97,9 @@ def stream_decode_task(
         if new.size == 0:
             time.sleep(poll_s)
             continue
-        for index in new.tolist():
-            decoder.add(index, store.frame(index))
-            added[index] = True
+        # every frame stored since the last look, in one cache-blocked pass
+        decoder.add_frames(new.tolist(), store.array(), rows=new.tolist())
+        added[new] = True
     t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
     ctx.progress(total, total, "unwrap")
     maps = decoder.finish(dict(meta or {}))

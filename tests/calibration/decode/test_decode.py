@@ -278,18 +278,11 @@ def test_generic_array_namespace_path_matches_opencv_path(plan):
     check_honest(got, x, y)
 
 
-@pytest.mark.parametrize("noise", [None, 1.5])
-def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
-    """The numba per-pixel finish (large images, once loaded) equals the array-namespace path."""
-    import calibration.decode.decoder as decoder_module
-    import calibration.decode.kernel  # noqa: F401 - loaded: large decoders use it
-
-    stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
-    ref = decode_stack(plan, stack, noise=noise)
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
-    got = decode_stack(plan, stack, noise=noise)
+def assert_same_maps(got, ref) -> None:
+    """Equal to float32 rounding: same pixels, positions, sigmas and modulations."""
     assert got.meta["pixel_counts"] == ref.meta["pixel_counts"]
+    assert got.meta["decoder"]["photon_transfer"] == ref.meta["decoder"]["photon_transfer"]
+    assert got.meta["decoder"]["max_sample_dn"] == ref.meta["decoder"]["max_sample_dn"]
     np.testing.assert_array_equal(got.mask, ref.mask)
     for key in ("x", "y"):
         np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=1e-6,
@@ -300,7 +293,35 @@ def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
     for key in ("blur_x", "blur_y"):
         np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=5e-3,
                                    equal_nan=True)
-    check_honest(got, x, y)
+
+
+@pytest.mark.parametrize("noise", [None, 1.5, NoiseModel(read_dn=1.5, gain_e_per_dn=1e3,
+                                                          black_dn=8.0)])
+def test_compiled_decoder_matches_array_namespace_path(plan, monkeypatch, noise):
+    """The numba kernels (large images, once loaded) equal the array-namespace path: the
+    cache-blocked accumulation frame by frame, in batches (a frame store's map) and range
+    by range over a whole stack (`decode_stack`), each with the compiled finish."""
+    import calibration.decode.decoder as decoder_module
+    from calibration.decode.kernel_warm import warm_up
+
+    warm_up()
+    stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    ref = decode_stack(plan, stack, noise=noise)
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    whole = decode_stack(plan, stack, noise=noise)
+    check_honest(whole, x, y)
+    # In plan order: float32 sums in another order round differently, and the residual
+    # noise line follows (test_streaming_any_order_matches_stack covers any order).
+    streamed = StreamingDecoder(plan, (H, W), noise=noise)
+    for i in range(5):
+        streamed.add(i, stack[i])
+    store = np.ascontiguousarray(stack[::-1])  # frames in other rows of a store
+    last = len(plan.frames) - 1
+    for batch in np.array_split(np.arange(5, last + 1), 3):  # frames landed since the last look
+        streamed.add_frames(batch.tolist(), store, rows=(last - batch).tolist())
+    for got in (whole, streamed.finish()):
+        assert_same_maps(got, ref)
 
 
 def test_photon_transfer_with_constant_pixels_at_the_black_level():
