@@ -21,7 +21,7 @@ KIND_SKIP, KIND_BRIGHT, KIND_DARK, KIND_COSINE = 0, 1, 2, 3
 
 # no NaN/inf assumptions (float32 frames may hold them), no FMA contraction: the sums
 # round like the OpenCV path (acc + round(w v)), so both give the same maps
-@njit(cache=True, nogil=True, fastmath={"reassoc", "nsz", "arcp"})
+@njit(cache=True, error_model="numpy", nogil=True, fastmath={"reassoc", "nsz", "arcp"})
 def accumulate_block(
     frames,  # (F_all, N) C-contiguous frames (uint8, uint16 or float32), columns = pixels
     use,  # (B,) rows of `frames` in this batch

@@ -185,6 +185,10 @@ class ChunkSums:
     squares: Any | None
     bright: Any  # flat sums
     dark: Any
+    # the C-contiguous full-image arrays these are columns col0.. of (the kernels index
+    # those: rows of 2-D views have unknown strides, which stops LLVM vectorizing)
+    full: tuple[Any, ...] | None = None
+    col0: int = 0
 
     @property
     def size(self) -> int:
@@ -220,8 +224,10 @@ def chunk_view(acc: FrameAccumulator, sl: slice) -> ChunkSums:
     bits = acc.bits[:, sl] if acc.bits is not None else None
     squares = acc.squares.reshape(-1)[sl] if acc.squares is not None else None
     clipped = [s.excluded is not None for s in acc.sets]
+    full = (acc.block, acc.bits, None if acc.squares is None else acc.squares.reshape(-1),
+            acc.bright.reshape(-1), acc.dark.reshape(-1))
     return ChunkSums(_views(acc.sets, block, bits, clipped), block, bits, squares,
-                     acc.bright.reshape(-1)[sl], acc.dark.reshape(-1)[sl])
+                     acc.bright.reshape(-1)[sl], acc.dark.reshape(-1)[sl], full, sl.start)
 
 
 _LOCAL = threading.local()

@@ -84,12 +84,16 @@ def noise_params(dec: Any) -> np.ndarray | None:
     return np.array([MODE_LINE, ptc.offset, ptc.slope, 0.0, 0.0, dec._floor])
 
 
-def _bits(chunk: ChunkSums, dtype: np.dtype) -> np.ndarray:
-    return chunk.bits if chunk.bits is not None else np.zeros((0, chunk.size), dtype=dtype)
-
-
-def _squares(chunk: ChunkSums, dtype: np.dtype) -> np.ndarray:
-    return chunk.squares if chunk.squares is not None else np.empty(0, dtype=dtype)
+def _inputs(chunk: ChunkSums, acc: Any) -> tuple[Any, ...]:
+    """(sums, bits, squares, bright, dark, first column) as the kernels take them: C
+    arrays (an empty bits block where no step clipped, empty squares where not kept)."""
+    block, bits, squares, bright, dark = chunk.full or (
+        chunk.block, chunk.bits, chunk.squares, chunk.bright, chunk.dark)
+    if bits is None:
+        bits = np.zeros((0, block.shape[1]), dtype=acc.bits_dtype)
+    if squares is None:
+        squares = np.empty(0, dtype=acc.squares_dtype)
+    return block, bits, squares, bright, dark, chunk.col0 if chunk.full else 0
 
 
 def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
@@ -100,8 +104,8 @@ def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
     lay = layout(acc)
     level, rss, dof = (np.empty(n, dtype=np.float32) for _ in range(3))
     dirty = np.empty(n, dtype=np.bool_)
-    kernel(chunk.block, _bits(chunk, acc.bits_dtype), chunk.squares, lay.row0, lay.nrows,
-           lay.steps, level, rss, dof, dirty)
+    block, bits, squares, _, _, c0 = _inputs(chunk, acc)
+    kernel(block, bits, squares, c0, lay.row0, lay.nrows, lay.steps, level, rss, dof, dirty)
     clean, no_dark_clip = ~dirty, np.ones(n, dtype=bool)
     idx = np.flatnonzero(dirty)
     if idx.size:
@@ -131,14 +135,12 @@ def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
                             MIN_PERIOD_SNR])
         extents = np.array([plan.screen.extent_px(a) for a in ("x", "y")], dtype=np.float64)
         max_dof = int((lay.steps - lay.nrows).sum())
-        finish_sums(chunk.block, _bits(chunk, acc.bits_dtype),
-                    _squares(chunk, acc.squares_dtype), chunk.bright, chunk.dark,
-                    lay.row0, lay.nrows, lay.steps, params,
+        finish_sums(*_inputs(chunk, acc), lay.row0, lay.nrows, lay.steps, params,
                     np.array([acc.n_bright, acc.n_dark], dtype=np.float64), chi2_tail(max_dof),
                     axis_of, np.array([s.layout.period_px for s in acc.sets]),
                     np.array([s.layout.amplitude for s in acc.sets]), limits, extents, kparams,
-                    planes["position"][:, sl], planes["sigma"][:, sl],
-                    planes["modulation"][:, sl], planes["blur"][:, sl], sub_out)
+                    planes["position"], planes["sigma"], planes["modulation"],
+                    planes["blur"], sl.start, sub_out)
         dirty = np.flatnonzero(sub_out == DIRTY)
     if dirty.size == 0:
         return

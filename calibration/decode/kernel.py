@@ -26,13 +26,13 @@ P_MIN_CONTRAST, P_MIN_MOD, P_MAX_AMB, P_MARGIN_SIGMA, P_EDGE_BLUR, P_MAX_SIGMA, 
 )
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _ndtr(x: float) -> float:
     """Standard normal CDF."""
     return 0.5 * math.erfc(-x * _SQRT1_2)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _coarsest(c: float, sigma: float, period: float, lo: float, hi: float) -> tuple[float, float]:
     """Order of the coarsest period under a uniform prior on [lo, hi]: (mu, ambiguity)."""
     in_lo = min(hi - c + period, c - period - lo)
@@ -56,7 +56,7 @@ def _coarsest(c: float, sigma: float, period: float, lo: float, hi: float) -> tu
     return mu, (1.0 - top / total) if total > 0 else 1.0
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+@njit(cache=True, error_model="numpy", nogil=True, fastmath=True)
 def finish_pixels(
     alpha, beta, wrapped, var, c_aa, c_bb, c_ab, ok,  # (S, n) per period set
     set_axis, periods, amps,  # (S,) axis 0/1, period px, pattern amplitude
@@ -75,7 +75,7 @@ def finish_pixels(
             extents, params, pos_out, sig_out, mod_out, blur_out, i)
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+@njit(cache=True, error_model="numpy", nogil=True, fastmath=True)
 def decode_pixel(
     alpha, beta, wrapped, var, c_aa, c_bb, c_ab, ok,  # (S,) one pixel's per-set fits
     contrast_snr, set_axis, periods, amps, chi2_limit, extents, params,
@@ -136,33 +136,10 @@ def decode_pixel(
                 continue
             if not use:
                 continue
-            var_k = sig * sig
-            inv_total = 1.0 / (var_mu + var_k)
-            d0 = mu - c
-            d0 -= np.rint(d0 * (1.0 / period)) * period
-            gain = var_mu * inv_total
-            post_var = gain * var_k
-            half = 0.5 * period * period * inv_total
-            tilt = d0 * period * inv_total
-            # exp underflows to 0 below -745; libm's underflow path is slow, skip it
-            w_lo = math.exp(-(half + tilt)) if half + tilt < 740.0 else 0.0
-            w_hi = math.exp(tilt - half) if half - tilt < 740.0 else 0.0
-            step = period * gain
-            new_mu = mu - d0 * gain
-            if step * step > _MERGE_SIGMA * _MERGE_SIGMA * post_var:
-                amb_k = (w_lo + w_hi) / (1.0 + w_lo + w_hi)
-            else:
-                amb_k = 0.0
-                norm = 1.0 + w_lo + w_hi
-                shift = (w_hi - w_lo) * step / norm
-                spread = (w_lo * (step + shift) ** 2 + w_hi * (step - shift) ** 2
-                          + shift * shift) / norm
-                new_mu += shift
-                post_var += spread
-            chi2 += d0 * d0 * inv_total
+            mu, var_mu, innovation, amb_k = _fuse(mu, var_mu, c, sig, period)
+            chi2 += innovation
             dof += 1
             amb += amb_k * (1.0 - amb)
-            mu, var_mu = new_mu, post_var
         if first < 0:
             continue  # the plan has no frames on this axis
         sigma = math.sqrt(var_mu)
@@ -180,7 +157,71 @@ def decode_pixel(
     return 0 if code == 99 else code
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
+def _fuse(mu: float, var_mu: float, c: float, sig: float, period: float):
+    """One finer period into the Gaussian posterior N(mu, var_mu) (unwrap.py `fuse_axis`):
+    (new mu, new variance, innovation chi-square, ambiguity of this step)."""
+    var_k = sig * sig
+    inv_total = 1.0 / (var_mu + var_k)
+    d0 = mu - c
+    d0 -= np.rint(d0 * (1.0 / period)) * period
+    gain = var_mu * inv_total
+    post_var = gain * var_k
+    half = 0.5 * period * period * inv_total
+    tilt = d0 * period * inv_total
+    # exp underflows to 0 below -745; libm's underflow path is slow, skip it
+    w_lo = math.exp(-(half + tilt)) if half + tilt < 740.0 else 0.0
+    w_hi = math.exp(tilt - half) if half - tilt < 740.0 else 0.0
+    step = period * gain
+    new_mu = mu - d0 * gain
+    if step * step > _MERGE_SIGMA * _MERGE_SIGMA * post_var:
+        amb_k = (w_lo + w_hi) / (1.0 + w_lo + w_hi)
+    else:
+        amb_k = 0.0
+        norm = 1.0 + w_lo + w_hi
+        shift = (w_hi - w_lo) * step / norm
+        spread = (w_lo * (step + shift) ** 2 + w_hi * (step - shift) ** 2
+                  + shift * shift) / norm
+        new_mu += shift
+        post_var += spread
+    return new_mu, post_var, d0 * d0 * inv_total, amb_k
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def unwrap_pixel(j, i, wrapped, sig, use, blur, anchor, contrast_snr, first, set_axis, periods,
+                 chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out) -> int:
+    """Unwrapping and validity of block pixel j (output column i) from per-set block rows
+    (kernel_sums.finish_sums: every set's fit usable, sigmas and blur already computed)."""
+    code = 99 if contrast_snr >= params[P_MIN_CONTRAST] else 1  # 99: no rule failed
+    for ax in range(2):
+        k0 = first[ax]
+        if k0 < 0:
+            continue  # the plan has no frames on this axis
+        mu, amb = _coarsest(wrapped[k0, j], sig[k0, j], periods[k0], -0.5, extents[ax] - 0.5)
+        var_mu = sig[k0, j] ** 2
+        chi2 = 0.0
+        dof = 0
+        for k in range(k0 + 1, periods.shape[0]):
+            if set_axis[k] != ax or not use[k, j]:
+                continue
+            mu, var_mu, innovation, amb_k = _fuse(mu, var_mu, wrapped[k, j], sig[k, j],
+                                                  periods[k])
+            chi2 += innovation
+            dof += 1
+            amb += amb_k * (1.0 - amb)
+        sigma = math.sqrt(var_mu)
+        width = blur[0, ax, j]
+        pos_out[ax, i] = mu
+        sig_out[ax, i] = sigma
+        mod_out[ax, i] = anchor[1, ax, j]
+        blur_out[ax, i] = width
+        rule = _axis_rule(True, anchor[0, ax, j], amb, chi2, chi2_limit[dof], mu, sigma, width,
+                          extents[ax], params)
+        code = min(code, rule)  # the first rule that fails on any axis names the reason
+    return 0 if code == 99 else code
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _axis_rule(anchor_ok, anchor_snr, amb, chi2, limit, mu, sigma, blur, extent, params) -> int:
     """First failed validity rule of one axis (validity.REASONS code), 99 when all pass."""
     if not anchor_ok:

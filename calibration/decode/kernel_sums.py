@@ -14,8 +14,10 @@ import math
 import numpy as np
 from numba import njit
 
-from calibration.decode.kernel import decode_pixel
+from calibration.decode.kernel import P_PERIOD_SNR, unwrap_pixel
+from calibration.decode.vecmath import atan2, log_inplace
 
+_TWO_PI = 2.0 * math.pi
 DIRTY = 255  # reason code of pixels this kernel leaves to the array path
 
 # Indices of `noise`: the noise mode and the linear variance model's coefficients.
@@ -23,7 +25,7 @@ N_MODE, N_OFFSET, N_SLOPE, N_BLACK, N_CLAMP, N_FLOOR = range(6)
 MODE_GIVEN, MODE_LINE, MODE_OWN = 0, 1, 2  # given model / photon-transfer line / own residual
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _line(noise, level: float) -> float:
     """Variance of the linear noise model at `level`: offset + slope * (level - black)+."""
     x = level - noise[N_BLACK]
@@ -32,114 +34,218 @@ def _line(noise, level: float) -> float:
     return noise[N_OFFSET] + noise[N_SLOPE] * x
 
 
-@njit(cache=True, inline="always")
-def _set_fit(sums, r0, nrow, steps, i, residual):
-    """Closed-form fit of one set at pixel i: (mean, alpha, beta) float32 and the part of
-    sum v^2 it explains (float64; 0 unless `residual`)."""
-    s0 = sums[r0, i]
-    mean = s0 * np.float32(1.0 / steps)
-    scale = np.float32(2.0 / steps)
-    alpha = sums[r0 + 1, i] * scale
-    beta = sums[r0 + 2, i] * scale
-    explained = 0.0
-    if residual:
-        explained = float(s0) ** 2 / steps
-        for r in range(1, nrow):
-            explained += float(sums[r0 + r, i]) ** 2 * (2.0 / steps)
-    return mean, alpha, beta, explained
+BLOCK = 128  # pixels per block: the per-set scratch rows stay in L1
 
 
-@njit(cache=True, inline="always")
-def _dirty(bits, i) -> bool:
-    """Any clipped step in any set at pixel i."""
-    for k in range(bits.shape[0]):
-        if bits[k, i] != 0:
-            return True
-    return False
-
-
-@njit(cache=True, nogil=True)
-def residual_stats(sums, bits, squares, row0, nrows, steps, level_out, rss_out, dof_out,
-                   dirty_out) -> None:
-    """Residual-mode first pass (decoder `_residuals`) for unclipped pixels: dof-weighted
-    level, residual sum of squares, residual dof; `dirty_out` marks the others."""
-    for i in range(squares.shape[0]):
-        if _dirty(bits, i):
-            dirty_out[i] = True
-            continue
-        dirty_out[i] = False
-        rss = float(squares[i])
-        dof = level = 0.0
-        for k in range(row0.shape[0]):
-            mean, _, _, explained = _set_fit(sums, row0[k], nrows[k], steps[k], i, True)
-            dof_k = np.float32(steps[k] - nrows[k])
-            rss -= explained
-            dof += dof_k
-            level += dof_k * mean
-        level_out[i] = level / max(dof, 1.0)
-        rss_out[i] = max(rss, 0.0)
-        dof_out[i] = dof
-
-
-@njit(cache=True, nogil=True)  # no fastmath: NaN and infinity tests matter here
+# no fastmath: NaN and infinity tests matter here
+@njit(cache=True, error_model="numpy", nogil=True)
 def finish_sums(
-    sums, bits, squares, bright, dark,  # (M, n), (S, n), (n,) or (0,), (n,), (n,)
+    sums, bits, squares, bright, dark,  # (M, N), (S, N), (N,) or (0,), (N,), (N,)
+    c0,  # first column of the range in the inputs (C-contiguous: vectorized loops)
     row0, nrows, steps,  # (S,) int64 set layout in `sums`
     noise,  # (6,) see N_* indices
     flats,  # (2,) number of bright and dark flats
     tail,  # (D + 1,) chi2.isf(1e-6, d) / d by residual dof d (residual mode)
     set_axis, periods, amps, chi2_limit, extents, params,  # as kernel.finish_pixels
-    pos_out, sig_out, mod_out, blur_out, reason,
+    pos_out, sig_out, mod_out, blur_out, o0,  # (2, N_out) outputs from column o0
+    reason,  # (n,) uint8 reason codes of the range
 ) -> None:
-    """Decode the unclipped pixels of a chunk from its sums; others get reason DIRTY."""
+    """Decode the unclipped pixels of a range from its sums; others get reason DIRTY.
+
+    Per block of pixels, everything per set (fits, variances, sigmas, wrapped phases, the
+    blur line sums) runs in loops over the block's pixels that LLVM vectorizes; then the
+    unwrapping and the validity rules, pixel by pixel (`unwrap_pixel`)."""
     n_sets = row0.shape[0]
+    n = reason.shape[0]
     mode = int(noise[N_MODE])
     residual = mode != MODE_GIVEN
-    f32 = np.float32
-    mean = np.empty(n_sets, dtype=f32)
-    alpha = np.empty(n_sets, dtype=f32)
-    beta = np.empty(n_sets, dtype=f32)
-    wrapped = np.empty(n_sets, dtype=f32)
-    var = np.empty(n_sets, dtype=f32)
-    c_diag = np.empty(n_sets, dtype=f32)
-    c_off = np.zeros(n_sets, dtype=f32)
-    ok = np.ones(n_sets, dtype=np.bool_)
+    dof = 0
     for k in range(n_sets):
-        c_diag[k] = f32(2.0 / steps[k])
-    for i in range(bright.shape[0]):
-        if _dirty(bits, i):
-            reason[i] = DIRTY
-            continue
-        rss = float(squares[i]) if residual else 0.0
-        dof = 0.0
-        for k in range(n_sets):
-            m, a, b, explained = _set_fit(sums, row0[k], nrows[k], steps[k], i, residual)
-            mean[k], alpha[k], beta[k] = m, a, b
-            rss -= explained
-            dof += steps[k] - nrows[k]
-        own = math.nan
-        if dof > 0:
-            own = max(max(rss, 0.0) / max(dof, 1.0), noise[N_FLOOR])
-        excess = False
+        dof += steps[k] - nrows[k]
+    excess_limit = tail[dof] if mode == MODE_LINE else np.inf
+    f64 = np.float64
+    dirty = np.empty(BLOCK, dtype=np.bool_)
+    own = np.empty(BLOCK)
+    excess = np.empty(BLOCK, dtype=np.bool_)
+    expl = np.empty(BLOCK)
+    wrapped = np.empty((n_sets, BLOCK))
+    sig = np.empty((n_sets, BLOCK))
+    use = np.empty((n_sets, BLOCK), dtype=np.bool_)
+    blur = np.empty((6, 2, BLOCK))  # per axis: sw, sx, sy, sxx, sxy, count
+    snr_a = np.empty((2, 2, BLOCK))  # per axis: anchor SNR, last (finest) modulation
+    snr = np.empty(BLOCK)
+    lg, lg_e, lg_m, wt = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK)
+    first = np.full(2, -1)
+    for k in range(n_sets):
+        if first[set_axis[k]] < 0:
+            first[set_axis[k]] = k
+    for b0 in range(0, n, BLOCK):
+        m = min(BLOCK, n - b0)
+        j0 = c0 + b0  # input column of the block
+        d = dirty[:m]
+        d[:] = False
+        for k in range(bits.shape[0]):
+            bk = bits[k, j0:j0 + m]
+            for j in range(m):
+                d[j] |= bk[j] != 0
+        # residual variance per pixel (decoder `_residuals`)
+        ow = own[:m]
+        if residual:
+            for j in range(m):
+                ow[j] = f64(squares[j0 + j])
+            for k in range(n_sets):
+                _explained(sums, row0[k], nrows[k], steps[k], j0, m, expl)
+                for j in range(m):
+                    ow[j] -= expl[j]
+            floor = noise[N_FLOOR]
+            for j in range(m):
+                ow[j] = max(max(ow[j], 0.0) / max(dof, 1), floor)
+        ex = excess[:m]
+        ex[:] = mode == MODE_OWN
         if mode == MODE_LINE:
-            excess = own > _line(noise, max(float(mean[0]), 0.0)) * tail[int(dof)]
+            s00 = sums[row0[0], j0:j0 + m]
+            inv0 = np.float32(1.0 / steps[0])
+            for j in range(m):
+                ex[j] = ow[j] > _line(noise, max(f64(s00[j] * inv0), 0.0)) * excess_limit
+        blur[:, :, :m] = 0.0
         for k in range(n_sets):
-            if mode == MODE_OWN or excess:
-                var[k] = own
-            else:
-                var[k] = _line(noise, max(float(mean[k]), 0.0))
-            phi = math.atan2(-alpha[k], beta[k])
-            w = f32(phi) * f32(periods[k] / (2.0 * math.pi))
-            wrapped[k] = w + f32(periods[k]) if w < 0 else w
-        lit = bright[i] / flats[0]
-        unlit = dark[i] / flats[1]
+            ax = set_axis[k]
+            _set_block(sums, row0[k], steps[k], periods[k], amps[k], noise, params, j0, m,
+                       ow, ex, wrapped[k], sig[k], use[k], blur[:, ax], snr_a[:, ax],
+                       k == first[ax], lg, lg_e, lg_m, wt)
+        _contrast(bright, dark, flats, noise, mode, j0, m, ow, snr)
+        for ax in range(2):
+            _blur_fit(blur[:, ax], m)
+        for j in range(m):
+            if d[j]:
+                reason[b0 + j] = DIRTY
+                continue
+            reason[b0 + j] = unwrap_pixel(j, o0 + b0 + j, wrapped, sig, use, blur, snr_a,
+                                          snr[j], first, set_axis, periods, chi2_limit,
+                                          extents, params, pos_out, sig_out, mod_out, blur_out)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_out, dof_out,
+                   dirty_out) -> None:
+    """Residual-mode first pass (decoder `_residuals`) for the unclipped pixels of columns
+    c0..: dof-weighted level, residual sum of squares, residual dof; `dirty_out` marks the
+    pixels with clipped steps (left to the array path)."""
+    n = level_out.shape[0]
+    expl, own, lev = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK)
+    dof = 0.0
+    for k in range(row0.shape[0]):
+        dof += np.float32(steps[k] - nrows[k])
+    for b0 in range(0, n, BLOCK):
+        m = min(BLOCK, n - b0)
+        j0 = c0 + b0
+        d = dirty_out[b0:b0 + m]
+        d[:] = False
+        for k in range(bits.shape[0]):
+            bk = bits[k, j0:j0 + m]
+            for j in range(m):
+                d[j] |= bk[j] != 0
+        for j in range(m):
+            own[j] = float(squares[j0 + j])
+            lev[j] = 0.0
+        for k in range(row0.shape[0]):
+            _explained(sums, row0[k], nrows[k], steps[k], j0, m, expl)
+            dof_k = np.float32(steps[k] - nrows[k])
+            s0 = sums[row0[k], j0:j0 + m]
+            inv_n = np.float32(1.0 / steps[k])
+            for j in range(m):
+                own[j] -= expl[j]
+                lev[j] += dof_k * (s0[j] * inv_n)
+        for j in range(m):
+            rss_out[b0 + j] = max(own[j], 0.0)
+            level_out[b0 + j] = lev[j] / max(dof, 1.0)
+            dof_out[b0 + j] = dof
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _explained(sums, r0, nrow, steps, j0, m, expl) -> None:
+    """expl[:m] = the part of sum v^2 one set's fit explains, as fit_set computes it."""
+    s0 = sums[r0, j0:j0 + m]
+    for j in range(m):
+        expl[j] = float(s0[j]) ** 2 / steps
+    for r in range(1, nrow):
+        row = sums[r0 + r, j0:j0 + m]
+        for j in range(m):
+            expl[j] += float(row[j]) ** 2 * (2.0 / steps)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _set_block(sums, r0, steps, period, amp, noise, params, j0, m, own, excess, wrapped, sig,
+               use, blur, anchor, is_first, lg, lg_e, lg_m, wt) -> None:
+    """One set over a block: variance, modulation, sigmas, wrapped position, blur terms.
+    Branch-free loops (error_model numpy: no division-by-zero checks) LLVM vectorizes."""
+    f32 = np.float32
+    inv_n, scale = f32(1.0 / steps), f32(2.0 / steps)
+    c = float(f32(2.0 / steps))  # covariance factor of alpha and beta, all steps kept
+    psnr = params[P_PERIOD_SNR]
+    to_px = f32(period / (2.0 * math.pi))
+    s0, sa, sb = sums[r0, j0:j0 + m], sums[r0 + 1, j0:j0 + m], sums[r0 + 2, j0:j0 + m]
+    var = lg_e  # scratch: the sample variance of this set (float32 values)
+    for j in range(m):
+        line = _line(noise, max(float(s0[j] * inv_n), 0.0))
+        var[j] = float(f32(own[j] if excess[j] else line))
+    snr_row, mod_row = anchor[0], anchor[1]
+    for j in range(m):  # what kernel.decode_pixel computes per set, vectorized
+        a, b = float(sa[j] * scale), float(sb[j] * scale)
+        b2 = a * a + b * b
+        zero = b2 == 0.0
+        inv = 1.0 / (1.0 if zero else b2)
+        mod = math.sqrt(b2)
+        mod_var = c if zero else (a * a * c + b * b * c) * inv
+        ph_var = 1e30 if zero else (b * b * c + a * a * c) * (inv * inv)
+        s_b = math.sqrt(var[j] * mod_var)
+        sig_c = (period / _TWO_PI) * math.sqrt(var[j] * ph_var)
+        strong = mod >= psnr * s_b
+        ok = strong and sig_c < np.inf
+        sig[j] = sig_c if ok else period
+        use[j] = ok
+        fit = strong and s_b > 0.0 and mod > 0.0
+        corr = math.sqrt(max(mod * mod - 2.0 * s_b * s_b, 0.25 * mod * mod))
+        wt[j] = corr * corr / (s_b * s_b) if fit else 0.0
+        lg[j] = corr / amp if fit else 1.0
+        if is_first:
+            snr_row[j] = mod / s_b if s_b > 0 else 0.0
+        mod_row[j] = mod
+    for j in range(m):
+        w = f32(atan2(-float(sa[j] * scale), float(sb[j] * scale))) * to_px
+        wrapped[j] = w + f32(period) if w < 0 else w
+    log_inplace(lg[:m], lg_e[:m], lg_m[:m])
+    x = 1.0 / (period * period)
+    for j in range(m):
+        w = wt[j]
+        blur[0, j] += w
+        blur[1, j] += w * x
+        blur[2, j] += w * lg[j]
+        blur[3, j] += w * x * x
+        blur[4, j] += w * x * lg[j]
+        blur[5, j] += 1.0 if w > 0.0 else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _contrast(bright, dark, flats, noise, mode, j0, m, own, snr) -> None:
+    """snr[:m] = bright-minus-dark flat contrast over its noise (0 where not finite)."""
+    for j in range(m):
+        lit = bright[j0 + j] / flats[0]
+        unlit = dark[j0 + j] / flats[1]
         if mode == MODE_OWN:
-            var_b = var_d = own
+            var_b = var_d = own[j]
         else:
             var_b, var_d = _line(noise, lit), _line(noise, max(unlit, 0.0))
-        snr = (lit - unlit) / math.sqrt(var_b / flats[0] + var_d / flats[1])
-        if not math.isfinite(snr):
-            snr = 0.0
-        reason[i] = decode_pixel(alpha, beta, wrapped, var, c_diag, c_diag, c_off, ok, snr,
-                                 set_axis, periods, amps, chi2_limit, extents, params,
-                                 pos_out, sig_out, mod_out, blur_out, i)
+        q = (lit - unlit) / math.sqrt(var_b / flats[0] + var_d / flats[1])
+        snr[j] = q if abs(q) < np.inf else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _blur_fit(blur, m) -> None:
+    """Replace the blur line sums by the fitted blur width (row 0; NaN where not fitted)."""
+    for j in range(m):
+        sw, sx, sy, sxx, sxy = blur[0, j], blur[1, j], blur[2, j], blur[3, j], blur[4, j]
+        det = sw * sxx - sx * sx
+        fitted = blur[5, j] >= 2 and det > 0
+        slope = -((sw * sxy - sx * sy) / (det if fitted else 1.0)) / (2.0 * math.pi**2)
+        blur[0, j] = math.sqrt(max(slope, 0.0)) if fitted else np.nan

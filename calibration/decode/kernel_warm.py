@@ -21,28 +21,21 @@ def warm_up() -> None:
     i64 = functools.partial(np.zeros, dtype=np.int64)
     one = np.ones(1, dtype=np.int64)
     weights = np.ones((1, 3, 1), dtype=np.float32)
+    sums = np.zeros((3, n), np.float32)
     for bits_dtype in (np.uint8, np.uint16):
+        bits = np.zeros((1, n), bits_dtype)
         for squares in (np.zeros(n, np.float32), np.zeros(0, np.float32)):
-            for sums, bits, flats in (
-                (np.zeros((3, n), np.float32), np.zeros((1, n), bits_dtype), np.zeros((2, n))),
-                (np.zeros((3, 2 * n), np.float32)[:, :n], np.zeros((1, 2 * n), bits_dtype)[:, :n],
-                 np.zeros((2, n))),
-            ):
-                accumulate_block(frames, i64(1), np.full(1, 3), i64(1), i64(1), weights, i64(1),
-                                 one * 3, 0.0, NO_CLIP_HI, 0, 0, n, sums, bits, squares,
-                                 flats[0], flats[1], np.zeros(1), i64(1))
-                _finish(finish_sums, sums, bits, squares, flats, n)
-                if squares.size:
-                    out = [np.zeros(n, np.float32) for _ in range(3)]
-                    residual_stats(sums, bits, squares, i64(1), one * 3, one * 4, *out,
-                                   np.zeros(n, np.bool_))
-
-
-def _finish(kernel, sums, bits, squares, flats, n: int) -> None:
-    """One call of `finish_sums` on a single set with the decoder's output types."""
-    planes = [np.zeros((2, 2 * n), dtype=dt)[:, :n] for dt in (np.float64, np.float32,
-                                                                np.float32, np.float32)]
-    kernel(sums, bits, squares, flats[0], flats[1], np.zeros(1, np.int64),
-           np.full(1, 3, np.int64), np.full(1, 4, np.int64), np.array([0.0, 1, 0, 0, 0, 0.1]),
-           np.ones(2), np.full(2, np.inf), np.zeros(1, np.int64), np.ones(1), np.ones(1),
-           np.full(2, np.inf), np.ones(2), np.ones(7), *planes, np.zeros(n, np.uint8))
+            flats = np.zeros((2, n))
+            accumulate_block(frames, i64(1), np.full(1, 3), i64(1), i64(1), weights, i64(1),
+                             one * 3, 0.0, NO_CLIP_HI, 0, 0, n, sums, bits, squares, flats[0],
+                             flats[1], np.zeros(1), i64(1))
+            planes = [np.zeros((2, n), dtype=dt) for dt in (np.float64, np.float32,
+                                                             np.float32, np.float32)]
+            finish_sums(sums, bits, squares, flats[0], flats[1], 0, i64(1), one * 3, one * 4,
+                        np.array([0.0, 1, 0, 0, 0, 0.1]), np.ones(2), np.full(2, np.inf),
+                        i64(1), np.ones(1), np.ones(1), np.full(2, np.inf), np.ones(2),
+                        np.ones(7), *planes, 0, np.zeros(n, np.uint8))
+            if squares.size:
+                out = [np.zeros(n, np.float32) for _ in range(3)]
+                residual_stats(sums, bits, squares, 0, i64(1), one * 3, one * 4, *out,
+                               np.zeros(n, np.bool_))
