@@ -37,6 +37,8 @@ from calibration.decode.noise import (
     NoiseSource,
     VarianceFn,
     fit_photon_transfer,
+    line_pixels,
+    undithered,
     variance_function,
 )
 from calibration.decode.options import DecodeOptions
@@ -288,18 +290,13 @@ class StreamingDecoder:
         return xp.maximum(rss, 0.0), dof, level / xp.maximum(dof, 1.0)
 
     def _estimate_noise(self, npix: int, chunk_of: Callable[[slice], ChunkSums]) -> None:
-        """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass).
-
-        Pixels with clipped steps are left out when enough others exist: excluding the
-        clipped samples truncates the noise of those near the clip level (censoring). When
-        too few are left (heavy overexposure: every on-screen pixel clips), pixels clipped
-        only at the bright end are used (their residual levels weigh each kept step, so
-        they are unbiased to first order); those clipped at the dark end (0 DN, where a
-        sensor without black offset truncates its read noise) are not.
-        """
+        """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass),
+        on the pixels `line_pixels` chooses, held at or above the floor from the median
+        dark-flat level up (the lowest level the sensor records there)."""
+        acc = self._acc
         pieces = noise_sample(npix, self.options.chunk_pixels, _NOISE_PIECE, _NOISE_SAMPLE)
         size = sum(sl.stop - sl.start for sl in pieces)
-        mean, rss, dof = (np.empty(size, dtype=np.float32) for _ in range(3))
+        mean, rss, dof, span, dark = (np.empty(size, dtype=np.float32) for _ in range(5))
         clean, no_dark_clip = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
         offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
 
@@ -307,13 +304,14 @@ class StreamingDecoder:
             to, chunk = slice(int(offsets[k]), int(offsets[k + 1])), chunk_of(pieces[k])
             stats = residual_stats(self, chunk) if self._compiled else self._residual_arrays(chunk)
             mean[to], rss[to], dof[to], clean[to], no_dark_clip[to] = stats
+            dark[to] = to_host(chunk.dark / acc.n_dark)
+            span[to] = to_host(chunk.bright / acc.n_bright) - dark[to]
 
         self._map(one, list(range(len(pieces))))
-        use = clean & (dof >= 1)
-        for fallback in (no_dark_clip & (dof >= 1), dof >= 1):
-            if use.sum() < _MIN_CLEAN_PIXELS:
-                use = fallback
-        self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor)
+        spread = ~undithered(span, rss, dof, no_dark_clip, quantized=acc.dtype.kind == "u")
+        use = line_pixels(clean, no_dark_clip, spread, dof, _MIN_CLEAN_PIXELS)
+        low = float(np.median(dark[use])) if use.any() else None
+        self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor, low=low)
 
     def _residual_arrays(self, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
         """(level, rss, dof, clean, no_dark_clip) of a range for the photon-transfer fit."""

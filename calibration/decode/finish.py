@@ -77,11 +77,11 @@ def noise_params(dec: Any) -> np.ndarray | None:
 
     if dec._variance is not None:
         line = linear_noise(dec._noise)
-        return None if line is None else np.array([MODE_GIVEN, *line, dec._floor])
+        return None if line is None else np.array([MODE_GIVEN, *line, dec._floor, -np.inf])
     ptc: LinearVariance | None = dec._ptc
     if ptc is None:
-        return np.array([MODE_OWN, 0.0, 0.0, 0.0, 0.0, dec._floor])
-    return np.array([MODE_LINE, ptc.offset, ptc.slope, 0.0, 0.0, dec._floor])
+        return np.array([MODE_OWN, 0.0, 0.0, 0.0, 0.0, dec._floor, -np.inf])
+    return np.array([MODE_LINE, ptc.offset, ptc.slope, 0.0, 0.0, dec._floor, ptc.floor])
 
 
 def _inputs(chunk: ChunkSums, acc: Any) -> tuple[Any, ...]:

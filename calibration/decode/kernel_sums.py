@@ -21,17 +21,18 @@ _TWO_PI = 2.0 * math.pi
 DIRTY = 255  # reason code of pixels this kernel leaves to the array path
 
 # Indices of `noise`: the noise mode and the linear variance model's coefficients.
-N_MODE, N_OFFSET, N_SLOPE, N_BLACK, N_CLAMP, N_FLOOR = range(6)
+N_MODE, N_OFFSET, N_SLOPE, N_BLACK, N_CLAMP, N_FLOOR, N_LINE_FLOOR = range(7)
 MODE_GIVEN, MODE_LINE, MODE_OWN = 0, 1, 2  # given model / photon-transfer line / own residual
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _line(noise, level: float) -> float:
-    """Variance of the linear noise model at `level`: offset + slope * (level - black)+."""
+    """Variance of the linear noise model at `level`: offset + slope * (level - black)+,
+    at least the line's floor (a photon-transfer line: quantization)."""
     x = level - noise[N_BLACK]
     if noise[N_CLAMP] != 0.0 and not x > 0.0:
         x = 0.0
-    return noise[N_OFFSET] + noise[N_SLOPE] * x
+    return max(noise[N_OFFSET] + noise[N_SLOPE] * x, noise[N_LINE_FLOOR])
 
 
 BLOCK = 128  # pixels per block: the per-set scratch rows stay in L1
@@ -43,7 +44,7 @@ def finish_sums(
     sums, bits, squares, bright, dark,  # (M, N), (S, N), (N,) or (0,), (N,), (N,)
     c0,  # first column of the range in the inputs (C-contiguous: vectorized loops)
     row0, nrows, steps,  # (S,) int64 set layout in `sums`
-    noise,  # (6,) see N_* indices
+    noise,  # (7,) see N_* indices
     flats,  # (2,) number of bright and dark flats
     tail,  # (D + 1,) chi2.isf(1e-6, d) / d by residual dof d (residual mode)
     set_axis, periods, amps, chi2_limit, extents, params,  # as kernel.finish_pixels
