@@ -187,40 +187,6 @@ def _fuse(mu: float, var_mu: float, c: float, sig: float, period: float):
     return new_mu, post_var, d0 * d0 * inv_total, amb_k
 
 
-@njit(cache=True, error_model="numpy", nogil=True)
-def unwrap_pixel(j, i, wrapped, sig, use, blur, anchor, contrast_snr, first, set_axis, periods,
-                 chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out) -> int:
-    """Unwrapping and validity of block pixel j (output column i) from per-set block rows
-    (kernel_sums.finish_sums: every set's fit usable, sigmas and blur already computed)."""
-    code = 99 if contrast_snr >= params[P_MIN_CONTRAST] else 1  # 99: no rule failed
-    for ax in range(2):
-        k0 = first[ax]
-        if k0 < 0:
-            continue  # the plan has no frames on this axis
-        mu, amb = _coarsest(wrapped[k0, j], sig[k0, j], periods[k0], -0.5, extents[ax] - 0.5)
-        var_mu = sig[k0, j] ** 2
-        chi2 = 0.0
-        dof = 0
-        for k in range(k0 + 1, periods.shape[0]):
-            if set_axis[k] != ax or not use[k, j]:
-                continue
-            mu, var_mu, innovation, amb_k = _fuse(mu, var_mu, wrapped[k, j], sig[k, j],
-                                                  periods[k])
-            chi2 += innovation
-            dof += 1
-            amb += amb_k * (1.0 - amb)
-        sigma = math.sqrt(var_mu)
-        width = blur[0, ax, j]
-        pos_out[ax, i] = mu
-        sig_out[ax, i] = sigma
-        mod_out[ax, i] = anchor[1, ax, j]
-        blur_out[ax, i] = width
-        rule = _axis_rule(True, anchor[0, ax, j], amb, chi2, chi2_limit[dof], mu, sigma, width,
-                          extents[ax], params)
-        code = min(code, rule)  # the first rule that fails on any axis names the reason
-    return 0 if code == 99 else code
-
-
 @njit(cache=True, error_model="numpy", inline="always")
 def _axis_rule(anchor_ok, anchor_snr, amb, chi2, limit, mu, sigma, blur, extent, params) -> int:
     """First failed validity rule of one axis (validity.REASONS code), 99 when all pass."""

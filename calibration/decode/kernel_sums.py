@@ -14,7 +14,8 @@ import math
 import numpy as np
 from numba import njit
 
-from calibration.decode.kernel import P_PERIOD_SNR, unwrap_pixel
+from calibration.decode.kernel import P_PERIOD_SNR
+from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
 from calibration.decode.vecmath import atan2, log_inplace
 
 _TWO_PI = 2.0 * math.pi
@@ -55,7 +56,7 @@ def finish_sums(
 
     Per block of pixels, everything per set (fits, variances, sigmas, wrapped phases, the
     blur line sums) runs in loops over the block's pixels that LLVM vectorizes; then the
-    unwrapping and the validity rules, pixel by pixel (`unwrap_pixel`)."""
+    unwrapping and the validity rules (kernel_unwrap.py, vectorized the same way)."""
     n_sets = row0.shape[0]
     n = reason.shape[0]
     mode = int(noise[N_MODE])
@@ -76,6 +77,7 @@ def finish_sums(
     snr_a = np.empty((2, 2, BLOCK))  # per axis: anchor SNR, last (finest) modulation
     snr = np.empty(BLOCK)
     lg, lg_e, lg_m, wt = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK)
+    state = np.empty((STATE_ROWS, BLOCK))
     first = np.full(2, -1)
     for k in range(n_sets):
         if first[set_axis[k]] < 0:
@@ -117,13 +119,9 @@ def finish_sums(
         _contrast(bright, dark, flats, noise, mode, j0, m, ow, snr)
         for ax in range(2):
             _blur_fit(blur[:, ax], m)
-        for j in range(m):
-            if d[j]:
-                reason[b0 + j] = DIRTY
-                continue
-            reason[b0 + j] = unwrap_pixel(j, o0 + b0 + j, wrapped, sig, use, blur, snr_a,
-                                          snr[j], first, set_axis, periods, chi2_limit,
-                                          extents, params, pos_out, sig_out, mod_out, blur_out)
+        unwrap_block(m, wrapped, sig, use, blur, snr_a, snr, d, first, set_axis, periods,
+                     chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out,
+                     o0 + b0, reason[b0:b0 + m], state)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
