@@ -15,6 +15,16 @@ from calibration.decode.batch import ChunkSums, layout
 from calibration.decode.noise import LinearVariance, NoiseModel
 
 
+def software_version() -> str:
+    """Installed phasecal version, or 'unknown' when running from a bare checkout."""
+    try:
+        from importlib.metadata import version
+
+        return version("phasecal")
+    except Exception:
+        return "unknown"
+
+
 def output_planes(npix: int, axes: list[str]) -> dict[str, np.ndarray]:
     """(2, npix) output arrays (rows x, y) for the compiled kernel; absent axes stay NaN."""
     planes = {}

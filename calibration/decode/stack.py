@@ -51,9 +51,10 @@ def decode_stack(
         dec = StreamingDecoder(plan, tuple(whole.shape[1:]), noise=noise,
                                saturation_dn=saturation_dn, options=options, xp=xp)
         if dec._large and (prepare or whole.shape[1] * whole.shape[2] >= _ALWAYS_COMPILED_PIXELS):
-            from calibration.decode.kernel_warm import warm_up
-
-            warm_up()
+            # the kernels' modules; numba loads the machine code of the argument types
+            # this stack needs at their first call (cheaper than warming every variant)
+            import calibration.decode.accumulate_kernel
+            import calibration.decode.kernel_sums  # noqa: F401
         if dec._compiled:
             def step(fraction: float) -> None:
                 if cancelled is not None and cancelled():

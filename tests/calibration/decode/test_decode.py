@@ -336,3 +336,27 @@ def test_photon_transfer_with_constant_pixels_at_the_black_level():
     rss = var * rng.chisquare(7, mean.size)
     line = fit_photon_transfer(mean, rss, np.full(mean.size, 7.0), 1.0 / 12.0)
     assert line is not None and abs(line.slope - 0.02) < 0.003, line
+
+
+def test_ready_frames_holds_back_incomplete_period_groups(plan):
+    """A live decoder adds the flats at once and a period group's frames once all of them
+    are stored (one cache-blocked pass per group); adding them so gives the stack's maps."""
+    stack, *_ = render(plan, seed=5)
+    ref = decode_stack(plan, stack, noise=1.5)
+    dec = StreamingDecoder(plan, (H, W), noise=1.5)
+    groups = [ps.frame_indices for ps in plan.period_sets()]
+    flats = [i for i in range(len(plan.frames)) if all(i not in g for g in groups)]
+    partial = list(groups[0][:-1])
+    assert dec.ready_frames(flats + partial) == sorted(flats)
+    dec.add_frames(flats, stack, rows=flats)
+    stored = partial
+    for group in groups:
+        stored = sorted(set(stored) | set(group))
+        ready = dec.ready_frames(stored)
+        assert ready == sorted(group)
+        dec.add_frames(ready, stack, rows=ready)
+        stored = []
+    assert dec.missing == []
+    got = dec.finish()
+    np.testing.assert_array_equal(got.mask, ref.mask)
+    np.testing.assert_allclose(got.x[got.mask], ref.x[ref.mask], atol=1e-4)
