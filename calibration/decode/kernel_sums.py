@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
-from calibration.decode.kernel import P_PERIOD_SNR
+from calibration.decode.kernel import P_MIN_CONTRAST, P_PERIOD_SNR
 from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
 from calibration.decode.vecmath import atan2, log_inplace
 
@@ -52,7 +52,8 @@ def finish_sums(
     pos_out, sig_out, mod_out, blur_out, o0,  # (2, N_out) outputs from column o0
     reason,  # (n,) uint8 reason codes of the range
 ) -> None:
-    """Decode the unclipped pixels of a range from its sums; others get reason DIRTY.
+    """Decode the pixels of a range from their sums: those with every step kept, and those
+    with every step clipped (no fit: `no_screen` or `clipped`); others get reason DIRTY.
 
     Per block of pixels, everything per set (fits, variances, sigmas, wrapped phases, the
     blur line sums) runs in loops over the block's pixels that LLVM vectorizes; then the
@@ -67,6 +68,7 @@ def finish_sums(
     excess_limit = tail[dof] if mode == MODE_LINE else np.inf
     f64 = np.float64
     dirty = np.empty(BLOCK, dtype=np.bool_)
+    dead = np.empty(BLOCK, dtype=np.bool_)
     own = np.empty(BLOCK)
     excess = np.empty(BLOCK, dtype=np.bool_)
     expl = np.empty(BLOCK)
@@ -85,12 +87,14 @@ def finish_sums(
     for b0 in range(0, n, BLOCK):
         m = min(BLOCK, n - b0)
         j0 = c0 + b0  # input column of the block
-        d = dirty[:m]
+        d, dd = dirty[:m], dead[:m]
         d[:] = False
+        dd[:] = bits.shape[0] == n_sets
         for k in range(bits.shape[0]):
-            bk = bits[k, j0:j0 + m]
+            bk, every = bits[k, j0:j0 + m], (1 << steps[k]) - 1
             for j in range(m):
                 d[j] |= bk[j] != 0
+                dd[j] &= bk[j] == every
         # residual variance per pixel (decoder `_residuals`)
         ow = own[:m]
         if residual:
@@ -122,6 +126,13 @@ def finish_sums(
         unwrap_block(m, wrapped, sig, use, blur, snr_a, snr, d, first, set_axis, periods,
                      chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out,
                      o0 + b0, reason[b0:b0 + m], state)
+        for j in range(m):  # every step clipped in every set: no fit (phase.fit_set)
+            if dd[j]:
+                q = 0.0 if mode == MODE_OWN else snr[j]  # (no residual dof: no noise level)
+                reason[b0 + j] = 1 if not q >= params[P_MIN_CONTRAST] else 2
+                for ax in range(2):
+                    if first[ax] >= 0:
+                        mod_out[ax, o0 + b0 + j] = 0.0
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

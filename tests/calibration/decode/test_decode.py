@@ -306,8 +306,10 @@ def test_compiled_decoder_matches_array_namespace_path(plan, monkeypatch, noise)
 
     warm_up()
     stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
+    stack[:, :, :6] = 0  # a black border: every step clipped (no fit)
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
     ref = decode_stack(plan, stack, noise=noise)
+    assert ref.meta["pixel_counts"]["no_screen"] >= 6 * H
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
     whole = decode_stack(plan, stack, noise=noise)
     check_honest(whole, x, y)
