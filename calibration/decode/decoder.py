@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import sys
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from types import ModuleType
 from typing import Any
@@ -22,13 +20,19 @@ import numpy as np
 from calibration.decode.accumulate import DecodeError, FrameAccumulator
 from calibration.decode.arrays import array_module, to_host
 from calibration.decode.axes import decode_axes_compiled, decode_axes_xp
-from calibration.decode.batch import ChunkSums, add_frames, chunk_view, ready_frames
+from calibration.decode.batch import (
+    ChunkSums,
+    add_frames,
+    chunk_view,
+    ready_frames,
+    run_parallel,
+)
 from calibration.decode.finish import (
     chi2_tail,
     finish_range,
     no_valid_message,
-    noise_sample,
     output_planes,
+    residual_arrays,
     residual_stats,
     software_version,
 )
@@ -37,8 +41,11 @@ from calibration.decode.noise import (
     NoiseModel,
     NoiseSource,
     VarianceFn,
-    fit_photon_transfer,
     line_pixels,
+    nyquist_power,
+    phase_level,
+    residual_line,
+    sample_pieces,
     undithered,
     variance_function,
 )
@@ -98,6 +105,7 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
+        self._leak: Any = None  # per set r^2 of the display harmonic in the residuals
         # Large NumPy images may take the compiled per-pixel kernel; other namespaces (CuPy)
         # the array-namespace path.
         self._large = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
@@ -237,6 +245,7 @@ class StreamingDecoder:
             "decoder": {
                 "noise": self._noise_kind,
                 "photon_transfer": asdict(self._ptc) if self._ptc is not None else None,
+                "display_harmonic_r2": self._leak,
                 "clip_threshold_dn": acc.high,
                 "max_sample_dn": acc.max_seen if math.isfinite(acc.max_seen) else None,
                 "frame_dtype": str(acc.dtype),
@@ -260,14 +269,13 @@ class StreamingDecoder:
         )
 
     def _map(self, fn: Callable[[slice], None], chunks: list[slice]) -> None:
-        """Run `fn` on disjoint pixel chunks; NumPy releases the GIL, so threads use the cores."""
-        workers = min(len(chunks), os.cpu_count() or 1, 4) if self.xp is np else 1
-        if workers <= 1:
-            for sl in chunks:
-                fn(sl)
+        """Run `fn` on disjoint pixel chunks in the shared pool (NumPy and the kernels release
+        the GIL, so threads use the cores); one after another for other namespaces."""
+        if self.xp is np:
+            run_parallel(fn, chunks)
             return
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(fn, chunks))
+        for sl in chunks:
+            fn(sl)
 
     def _residuals(self, fits: list[SetFit], chunk: ChunkSums) -> tuple[Any, Any, Any]:
         """Per-pixel residual sum of squares, its degrees of freedom and their noise level.
@@ -280,8 +288,10 @@ class StreamingDecoder:
         rss = chunk.squares.astype(xp.float64)
         dof = xp.zeros_like(rss)
         level = xp.zeros_like(rss)
-        for f in fits:
+        for f, s, r2 in zip(fits, chunk.sets, self._leak or [0.0] * len(fits), strict=True):
             rss = rss - xp.where(f.ok, f.explained, 0.0)
+            if r2:  # the display harmonic in the residual is not noise (`harmonic_leak`)
+                rss = rss - r2 * nyquist_power(xp, [f], [s])[0]
             dof = dof + xp.where(f.ok, f.dof, 0.0)
             level = level + xp.where(f.ok, f.dof * f.level, 0.0)
         return xp.maximum(rss, 0.0), dof, level / xp.maximum(dof, 1.0)
@@ -289,35 +299,28 @@ class StreamingDecoder:
     def _estimate_noise(self, npix: int, chunk_of: Callable[[slice], ChunkSums]) -> None:
         """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass),
         on the pixels `line_pixels` chooses, held at or above the floor from the median
-        dark-flat level up (the lowest level the sensor records there)."""
+        dark-flat level up (the lowest level the sensor records there), less the display
+        harmonic that falls into the residual (`harmonic_leak`)."""
         acc = self._acc
-        pieces = noise_sample(npix, self.options.chunk_pixels, _NOISE_PIECE, _NOISE_SAMPLE)
+        pieces = sample_pieces(npix, self.options.chunk_pixels, _NOISE_PIECE, _NOISE_SAMPLE)
         size = sum(sl.stop - sl.start for sl in pieces)
         mean, rss, dof, span, dark = (np.empty(size, dtype=np.float32) for _ in range(5))
+        power = np.empty((len(acc.sets), size), dtype=np.float32)
         clean, no_dark_clip = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
         offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
 
         def one(k: int) -> None:
             to, chunk = slice(int(offsets[k]), int(offsets[k + 1])), chunk_of(pieces[k])
-            stats = residual_stats(self, chunk) if self._compiled else self._residual_arrays(chunk)
-            mean[to], rss[to], dof[to], clean[to], no_dark_clip[to] = stats
+            stats = (residual_stats if self._compiled else residual_arrays)(self, chunk)
+            mean[to], rss[to], dof[to], clean[to], no_dark_clip[to], power[:, to] = stats
             dark[to] = to_host(chunk.dark / acc.n_dark)
             span[to] = to_host(chunk.bright / acc.n_bright) - dark[to]
 
         self._map(one, list(range(len(pieces))))
         spread = ~undithered(span, rss, dof, no_dark_clip, quantized=acc.dtype.kind == "u")
         use = line_pixels(clean, no_dark_clip, spread, dof, _MIN_CLEAN_PIXELS)
-        low = float(np.median(dark[use])) if use.any() else None
-        self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor, low=low)
-
-    def _residual_arrays(self, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
-        """(level, rss, dof, clean, no_dark_clip) of a range for the photon-transfer fit."""
-        skip = self._sees_no_screen(chunk)
-        fits = [fit_set(self.xp, s, slice(None), residuals=True, skip=skip) for s in chunk.sets]
-        r, d, m = self._residuals(fits, chunk)
-        clean = ~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits])
-        low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
-        return to_host(m), to_host(r), to_host(d), to_host(clean), to_host(~low)
+        self._ptc, self._leak = residual_line(mean[use], rss[use], dof[use], power[:, use],
+                                              self._floor, dark[use])
 
     def _sees_no_screen(self, chunk: ChunkSums) -> Any:
         """Pixels whose flat contrast fails `min_contrast_snr` even at the smallest credible
@@ -345,7 +348,8 @@ class StreamingDecoder:
         xp = self.xp
         if self._variance is not None:
             fn = self._variance
-            per_set = [fn(xp.maximum(f.mean, 0.0)) for f in fits]
+            per_set = [fn(phase_level(xp, f, s, slice(None)))
+                       for f, s in zip(fits, chunk.sets, strict=True)]
             everywhere = xp.ones(fits[0].mean.shape, dtype=bool)
             for f, var in zip(fits, per_set, strict=True):
                 f.use_step_levels(xp, fn, var, everywhere)
@@ -357,7 +361,8 @@ class StreamingDecoder:
         ptc = self._ptc.variance
         limit = xp.asarray(chi2_tail(int(to_host(dof).max()) if dof.size else 0))
         excess = own > ptc(xp.maximum(fits[0].mean, 0.0)) * limit[dof.astype(xp.int64)]
-        per_set = [xp.where(excess, own, ptc(xp.maximum(f.mean, 0.0))) for f in fits]
+        per_set = [xp.where(excess, own, ptc(phase_level(xp, f, s, slice(None))))
+                   for f, s in zip(fits, chunk.sets, strict=True)]
         for f, var in zip(fits, per_set, strict=True):
             f.use_step_levels(xp, ptc, var, ~excess)
         return per_set, ptc  # the flats are not subject to the cosine-fit model error

@@ -9,10 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from calibration.decode.arrays import chi2_isf
+from calibration.decode.arrays import chi2_isf, to_host
 from calibration.decode.axes import MIN_PERIOD_SNR, chi2_limits
 from calibration.decode.batch import ChunkSums, layout
-from calibration.decode.noise import LinearVariance, NoiseModel
+from calibration.decode.noise import LinearVariance, NoiseModel, nyquist_power
+from calibration.decode.phase import fit_set
 
 
 def software_version() -> str:
@@ -46,15 +47,6 @@ def chi2_tail(max_dof: int) -> np.ndarray:
         ratio = chi2_isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
     ratio[0] = np.inf
     return ratio
-
-
-def noise_sample(npix: int, chunk: int, piece: int, total: int) -> list[slice]:
-    """Pixel ranges the photon-transfer line is fitted on: all pixels (in ranges of `chunk`),
-    or `total // piece` evenly spread pieces of `piece` pixels on larger images."""
-    if npix <= total:
-        return [slice(s, min(s + chunk, npix)) for s in range(0, npix, chunk)]
-    starts = np.linspace(0, npix - piece, total // piece)
-    return [slice(int(s), int(s) + piece) for s in starts]
 
 
 def no_valid_message(counts: dict[str, int], npix: int) -> str:
@@ -106,22 +98,37 @@ def _inputs(chunk: ChunkSums, acc: Any) -> tuple[Any, ...]:
     return block, bits, squares, bright, dark, chunk.col0 if chunk.full else 0
 
 
+def residual_arrays(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
+    """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line, by the
+    decoder's array path."""
+    xp = dec.xp
+    fits = [fit_set(xp, s, slice(None), residuals=True, skip=dec._sees_no_screen(chunk))
+            for s in chunk.sets]
+    r, d, m = dec._residuals(fits, chunk)
+    clean = ~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits])
+    low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
+    power = xp.stack(nyquist_power(xp, fits, chunk.sets))
+    return tuple(to_host(v) for v in (m, r, d, clean, ~low, power))
+
+
 def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
-    """(level, rss, dof, clean, no_dark_clip) of a range for the photon-transfer fit."""
+    """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line."""
     from calibration.decode.kernel_sums import residual_stats as kernel
 
     acc, n = dec._acc, chunk.size
     lay = layout(acc)
     level, rss, dof = (np.empty(n, dtype=np.float32) for _ in range(3))
     dirty = np.empty(n, dtype=np.bool_)
+    power = np.empty((len(acc.sets), n), dtype=np.float32)
     block, bits, squares, _, _, c0 = _inputs(chunk, acc)
-    kernel(block, bits, squares, c0, lay.row0, lay.nrows, lay.steps, level, rss, dof, dirty)
+    kernel(block, bits, squares, c0, lay.row0, lay.nrows, lay.steps, level, rss, dof, dirty,
+           power)
     clean, no_dark_clip = ~dirty, np.ones(n, dtype=bool)
     idx = np.flatnonzero(dirty)
     if idx.size:
-        sub = dec._residual_arrays(chunk.take(idx))
-        level[idx], rss[idx], dof[idx], clean[idx], no_dark_clip[idx] = sub
-    return level, rss, dof, clean, no_dark_clip
+        sub = residual_arrays(dec, chunk.take(idx))
+        level[idx], rss[idx], dof[idx], clean[idx], no_dark_clip[idx], power[:, idx] = sub
+    return level, rss, dof, clean, no_dark_clip, power
 
 
 def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
@@ -145,7 +152,8 @@ def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
                             MIN_PERIOD_SNR])
         extents = np.array([plan.screen.extent_px(a) for a in ("x", "y")], dtype=np.float64)
         max_dof = int((lay.steps - lay.nrows).sum())
-        finish_sums(*_inputs(chunk, acc), lay.row0, lay.nrows, lay.steps, params,
+        leak = np.zeros(len(acc.sets)) if dec._leak is None else np.asarray(dec._leak, float)
+        finish_sums(*_inputs(chunk, acc), lay.row0, lay.nrows, lay.steps, params, leak,
                     np.array([acc.n_bright, acc.n_dark], dtype=np.float64), chi2_tail(max_dof),
                     axis_of, np.array([s.layout.period_px for s in acc.sets]),
                     np.array([s.layout.amplitude for s in acc.sets]), limits, extents, kparams,

@@ -46,6 +46,7 @@ def finish_sums(
     c0,  # first column of the range in the inputs (C-contiguous: vectorized loops)
     row0, nrows, steps,  # (S,) int64 set layout in `sums`
     noise,  # (7,) see N_* indices
+    leak,  # (S,) r^2 of the display harmonic N/2 in each set's residual (residual mode)
     flats,  # (2,) number of bright and dark flats
     tail,  # (D + 1,) chi2.isf(1e-6, d) / d by residual dof d (residual mode)
     set_axis, periods, amps, chi2_limit, extents, params,  # as kernel.finish_pixels
@@ -104,6 +105,10 @@ def finish_sums(
                 _explained(sums, row0[k], nrows[k], steps[k], j0, m, expl)
                 for j in range(m):
                     ow[j] -= expl[j]
+                if leak[k] != 0.0:  # the display harmonic in the residual is not noise
+                    _nyquist(sums, row0[k], steps[k], j0, m, expl)
+                    for j in range(m):
+                        ow[j] -= leak[k] * expl[j]
             floor = noise[N_FLOOR]
             for j in range(m):
                 ow[j] = max(max(ow[j], 0.0) / max(dof, 1), floor)
@@ -117,7 +122,8 @@ def finish_sums(
         blur[:, :, :m] = 0.0
         for k in range(n_sets):
             ax = set_axis[k]
-            _set_block(sums, row0[k], steps[k], periods[k], amps[k], noise, params, j0, m,
+            _set_block(sums, row0[k], nrows[k], steps[k], periods[k], amps[k], noise, params,
+                       j0, m,
                        ow, ex, wrapped[k], sig[k], use[k], blur[:, ax], snr_a[:, ax],
                        k == first[ax], lg, lg_e, lg_m, wt)
         _contrast(bright, dark, flats, noise, mode, j0, m, ow, snr)
@@ -137,7 +143,7 @@ def finish_sums(
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_out, dof_out,
-                   dirty_out) -> None:
+                   dirty_out, power_out) -> None:
     """Residual-mode first pass (decoder `_residuals`) for the unclipped pixels of columns
     c0..: dof-weighted level, residual sum of squares, residual dof; `dirty_out` marks the
     pixels with clipped steps (left to the array path)."""
@@ -166,10 +172,31 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
             for j in range(m):
                 own[j] -= expl[j]
                 lev[j] += dof_k * (s0[j] * inv_n)
+            _nyquist(sums, row0[k], steps[k], j0, m, expl)
+            power_out[k, b0:b0 + m] = expl[:m]
         for j in range(m):
             rss_out[b0 + j] = max(own[j], 0.0)
             level_out[b0 + j] = lev[j] / max(dof, 1.0)
             dof_out[b0 + j] = dof
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _nyquist(sums, r0, steps, j0, m, out) -> None:
+    """out[:m] = noise.nyquist_power_of one set (float32 arithmetic as there; unclipped)."""
+    f32 = np.float32
+    scale = f32(2.0 / steps)
+    sa, sb = sums[r0 + 1, j0:j0 + m], sums[r0 + 2, j0:j0 + m]
+    for j in range(m):
+        if steps % 2:
+            out[j] = 0.0
+            continue
+        a, b = sa[j] * scale, sb[j] * scale
+        b2 = a * a + b * b
+        u = b / math.sqrt(b2 if b2 > 0 else f32(1.0))
+        prev, cheb = f32(1.0), u
+        for _ in range(steps // 2 - 1):
+            prev, cheb = cheb, f32(2.0) * u * cheb - prev
+        out[j] = f32(steps) * b2 * cheb * cheb
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -185,8 +212,8 @@ def _explained(sums, r0, nrow, steps, j0, m, expl) -> None:
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _set_block(sums, r0, steps, period, amp, noise, params, j0, m, own, excess, wrapped, sig,
-               use, blur, anchor, is_first, lg, lg_e, lg_m, wt) -> None:
+def _set_block(sums, r0, nrow, steps, period, amp, noise, params, j0, m, own, excess, wrapped,
+               sig, use, blur, anchor, is_first, lg, lg_e, lg_m, wt) -> None:
     """One set over a block: variance, modulation, sigmas, wrapped position, blur terms.
     Branch-free loops (error_model numpy: no division-by-zero checks) LLVM vectorizes."""
     f32 = np.float32
@@ -197,8 +224,14 @@ def _set_block(sums, r0, steps, period, amp, noise, params, j0, m, own, excess, 
     s0, sa, sb = sums[r0, j0:j0 + m], sums[r0 + 1, j0:j0 + m], sums[r0 + 2, j0:j0 + m]
     var = lg_e  # scratch: the sample variance of this set (float32 values)
     for j in range(m):
-        line = _line(noise, max(float(s0[j] * inv_n), 0.0))
-        var[j] = float(f32(own[j] if excess[j] else line))
+        level = max(s0[j] * inv_n, f32(0.0))
+        if nrow > 3:  # harmonic 2 modelled: noise.phase_level, the level at the crossings
+            a, b = sa[j] * scale, sb[j] * scale
+            s2, c2 = sums[r0 + 3, j0 + j] * scale, sums[r0 + 4, j0 + j] * scale
+            b2 = a * a + b * b
+            h2c = (c2 * (b * b - a * a) + s2 * f32(2.0) * a * b) / (b2 if b2 > 0 else f32(1.0))
+            level = max(s0[j] * inv_n - f32(0.5) * h2c, f32(0.0))
+        var[j] = float(f32(own[j] if excess[j] else _line(noise, float(level))))
     snr_row, mod_row = anchor[0], anchor[1]
     for j in range(m):  # what kernel.decode_pixel computes per set, vectorized
         a, b = float(sa[j] * scale), float(sb[j] * scale)

@@ -362,3 +362,29 @@ def test_ready_frames_holds_back_incomplete_period_groups(plan):
     got = dec.finish()
     np.testing.assert_array_equal(got.mask, ref.mask)
     np.testing.assert_allclose(got.x[got.mask], ref.x[ref.mask], atol=1e-4)
+
+
+def test_compiled_decoder_with_display_harmonic_matches_array_path(monkeypatch):
+    """A 6-step plan through a display gamma: the residual's harmonic N/2 is fitted and
+    subtracted (`harmonic_leak`); the compiled path does the same (float32 rounding)."""
+    import calibration.decode.decoder as decoder_module
+    from calibration.decode.kernel_warm import warm_up
+
+    warm_up()
+    plan6 = build_plan(1920, 1080, 0.2745, steps=6)
+    stack, _, _ = render(plan6, white=240.0, read=0.8, seed=3)
+    stack = np.clip(np.rint(255.0 * (stack / 255.0) ** 1.8), 0, 255).astype(np.uint8)
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    ref = decode_stack(plan6, stack)
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    got = decode_stack(plan6, stack)
+    leak = ref.meta["decoder"]["display_harmonic_r2"]
+    assert leak is not None
+    np.testing.assert_allclose(got.meta["decoder"]["display_harmonic_r2"], leak, rtol=1e-4)
+    assert got.meta["pixel_counts"] == ref.meta["pixel_counts"]
+    for key in ("x", "y"):
+        np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=1e-5,
+                                   equal_nan=True)
+    for key in ("sigma_x", "sigma_y"):
+        np.testing.assert_allclose(getattr(got, key), getattr(ref, key), rtol=1e-4,
+                                   equal_nan=True)
