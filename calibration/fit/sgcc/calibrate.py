@@ -7,8 +7,9 @@ validation points), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
 CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`),
-`family_prior` ("off", default; "auto": where a dense parametric fit is as good as the free
-spline, refit with the prior centred on it, calibration.metrology.family_prior).
+`family_prior` ("auto", the default for sgcc: where a dense parametric fit is as good as the
+free spline, refit with the prior centred on it, calibration.metrology.family_prior and
+calibration.fit.sgcc.prior; "off", the default for sgcc-noncentral: the free spline).
 """
 
 from __future__ import annotations
@@ -32,9 +33,15 @@ from calibration.fit.sgcc.initial import initial_state, opencv_init, pose_from_m
 from calibration.fit.sgcc.lm import run_lm
 from calibration.fit.sgcc.mesh import choose_mesh
 from calibration.fit.sgcc.options import SgccOptions
+from calibration.fit.sgcc.prior import (
+    FieldProjector,
+    deviation_precision,
+    family_tangent,
+    prior_covariance,
+)
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
-from calibration.metrology.family_prior import PRIOR_WEIGHT, prior_state
+from calibration.metrology.family_prior import PRIOR_WEIGHT, centred_start, choose_family
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import (
     SGCCBase,
@@ -147,14 +154,27 @@ def _centred_on_family(
     progress: ProgressFn | None, cancelled: CancelCheck | None,
 ) -> tuple[SGCCBase, LMResult, dict[str, Any]]:
     """Refit with the prior centred on the best parametric family if it fits as well as the
-    free spline (calibration.metrology.family_prior); else the free fit and the verdict."""
+    free spline (calibration.metrology.family_prior, calibration.fit.sgcc.prior), with the
+    covariance of that estimate; else the free fit and the verdict."""
     fitted, out = free
     n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
-    state, info = prior_state(obs, screen, grid, cls.n_components, out.chi2_dof, n_res, cv_fit)
-    if info["adequate"]:
-        centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=state.coeffs.ravel())
-        fitted, out = _fit(cls, obs, grid, state, centred, progress, cancelled)
-    return fitted, out, info
+    family, poses, info = choose_family(obs, screen, grid, cls.n_components, out.chi2_dof,
+                                        n_res, cv_fit)
+    sigmas = info.pop("param_std")
+    if not info["adequate"]:
+        return fitted, out, info
+    project = FieldProjector(grid, cls.n_components)
+    start = centred_start(family, poses, project)
+    tangent, index = family_tangent(family, project, sigmas)
+    precision = deviation_precision(grid, cls.n_components, tangent)
+    centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=start.coeffs.ravel(),
+                      prior_base=precision)
+    fitted, out = _fit(cls, obs, grid, start, centred, progress, cancelled)
+    cov = prior_covariance(out, grid, cls.n_components, precision, family, project, tangent,
+                           index, np.random.default_rng(0))
+    ns = fitted.coeffs.size
+    fitted.covariance = cov[:ns, :ns]
+    return fitted, replace(out, covariance=cov), {**info, "tangent_dims": len(index)}
 
 
 def _heldout(
@@ -243,7 +263,7 @@ def calibrate_generic(
     maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
     cells, lm = opts.cells, _lm_options(opts)
-    prior_mode = opts.family_prior
+    prior_mode = opts.family_prior or ("auto" if model == "sgcc" else "off")
     h, w = maps[0].shape
     obs = observations(maps, screen)
     for j, ob in enumerate(obs):

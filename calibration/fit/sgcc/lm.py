@@ -275,7 +275,8 @@ def _run(
     lp = _Loop(
         LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc]),
         z,
-        np.kron(dmat.T @ dmat, np.eye(n_comp)),
+        np.kron(dmat.T @ dmat, np.eye(n_comp)) if options.prior_base is None
+        else np.asarray(options.prior_base, dtype=np.float64),
     )
     if options.prior_mean is not None:
         lp.prior_mean = np.asarray(options.prior_mean, dtype=np.float64).ravel()
@@ -311,4 +312,5 @@ def _run(
         inliers=prob.unsort(inl),
         chi2_dof=chi2_dof,
         history=lp.history,
+        prior_weight=lp.lam_prior,
     )

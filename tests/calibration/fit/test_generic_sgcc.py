@@ -100,11 +100,23 @@ def pinhole_fit():
 
 def test_sgcc_pinhole_consistent_with_predicted_uncertainty(pinhole_fit):
     cam, _, res = pinhole_fit
+    assert res.stats["family_prior"]["adequate"]  # by default centred on the opencv5 family
     _, z = _zscores(res.model, cam, central=True)
     assert 0.7 <= float(np.std(z)) <= 1.4
     assert 0.85 <= float(np.std(whitened_coefficient_errors(res.model, _truth_fn(cam)))) <= 1.15
     assert res.stats["converged"]
     assert 0.8 < res.stats["chi2_dof"] < 1.2
+
+
+def test_sgcc_free_spline_consistent_with_predicted_uncertainty(pinhole_fit):
+    """The same data without the family prior: the free spline's covariance is honest too."""
+    cam, maps, _ = pinhole_fit
+    res = calibrate_generic(maps, SCREEN, "sgcc", options={**OPTS, "family_prior": "off"},
+                            heldout=[3])
+    assert "family_prior" not in res.stats
+    _, z = _zscores(res.model, cam, central=True)
+    assert 0.7 <= float(np.std(z)) <= 1.4
+    assert 0.85 <= float(np.std(whitened_coefficient_errors(res.model, _truth_fn(cam)))) <= 1.15
 
 
 def test_sgcc_within_1p5x_of_true_parametric_family(pinhole_fit):
