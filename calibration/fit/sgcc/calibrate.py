@@ -9,7 +9,9 @@ second-difference prior that only matters where there are no data), `xp` ("numpy
 CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`),
 `family_prior` ("auto", the default for sgcc: where a dense parametric fit is as good as the
 free spline, refit with the prior centred on it, calibration.metrology.family_prior and
-calibration.fit.sgcc.prior; "off", the default for sgcc-noncentral: the free spline).
+calibration.fit.sgcc.prior; "off", the default for sgcc-noncentral: the free spline), `screen`
+("flat", default; "fit": panel bow/twist and cover-glass thickness fitted jointly,
+sgcc/screen_terms.py) and `glass_index` (1.52).
 """
 
 from __future__ import annotations
@@ -38,6 +40,13 @@ from calibration.fit.sgcc.prior import (
     deviation_precision,
     family_tangent,
     prior_covariance,
+)
+from calibration.fit.sgcc.screen_terms import (
+    ScreenTrace,
+    holds_glass,
+    normal_spread_deg,
+    screen_stats,
+    screen_warnings,
 )
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
@@ -165,20 +174,23 @@ def _centred_on_family(
         return fitted, out, info
     project = FieldProjector(grid, cls.n_components)
     start = centred_start(family, poses, project)
+    start.screen = out.state.screen  # the fitted screen stays (a flat one: None)
     tangent, index = family_tangent(family, project, sigmas)
     precision = deviation_precision(grid, cls.n_components, tangent)
     centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=start.coeffs.ravel(),
                       prior_base=precision)
     fitted, out = _fit(cls, obs, grid, start, centred, progress, cancelled)
     cov = prior_covariance(out, grid, cls.n_components, precision, family, project, tangent,
-                           index, np.random.default_rng(0))
+                           index, np.random.default_rng(0),
+                           hold_last=lm.screen is not None and lm.hold_glass)
     ns = fitted.coeffs.size
     fitted.covariance = cov[:ns, :ns]
     return fitted, replace(out, covariance=cov), {**info, "tangent_dims": len(index)}
 
 
 def _heldout(
-    model: SGCCBase, obs: list[PoseObs], indices: list[int], lm: LMOptions, pitch_mm: np.ndarray
+    model: SGCCBase, obs: list[PoseObs], indices: list[int], lm: LMOptions, pitch_mm: np.ndarray,
+    screen: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Pose-only fit of each held-out pose with the model fixed; statistics in the parametric
     models' layout ({per_pose, pooled rms/noise floor}, `evaluate.summarize`)."""
@@ -188,10 +200,12 @@ def _heldout(
         huber_k=lm.huber_k,
         cut_sigmas=lm.cut_sigmas,
         fix_spline=True,
+        screen=lm.screen,
     )
     for ob, index in zip(obs, indices, strict=True):
         rc, tc = pose_from_model(model.unproject, ob)
-        out = run_lm(model.grid, model.n_components, [ob], LMState(model.coeffs, [rc], [tc]), fixed)
+        init = LMState(model.coeffs, [rc], [tc], screen)
+        out = run_lm(model.grid, model.n_components, [ob], init, fixed)
         _, row = pose_statistics(
             model, out.state.rc[0], out.state.tc[0], ob, out.residuals[0], out.inliers[0], pitch_mm
         )
@@ -263,6 +277,8 @@ def calibrate_generic(
     maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
     cells, lm = opts.cells, _lm_options(opts)
+    if opts.screen == "fit":
+        lm = replace(lm, screen=ScreenTrace.of(screen, opts.glass_index))
     prior_mode = opts.family_prior or ("auto" if model == "sgcc" else "off")
     h, w = maps[0].shape
     obs = observations(maps, screen)
@@ -276,6 +292,9 @@ def calibrate_generic(
         cells, mesh_choice = choose_mesh(obs, (w, h), cls.n_components, lm, cv_fit)
     grid = SplineGrid((w, h), cells)
     init = initial_state(obs, grid, cls.n_components, cv_fit)
+    spread = normal_spread_deg(init.rc)
+    if lm.screen is not None:
+        lm = replace(lm, hold_glass=holds_glass(cls.n_components, init.rc))
     fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
     prior = None
     if prior_mode == "auto":
@@ -320,14 +339,17 @@ def calibrate_generic(
         "origin_std_mm_median": float(np.median(org)),
         "param_std": {"ray_angle_rad_median": float(np.median(ang))},
     }
+    stats["screen"] = screen_stats(screen, opts.screen, opts.glass_index, out.state.screen,
+                                   out.covariance, cls.n_components, spread, lm.hold_glass)
     if mesh_choice is not None:
         stats["mesh_choice"] = mesh_choice
     if prior is not None:
         stats["family_prior"] = prior
     stats["warnings"] = fit_warnings(model, views, len(uncovered), grid,
-                                     stats["noise_floor_ratio"])
+                                     stats["noise_floor_ratio"]) + screen_warnings(stats["screen"])
     if held_maps:
-        stats["heldout"] = _heldout(fitted, observations(held_maps, screen), held, lm, pitch)
+        stats["heldout"] = _heldout(fitted, observations(held_maps, screen), held, lm, pitch,
+                                    out.state.screen)
     stats["wall_s"] = time.perf_counter() - t0
     fitted.stats = stats
     return CalibrationResult(fitted, poses, stats, pix_out, res_px)

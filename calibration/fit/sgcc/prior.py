@@ -113,17 +113,20 @@ def deviation_precision(grid: SplineGrid, n_comp: int, tangent: np.ndarray) -> n
 
 def prior_covariance(out: LMResult, grid: SplineGrid, n_comp: int, precision: np.ndarray,
                      model: Any, project: FieldProjector, tangent: np.ndarray,
-                     index: list[int], rng: np.random.Generator) -> np.ndarray:
+                     index: list[int], rng: np.random.Generator, hold_last: bool = False
+                     ) -> np.ndarray:
     """Full parameter covariance (spline then poses) of a fit with the family prior.
 
     Data noise: A^-1 H A^-1 (A = H + P, H the data's normal matrix, reduced to the gauge's
     null space z; times max(1, chi2/dof)). Family curvature: the family's parameters drawn
     from their covariance (from the same H with the poses free), the part of each projected
     field the tangent does not reach, mapped by the estimate's response A^-1 P to its centre.
+    `hold_last`: the last parameter (a fitted screen's glass) was held, as run_lm does.
     """
     ns = grid.size * n_comp
     n = out.covariance.shape[0]
-    z = null_space(gauge_constraints(grid, n_comp, n))
+    rows = gauge_constraints(grid, n_comp, n)
+    z = null_space(np.vstack([rows, np.eye(n)[-1]]) if hold_last else rows)
     scale = max(1.0, out.chi2_dof)
     a_inv = z.T @ out.covariance @ z / scale
     a_inv = 0.5 * (a_inv + a_inv.T)
