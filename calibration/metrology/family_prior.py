@@ -31,10 +31,9 @@ from calibration.fit.sgcc.prior import FieldProjector
 from calibration.fit.sgcc.state import LMState
 from calibration.metrology.lm import fit_dense
 from calibration.metrology.refine import fit_parametric_dense
-from calibration.metrology.screen import ScreenModel
+from calibration.metrology.screen import PARAM_NAMES, ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.parametric import OpenCVRationalModel
-from calibration.plan import ScreenGeometry
 
 PRIOR_WEIGHT = 100.0  # relative to the mean diagonal of the spline normal equations
 
@@ -45,7 +44,7 @@ def _point_sets(obs: list[PoseObs], pitch: np.ndarray) -> list[PointSet]:
             for o in obs]
 
 
-def _rational_from_init(pts: list[PointSet], screen: ScreenGeometry,
+def _rational_from_init(pts: list[PointSet], screen: ScreenModel,
                        image_size: tuple[int, int], cv_fit: tuple) -> tuple[Any, list, dict]:
     """Dense opencv-rational fit started from sGCC's own OpenCV init (no second OpenCV run)."""
     k, dist, rvecs, tvecs = cv_fit
@@ -55,17 +54,21 @@ def _rational_from_init(pts: list[PointSet], screen: ScreenGeometry,
                                                                              strict=True)]
     free = np.zeros(model.get_params().size, dtype=bool)
     free[:12] = True  # K and k1..k6, p1, p2; thin prism stays 0
-    dense = fit_dense(model, poses, pts, ScreenModel(screen), free)
+    dense = fit_dense(model, poses, pts, screen, free)
     std = dict(zip(model.param_names(), dense.param_std.tolist(), strict=True))
     return dense.model, dense.poses, {"reduced_chi2": dense.stats["reduced_chi2"],
-                                      "param_std": std, "family": "opencv-rational"}
+                                      "param_std": std, "family": "opencv-rational",
+                                      "screen": dense.screen.to_json()}
 
 
-def _dense(pts: list[PointSet], screen: ScreenGeometry, image_size: tuple[int, int],
+def _dense(pts: list[PointSet], screen: ScreenModel, image_size: tuple[int, int],
            family: str) -> tuple[Any, list, dict] | None:
-    """Dense fit of `family` (OpenCV init), or None where the views do not determine it."""
+    """Dense fit of `family` (OpenCV init) on the same screen model, or None where the views
+    do not determine it."""
     try:
-        model, poses, _, stats, _ = fit_parametric_dense(pts, image_size, family, screen)
+        model, poses, _, stats, _ = fit_parametric_dense(
+            pts, image_size, family, screen.geometry,
+            {"screen": screen.mode, "glass_index": screen.glass_index})
     except (DegenerateError, ValueError, np.linalg.LinAlgError):
         return None
     return model, poses, {**stats, "family": family}
@@ -97,34 +100,41 @@ def family_adequate(family_stats: dict[str, Any], spline_chi2_dof: float, n_resi
     return bool(gain <= limit), {"chi2_gain": float(gain), "chi2_gain_limit": float(limit)}
 
 
-def choose_family(obs: list[PoseObs], screen: ScreenGeometry, grid: SplineGrid, n_comp: int,
+def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_comp: int,
                   free_fit_chi2: float, n_residuals: int, cv_fit: tuple
-                  ) -> tuple[Any, list, dict[str, Any]]:
+                  ) -> tuple[Any, list, dict[str, Any], np.ndarray | None]:
     """The first family, simplest first (opencv5, fisheye, rational from `cv_fit`), whose
-    dense fit passes the test: (model, poses, verdict); if none passes, the closest with
-    `verdict["adequate"]` False.
+    dense fit passes the test: (model, poses, verdict, fitted screen parameters or None); if
+    none passes, the closest with `verdict["adequate"]` False.
 
+    `screen`: the spline's screen model (sGCC's `screen: "fit"` -> mode "fit"): the families
+    fit it too, so they are judged on the same model; their estimate starts the refit.
     `free_fit_chi2` / `n_residuals`: the free spline fit's chi2/dof and residual count.
     """
-    pts = _point_sets(obs, np.asarray(screen.pitch_mm, dtype=np.float64))
+    pts = _point_sets(obs, np.asarray(screen.geometry.pitch_mm, dtype=np.float64))
     n_gauge = len(gauge_constraints(grid, n_comp, grid.size * n_comp))
     best = None
     for fit in (lambda: _dense(pts, screen, grid.image_size, "opencv5"),
                 lambda: _dense(pts, screen, grid.image_size, "fisheye"),
-                lambda: _rational_from_init(pts, screen, grid.image_size, cv_fit)):
+                lambda: _rational_from_init(
+                    pts, ScreenModel(screen.geometry, screen.mode, screen.glass_index),
+                    grid.image_size, cv_fit)):
         found = fit()
         if found is None:
             continue
         model, poses, stats = found
-        sigmas = {k: v for k, v in stats["param_std"].items() if v > 0}
+        sigmas = {k: v for k, v in stats["param_std"].items() if v > 0 and k in
+                  model.param_names()}
         extra = grid.size * n_comp - n_gauge - len(sigmas)
         ok, test = family_adequate(stats, free_fit_chi2, n_residuals, extra)
         info = {"family": stats["family"], "family_chi2_dof": stats["reduced_chi2"],
                 "spline_chi2_dof": free_fit_chi2, "extra_dof": extra, **test, "adequate": ok,
                 "weight": PRIOR_WEIGHT if ok else None, "param_std": sigmas}
+        fitted = (np.array([stats["screen"][k] for k in PARAM_NAMES])
+                  if screen.mode == "fit" else None)
         if ok:
-            return model, poses, info
+            return model, poses, info, fitted
         if best is None or test["chi2_gain"] < best[2]["chi2_gain"]:
-            best = (model, poses, info)
+            best = (model, poses, info, fitted)
     assert best is not None  # the rational fit always returns
     return best

@@ -51,6 +51,7 @@ from calibration.fit.sgcc.screen_terms import (
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
 from calibration.metrology.family_prior import PRIOR_WEIGHT, centred_start, choose_family
+from calibration.metrology.screen import ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import (
     SGCCBase,
@@ -167,14 +168,16 @@ def _centred_on_family(
     covariance of that estimate; else the free fit and the verdict."""
     fitted, out = free
     n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
-    family, poses, info = choose_family(obs, screen, grid, cls.n_components, out.chi2_dof,
-                                        n_res, cv_fit)
+    mode = "flat" if lm.screen is None else "fit"  # the families fit the same screen model
+    scr = ScreenModel(screen, mode, 1.52 if lm.screen is None else lm.screen.index)
+    family, poses, info, fam_screen = choose_family(obs, scr, grid, cls.n_components,
+                                                    out.chi2_dof, n_res, cv_fit)
     sigmas = info.pop("param_std")
     if not info["adequate"]:
         return fitted, out, info
     project = FieldProjector(grid, cls.n_components)
     start = centred_start(family, poses, project)
-    start.screen = out.state.screen  # the fitted screen stays (a flat one: None)
+    start.screen = fam_screen  # the family's screen estimate starts the refit (flat: None)
     tangent, index = family_tangent(family, project, sigmas)
     precision = deviation_precision(grid, cls.n_components, tangent)
     centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=start.coeffs.ravel(),

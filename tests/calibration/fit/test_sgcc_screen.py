@@ -205,3 +205,32 @@ def test_screen_fit_on_the_device_path(monkeypatch) -> None:
     for key in TRUTH:
         assert abs(got.stats["screen"][key] - ref.stats["screen"][key]) < \
             1e-4 * ref.stats["screen"]["std"][key]
+
+
+def test_auto_mesh_validates_through_the_fitted_screen() -> None:
+    """cells "auto" with screen "fit": the validation residuals see the fitted screen, so the
+    chosen mesh's validation chi2 is at the noise level (a bare plane would leave ~2.5)."""
+    cam = cameras.mild_pinhole(W, H)
+    res = calibrate_generic(_maps(cam, REAL, True), SCREEN, "sgcc",
+                            options={"cells": "auto", "screen": "fit"})
+    chosen = next(r for r in res.stats["mesh_choice"] if r["cells"] == res.stats["cells"])
+    assert chosen["validation_chi2"] < 1.1
+    scr = res.stats["screen"]
+    assert abs(scr["glass_mm"] - 1.5) < 3 * scr["std"]["glass_mm"]
+
+
+def test_family_prior_judges_the_families_on_the_fitted_screen() -> None:
+    """family_prior "auto" with screen "fit": the families fit the screen too, so on a real
+    screen the pinhole's family is still adequate (on a flat screen model it was not,
+    chi2/dof 3.2) and the centred refit keeps the screen within 3 sigma of the truth."""
+    cam = cameras.mild_pinhole(W, H)
+    maps = _maps(cam, REAL, True)
+    opts = {"cells": [8, 8], "screen": "fit"}
+    free = calibrate_generic(maps, SCREEN, "sgcc", options={**opts, "family_prior": "off"})
+    res = calibrate_generic(maps, SCREEN, "sgcc", options={**opts, "family_prior": "auto"})
+    prior = res.stats["family_prior"]
+    assert prior["adequate"] and prior["family_chi2_dof"] < 1.1
+    scr = res.stats["screen"]
+    for key, true in TRUTH.items():
+        assert abs(scr[key] - true) < 3 * scr["std"][key], key
+    assert _errors(res.model, cam, True)[0] < 1.2 * _errors(free.model, cam, True)[0]
