@@ -25,10 +25,7 @@ from calibration.fit.correspondences import PointSet
 from calibration.fit.observations import PoseObs
 from calibration.fit.ransac import DegenerateError
 from calibration.fit.result import PoseEstimate
-from calibration.fit.sgcc.initial import gauge_rotation
 from calibration.fit.sgcc.lm import gauge_constraints
-from calibration.fit.sgcc.prior import FieldProjector
-from calibration.fit.sgcc.state import LMState
 from calibration.metrology.lm import fit_dense
 from calibration.metrology.refine import fit_parametric_dense
 from calibration.metrology.screen import PARAM_NAMES, ScreenModel
@@ -74,19 +71,6 @@ def _dense(pts: list[PointSet], screen: ScreenModel, image_size: tuple[int, int]
     return model, poses, {**stats, "family": family}
 
 
-def centred_start(model: Any, poses: list, project: FieldProjector) -> LMState:
-    """The family's projected ray field (the prior's centre) and its poses, in the sGCC gauge
-    (the rotation `project` applies to the field applied to the poses)."""
-    w, h = project.grid.image_size
-    c = np.array([[(w - 1) / 2, (h - 1) / 2], [(w + 1) / 2, (h - 1) / 2],
-                  [(w - 3) / 2, (h - 1) / 2]])
-    d = model.unproject(c)[1]
-    q = gauge_rotation(d[0], (d[1] - d[2]) / 2)
-    rcs = [(q @ p.rotation).T for p in poses]
-    tcs = [-(q @ p.rotation).T @ (q @ p.translation) for p in poses]
-    return LMState(project(model).reshape(project.grid.size, project.n_comp), rcs, tcs)
-
-
 def family_adequate(family_stats: dict[str, Any], spline_chi2_dof: float, n_residuals: int,
                     extra_dof: int) -> tuple[bool, dict[str, float]]:
     """Likelihood-ratio test: does the spline's extra freedom fit better than noise would?
@@ -102,13 +86,13 @@ def family_adequate(family_stats: dict[str, Any], spline_chi2_dof: float, n_resi
 
 def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_comp: int,
                   free_fit_chi2: float, n_residuals: int, cv_fit: tuple
-                  ) -> tuple[Any, list, dict[str, Any], np.ndarray | None]:
+                  ) -> tuple[Any, dict[str, Any]]:
     """The first family, simplest first (opencv5, fisheye, rational from `cv_fit`), whose
-    dense fit passes the test: (model, poses, verdict, fitted screen parameters or None); if
-    none passes, the closest with `verdict["adequate"]` False.
+    dense fit passes the test: (model, verdict); if none passes, the closest with
+    `verdict["adequate"]` False.
 
     `screen`: the spline's screen model (sGCC's `screen: "fit"` -> mode "fit"): the families
-    fit it too, so they are judged on the same model; their estimate starts the refit.
+    fit it too, so they are judged on the same model (`verdict["screen"]`: their estimate).
     `free_fit_chi2` / `n_residuals`: the free spline fit's chi2/dof and residual count.
     """
     pts = _point_sets(obs, np.asarray(screen.geometry.pitch_mm, dtype=np.float64))
@@ -122,7 +106,7 @@ def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_c
         found = fit()
         if found is None:
             continue
-        model, poses, stats = found
+        model, _, stats = found
         sigmas = {k: v for k, v in stats["param_std"].items() if v > 0 and k in
                   model.param_names()}
         extra = grid.size * n_comp - n_gauge - len(sigmas)
@@ -130,11 +114,11 @@ def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_c
         info = {"family": stats["family"], "family_chi2_dof": stats["reduced_chi2"],
                 "spline_chi2_dof": free_fit_chi2, "extra_dof": extra, **test, "adequate": ok,
                 "weight": PRIOR_WEIGHT if ok else None, "param_std": sigmas}
-        fitted = (np.array([stats["screen"][k] for k in PARAM_NAMES])
-                  if screen.mode == "fit" else None)
+        if screen.mode == "fit":
+            info["screen"] = {k: stats["screen"][k] for k in PARAM_NAMES}
         if ok:
-            return model, poses, info, fitted
-        if best is None or test["chi2_gain"] < best[2]["chi2_gain"]:
-            best = (model, poses, info, fitted)
+            return model, info
+        if best is None or test["chi2_gain"] < best[1]["chi2_gain"]:
+            best = (model, info)
     assert best is not None  # the rational fit always returns
     return best

@@ -7,9 +7,9 @@ validation points), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
 CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`),
-`family_prior` ("auto", the default for sgcc: where a dense parametric fit is as good as the
-free spline, refit with the prior centred on it, calibration.metrology.family_prior and
-calibration.fit.sgcc.prior; "off", the default for sgcc-noncentral: the free spline), `screen`
+`family_prior` ("auto", the default for sgcc on a flat screen: where a dense parametric fit is
+as good as the free spline, refit with the prior centred on it, calibration.metrology.
+family_prior and calibration.fit.sgcc.prior; "off", the default otherwise), `screen`
 ("flat", default; "fit": panel bow/twist and cover-glass thickness fitted jointly,
 sgcc/screen_terms.py) and `glass_index` (1.52).
 """
@@ -50,7 +50,7 @@ from calibration.fit.sgcc.screen_terms import (
 )
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
-from calibration.metrology.family_prior import PRIOR_WEIGHT, centred_start, choose_family
+from calibration.metrology.family_prior import PRIOR_WEIGHT, choose_family
 from calibration.metrology.screen import ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import (
@@ -170,14 +170,16 @@ def _centred_on_family(
     n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
     mode = "flat" if lm.screen is None else "fit"  # the families fit the same screen model
     scr = ScreenModel(screen, mode, 1.52 if lm.screen is None else lm.screen.index)
-    family, poses, info, fam_screen = choose_family(obs, scr, grid, cls.n_components,
-                                                    out.chi2_dof, n_res, cv_fit)
+    family, info = choose_family(obs, scr, grid, cls.n_components, out.chi2_dof, n_res, cv_fit)
     sigmas = info.pop("param_std")
     if not info["adequate"]:
         return fitted, out, info
     project = FieldProjector(grid, cls.n_components)
-    start = centred_start(family, poses, project)
-    start.screen = fam_screen  # the family's screen estimate starts the refit (flat: None)
+    # The family's field, with the free fit's poses and screen (converged on these data, in
+    # the same gauge; a family's screen can be wild where the poses hardly determine it).
+    st = out.state
+    start = LMState(project(family).reshape(grid.size, cls.n_components),
+                    [r.copy() for r in st.rc], [t.copy() for t in st.tc], st.screen)
     tangent, index = family_tangent(family, project, sigmas)
     precision = deviation_precision(grid, cls.n_components, tangent)
     centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=start.coeffs.ravel(),
@@ -282,7 +284,10 @@ def calibrate_generic(
     cells, lm = opts.cells, _lm_options(opts)
     if opts.screen == "fit":
         lm = replace(lm, screen=ScreenTrace.of(screen, opts.glass_index))
-    prior_mode = opts.family_prior or ("auto" if model == "sgcc" else "off")
+    # Default: the family prior for sgcc on a flat screen (with a fitted screen a weakly
+    # determined glass trades against the family's field: docs/generic.md).
+    prior_mode = opts.family_prior or ("auto" if model == "sgcc" and opts.screen == "flat"
+                                       else "off")
     h, w = maps[0].shape
     obs = observations(maps, screen)
     for j, ob in enumerate(obs):

@@ -34,7 +34,7 @@ class SgccOptions(BaseModel):
                     "on the deviation from that family's ray field, the family's parameters "
                     "free, and report the covariance of that estimate (data noise plus the "
                     'family\'s own curvature); "off": the free spline. Default (null): "auto" '
-                    'for sgcc, "off" for sgcc-noncentral (docs/generic.md)')
+                    'for sgcc with screen "flat", else "off" (docs/generic.md)')
 
     screen: Literal["flat", "fit"] = Field(
         default="flat",

@@ -137,12 +137,13 @@ def prior_covariance(out: LMResult, grid: SplineGrid, n_comp: int, precision: np
     jt[:ns, :k] = tangent
     jt[ns:, k:] = np.eye(n - ns)
     jr = z.T @ jt
-    sig = scale * np.linalg.inv(jr.T @ h @ jr)[:k, :k]
-    chol = np.linalg.cholesky(0.5 * (sig + sig.T))
+    sig = scale * np.linalg.pinv(jr.T @ h @ jr, hermitian=True)[:k, :k]
+    lam, vec = np.linalg.eigh(0.5 * (sig + sig.T))
+    root = vec * np.sqrt(np.clip(lam, 0.0, None))  # a square root even if barely definite
     base = project(model)
     draws = []
     for _ in range(NONLINEAR_SAMPLES):
-        delta = chol @ rng.standard_normal(k)
+        delta = root @ rng.standard_normal(k)
         draws.append(project(_moved(model, index, delta)) - base - tangent @ delta)
     resp = a_inv @ z[:ns].T @ p_abs @ np.array(draws).T  # (nz, samples)
     cz = scale * a_inv @ h @ a_inv + resp @ resp.T / NONLINEAR_SAMPLES
