@@ -295,14 +295,14 @@ def calibrate_generic(
             raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
     cls = spec.model_class
     cv_fit = opencv_init(obs, (w, h))
+    spread = normal_spread_deg(cv_fit[2])  # between the initial poses' screen normals
+    if lm.screen is not None:
+        lm = replace(lm, hold_glass=holds_glass(cls.n_components, spread))
     mesh_choice = None
     if cells == "auto":
         cells, mesh_choice = choose_mesh(obs, (w, h), cls.n_components, lm, cv_fit)
     grid = SplineGrid((w, h), cells)
     init = initial_state(obs, grid, cls.n_components, cv_fit)
-    spread = normal_spread_deg(init.rc)
-    if lm.screen is not None:
-        lm = replace(lm, hold_glass=holds_glass(cls.n_components, init.rc))
     fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
     prior = None
     if prior_mode == "auto":

@@ -143,7 +143,8 @@ def _errors(model, cam, central: bool) -> tuple[float, float]:
 @pytest.mark.parametrize("model", ["sgcc", "sgcc-noncentral"])
 def test_screen_fit_recovers_camera_bow_and_glass(model: str) -> None:
     """Bowed panel (0.5/0.3 mm) behind 1.5 mm glass: "fit" recovers the camera within 1.5x of
-    the ideal-screen fit and the screen within 3 sigma; "flat" is >= 5x worse."""
+    the ideal-screen fit and the screen within 3 sigma; "flat" is >= 5x worse. On an ideal
+    screen "fit" finds zero shape and glass."""
     central = model == "sgcc"
     cam = cameras.mild_pinhole(W, H) if central else cameras.smooth_noncentral(W, H)
     opts = {"cells": [8, 8], "family_prior": "off"}  # the same (free) method in all three fits
@@ -161,6 +162,12 @@ def test_screen_fit_recovers_camera_bow_and_glass(model: str) -> None:
     assert 0.9 < fit.stats["chi2_dof"] < 1.1 < flat.stats["chi2_dof"]
     assert flat.stats["screen"] == {"mode": "flat", "glass_index": 1.52}
     assert fit.stats["warnings"] == [] and fit.model.stats["screen"] == scr
+    # On an ideal screen "fit" finds a flat bare one and costs little accuracy.
+    bare = calibrate_generic(_maps(cam, None, central), SCREEN, model,
+                             options={**opts, "screen": "fit"})
+    for key, value in bare.stats["screen"]["std"].items():
+        assert abs(bare.stats["screen"][key]) < 3 * value, key
+    assert _errors(bare.model, cam, central)[0] < 1.3 * e_ideal[0]
     # The screen rides along in model.json.
     assert json.loads(json.dumps(fit.model.to_dict()))["stats"]["screen"]["glass_mm"] == \
         scr["glass_mm"]
