@@ -32,6 +32,8 @@ from calibration.metrology.screen import PARAM_NAMES, ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.parametric import OpenCVRationalModel
 
+# A family the views do not determine (or OpenCV cannot initialize) is skipped.
+_NOT_DETERMINED = (DegenerateError, ValueError, np.linalg.LinAlgError, cv2.error)
 PRIOR_WEIGHT = 100.0  # relative to the mean diagonal of the spline normal equations
 
 
@@ -66,7 +68,7 @@ def _dense(pts: list[PointSet], screen: ScreenModel, image_size: tuple[int, int]
         model, poses, _, stats, _ = fit_parametric_dense(
             pts, image_size, family, screen.geometry,
             {"screen": screen.mode, "glass_index": screen.glass_index})
-    except (DegenerateError, ValueError, np.linalg.LinAlgError):
+    except _NOT_DETERMINED:
         return None
     return model, poses, {**stats, "family": family}
 
@@ -86,10 +88,10 @@ def family_adequate(family_stats: dict[str, Any], spline_chi2_dof: float, n_resi
 
 def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_comp: int,
                   free_fit_chi2: float, n_residuals: int, cv_fit: tuple
-                  ) -> tuple[Any, dict[str, Any]]:
+                  ) -> tuple[Any | None, dict[str, Any]]:
     """The first family, simplest first (opencv5, fisheye, rational from `cv_fit`), whose
     dense fit passes the test: (model, verdict); if none passes, the closest with
-    `verdict["adequate"]` False.
+    `verdict["adequate"]` False (model None if none could be fitted).
 
     `screen`: the spline's screen model (sGCC's `screen: "fit"` -> mode "fit"): the families
     fit it too, so they are judged on the same model (`verdict["screen"]`: their estimate).
@@ -103,7 +105,10 @@ def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_c
                 lambda: _rational_from_init(
                     pts, ScreenModel(screen.geometry, screen.mode, screen.glass_index),
                     grid.image_size, cv_fit)):
-        found = fit()
+        try:
+            found = fit()
+        except _NOT_DETERMINED:
+            found = None
         if found is None:
             continue
         model, _, stats = found
@@ -120,5 +125,6 @@ def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_c
             return model, info
         if best is None or test["chi2_gain"] < best[1]["chi2_gain"]:
             best = (model, info)
-    assert best is not None  # the rational fit always returns
+    if best is None:  # no family could be fitted at all: the free spline stands
+        return None, {"family": None, "adequate": False, "weight": None, "param_std": {}}
     return best
