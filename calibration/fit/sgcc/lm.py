@@ -46,6 +46,7 @@ if TYPE_CHECKING:
 
 _DAMPING_TRIES = 12  # LM damping increases per iteration before giving up
 _GAUSS_NEWTON_BELOW = 1e-6  # Jacobi-scaled damping under which the undamped step goes first
+_BLOCK = 1 << 16  # pixels per block of the per-pixel robust terms (small temporaries)
 
 
 def _robust(s: np.ndarray, k: float, cut: float) -> tuple[np.ndarray, np.ndarray]:
@@ -128,9 +129,40 @@ def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
 
 
 def _sigma_norm(prob: Problem | DeviceProblem, res: np.ndarray) -> np.ndarray:
-    """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas)."""
-    r0, r1 = res[0] * prob.inv_sigma[0], res[1] * prob.inv_sigma[1]
-    return np.sqrt(r0 * r0 + r1 * r1)
+    """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas), computed in
+    blocks so that multi-million-pixel fits make no full-size temporaries."""
+    inv = prob.inv_sigma
+    out = np.empty(res.shape[1])
+    for a in range(0, len(out), _BLOCK):
+        sl = slice(a, a + _BLOCK)
+        r0, r1 = res[0, sl] * inv[0, sl], res[1, sl] * inv[1, sl]
+        np.sqrt(r0 * r0 + r1 * r1, out=out[sl])
+    return out
+
+
+def _robust_terms(
+    s: np.ndarray, ok: np.ndarray, k: float, cut: float
+) -> tuple[float, np.ndarray, float]:
+    """Robust cost of residual norms s (rays missing the plane, not ok, pay the cap), IRLS
+    weights (0 where not ok) and the cost over the ok pixels alone; in blocks."""
+    wt = np.empty_like(s)
+    capped = ok_only = 0.0
+    cap = 2 * k * cut - k * k
+    for a in range(0, len(s), _BLOCK):
+        sl = slice(a, a + _BLOCK)
+        cost, w = _robust(s[sl], k, cut)
+        okb = ok[sl]
+        np.multiply(w, okb, out=wt[sl])
+        inside = float(cost @ okb)
+        ok_only += inside
+        capped += inside + cap * float(okb.size - np.count_nonzero(okb))
+    return capped, wt, ok_only
+
+
+def _prior_cost(x: np.ndarray, lp: _Loop) -> float:
+    """The smoothness prior's cost at coefficients x."""
+    dx = x - lp.prior_mean
+    return float(lp.lam_prior * dx @ lp.prior_base @ dx)
 
 
 def _cost(
@@ -142,10 +174,7 @@ def _cost(
     k: float,
 ) -> float:
     """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
-    cost, _ = _robust(_sigma_norm(prob, res), k, lp.cut)
-    cost = np.where(ok, cost, 2 * k * lp.cut)
-    dx = x - lp.prior_mean
-    return float(cost.sum() + lp.lam_prior * dx @ lp.prior_base @ dx)
+    return _robust_terms(_sigma_norm(prob, res), ok, k, lp.cut)[0] + _prior_cost(x, lp)
 
 
 def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
@@ -170,11 +199,19 @@ def _iterate(
     progress: ProgressFn | None,
     cancelled: CancelCheck | None,
 ) -> None:
-    """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place."""
+    """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place.
+
+    After an accepted undamped (Gauss-Newton) step the next iteration is a chord step: the
+    gradient alone at the new state (`normal_equations(hessian=False)`, under half a pass),
+    solved with the previous factorization. Near the optimum the normal matrix hardly
+    changes over a step, so the chord step's decrement certifies convergence without a
+    second full pass; a rejected chord step falls back to a full iteration.
+    """
     ns = prob.n_spline
     res, ok = prob.residuals(lp.state)
     lp.converged = False
     first = True
+    chord: tuple[tuple, np.ndarray] | None = None  # (factor, Jacobi scale) for a chord step
     while lp.it < last_it:
         lp.it += 1
         if cancelled is not None and cancelled():
@@ -183,27 +220,32 @@ def _iterate(
         s = _sigma_norm(prob, res)
         med = float(np.median(s[ok])) if ok.any() else 1.0
         lp.cut = max(options.cut_sigmas, 4.0 * 1.4826 * med)
-        _, wt = _robust(s, options.huber_k, lp.cut)
-        h, grad = prob.normal_equations(st, wt * ok, spline=not options.fix_spline)
+        data0, wt, _ = _robust_terms(s, ok, options.huber_k, lp.cut)
+        h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
+                                        hessian=chord is None)
         if first:
             diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
             lp.lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
             first = False
         x = st.coeffs.ravel()
-        h[:ns, :ns] += lp.lam_prior * lp.prior_base
         grad[:ns] += lp.lam_prior * lp.prior_base @ (x - lp.prior_mean)
-        hr = lp.hr = lp.z.T @ h @ lp.z
         gr = lp.z.T @ grad
-        cost0 = _cost(prob, res, ok, x, lp, options.huber_k)
+        if chord is None:
+            h[:ns, :ns] += lp.lam_prior * lp.prior_base
+            hr = lp.hr = lp.z.T @ h @ lp.z
+            jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
+            hs = hr * jac_scale[:, None] * jac_scale[None, :]
+            tries = _damped_factors(hs, lp.mu)
+        else:
+            tries, jac_scale = iter([(0.0, chord[0])]), chord[1]
+        cost0 = data0 + _prior_cost(x, lp)
         # The covariance is inflated by chi^2/dof when the model misfits; so is the tolerance.
-        chi2_scale = max(1.0, cost0 / max(2 * int(ok.sum()) - len(hr), 1))
-        accepted = False
+        chi2_scale = max(1.0, cost0 / max(2 * int(ok.sum()) - len(lp.hr), 1))
+        accepted, was_chord, chord = False, chord is not None, None
         cost1 = cost0
-        jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
-        hs = hr * jac_scale[:, None] * jac_scale[None, :]
         gs = gr * jac_scale
         near_optimum = False
-        for mu, factor in _damped_factors(hs, lp.mu):
+        for mu, factor in tries:
             ds = cho_solve(factor, -gs)
             if mu == 0.0:  # -g^T dx: the chi^2 drop a full Gauss-Newton step predicts
                 near_optimum = float(-gs @ ds) <= options.chi2_tol * chi2_scale
@@ -214,17 +256,20 @@ def _iterate(
             cost1 = _cost(prob, res1, ok1, cand.coeffs.ravel(), lp, options.huber_k)
             if cost1 <= cost0:
                 lp.state, res, ok = cand, res1, ok1
-                lp.mu = max((mu or lp.mu) / 10, 1e-15)
                 accepted = True
+                if not was_chord:
+                    lp.mu = max((mu or lp.mu) / 10, 1e-15)
+                    chord = (factor, jac_scale) if mu == 0.0 else None
                 break
         else:
-            lp.mu *= 10.0**_DAMPING_TRIES
+            if not was_chord:
+                lp.mu *= 10.0**_DAMPING_TRIES
         lp.history.append(cost1 if accepted else cost0)
         if progress is not None:
             msg = f"LM iteration {lp.it}, cost {lp.history[-1]:.6g}"
             progress(lp.it, options.max_iterations, msg)
-        small = (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300)
-        if not accepted or small or near_optimum:
+        small = accepted and (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300)
+        if (not accepted and not was_chord) or small or (near_optimum and accepted):
             lp.converged = True
             break
     lp.res, lp.ok = res, ok
@@ -287,8 +332,7 @@ def _run(
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
     s = _sigma_norm(prob, res)
-    cost_terms, wt = _robust(s, options.huber_k, lp.cut)
-    wt = wt * ok
+    _, wt, cost = _robust_terms(s, ok, options.huber_k, lp.cut)
     hr = lp.hr
     if not lp.converged or hr is None:  # the last normal equations are not at `st`
         h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)
@@ -304,7 +348,7 @@ def _run(
         state=st,
         iterations=lp.it,
         converged=lp.converged,
-        cost=float(cost_terms[ok].sum()),
+        cost=cost,
         covariance=cov,
         min_eig=min_eig,
         residuals=prob.unsort(res),
