@@ -26,11 +26,12 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, null_space
+from scipy.linalg import cho_factor, cho_solve, lapack
 from scipy.spatial.transform import Rotation
 
 from calibration.decode.arrays import array_module
 from calibration.fit.observations import PoseObs
+from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.models.blas_threads import single_thread_blas
@@ -46,6 +47,7 @@ if TYPE_CHECKING:
 
 _DAMPING_TRIES = 12  # LM damping increases per iteration before giving up
 _GAUSS_NEWTON_BELOW = 1e-6  # Jacobi-scaled damping under which the undamped step goes first
+_CHORD_MODEL_TOL = 0.1  # relative misfit of the predicted chi^2 drop that still allows chords
 _BLOCK = 1 << 16  # pixels per block of the per-pixel robust terms (small temporaries)
 
 
@@ -93,9 +95,9 @@ class _Loop:
     """LM state carried across iterations and phases."""
 
     state: LMState
-    z: np.ndarray  # free directions (gauge null space or poses only)
+    z: GaugeBasis  # free directions (gauge null space or poses only)
     prior_base: np.ndarray
-    mu: float = 1e-3
+    mu: float = _GAUSS_NEWTON_BELOW  # first try the undamped step (a good OpenCV start)
     it: int = 0
     history: list[float] = field(default_factory=list)
     converged: bool = False
@@ -159,6 +161,30 @@ def _robust_terms(
     return capped, wt, ok_only
 
 
+def _cut(s: np.ndarray, ok: np.ndarray, cut_sigmas: float) -> float:
+    """Hard outlier cut: max(cut_sigmas, 5.9 x the median residual norm of the ok pixels).
+    The median is only computed when it can matter (more than half the norms above
+    cut_sigmas / 5.9); s is 0 where not ok."""
+    scale = 4.0 * 1.4826
+    n_ok = int(np.count_nonzero(ok))
+    if n_ok == 0:
+        return max(cut_sigmas, scale)
+    if 2 * int(np.count_nonzero(s > cut_sigmas / scale)) < n_ok:
+        return cut_sigmas  # the median is at most cut_sigmas / scale
+    return max(cut_sigmas, scale * float(np.median(s[ok])))
+
+
+def _spd_inverse(a: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive-definite matrix from its Cholesky factor (half the
+    work of a general inverse); a general inverse where the factorization fails."""
+    c, info = lapack.dpotrf(a, lower=True)
+    if info == 0:
+        inv, info = lapack.dpotri(c, lower=True)
+        if info == 0:
+            return np.tril(inv) + np.tril(inv, -1).T
+    return np.linalg.inv(a)
+
+
 def _prior_cost(x: np.ndarray, lp: _Loop) -> float:
     """The smoothness prior's cost at coefficients x."""
     dx = x - lp.prior_mean
@@ -218,8 +244,7 @@ def _iterate(
             raise Cancelled("sgcc: calibration cancelled")
         st = lp.state
         s = _sigma_norm(prob, res)
-        med = float(np.median(s[ok])) if ok.any() else 1.0
-        lp.cut = max(options.cut_sigmas, 4.0 * 1.4826 * med)
+        lp.cut = _cut(s, ok, options.cut_sigmas)
         data0, wt, _ = _robust_terms(s, ok, options.huber_k, lp.cut)
         h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
                                         hessian=chord is None)
@@ -229,10 +254,10 @@ def _iterate(
             first = False
         x = st.coeffs.ravel()
         grad[:ns] += lp.lam_prior * lp.prior_base @ (x - lp.prior_mean)
-        gr = lp.z.T @ grad
+        gr = lp.z.reduce_vector(grad)
         if chord is None:
             h[:ns, :ns] += lp.lam_prior * lp.prior_base
-            hr = lp.hr = lp.z.T @ h @ lp.z
+            hr = lp.hr = lp.z.reduce(h)
             jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
             hs = hr * jac_scale[:, None] * jac_scale[None, :]
             tries = _damped_factors(hs, lp.mu)
@@ -244,12 +269,13 @@ def _iterate(
         accepted, was_chord, chord = False, chord is not None, None
         cost1 = cost0
         gs = gr * jac_scale
-        near_optimum = False
+        near_optimum, predicted = False, 0.0
         for mu, factor in tries:
             ds = cho_solve(factor, -gs)
             if mu == 0.0:  # -g^T dx: the chi^2 drop a full Gauss-Newton step predicts
-                near_optimum = float(-gs @ ds) <= options.chi2_tol * chi2_scale
-            step = lp.z @ (jac_scale * ds)
+                predicted = float(-gs @ ds)
+                near_optimum = predicted <= options.chi2_tol * chi2_scale
+            step = lp.z.expand(jac_scale * ds)
             rcs, tcs = _apply_pose_step(st, step[ns:])
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs)
             res1, ok1 = prob.residuals(cand)
@@ -259,7 +285,9 @@ def _iterate(
                 accepted = True
                 if not was_chord:
                     lp.mu = max((mu or lp.mu) / 10, 1e-15)
-                    chord = (factor, jac_scale) if mu == 0.0 else None
+                    # chord next only where the quadratic model held over this step
+                    good = abs(cost0 - cost1 - predicted) <= _CHORD_MODEL_TOL * predicted
+                    chord = (factor, jac_scale) if mu == 0.0 and good else None
                 break
         else:
             if not was_chord:
@@ -312,10 +340,9 @@ def _run(
     ns = grid.size * n_comp
     n = ns + 6 * len(obs)
     if options.fix_spline:
-        z = np.zeros((n, 6 * len(obs)))
-        z[ns:, :] = np.eye(6 * len(obs))
+        z = GaugeBasis.selection(n, np.arange(ns, n))
     else:
-        z = null_space(gauge_constraints(grid, n_comp, n))
+        z = GaugeBasis.null_space_of(gauge_constraints(grid, n_comp, n))
     dmat = second_differences(grid)
     lp = _Loop(
         LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc]),
@@ -337,13 +364,13 @@ def _run(
     if not lp.converged or hr is None:  # the last normal equations are not at `st`
         h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)
         h[:ns, :ns] += lp.lam_prior * lp.prior_base
-        hr = z.T @ h @ z
+        hr = z.reduce(h)
     dscale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
     min_eig = float(np.linalg.eigvalsh(hr * dscale[:, None] * dscale[None, :])[0])
     inl = wt > 0
     dof = max(2 * int(inl.sum()) - hr.shape[0], 1)
     chi2_dof = float(np.sum(s[inl] ** 2) / dof)
-    cov = z @ np.linalg.inv(hr) @ z.T * max(1.0, chi2_dof)
+    cov = z.expand_matrix(_spd_inverse(hr)) * max(1.0, chi2_dof)
     return LMResult(
         state=st,
         iterations=lp.it,
