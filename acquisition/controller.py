@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.clock import Clock
+from acquisition.controller_phase import rephase
 from acquisition.errors import AcquisitionError, CameraDisconnected, CameraTimeout
 from acquisition.integrity import (
     IntegrityReport,
@@ -56,6 +57,11 @@ class _Failed(AcquisitionError):
     """Internal: the pose cannot be completed (message is the reason)."""
 
 
+def _slow_max(observed: float, previous: float, cap: float) -> float:
+    """A cost estimate: the largest recent observation, decaying slowly, at most `cap`."""
+    return min(max(observed, 0.9 * previous), cap)
+
+
 class _Runner:
     """State of one pose capture (devices, timing estimates, counters)."""
 
@@ -74,16 +80,23 @@ class _Runner:
         self.reconnects = 0
         self.last_seq = -1
         self.fr_ref: tuple[float, int] | None = None  # (timestamp, sequence) of a recent frame
+        self.delivery_s = 0.0  # learned delay from an exposure's end to its frame's arrival
+        self.collect_cost = 0.0  # learned time to grab, check and accept an arrived frame
+        self.render_cost = 0.0  # learned time to render a pattern's device codes
         self._codes: dict[int, np.ndarray] = {}
 
     # -- devices ----------------------------------------------------------------------
     def codes(self, index: int) -> np.ndarray:
-        """Device codes of plan frame `index` (the last one rendered is kept)."""
+        """Device codes of plan frame `index` (the two rendered last are kept)."""
         if index not in self._codes:
-            self._codes = {index: render_frame(self.plan, index,
-                                               bit_depth=self.display.info.bit_depth,
-                                               response=self.opts.response,
-                                               dither=self.opts.dither)}
+            if len(self._codes) >= 2:
+                del self._codes[next(iter(self._codes))]
+            t0 = self.clock.now()
+            self._codes[index] = render_frame(self.plan, index,
+                                              bit_depth=self.display.info.bit_depth,
+                                              response=self.opts.response,
+                                              dither=self.opts.dither)
+            self.render_cost = _slow_max(self.clock.now() - t0, self.render_cost, self.period)
         return self._codes[index]
 
     def show(self, index: int) -> float:
@@ -130,46 +143,6 @@ class _Runner:
         raise _Failed(f"camera disconnected and {self.opts.max_reconnects} reconnect attempts "
                       f"failed: {last}")
 
-    # -- free-running phase -------------------------------------------------------------
-    def rephase(self, index: int) -> None:
-        """Free-running: restart the stream until its frames fall inside pattern windows.
-
-        With a camera frame period that is a whole number of refresh periods, the offset x
-        of the camera's exposure starts past a pattern's on-time is fixed modulo P. One
-        pattern per camera frame needs x <= P - 2m - e; otherwise every pattern waits a
-        refresh more (1.5x-2x the vsync floor). Stream start sets the phase, so restart at a
-        start time chosen to put x in the middle of the window, using the start-to-frame
-        delay measured on the previous restart. Best effort: faults leave the phase as is.
-        """
-        p, m, e = self.period, self.opts.margin_s, self.settings.exposure_s
-        ratio = self.frame_period / p
-        window = p - 2 * m - e
-        if abs(ratio - round(ratio)) > 1e-3 or window <= 0:
-            return  # the phase drifts anyway, or no exposure fits a refresh
-        try:
-            delay: float | None = None
-            for attempt in range(self.opts.rephase_attempts + 1):
-                flip = self.show(index)
-                self.camera.flush()
-                fr = self.camera.grab(self.opts.grab_timeout_s)
-                self.last_seq, self.fr_ref = fr.sequence, (fr.timestamp_s, fr.sequence)
-                x = (fr.timestamp_s - (flip + self.lat + p + m)) % p
-                if x <= window or attempt == self.opts.rephase_attempts:
-                    return
-                self.camera.stop()
-                if delay is not None:
-                    # next start whose first frame lands mid-window on the vsync grid
-                    target = flip + self.lat + p + m + window / 2 - delay
-                    now = self.clock.now()
-                    self.clock.sleep_until(target + math.ceil((now - target) / p) * p)
-                started = self.clock.now()
-                self.camera.start()
-                first = self.camera.grab(self.opts.grab_timeout_s)
-                delay = (first.timestamp_s - started) % self.frame_period
-                self.last_seq, self.fr_ref = first.sequence, (first.timestamp_s, first.sequence)
-        except (CameraTimeout, CameraDisconnected):
-            self.last_seq, self.fr_ref = -1, None  # run() recovers from faults itself
-
     # -- one pattern ------------------------------------------------------------------
     def predicted_end(self, on: float) -> float:
         """Predicted end of the exposures of a pattern fully visible from `on`."""
@@ -184,13 +157,14 @@ class _Runner:
         return first + (k - 1) * self.frame_period + e
 
     def begin_exposures(self, on: float, flush: bool) -> None:
-        """Wait until `on`; flush stale frames if allowed; trigger the pattern's exposures."""
-        if self.clock.now() < on:
-            self.clock.sleep_until(on)
+        """Wait until `on` (triggered: one margin later, in one sleep, as every wake-up may
+        be late); flush stale frames if allowed; trigger the pattern's exposures."""
+        start = on + self.opts.margin_s if self.triggered else on
+        if self.clock.now() < start:
+            self.clock.sleep_until(start)
             if flush:
                 self.camera.flush()
         if self.triggered:
-            self.clock.sleep_until(on + self.opts.margin_s)
             for _ in range(self.opts.average):
                 self.fire()
 
@@ -198,6 +172,13 @@ class _Runner:
         """Earliest vsync (on the grid of `flip`) at which the next pattern may flip."""
         need = end + self.opts.margin_s - self.lat
         return flip + max(1, math.ceil((need - flip) / self.period - 1e-9)) * self.period
+
+    def learn_delivery(self, asked: float, end: float) -> None:
+        """Learn the delay from an exposure's end to its frame's arrival (readout, transfer)
+        from grabs that waited for their frame."""
+        now = self.clock.now()
+        if now - asked > 1e-4 and now > end:
+            self.delivery_s = _slow_max(now - end, self.delivery_s, self.period)
 
     def collect(self, on: float, off: float) -> tuple[list[Frame], str]:
         """Grab `average` frames exposed inside [on, off]; ([], reason) if one is torn."""
@@ -221,24 +202,26 @@ class _Runner:
 
     def run(self, order: Sequence[int], accept: Callable[[int, np.ndarray, AcceptedFrame], None]
             ) -> None:
-        """Capture `order`, each accepted frame handed to `accept` exactly once.
+        """Capture `order`, each position's accepted frame handed to `accept` once, in order.
 
         Event loop over three kinds of timed actions, earliest first: show the next
         pattern (so it flips right after the last shown pattern's exposures end), begin
         the exposures of the oldest shown pattern (at its on-screen time), collect the
-        frames of the oldest begun pattern (once its exposures ended and the next flip,
-        which bounds its window, is known). Several patterns can be in flight when the
-        latency exceeds the exposure.
+        frames of the oldest begun pattern (once its frames should have arrived, and the
+        next flip, which bounds its window, is known: a show due earlier goes first, so a
+        blocking grab never makes a flip miss its vsync). Several patterns can be in flight
+        when the latency exceeds the exposure.
         """
         m = self.opts.margin_s
         if not self.triggered and self.opts.rephase_attempts > 0 and order:
-            self.rephase(order[0])
+            rephase(self, order[0])
         attempts: dict[int, int] = {}
         pos = 0  # next position of `order` to show
         done = 0  # positions accepted
         inflight: list[dict[str, Any]] = []  # shown, not yet accepted; oldest first
         while done < len(order):
             self.check_cancel()
+            now = self.clock.now()
             unbegun = [f for f in inflight if not f["begun"]]
             t_show = math.inf
             if pos < len(order):
@@ -246,13 +229,23 @@ class _Runner:
                     last = inflight[-1]
                     t_show = self.next_flip_target(last["flip"], last["end"]) - self.period / 2
                 else:
-                    t_show = self.clock.now()
+                    t_show = now
             t_begin = unbegun[0]["on"] if unbegun else math.inf
+            deadline = min(t_show, t_begin) - 2 * m  # the next action bound to a vsync
             head = inflight[0] if inflight and inflight[0]["begun"] else None
             bounded = head is not None and (len(inflight) > 1 or pos >= len(order))
-            t_collect = head["end"] if bounded and head is not None else math.inf
+            t_collect = head["end"] + self.delivery_s if bounded and head is not None \
+                else math.inf  # when the frames should have arrived
             try:
-                if t_show <= min(t_begin, t_collect):
+                if t_collect < math.inf and (max(now, t_collect) + self.collect_cost <= deadline
+                                             or len(inflight) - len(unbegun) > 1
+                                             or deadline == math.inf):
+                    pass  # collect now: it ends before the next timed action
+                elif (pos < len(order) and order[pos] not in self._codes
+                      and now + self.render_cost <= deadline):
+                    self.codes(order[pos])  # render the next pattern in idle time
+                    continue
+                elif t_show <= t_begin:
                     self.clock.sleep_until(t_show)
                     i = order[pos]
                     flip = self.show(i)
@@ -261,7 +254,7 @@ class _Runner:
                                      "end": self.predicted_end(on)})
                     pos += 1
                     continue
-                if t_begin <= t_collect:
+                else:
                     entry = unbegun[0]
                     self.begin_exposures(entry["on"], flush=entry is inflight[0])
                     entry["end"] = self.predicted_end(entry["on"])
@@ -269,7 +262,9 @@ class _Runner:
                     continue
                 assert head is not None
                 off = inflight[1]["flip"] + self.lat - m if len(inflight) > 1 else math.inf
+                asked = self.clock.now()
                 frames, reason = self.collect(head["on"], off)
+                self.learn_delivery(asked, head["end"])
             except CameraTimeout as exc:
                 frames, reason = [], f"timeout: {exc}"
                 self.restart()
@@ -279,8 +274,8 @@ class _Runner:
             if not frames:
                 failed = order[done]  # the oldest pattern not yet accepted
                 self.recaptures.append(Recapture(failed, reason))
-                attempts[failed] = attempts.get(failed, 0) + 1
-                if attempts[failed] >= self.opts.max_attempts:
+                attempts[done] = attempts.get(done, 0) + 1  # by position: indices may repeat
+                if attempts[done] >= self.opts.max_attempts:
                     raise _Failed(f"plan frame {failed}: no valid frame after "
                                   f"{self.opts.max_attempts} attempts (last: {reason})")
                 pos = done  # re-show the failed pattern; later in-flight flips are wasted
@@ -290,6 +285,8 @@ class _Runner:
                 np.mean([f.image for f in frames], axis=0, dtype=np.float32)
             accept(head["index"], image,
                    AcceptedFrame(frames[0].sequence, frames[0].timestamp_s, head["flip"]))
+            self.collect_cost = _slow_max(self.clock.now() - max(asked, t_collect),
+                                          self.collect_cost, self.period)
             inflight.pop(0)
             done += 1
 
@@ -326,11 +323,17 @@ def capture_pose(
     wall0 = time.monotonic()
     runner = _Runner(display, camera, clock, applied, plan, opts, latency, rig.trigger, cancelled)
     refs = reference_indices(plan) if opts.integrity else None
+    if refs is not None and not all(r in order for r in refs):
+        refs = None  # a resumed capture without the references cannot repeat them
+    repeats: dict[int, np.ndarray] = {}  # the references again, right after the plan frames
     originals: dict[int, np.ndarray] = {}
     accepted: list[int] = []
     frames: dict[int, AcceptedFrame] = {}
 
     def accept(i: int, image: np.ndarray, info: AcceptedFrame) -> None:
+        if len(accepted) == len(order):  # positions past the plan frames: the repeats
+            repeats[i] = image
+            return
         sink.add(i, image)
         accepted.append(i)
         frames[i] = info
@@ -339,21 +342,18 @@ def capture_pose(
         if progress is not None:
             done = len(accepted)
             eta = (time.monotonic() - wall0) / done * (len(order) - done)
-            progress(Progress(done, len(order), eta, "capture"))
+            progress(Progress(done, len(order), eta, "capture" if done < len(order)
+                              else "integrity"))
 
     def result(status: Status, reason: str, report: IntegrityReport | None = None) -> PoseCapture:
         return PoseCapture(status, reason, len(order), accepted, frames, runner.recaptures,
                            runner.stale, runner.reconnects, latency, started, clock.now(), report)
 
     camera.start()
-    try:
-        runner.run(order, accept)
+    try:  # one pipelined run: the repeats follow the last plan frame without a restart
+        runner.run(order + list(refs or ()), accept)
         report = None
-        if refs is not None and all(r in originals for r in refs):
-            if progress is not None:
-                progress(Progress(len(accepted), len(order), None, "integrity"))
-            repeats: dict[int, np.ndarray] = {}
-            runner.run(list(refs), lambda i, img, _info: repeats.__setitem__(i, img))
+        if refs is not None:
             report = compare_references(tuple(originals[r] for r in refs),  # type: ignore[arg-type]
                                         tuple(repeats[r] for r in refs),  # type: ignore[arg-type]
                                         opts.thresholds)

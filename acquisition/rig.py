@@ -51,6 +51,28 @@ class ScreenConfig(_Strict):
     height_px: int | None = Field(default=None, gt=0)
 
 
+class PanelConfig(_Strict):
+    """Simulated rigs: the emitting layer's bow/twist (mm) behind a cover glass (thickness mm,
+    index), traced exactly by `hw_mocks.panel.PanelShape` (PHYSICS.md section 7)."""
+
+    bow_x_mm: float = Field(default=0.0, allow_inf_nan=False,
+                            description="sag centre to x edges (+: towards the camera)")
+    bow_y_mm: float = Field(default=0.0, allow_inf_nan=False, description="the same along y")
+    twist_mm: float = Field(default=0.0, allow_inf_nan=False, description="xi * eta term")
+    glass_mm: float = Field(default=0.0, ge=0, allow_inf_nan=False,
+                            description="cover glass thickness (0: a bare panel)")
+    glass_index: float = Field(default=1.52, ge=1.0, le=3.0, description="its refractive index")
+
+    @model_validator(mode="after")
+    def _behind_glass(self) -> PanelConfig:
+        """The shaped panel must stay behind the glass's front surface."""
+        sag = (abs(self.bow_x_mm) + abs(self.bow_y_mm)) / 3 + abs(self.twist_mm)
+        if self.glass_mm > 0 and sag >= self.glass_mm:
+            raise ValueError(f"the panel reaches {sag:.3g} mm in front of its mean plane, "
+                             f"through the {self.glass_mm} mm glass: thicker glass or less bow")
+        return self
+
+
 class FramebufferConfig(_Strict):
     """Linux framebuffer display; geometry from the device, a sysfs folder, or given here."""
 
@@ -152,6 +174,7 @@ class RigConfig(_Strict):
     camera: CameraConfig = Field(default_factory=SimulatedPart)
     settings: SettingsConfig | None = None
     trigger_box: TriggerBoxConfig | None = None
+    panel: PanelConfig | None = None  # simulated rigs: a shaped panel behind cover glass
 
     @model_validator(mode="before")
     @classmethod
@@ -172,6 +195,10 @@ class RigConfig(_Strict):
         if self.kind == "simulated" and len(sim) != 2:
             raise ValueError("kind 'simulated' uses the simulated display and camera; set "
                              "kind = 'hardware' to use real backends")
+        if self.kind == "hardware" and self.panel is not None:
+            raise ValueError("panel describes a simulated screen; a real monitor's shape and "
+                             "glass are estimated by the fit (calibrate with options screen: "
+                             "\"fit\")")
         if self.kind == "hardware" and self.clock == "virtual":
             raise ValueError("clock 'virtual' is only for simulated rigs (hardware runs in "
                              "real time)")

@@ -86,9 +86,10 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app.mount("/ui", StaticFiles(directory=WEB_DIR), name="ui")
 
     @app.get("/health", tags=["service"])
-    def health(request: Request) -> dict[str, Any]:
+    async def health(request: Request) -> dict[str, Any]:
         """Liveness: status and number of active jobs; the data directory only for clients
-        that sent the API token (or when the server has none)."""
+        that sent the API token (or when the server has none). Async: it never blocks, and
+        a sync endpoint would queue probes behind the thread pool and the GIL."""
         body: dict[str, Any] = {"status": "ok", "active_jobs": len(services.jobs.active_ids())}
         if token_matches(cfg.token, request.headers.get("authorization")):
             body["data_dir"] = str(services.store.root)

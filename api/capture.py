@@ -104,9 +104,12 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
         result = capture_pose(rig, plan, sink, indices=missing, progress=None,
                               cancelled=ctx.cancelled)
     finally:
+        returned_at = time.time()
         store.close()  # durable at the end of the pose, whatever happened
     timing = {"capture_s": round(time.perf_counter() - t0, 4), "store_s": round(sink.store_s, 4),
               "captured_at": sink.last_stored_at,  # the last frame, not the controller's end
+              "controller_done_at": returned_at,  # after the integrity repeats and check
+              "close_s": round(time.time() - returned_at, 4),
               "recaptures": len(result.recaptures)}
     ctx.check_cancelled()
     status = result.status

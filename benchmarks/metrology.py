@@ -11,10 +11,14 @@ Goals (issue 16): "all" within 1.1x of OpenCV on the same pixels; all pixels <= 
 Table 2, real screen (hw_mocks.panel: bow 0.5 mm x, 0.3 mm y, 1.5 mm glass, n 1.52):
 `screen: "flat"` and `screen: "fit"` against the flat fit of an ideal screen, with the
 screen estimates and their distance from the truth in sigmas. Goals: fit <= 1.5x ideal,
-estimates within 3 sigma, flat >= 5x worse.
+estimates within 3 sigma, flat >= 5x worse. The sGCC rows (`--tables 4`, in the default set;
+at --width x --height, every pixel, 6 poses, 10x10 mesh): `sgcc` on the mild pinhole and
+`sgcc-noncentral` on the smooth non-central camera (random poses at 150-450 mm), with the
+screen fitted jointly with the spline and the poses; ray error = direction RMS after the best
+rotation, plus the origin RMS (mm, in the sGCC gauge) for the non-central model.
 
     .venv/bin/python benchmarks/metrology.py [--width 320 --height 240] [--seeds 6]
-        [--step 2] [--tables 1 2 3]
+        [--step 2] [--tables 1 2 3 4]
 
 Table 3 (`--tables 3`, at twice --width/--height): sgcc free and with `family_prior: "auto"`
 against OpenCV's fit of the true family on identical pixels (goal <= 1.5x).
@@ -29,7 +33,7 @@ import time
 import cv2
 import numpy as np
 
-from calibration.compare import ray_angle_difference
+from calibration.compare import in_gauge, ray_angle_difference, sgcc_gauge_transform
 from calibration.fit.correspondences import PointSet, point_set
 from calibration.fit.dispatch import calibrate
 from calibration.metrology.refine import fit_parametric_dense
@@ -147,6 +151,58 @@ def table2(w: int, h: int, step: int, seed: int = 11) -> None:
                   f"{stats['reduced_chi2']:>7.2f}{wall:>8.1f}  {est}")
 
 
+def _sgcc_scene(model: str, w: int, h: int, seed: int, panel: PanelShape | None):
+    """Camera and decoded maps of 6 random poses for an sGCC model's row of table 2."""
+    central = model == "sgcc"
+    cam = cameras.mild_pinhole(w, h) if central else cameras.smooth_noncentral(w, h)
+    kw = {} if central else {"distance_mm": (150.0, 450.0), "min_coverage": 0.2}
+    rng = np.random.default_rng(seed)
+    ps = poses.random_poses(cam, SCREEN, 6, rng, **kw)
+    return cam, [synthetic.synthetic_maps(cam, p, SCREEN, rng=rng, sigma_px=0.05,
+                                          panel=panel)[0] for p in ps]
+
+
+def _origin_error(cam, model, w: int, h: int) -> float:
+    """RMS origin error (mm) of a non-central sGCC model against the truth, sGCC gauge."""
+    truth = lambda p: cam.rays(p[:, 0], p[:, 1])  # noqa: E731
+    pix = np.stack(np.meshgrid(np.arange(4, w - 4, 4.0), np.arange(4, h - 4, 4.0)),
+                   -1).reshape(-1, 2)
+    q, t = sgcc_gauge_transform(truth, (w, h), central=False)
+    o, _ = in_gauge(truth, q, t)(pix)
+    (comps,) = model.components(pix)
+    return float(np.sqrt(np.mean(np.sum((comps[:, 2:] - o[:, :2]) ** 2, axis=1))))
+
+
+def table2_sgcc(w: int, h: int, seed: int = 11) -> None:
+    """Flat vs jointly fitted screen inside sGCC (central and non-central)."""
+    print(f"\nTable 2 (sGCC): {w}x{h}, every pixel, 6 poses, 10x10 mesh, same panel (seed {seed})")
+    print(f"{'model / screen':<36}{'ray rms rad':>12}{'x ideal':>9}{'origin mm':>11}{'x ideal':>9}"
+          f"{'chi2':>7}{'cpu s':>7}  estimates (mm, +-1 sigma, (est - truth)/sigma)")
+    truth = {"bow_x_mm": REAL.bow_x_mm, "bow_y_mm": REAL.bow_y_mm, "twist_mm": REAL.twist_mm,
+             "glass_mm": REAL.glass_mm}
+    for model in ("sgcc", "sgcc-noncentral"):
+        ref: tuple[float, float] | None = None
+        for label, panel, screen in (("ideal screen, flat", None, "flat"),
+                                     ("real screen, flat", REAL, "flat"),
+                                     ("real screen, fit", REAL, "fit")):
+            cam, maps = _sgcc_scene(model, w, h, seed, panel)
+            pix = np.argwhere(np.logical_or.reduce([m.mask for m in maps])[::4, ::4])[:, ::-1]
+            t0 = time.process_time()
+            res = calibrate(maps, SCREEN, model, options={"screen": screen})
+            cpu = time.process_time() - t0
+            err = _ray_error(cam, res.model, 4.0 * pix)
+            org = 0.0 if model == "sgcc" else _origin_error(cam, res.model, w, h)
+            ref = ref or (err, org)
+            est = ""
+            if screen == "fit":
+                s = res.stats["screen"]
+                est = "  ".join(f"{k} {s[k]:.4f}+-{s['std'][k]:.4f} "
+                                f"({(s[k] - truth[k]) / s['std'][k]:+.1f})" for k in truth)
+            org_cols = (f"{org:>11.3g}{org / ref[1]:>9.2f}" if ref[1] else f"{'-':>11}{'-':>9}")
+            print(f"{model + ': ' + label:<36}{err:>12.3g}{err / ref[0]:>9.2f}{org_cols}"
+                  f"{res.stats['chi2_dof']:>7.2f}{cpu:>7.1f}  {est}")
+
+
 def table3(w: int, h: int, seeds: int) -> None:
     """sgcc (free, and with the prior centred on an adequate family) on identical pixels."""
     print(f"\nTable 3: sgcc on identical pixels (every 8th of {w}x{h}, 6 poses, {seeds} seeds)")
@@ -190,14 +246,17 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=6)
     ap.add_argument("--step", type=int, default=2,
                     help="table 2 (at twice --width/--height): every step-th pixel")
-    ap.add_argument("--tables", type=int, nargs="+", default=[1, 2],
-                    help="3: sgcc on identical pixels (at twice --width/--height)")
+    ap.add_argument("--tables", type=int, nargs="+", default=[1, 2, 4],
+                    help="3: sgcc on identical pixels (at twice --width/--height); 4: table 2's "
+                         "sGCC rows (at --width/--height)")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     if 1 in args.tables:
         table1(args.width, args.height, args.seeds)
     if 2 in args.tables:
         table2(2 * args.width, 2 * args.height, args.step)
+    if 4 in args.tables:
+        table2_sgcc(args.width, args.height)
     if 3 in args.tables:
         table3(2 * args.width, 2 * args.height, args.seeds)
 

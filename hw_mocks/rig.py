@@ -23,6 +23,7 @@ from hw_mocks.cameras import TruthCamera, make_truth_camera
 from hw_mocks.clock import VirtualClock
 from hw_mocks.display import SimulatedDisplay
 from hw_mocks.optics import OpticalSetup
+from hw_mocks.panel import PanelShape
 from hw_mocks.poses import fill_distance_mm, look_at_pose
 from hw_mocks.scene import ScreenPose
 from hw_mocks.sensor import SensorModel
@@ -86,6 +87,8 @@ class SimulatedRig:
         model = cam.pop("model", "mild_pinhole")
         w, h = int(cam.pop("width", 160)), int(cam.pop("height", 120))
         optics = {k: cam.pop(k) for k in list(cam) if k in _OPTICS_KEYS}
+        if config.get("panel"):  # a shaped panel behind cover glass (PanelShape fields)
+            optics["panel"] = PanelShape(**config["panel"])
         sensor = {k: cam.pop(k) for k in list(cam) if k in _SENSOR_KEYS}
         _reject_unknown("camera", cam, _CAMERA_KEYS)
         if "trigger_modes" in cam:

@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
     scr = st.get("screen") or {}
     if scr.get("mode") == "fit":
         print("  screen: " + ", ".join(
-            f"{k} {scr[k]:.4g} +- {scr['std'][k]:.2g}"
+            "glass_mm held (not identifiable)" if k == "glass_mm" and scr.get("glass_held")
+            else f"{k} {scr[k]:.4g} +- {scr['std'][k]:.2g}"
             for k in ("bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm")
         ) + f" (glass index {scr['glass_index']:g})")
     for warning in st.get("warnings", []):

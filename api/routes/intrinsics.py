@@ -17,6 +17,7 @@ from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import IntrinsicsCreate
 from api.services import Services, get_services
 from api.store import check_id
+from calibration.decode.frame_store import FrameStore
 from calibration.fit.classic.quick import white_flat_index
 from calibration.plan import plan_from_dict
 from calibration.progress import TaskContext
@@ -30,9 +31,13 @@ RESULT = "intrinsics.json"
 def _flat_source(svc: Services, pose: PoseRecord, index: int) -> str:
     """The pose's captured frames (folder or stack) if its white flat frame is stored."""
     folder = svc.store.dir_for(pose.id)
-    stack = folder / "frames.npy"
-    if stack.is_file():
-        return str(stack)
+    store = FrameStore(folder)
+    if store.frames_path.is_file():
+        # an uploaded stack is whole; a captured one holds what its done-markers say
+        if not store.done_path.is_file() or index in store.stored():
+            return str(store.frames_path)
+        raise Problem(409, "no-white-flat", f"pose {pose.id}: its capture has not stored the "
+                      f"white flat frame (plan frame {index}) yet; resume the capture first")
     frames = folder / "frames"
     if any((frames / f"frame_{index:04d}.{ext}").is_file() for ext in ("png", "tif", "tiff")):
         return str(frames)

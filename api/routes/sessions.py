@@ -194,7 +194,9 @@ def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, pl
             _set_pose_status(svc, pose_id, "decoding")
             dec = fut.result()
             ctx.check_cancelled()
+            decoded_at = time.time()
             svc.store.commit(staged, ["maps.npz"], pose_dir)
+            dec["commit_s"] = round(time.time() - decoded_at, 4)
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 
     ok, fail = _pose_hooks(pose_id, pose_dir)

@@ -28,6 +28,8 @@ from calibration.decode.noise import (
     NoiseSource,
     VarianceFn,
     fit_photon_transfer,
+    line_pixels,
+    undithered,
     variance_function,
 )
 from calibration.decode.options import DecodeOptions
@@ -255,19 +257,13 @@ class StreamingDecoder:
         return xp.maximum(rss, 0.0), dof, level / xp.maximum(dof, 1.0)
 
     def _estimate_noise(self, npix: int) -> None:
-        """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass).
-
-        Pixels with clipped steps are left out when enough others exist: excluding the
-        clipped samples truncates the noise of those near the clip level (censoring). When
-        too few are left (heavy overexposure: every on-screen pixel clips), pixels clipped
-        only at the bright end are used (their residual levels weigh each kept step, so
-        they are unbiased to first order); those clipped at the dark end (0 DN, where a
-        sensor without black offset truncates its read noise) are not.
-        """
+        """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass),
+        on the pixels `line_pixels` chooses, held at or above the floor from the median
+        dark-flat level up (the lowest level the sensor records there)."""
         acc = self._acc
         pieces = self._noise_sample(npix)
         size = sum(sl.stop - sl.start for sl in pieces)
-        mean, rss, dof = (np.empty(size, dtype=np.float32) for _ in range(3))
+        mean, rss, dof, span, dark = (np.empty(size, dtype=np.float32) for _ in range(5))
         clean, no_dark_clip = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
         offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
 
@@ -277,16 +273,17 @@ class StreamingDecoder:
             fits = [fit_set(self.xp, s, sl, residuals=True, skip=skip) for s in acc.sets]
             r, d, m = self._residuals(fits, sl)
             rss[to], dof[to], mean[to] = to_host(r), to_host(d), to_host(m)
+            dark[to] = to_host(acc.dark.reshape(-1)[sl] / acc.n_dark)
+            span[to] = to_host(acc.bright.reshape(-1)[sl] / acc.n_bright) - dark[to]
             clean[to] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
             low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
             no_dark_clip[to] = to_host(~low)
 
         self._map(one, list(range(len(pieces))))
-        use = clean & (dof >= 1)
-        for fallback in (no_dark_clip & (dof >= 1), dof >= 1):
-            if use.sum() < _MIN_CLEAN_PIXELS:
-                use = fallback
-        self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor)
+        spread = ~undithered(span, rss, dof, no_dark_clip, quantized=acc.dtype.kind == "u")
+        use = line_pixels(clean, no_dark_clip, spread, dof, _MIN_CLEAN_PIXELS)
+        low = float(np.median(dark[use])) if use.any() else None
+        self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor, low=low)
 
     def _noise_sample(self, npix: int) -> list[slice]:
         """Pixel ranges the photon-transfer line is fitted on: all pixels, or evenly spread

@@ -100,11 +100,14 @@ def stream_decode_task(
         for index in new.tolist():
             decoder.add(index, store.frame(index))
             added[index] = True
+    caught_up_at = time.time()  # wall clock: the capture side reports its last frame's
     t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
     ctx.progress(total, total, "unwrap")
     maps = decoder.finish(dict(meta or {}))
+    t1 = time.perf_counter()
     save_maps(maps, out_path)
-    return _summary(maps, t0)
+    return {**_summary(maps, t0), "caught_up_at": caught_up_at,
+            "finish_s": round(t1 - t0, 3), "write_s": round(time.perf_counter() - t1, 3)}
 
 
 def calibrate_task(

@@ -215,3 +215,47 @@ def test_averaging_two_frames(mode):
         first = truth[info.sequence]
         second = truth[min(s for s in truth if s > info.sequence)]
         assert second.pure and second.image_ids == first.image_ids
+
+
+class _SlowSink(MemoryFrameStore):
+    """A sink whose every store costs `cost_s` of the rig's (virtual) clock, like a large
+    frame's memory copy on a busy machine."""
+
+    def __init__(self, clock, cost_s: float) -> None:
+        super().__init__()
+        self.clock, self.cost_s = clock, cost_s
+
+    def add(self, index: int, image: np.ndarray) -> None:
+        super().add(index, image)
+        self.clock.advance(self.cost_s)
+
+
+@pytest.mark.parametrize("latency", [1, 2, 3])
+def test_slow_frame_delivery_and_stores_keep_one_pattern_per_two_refreshes(latency):
+    """A camera delivering 8 ms after the exposure and 6 ms stores: with a 4 ms exposure
+    the next pattern's show is due before the current frame arrives; waiting for the frame
+    first made every flip miss its vsync (3 refreshes a pattern). The controller learns the
+    delivery delay and its own costs, so each pattern still takes 2 refreshes."""
+    r = make_rig(latency, readout_s=0.008, timestamp_jitter_s=0.0)
+    store = _SlowSink(r.clock, 0.006)
+    s = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    res = capture_pose(r.rig, PLAN, store, settings=s,
+                       options=ControllerOptions(latency_s=latency / 60, integrity=False))
+    assert res.status == "complete", res.reason
+    assert res.recaptures == [] and mis_synced(r, res) == []
+    flips = np.array(sorted(info.flip_s for info in res.frames.values()))
+    assert np.round(np.diff(flips) * 60).astype(int).tolist() == [2] * (len(PLAN.frames) - 1)
+
+
+def test_integrity_repeats_follow_the_plan_frames_in_one_pipeline():
+    """The three reference repeats are shown right after the last plan frame, two refreshes
+    apart like every pattern (no restart of the pipeline: latency + a refresh saved)."""
+    r = make_rig(2, timestamp_jitter_s=0.0)
+    s = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=s,
+                       options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete" and res.integrity is not None and res.integrity.ok
+    shown = [h.flip_s for h in r.display.history() if h.image_id > 0]
+    assert len(shown) == len(PLAN.frames) + 3 and res.recaptures == []
+    assert np.round(np.diff(shown) * 60).astype(int).tolist() == [2] * (len(shown) - 1)
+    assert sorted(res.accepted) == list(range(len(PLAN.frames)))

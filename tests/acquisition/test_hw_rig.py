@@ -214,3 +214,38 @@ def test_check_command_errors_are_one_line(tmp_path: Path, capsys) -> None:
     assert main(["check", "--rig", str(bad)]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "kind 'hardware' needs real backends" in err
+
+
+def test_simulated_rig_with_a_shaped_panel_behind_glass(tmp_path: Path) -> None:
+    """`[panel]` gives a simulated rig a bowed panel behind cover glass: the camera sees the
+    screen points hw_mocks' exact tracer gives; bad values and hardware rigs are refused."""
+    from hw_mocks.panel import PanelShape
+
+    cfg_file = tmp_path / "bowed.toml"
+    cfg_file.write_text('kind = "simulated"\n[camera]\nwidth = 64\nheight = 48\n'
+                        "[panel]\nbow_x_mm = 0.5\nbow_y_mm = 0.3\nglass_mm = 1.5\n")
+    cfg = load_rig_config(cfg_file)
+    assert cfg.panel is not None and cfg.panel.glass_index == 1.52
+    shaped, ideal = (open_rig(c, simulator=open_simulated_rig)
+                     for c in (cfg, parse_rig_config({"camera": {"width": 64, "height": 48}})))
+    try:
+        assert shaped.simulated.optics.panel == PanelShape(0.5, 0.3, 0.0, 1.5, 1.52)
+        t_shaped, t_ideal = shaped.simulated.truth(), ideal.simulated.truth()
+        assert t_shaped["panel"] == PanelShape(0.5, 0.3, 0.0, 1.5, 1.52)
+        seen = t_shaped["visible"] & t_ideal["visible"]
+        moved_mm = np.abs(t_shaped["x_true"] - t_ideal["x_true"])[seen] * 0.25
+        assert seen.sum() > 1000 and 0.01 < float(np.median(moved_mm)) < 2.0
+    finally:
+        shaped.close()
+        ideal.close()
+    for panel, message in (({"glass_mm": -1.0}, "panel.glass_mm"),
+                           ({"glass_index": 0.5}, "panel.glass_index"),
+                           ({"bow_x_mm": 3.0, "glass_mm": 0.5}, "through the 0.5 mm glass"),
+                           ({"bow": 0.5}, "panel.bow: Extra inputs")):
+        with pytest.raises(RigConfigError, match=message):
+            parse_rig_config({"kind": "simulated", "panel": panel})
+    with pytest.raises(RigConfigError, match="panel describes a simulated screen"):
+        parse_rig_config({"kind": "hardware", "screen": {"pitch_mm": 0.3},
+                          "display": {"backend": "sdl"},
+                          "camera": {"backend": "aravis", "device": "x"},
+                          "panel": {"glass_mm": 1.0}})

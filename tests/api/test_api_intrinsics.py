@@ -99,3 +99,24 @@ def test_no_result_yet_is_404(server: ServerProcess, client: PhasecalClient) -> 
     sid = client.post("/sessions", {"name": "empty"})["id"]
     r = httpx.get(f"{server.url}/sessions/{sid}/intrinsics")
     assert r.status_code == 404 and "no intrinsics yet" in r.json()["detail"]
+
+
+def test_white_flat_not_yet_captured_is_409(server: ServerProcess, client: PhasecalClient,
+                                            session: dict) -> None:
+    """A captured pose whose store has not marked the white flat done is not read as one."""
+    from calibration.fit.classic.quick import white_flat_index
+
+    sid = session["id"]
+    pose = client.get(f"/sessions/{sid}/poses")[0]
+    plan = build_plan(DEFAULT_SCREEN.width_px, DEFAULT_SCREEN.height_px, 0.25, preset="fast")
+    folder = server.data_dir / "poses" / pose["id"]
+    done = np.ones(len(plan.frames), dtype=np.uint8)
+    done[white_flat_index(plan)] = 0  # as if the capture stopped before the flat
+    (folder / "frames.done").write_bytes(done.tobytes())
+    try:
+        r = httpx.post(f"{server.url}/sessions/{sid}/intrinsics",
+                       json={"method": "rectangle", "square_pixels": True})
+        assert r.status_code == 409 and "white flat" in r.json()["detail"]
+        assert pose["id"] in r.json()["detail"]
+    finally:
+        (folder / "frames.done").unlink()

@@ -131,3 +131,14 @@ def test_operator_rigs_folder_may_name_any_path(tmp_path) -> None:
 def test_simulated_rigs_over_rest_are_bounded(app_client, camera, field) -> None:
     _refused_size = app_client.post("/rigs", json={"name": "huge", "config": {"camera": camera}})
     assert _refused_size.status_code == 422 and _refused_size.json()["field"] == field
+
+
+def test_simulated_rig_with_a_shaped_panel_over_rest(app_client) -> None:
+    """A lab can give a REST-created simulated rig a bowed panel behind glass; bad values are
+    a 422 naming the field."""
+    panel = {"bow_x_mm": 0.5, "bow_y_mm": 0.3, "glass_mm": 1.5}
+    r = app_client.post("/rigs", json={"name": "bowed", "config": {"panel": panel}})
+    assert r.status_code == 201, r.text
+    assert r.json()["config"]["panel"] == {**panel, "twist_mm": 0.0, "glass_index": 1.52}
+    bad = app_client.post("/rigs", json={"name": "bad", "config": {"panel": {"glass_mm": -1}}})
+    assert bad.status_code == 422 and "panel.glass_mm" in bad.text

@@ -205,13 +205,16 @@ def test_generic_options_through_the_api(client: PhasecalClient, session: dict,
     assert bad.value.status == 422 and "options.xp" in str(bad.value)
 
 
+@pytest.mark.parametrize("model", ["opencv5", "sgcc-noncentral"])
 def test_screen_options_through_the_api(client: PhasecalClient, session: dict,
-                                        captured: list[str]) -> None:
-    """A parametric REST job takes `screen: "fit"` and `glass_index`: the screen estimate with
-    its 1-sigma is stored with the calibration; a bad value is a 422 naming the option."""
+                                        captured: list[str], model: str) -> None:
+    """A parametric or sGCC REST job takes `screen: "fit"` and `glass_index`: the screen
+    estimate with its 1-sigma is stored with the calibration; a bad value is a 422 naming
+    the option."""
+    extra = {"cells": [6, 6]} if model.startswith("sgcc") else {}
     final = client.wait(client.post(f"/sessions/{session['id']}/calibrations",
-                                    {"model": "opencv5", "pose_ids": captured,
-                                     "options": {"screen": "fit", "glass_index": 1.5}}),
+                                    {"model": model, "pose_ids": captured,
+                                     "options": {"screen": "fit", "glass_index": 1.5, **extra}}),
                         timeout_s=300)
     assert final["status"] == "succeeded", final["error"]
     scr = client.get(final["resource"])["stats"]["screen"]
@@ -219,5 +222,5 @@ def test_screen_options_through_the_api(client: PhasecalClient, session: dict,
     assert set(scr["std"]) == {"bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm"}
     with pytest.raises(ServiceError) as bad:
         client.post(f"/sessions/{session['id']}/calibrations",
-                    {"model": "opencv5", "pose_ids": captured, "options": {"glass_index": 9}})
+                    {"model": model, "pose_ids": captured, "options": {"glass_index": 9}})
     assert bad.value.status == 422 and "glass_index" in str(bad.value)

@@ -155,3 +155,38 @@ def test_calibrate_fits_a_bowed_glazed_screen(tmp_path, capsys) -> None:
     assert main([*base, "--option", 'screen="curved"']) == 1
     assert "options.screen: Input should be 'flat' or 'fit', got 'curved'" in (
         capsys.readouterr().err)
+
+
+def test_calibrate_fits_the_screen_inside_sgcc(tmp_path, capsys) -> None:
+    """`--model sgcc-noncentral --option screen="fit"`: the joint screen estimate (within 3
+    sigma of the hw_mocks truth) is printed and stored; held-out poses see the fitted screen."""
+    from hw_mocks.cameras import smooth_noncentral
+    from hw_mocks.panel import PanelShape
+
+    plan = build_plan(1920, 1080, 0.2745)
+    write_plan(plan, tmp_path / "plan.json")
+    cam = smooth_noncentral(160, 120)
+    rng = np.random.default_rng(11)
+    real = PanelShape(bow_x_mm=0.5, bow_y_mm=0.3, glass_mm=1.5)
+    names = []
+    for i, pose in enumerate(random_poses(cam, plan.screen, 7, rng, distance_mm=(150.0, 450.0),
+                                          min_coverage=0.2)):
+        maps, _ = synthetic_maps(cam, pose, plan.screen, sigma_px=0.05, rng=rng, panel=real)
+        save_maps(maps, tmp_path / f"p{i}.npz")
+        names.append(str(tmp_path / f"p{i}.npz"))
+    base = ["calibrate", "--plan", str(tmp_path / "plan.json"), "--maps", *names,
+            "--model", "sgcc-noncentral", "-o", str(tmp_path / "m.json"), "--heldout", "6",
+            "--option", "cells=[8,8]"]
+    assert main([*base, "--option", 'screen="fit"', "--option", "glass_index=1.52"]) == 0
+    printed = capsys.readouterr().out
+    assert "screen: bow_x_mm " in printed and "(glass index 1.52)" in printed
+    stats = json.loads((tmp_path / "m.json").read_text())["stats"]
+    scr = stats["screen"]
+    assert scr["mode"] == "fit" and not scr["glass_held"]
+    for key, true in (("bow_x_mm", 0.5), ("bow_y_mm", 0.3), ("glass_mm", 1.5)):
+        assert abs(scr[key] - true) < 3 * scr["std"][key]
+    assert 0.8 < stats["noise_floor_ratio"] < 1.2
+    assert stats["heldout"]["noise_floor_ratio"] < 1.5
+    capsys.readouterr()
+    assert main([*base, "--option", "glass_index=0.9"]) == 1
+    assert "options.glass_index" in capsys.readouterr().err

@@ -8,7 +8,9 @@ validation points), `max_iterations` (60),
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
 CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`),
 `family_prior` ("off", default; "auto": where a dense parametric fit is as good as the free
-spline, refit with the prior centred on it, calibration.metrology.family_prior).
+spline, refit with the prior centred on it, calibration.metrology.family_prior), `screen`
+("flat", default; "fit": panel bow/twist and cover-glass thickness fitted jointly,
+sgcc/screen_terms.py) and `glass_index` (1.52).
 """
 
 from __future__ import annotations
@@ -32,6 +34,13 @@ from calibration.fit.sgcc.initial import initial_state, opencv_init, pose_from_m
 from calibration.fit.sgcc.lm import run_lm
 from calibration.fit.sgcc.mesh import choose_mesh
 from calibration.fit.sgcc.options import SgccOptions
+from calibration.fit.sgcc.screen_terms import (
+    ScreenTrace,
+    holds_glass,
+    normal_spread_deg,
+    screen_stats,
+    screen_warnings,
+)
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
 from calibration.metrology.family_prior import PRIOR_WEIGHT, prior_state
@@ -154,13 +163,15 @@ def _centred_on_family(
     n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
     state, info = prior_state(obs, screen, grid, cls.n_components, out.chi2_dof, n_res, cv_fit)
     if info["adequate"]:
+        state.screen = out.state.screen  # the fitted screen stays (a flat one: None)
         centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=state.coeffs.ravel())
         fitted, out = _fit(cls, obs, grid, state, centred, progress, cancelled)
     return fitted, out, info
 
 
 def _heldout(
-    model: SGCCBase, obs: list[PoseObs], indices: list[int], lm: LMOptions, pitch_mm: np.ndarray
+    model: SGCCBase, obs: list[PoseObs], indices: list[int], lm: LMOptions, pitch_mm: np.ndarray,
+    screen: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Pose-only fit of each held-out pose with the model fixed; statistics in the parametric
     models' layout ({per_pose, pooled rms/noise floor}, `evaluate.summarize`)."""
@@ -170,10 +181,12 @@ def _heldout(
         huber_k=lm.huber_k,
         cut_sigmas=lm.cut_sigmas,
         fix_spline=True,
+        screen=lm.screen,
     )
     for ob, index in zip(obs, indices, strict=True):
         rc, tc = pose_from_model(model.unproject, ob)
-        out = run_lm(model.grid, model.n_components, [ob], LMState(model.coeffs, [rc], [tc]), fixed)
+        init = LMState(model.coeffs, [rc], [tc], screen)
+        out = run_lm(model.grid, model.n_components, [ob], init, fixed)
         _, row = pose_statistics(
             model, out.state.rc[0], out.state.tc[0], ob, out.residuals[0], out.inliers[0], pitch_mm
         )
@@ -260,6 +273,8 @@ def _calibrate(
     maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
     cells, lm = opts.cells, _lm_options(opts)
+    if opts.screen == "fit":
+        lm = replace(lm, screen=ScreenTrace.of(screen, opts.glass_index))
     prior_mode = opts.family_prior
     h, w = maps[0].shape
     obs = observations(maps, screen)
@@ -273,6 +288,9 @@ def _calibrate(
         cells, mesh_choice = choose_mesh(obs, (w, h), cls.n_components, lm, cv_fit)
     grid = SplineGrid((w, h), cells)
     init = initial_state(obs, grid, cls.n_components, cv_fit)
+    spread = normal_spread_deg(init.rc)
+    if lm.screen is not None:
+        lm = replace(lm, hold_glass=holds_glass(cls.n_components, init.rc))
     fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
     prior = None
     if prior_mode == "auto":
@@ -317,14 +335,17 @@ def _calibrate(
         "origin_std_mm_median": float(np.median(org)),
         "param_std": {"ray_angle_rad_median": float(np.median(ang))},
     }
+    stats["screen"] = screen_stats(screen, opts.screen, opts.glass_index, out.state.screen,
+                                   out.covariance, cls.n_components, spread, lm.hold_glass)
     if mesh_choice is not None:
         stats["mesh_choice"] = mesh_choice
     if prior is not None:
         stats["family_prior"] = prior
     stats["warnings"] = fit_warnings(model, views, len(uncovered), grid,
-                                     stats["noise_floor_ratio"])
+                                     stats["noise_floor_ratio"]) + screen_warnings(stats["screen"])
     if held_maps:
-        stats["heldout"] = _heldout(fitted, observations(held_maps, screen), held, lm, pitch)
+        stats["heldout"] = _heldout(fitted, observations(held_maps, screen), held, lm, pitch,
+                                    out.state.screen)
     stats["wall_s"] = time.perf_counter() - t0
     fitted.stats = stats
     return CalibrationResult(fitted, poses, stats, pix_out, res_px)

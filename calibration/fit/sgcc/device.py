@@ -127,7 +127,8 @@ class DeviceProblem:
             comps, _, _, _ = self._components(poly, sp, 3)
             rc, tc = poses[sp.pose]
             screen = self.dev_screen[:, sp.a : sp.b]
-            res[:, sp.a : sp.b], ok[sp.a : sp.b] = ray_terms(xp, comps, rc, tc, screen, False)
+            res[:, sp.a : sp.b], ok[sp.a : sp.b] = ray_terms(xp, comps, rc, tc, screen, False,
+                                                             self.prob.panel_at(st))
         return to_host(res), to_host(ok)
 
     def normal_equations(
@@ -136,16 +137,18 @@ class DeviceProblem:
         """J^T W J and J^T W e (host) as `Problem.normal_equations`, weights wt (N,) host
         (always both: `hessian=False` saves little on a device)."""
         xp, prob = self.xp, self.prob
-        c, nt, n_seg = prob.c, len(prob.tri[0]), len(prob.segments.start)
+        c, nt, n_seg, k = prob.c, len(prob.tri[0]), len(prob.segments.start), prob.k
         poly, poses = self._send(st)
+        panel = prob.panel_at(st)
         dev_wt = xp.asarray(wt)
-        hpp, gpp = xp.zeros((prob.n_pose, 6, 6)), xp.zeros((prob.n_pose, 6))
+        hpp, gpp = xp.zeros((prob.n_pose, k, k)), xp.zeros((prob.n_pose, k))
         mom = xp.zeros((n_seg, 49, nt))  # per segment: sum m49 * (g^T W g)[upper triangle]
-        cross = xp.zeros((n_seg, 16, 7 * c))  # per segment: sum m16 * xg
+        cross = xp.zeros((n_seg, 16, (k + 1) * c))  # per segment: sum m16 * xg
         for sp in self.spans:
             comps, a16, ps, pt = self._components(poly, sp, 6 if spline else 3)
             rc, tc = poses[sp.pose]
-            e, _, g, jp = ray_terms(xp, comps, rc, tc, self.dev_screen[:, sp.a : sp.b], True)
+            e, _, g, jp = ray_terms(xp, comps, rc, tc, self.dev_screen[:, sp.a : sp.b], True,
+                                    panel)
             ws = dev_wt[sp.a : sp.b] * self.dev_inv_sigma[:, sp.a : sp.b] ** 2  # (2,n)
             hpp_c, gpp_c = pose_terms(xp, e, jp, ws)
             hpp[sp.pose] += hpp_c
@@ -155,12 +158,12 @@ class DeviceProblem:
             hp, xg = spline_terms(xp, e, g, jp, ws, self.dev_tri)
             a49 = self._design(_monomials(ps, pt, 6), sp)
             mom[sp.s0 : sp.s1] += (a49.T @ hp.T).reshape(-1, 49, nt)
-            cross[sp.s0 : sp.s1] += (a16.T @ xg.T).reshape(-1, 16, 7 * c)
+            cross[sp.s0 : sp.s1] += (a16.T @ xg.T).reshape(-1, 16, (k + 1) * c)
         if not spline:
             return prob.assemble(to_host(hpp), to_host(gpp), None)
         seg = prob.segments
         mom_cells = np.zeros((prob.n_cells, 49, nt))
         np.add.at(mom_cells, seg.cell, to_host(mom))
-        cross_cells = np.zeros((prob.n_pose, prob.n_cells, 16, 7 * c))
+        cross_cells = np.zeros((prob.n_pose, prob.n_cells, 16, (k + 1) * c))
         cross_cells[seg.pose, seg.cell] = to_host(cross)  # one segment per (pose, cell)
         return prob.assemble(to_host(hpp), to_host(gpp), (mom_cells, cross_cells))

@@ -33,6 +33,7 @@ from calibration.decode.arrays import array_module
 from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
+from calibration.fit.sgcc.screen_terms import N_SCREEN, ScreenTrace
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import (
@@ -110,11 +111,11 @@ class _Loop:
 
 
 def _make_problem(
-    grid: SplineGrid, n_comp: int, obs: list[PoseObs], xp: str
+    grid: SplineGrid, n_comp: int, obs: list[PoseObs], xp: str, panel: ScreenTrace | None = None
 ) -> Problem | DeviceProblem:
     """The fit's per-pixel problem: threaded NumPy ("numpy") or `DeviceProblem` on the array
     module named by xp ("cupy"; `array_module` says clearly when it is missing)."""
-    prob = Problem(grid, n_comp, obs)
+    prob = Problem(grid, n_comp, obs, panel)
     if xp == "numpy":
         return prob
     from calibration.fit.sgcc.device import DeviceProblem  # it imports this module
@@ -277,7 +278,8 @@ def _iterate(
                 near_optimum = predicted <= options.chi2_tol * chi2_scale
             step = lp.z.expand(jac_scale * ds)
             rcs, tcs = _apply_pose_step(st, step[ns:])
-            cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs)
+            scr = None if st.screen is None else st.screen + step[ns + 6 * len(rcs):]
+            cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs, scr)
             res1, ok1 = prob.residuals(cand)
             cost1 = _cost(prob, res1, ok1, cand.coeffs.ravel(), lp, options.huber_k)
             if cost1 <= cost0:
@@ -338,14 +340,21 @@ def _run(
 ) -> LMResult:
     """Body of `run_lm`."""
     ns = grid.size * n_comp
-    n = ns + 6 * len(obs)
-    if options.fix_spline:
-        z = GaugeBasis.selection(n, np.arange(ns, n))
+    screen = None  # fitted screen parameters after the poses (options.screen)
+    if options.screen is not None:
+        screen = np.zeros(N_SCREEN) if init.screen is None else init.screen.astype(float)
+    n = ns + 6 * len(obs) + (0 if screen is None else N_SCREEN)
+    if options.fix_spline:  # poses only: the spline and the screen stay fixed
+        z = GaugeBasis.selection(n, np.arange(ns, ns + 6 * len(obs)))
     else:
-        z = GaugeBasis.null_space_of(gauge_constraints(grid, n_comp, n))
+        rows = gauge_constraints(grid, n_comp, n)
+        if screen is not None and options.hold_glass:  # a gauge freedom (screen_terms.py)
+            rows = np.vstack([rows, np.eye(n)[-1]])
+        z = GaugeBasis.null_space_of(rows)
     dmat = second_differences(grid)
     lp = _Loop(
-        LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc]),
+        LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc],
+                screen),
         z,
         np.kron(dmat.T @ dmat, np.eye(n_comp)),
     )
@@ -353,9 +362,9 @@ def _run(
         lp.prior_mean = np.asarray(options.prior_mean, dtype=np.float64).ravel()
     sub = _subset(obs, options.subset_pixels)
     if sub is not None:
-        _iterate(_make_problem(grid, n_comp, sub, options.xp), lp, options,
+        _iterate(_make_problem(grid, n_comp, sub, options.xp, options.screen), lp, options,
                  options.max_iterations // 2, progress, cancelled)
-    prob = _make_problem(grid, n_comp, obs, options.xp)
+    prob = _make_problem(grid, n_comp, obs, options.xp, options.screen)
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
     s = _sigma_norm(prob, res)

@@ -32,6 +32,13 @@ class SgccOptions(BaseModel):
         description='"auto": where a dense parametric fit is as good as the free spline, refit '
                     "with the smoothness prior centred on it (calibration.metrology.family_prior)")
 
+    screen: Literal["flat", "fit"] = Field(
+        default="flat",
+        description='"flat": an ideal bare flat screen; "fit": panel bow/twist and cover-glass '
+                    "thickness estimated jointly with the spline and the poses")
+    glass_index: float = Field(default=1.52, gt=1.0, le=2.5, strict=True,
+                               description="refractive index of the cover glass (known)")
+
     @field_validator("cells", mode="before")
     @classmethod
     def _mesh(cls, v: object) -> object:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from calibration.fit.observations import PoseObs
+from calibration.fit.sgcc.screen_terms import N_SCREEN, ScreenTrace, panel_ray_terms
 from calibration.fit.sgcc.state import LMState
 from calibration.models.bspline import (
     SplineGrid,
@@ -120,10 +121,14 @@ def _over_chunks(chunks: list[_Chunk], work: Callable[[Sequence[_Chunk]], object
 
 
 def ray_terms(
-    xp: ModuleType, comps: Any, rc: Any, tc: Any, screen: Any, jacobian: bool
+    xp: ModuleType, comps: Any, rc: Any, tc: Any, screen: Any, jacobian: bool,
+    panel: tuple[ScreenTrace, np.ndarray] | None = None,
 ) -> tuple[Any, ...]:
     """Residuals (Q-S) mm (2,n) and ok mask of pixels of one pose with spline components
-    comps (C,n) [+ G = dQ/dcomponents (2,C,n), J = dQ/dpose (2,6,n)]; arrays of module xp."""
+    comps (C,n) [+ G = dQ/dcomponents (2,C,n), J = dQ/d(pose[, screen]) (2,6[+4],n)];
+    arrays of module xp. `panel` (tracer, parameters): the fitted screen, else z = 0."""
+    if panel is not None:
+        return panel_ray_terms(xp, comps, rc, tc, screen, jacobian, panel)
     c = len(comps)
     if jacobian:
         r, jr = expmap_jacobian_rows(comps[0], comps[1], xp=xp)
@@ -168,16 +173,21 @@ def spline_terms(
     xp: ModuleType, e: Any, g: Any, jp: Any, ws: Any, tri: tuple[Any, Any]
 ) -> tuple[Any, Any]:
     """Per-pixel factors of the spline normal equations: the upper triangle (nt,n) of
-    g^T W g and xg (7C,n), [a, q]: (g^T W jp)[a, q], q = 6: (g^T W e)[a]."""
+    g^T W g and xg ((k+1)C,n), [a, q]: (g^T W jp)[a, q] for the k = 6 (pose) or 10 (pose,
+    screen) columns of jp, q = k: (g^T W e)[a]."""
     iu, ju = tri
+    k = jp.shape[1]
     c, n = g.shape[1:]
     gw = g * ws[:, None, :]
     hp = gw[0, iu] * g[0, ju] + gw[1, iu] * g[1, ju]
-    xg = xp.empty((c, 7, n))
-    xg[:, _JP_DENSE] = gw[0, :, None] * jp[0, _JP_DENSE] + gw[1, :, None] * jp[1, _JP_DENSE]
-    xg[:, 3], xg[:, 4] = gw[0], gw[1]  # jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
-    xg[:, 6] = gw[0] * e[0] + gw[1] * e[1]
-    return hp, xg.reshape(7 * c, n)
+    xg = xp.empty((c, k + 1, n))
+    if k == 6:  # bare plane: jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
+        xg[:, _JP_DENSE] = gw[0, :, None] * jp[0, _JP_DENSE] + gw[1, :, None] * jp[1, _JP_DENSE]
+        xg[:, 3], xg[:, 4] = gw[0], gw[1]
+    else:
+        xg[:, :k] = gw[0, :, None] * jp[0] + gw[1, :, None] * jp[1]
+    xg[:, k] = gw[0] * e[0] + gw[1] * e[1]
+    return hp, xg.reshape((k + 1) * c, n)
 
 
 class Problem:
@@ -190,11 +200,15 @@ class Problem:
     product per (pose, cell) group.
     """
 
-    def __init__(self, grid: SplineGrid, n_comp: int, obs: list[PoseObs]) -> None:
-        self.grid, self.c = grid, n_comp
+    def __init__(
+        self, grid: SplineGrid, n_comp: int, obs: list[PoseObs], panel: ScreenTrace | None = None
+    ) -> None:
+        self.grid, self.c, self.panel = grid, n_comp, panel
         self.n_spline = grid.size * n_comp
         self.n_pose = len(obs)
-        self.n = self.n_spline + 6 * self.n_pose
+        self.n_screen = 0 if panel is None else N_SCREEN  # parameters after the poses
+        self.k = 6 + self.n_screen  # per-pixel non-spline Jacobian columns (pose, screen)
+        self.n = self.n_spline + 6 * self.n_pose + self.n_screen
         self.n_cells = grid.cells[0] * grid.cells[1]
         self.inverse, self.s, self.t, self.screen, self.sigma, cell = _sorted(grid, obs)
         self.inv_sigma = 1.0 / self.sigma
@@ -220,17 +234,26 @@ class Problem:
     def _chunk(
         self, st: LMState, poly: np.ndarray, ch: _Chunk, jacobian: bool
     ) -> tuple[np.ndarray, ...]:
-        """Residuals (Q-S) mm (2,n) and ok mask of a block [+ monomials, G (2,C,n), J (2,6,n)]."""
+        """Residuals (Q-S) mm (2,n) and ok mask of a block [+ monomials, G (2,C,n), J (2,k,n)]."""
         m16 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 3)
         comps = np.empty((self.c, ch.b - ch.a))
         for a, b, cell in ch.groups:
             np.matmul(poly[cell], m16[:, a:b], out=comps[:, a:b])
         screen = self.screen[:, ch.a : ch.b]
-        out = ray_terms(np, comps, st.rc[ch.pose], st.tc[ch.pose], screen, jacobian)
+        out = ray_terms(np, comps, st.rc[ch.pose], st.tc[ch.pose], screen, jacobian,
+                        self.panel_at(st))
         if not jacobian:
             return out
         res, ok, g, jp = out
         return res, ok, m16, g, jp
+
+    def panel_at(self, st: LMState) -> tuple[ScreenTrace, np.ndarray] | None:
+        """The fitted screen's tracer and parameters in state st (None: bare plane z = 0)."""
+        if self.panel is None:
+            return None
+        if st.screen is None:
+            raise ValueError("sgcc: a fitted screen needs LMState.screen parameters")
+        return self.panel, st.screen
 
     def polynomials(self, coeffs: np.ndarray) -> np.ndarray:
         """Monomial coefficients (n_cells, C, 16) of every cell's spline components."""
@@ -257,10 +280,10 @@ class Problem:
         """Normal-equation sums of a share of chunks: per-cell moments, spline-pose cross
         moments, and the per-pose blocks (see `normal_equations`); without `hessian` only
         the gradient columns of the cross moments (the rest stays zero)."""
-        c, nc, npo = self.c, self.n_cells, self.n_pose
+        c, nc, npo, k = self.c, self.n_cells, self.n_pose, self.k
         mom = np.zeros((nc, 49, len(self.tri[0])))  # sum m49 * (g^T W g)[upper triangle]
-        cross = np.zeros((npo, nc, 16, 7 * c))  # sum m16 * xg (see `spline_terms`)
-        hpp, gpp = np.zeros((npo, 6, 6)), np.zeros((npo, 6))
+        cross = np.zeros((npo, nc, 16, (k + 1) * c))  # sum m16 * xg (see `spline_terms`)
+        hpp, gpp = np.zeros((npo, k, k)), np.zeros((npo, k))
         for ch in share:
             e, _, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
             ws = wt[ch.a : ch.b] * self.inv_sigma[:, ch.a : ch.b] ** 2  # (2,n)
@@ -298,14 +321,20 @@ class Problem:
     def assemble(
         self, hpp: np.ndarray, gpp: np.ndarray, moments: tuple[np.ndarray, np.ndarray] | None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """J^T W J and J^T W e from the per-pose sums and, unless the spline is fixed (None),
-        the per-cell moments (nc,49,nt) and per-(pose, cell) cross moments (npo,nc,16,7C)."""
-        c, ns, nc, npo = self.c, self.n_spline, self.n_cells, self.n_pose
+        """J^T W J and J^T W e from the per-pose sums (npo,k,k), (npo,k) and, unless the spline
+        is fixed (None), the per-cell moments (nc,49,nt) and per-(pose, cell) cross moments
+        (npo,nc,16,(k+1)C); with a fitted screen its 4 parameters come last."""
+        c, ns, nc, npo, k = self.c, self.n_spline, self.n_cells, self.n_pose, self.k
         iu, ju = self.tri
         h, grad = np.zeros((self.n, self.n)), np.zeros(self.n)
+        scr = slice(ns + 6 * npo, self.n)
         for j in range(npo):
             sl = slice(ns + 6 * j, ns + 6 * j + 6)
-            h[sl, sl], grad[sl] = hpp[j], gpp[j]
+            h[sl, sl], grad[sl] = hpp[j][:6, :6], gpp[j][:6]
+            if k > 6:
+                h[sl, scr], h[scr, sl] = hpp[j][:6, 6:], hpp[j][6:, :6]
+                h[scr, scr] += hpp[j][6:, 6:]
+                grad[scr] += gpp[j][6:]
         if moments is None:
             return h, grad
         mom, cross = moments
@@ -317,11 +346,15 @@ class Problem:
         cols = self.cols
         np.add.at(h, (cols[:, :, None], cols[:, None, :]), blk.reshape(nc, 16 * c, 16 * c))
         xk = np.einsum("ia,pnaz->pniz", kk, cross)
-        hsp = np.zeros((ns, 6 * npo))
+        hsp = np.zeros((ns, 6 * npo + k - 6))
         for j in range(npo):
-            blk_j = xk[j].reshape(nc, 16, c, 7)[..., :6].reshape(nc, 16 * c, 6)
+            blk_j = xk[j].reshape(nc, 16, c, k + 1)[..., :6].reshape(nc, 16 * c, 6)
             np.add.at(hsp, (cols[:, :, None], 6 * j + np.arange(6)), blk_j)
+        xsum = xk.sum(axis=0).reshape(nc, 16, c, k + 1)
+        if k > 6:  # spline-screen: summed over the poses
+            np.add.at(hsp, (cols[:, :, None], 6 * npo + np.arange(k - 6)),
+                      xsum[..., 6:k].reshape(nc, 16 * c, k - 6))
         h[:ns, ns:] = hsp
         h[ns:, :ns] = hsp.T
-        np.add.at(grad, cols, xk.sum(axis=0).reshape(nc, 16, c, 7)[..., 6].reshape(nc, 16 * c))
+        np.add.at(grad, cols, xsum[..., k].reshape(nc, 16 * c))
         return h, grad

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calibration.fit.sgcc.screen_terms import ScreenTrace
+
 
 @dataclass
 class LMOptions:
@@ -29,6 +31,10 @@ class LMOptions:
     # prior on the spline itself). calibration.metrology.family_prior centres it on a
     # parametric family's ray field where that family fits as well as the spline.
     prior_mean: np.ndarray | None = None
+    # The screen (`screen: "fit"`): panel geometry and glass index of the fitted bow/twist/glass
+    # parameters (LMState.screen); None: the bare plane z = 0 of the screen frame.
+    screen: ScreenTrace | None = None
+    hold_glass: bool = False  # keep the glass thickness at its initial value (a gauge freedom)
 
 
 @dataclass
@@ -38,6 +44,7 @@ class LMState:
     coeffs: np.ndarray
     rc: list[np.ndarray]  # (3,3) each
     tc: list[np.ndarray]  # (3,) each
+    screen: np.ndarray | None = None  # (4,) bow_x, bow_y, twist, glass mm (fitted screen only)
 
 
 @dataclass
@@ -48,7 +55,7 @@ class LMResult:
     iterations: int
     converged: bool
     cost: float
-    covariance: np.ndarray  # full parameter covariance (spline then poses)
+    covariance: np.ndarray  # full parameter covariance (spline, poses, screen if fitted)
     min_eig: float  # smallest eigenvalue of the Jacobi-scaled reduced normal equations
     residuals: list[np.ndarray]  # per pose (N,2) screen mm (Q - S)
     inliers: list[np.ndarray]  # per pose bool (N,)

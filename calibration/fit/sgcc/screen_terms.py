@@ -1,0 +1,196 @@
+"""The fitted screen of sGCC (`screen: "fit"`): rays traced to a bowed panel behind cover glass.
+
+Same physics and parameters as `calibration.metrology.screen.ScreenModel` (PHYSICS.md
+section 7: emitting layer z_s = bow_x (xi^2 - 1/3) + bow_y (eta^2 - 1/3) + twist xi eta,
+flat cover glass of known index n and fitted thickness h, front surface z = -h), but
+feature-major ((k, n) arrays) and on any array module, so the threaded CPU path
+(sgcc/problem.py) and the GPU path (sgcc/device.py) share it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from calibration.metrology.screen import ScreenModel
+from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
+from calibration.plan import ScreenGeometry
+
+N_SCREEN = 4  # bow_x, bow_y, twist, glass thickness (mm): calibration.metrology.screen
+_FIXED_POINT_ITERS = 30
+_FIXED_POINT_TOL_MM = 1e-11
+
+
+@dataclass(frozen=True)
+class ScreenTrace:
+    """Panel geometry (centre and half extents, mm) and the glass index; parameters apart."""
+
+    cx: float
+    cy: float
+    ax: float
+    ay: float
+    index: float
+
+    @classmethod
+    def of(cls, geometry: ScreenGeometry, index: float) -> ScreenTrace:
+        """The tracer of a screen (ScreenModel's normalisation of the shape terms)."""
+        px, py = geometry.pitch_mm
+        return cls(0.5 * (geometry.width_px - 1) * px, 0.5 * (geometry.height_px - 1) * py,
+                   0.5 * geometry.width_px * px, 0.5 * geometry.height_px * py, float(index))
+
+    def _shape(self, params: Any, x: Any, y: Any) -> tuple[Any, Any, Any, Any, Any]:
+        """Normalised coordinates xi, eta (n,) and depth z_s with its x/y slopes (n,)."""
+        bx, by, tw = (float(v) for v in params[:3])
+        xi, eta = (x - self.cx) / self.ax, (y - self.cy) / self.ay
+        zs = bx * (xi * xi - 1 / 3) + by * (eta * eta - 1 / 3) + tw * xi * eta
+        return xi, eta, zs, (2 * bx * xi + tw * eta) / self.ax, (2 * by * eta + tw * xi) / self.ay
+
+    def trace(self, xp: ModuleType, params: Any, o: Any, q: Any) -> tuple[Any, Any, Any, Any]:
+        """Panel points Q (2,n) mm of rays with origins o (3,n) and slopes q = r_xy/r_z (2,n)
+        in the screen frame, and dQ/do (2,3,n), dQ/dq (2,2,n), dQ/dparams (2,4,n).
+
+        Q = o_xy - (h + o_z) q + (z_s(Q) + h) m(q), m = q / sqrt(n^2 + (n^2 - 1)|q|^2),
+        solved by fixed-point iteration (contraction |grad z_s| |m|, ~1e-3 for real panels).
+        """
+        h, n2 = float(params[3]), self.index**2
+        w = xp.sqrt(n2 + (n2 - 1) * (q[0] * q[0] + q[1] * q[1]))
+        m = q / w
+        base = o[:2] - (h + o[2]) * q
+        pts = base + h * m
+        for _ in range(_FIXED_POINT_ITERS):
+            new = base + (self._shape(params, pts[0], pts[1])[2] + h) * m
+            step = float(xp.max(xp.abs(new - pts))) if pts.size else 0.0
+            pts = new
+            if step < _FIXED_POINT_TOL_MM:
+                break
+        xi, eta, zs, gx, gy = self._shape(params, pts[0], pts[1])
+        cc = zs + h
+        # A = (I - m g^T)^-1 = I + m g^T / (1 - g.m) (Sherman-Morrison): dQ/d(base).
+        den = 1.0 / (1.0 - (gx * m[0] + gy * m[1]))
+        a = xp.empty((2, 2, w.size))
+        a[0, 0], a[0, 1] = 1.0 + m[0] * gx * den, m[0] * gy * den
+        a[1, 0], a[1, 1] = m[1] * gx * den, 1.0 + m[1] * gy * den
+        jo = xp.empty((2, 3, w.size))
+        jo[:, :2] = a
+        jo[:, 2] = -(a[:, 0] * q[0] + a[:, 1] * q[1])
+        # dm/dq = I / w - (n^2 - 1) q q^T / w^3; dQ/dq = A (-(h + o_z) I + c dm/dq).
+        w3 = (n2 - 1) / (w * w * w)
+        d = -(h + o[2]) + cc / w
+        inner = xp.empty((2, 2, w.size))
+        inner[0, 0], inner[1, 1] = d - cc * w3 * q[0] * q[0], d - cc * w3 * q[1] * q[1]
+        inner[0, 1] = inner[1, 0] = -cc * w3 * q[0] * q[1]
+        jq = (a[:, :, None] * inner[None]).sum(axis=1)
+        am = a[:, 0] * m[0] + a[:, 1] * m[1]  # (2,n): dQ/d(z_s) direction
+        js = xp.empty((2, N_SCREEN, w.size))
+        js[:, 0], js[:, 1] = am * (xi * xi - 1 / 3), am * (eta * eta - 1 / 3)
+        js[:, 2] = am * xi * eta
+        js[:, 3] = am - (a[:, 0] * q[0] + a[:, 1] * q[1])
+        return pts, jo, jq, js
+
+
+def _cross(a: Any, b: Any) -> Any:
+    """Cross products of feature-major 3-vectors (3,n) x (3,n), on any array module."""
+    return a[[1, 2, 0]] * b[[2, 0, 1]] - a[[2, 0, 1]] * b[[1, 2, 0]]
+
+
+def panel_ray_terms(
+    xp: ModuleType, comps: Any, rc: Any, tc: Any, screen: Any, jacobian: bool,
+    panel: tuple[ScreenTrace, Any],
+) -> tuple[Any, ...]:
+    """`problem.ray_terms` through the fitted screen (sgcc/screen_terms.py): the ray in the screen
+    frame is traced through the cover glass to the shaped panel; J has 4 screen columns."""
+    c = len(comps)
+    if jacobian:
+        r, jr = expmap_jacobian_rows(comps[0], comps[1], xp=xp)
+    else:
+        r = expmap_rows(comps[0], comps[1], xp=xp)
+    r_s = rc @ r
+    o_s = rc[:, :2] @ comps[2:4] + tc[:, None] if c == 4 else xp.broadcast_to(tc[:, None], r.shape)
+    ok = r_s[2] * o_s[2] < 0  # the ray moves towards the screen
+    rz = xp.where(ok, r_s[2], 1.0)
+    slope = r_s[:2] / rz
+    q, jo, jq, js = panel[0].trace(xp, panel[1], o_s, xp.where(ok, slope, 0.0))
+    res = xp.where(ok, q - screen, 0.0)
+    if not jacobian:
+        return res, ok
+    # dQ/d(r_s) = dQ/dq dq/d(r_s), dq/d(r_s) = [[1, 0, -qx], [0, 1, -qy]] / r_z.
+    jr_s = xp.empty((2, 3, len(rz)))
+    jr_s[:, 0], jr_s[:, 1] = jq[:, 0] / rz, jq[:, 1] / rz
+    jr_s[:, 2] = -(jq[:, 0] * slope[0] + jq[:, 1] * slope[1]) / rz
+    mrc = (jr_s[:, :, None, :] * rc[None, :, :, None]).sum(axis=1)  # (2,3,n): dQ/dr_s Rc
+    g = xp.empty((2, c, len(rz)))
+    g[:, :2] = (mrc[:, :, None, :] * jr[None]).sum(axis=1)
+    if c == 4:
+        g[:, 2:] = (jo[:, :, None, :] * rc[None, :, :2, None]).sum(axis=1)
+    jp = xp.empty((2, 6 + N_SCREEN, len(rz)))
+    for i in range(2):  # d/d(omega) = -(dQ/do_s [o_s]x + dQ/dr_s [r_s]x), row-wise o x row
+        jp[i, :3] = _cross(o_s, jo[i]) + _cross(r_s, jr_s[i])
+    jp[:, 3:6] = jo
+    jp[:, 6:] = js
+    return res, ok, g, jp
+
+
+# sgcc-noncentral: below this spread of the screen normals between poses the glass thickness
+# is a gauge freedom (held at 0); above it the stds are honest; a warning names poor ones.
+MIN_NORMAL_SPREAD_DEG = 2.0
+POOR_STD_MM = 0.1
+
+GAUGE = ("shape terms with zero mean and tilt over the panel (a plane of the panel is the "
+         "pose's); the pose places the emitting layer's mean plane; glass index fixed (index "
+         "and thickness trade). The paraxial part of the glass, a shift of the apparent panel by "
+         "h(1 - 1/n) along its normal, is the pose's distance: h is determined by the angle "
+         "dependence of the refraction")
+GAUGE_NONCENTRAL = ("; sgcc-noncentral: the glass's lateral shift depends only on the angle "
+                    "between ray and screen normal, so when every pose has the same normal in "
+                    "the camera frame the per-pixel ray offsets absorb it exactly and h is a "
+                    "gauge freedom (held at 0 below a normal spread of "
+                    f"{MIN_NORMAL_SPREAD_DEG:g} degrees); otherwise h and the bow come from the "
+                    "spread of normals and distances between poses, and their std says how well")
+
+
+def normal_spread_deg(rcs: list[np.ndarray]) -> float:
+    """Largest angle (degrees) between two poses' screen normals in the camera frame."""
+    normals = np.array([rc[2] for rc in rcs])  # Rc = R^T: row 2 is the normal R e_z
+    cos = np.clip(normals @ normals.T, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos.min())))
+
+
+def holds_glass(n_comp: int, rcs: list[np.ndarray]) -> bool:
+    """Whether the glass thickness is a gauge freedom: non-central, one screen normal."""
+    return n_comp == 4 and normal_spread_deg(rcs) < MIN_NORMAL_SPREAD_DEG
+
+
+def screen_stats(geometry: ScreenGeometry, mode: str, index: float, params: np.ndarray | None,
+                 covariance: np.ndarray, n_comp: int, spread_deg: float, held: bool
+                 ) -> dict[str, object]:
+    """`stats.screen` as the parametric families report it: mode, index, and for "fit" the
+    estimates with their 1-sigma (mm, the last 4 rows of the fit's covariance) and the gauge;
+    plus the screen normals' spread between poses and whether the glass was held."""
+    if mode != "fit" or params is None:
+        return ScreenModel(geometry, "flat", index).to_json()
+    std = np.sqrt(np.maximum(np.diag(covariance)[-N_SCREEN:], 0.0))
+    out = ScreenModel(geometry, "fit", index, params).to_json(std)
+    out["gauge"] = GAUGE + (GAUGE_NONCENTRAL if n_comp == 4 else "")
+    out["normal_spread_deg"] = spread_deg
+    out["glass_held"] = held
+    return out
+
+
+def screen_warnings(stats: dict[str, object]) -> list[str]:
+    """Plain-language findings about a fitted screen for the CLI and reports."""
+    if stats.get("mode") != "fit":
+        return []
+    if stats["glass_held"]:
+        return [f"every pose shows the screen with the same normal (spread "
+                f"{stats['normal_spread_deg']:.2g} degrees): the cover glass cannot be told from "
+                "the non-central ray offsets, so its thickness is held at 0 and the rays include "
+                "its shift; add poses tilted by 15 degrees or more against each other"]
+    std = stats["std"]  # type: ignore[index]
+    poor = [f"{k} +-{v:.2g} mm" for k, v in std.items() if v > POOR_STD_MM]  # type: ignore[union-attr]
+    if poor:
+        return [f"the screen is poorly determined ({', '.join(poor)}): add poses whose screen "
+                "normals differ by 15 degrees or more, at several distances"]
+    return []
