@@ -111,23 +111,26 @@ def pose_statistics(
     Screen residuals (mm) and their sigmas are mapped to camera pixels through the local
     Jacobian; `dof_shrink` (1 - parameters/residuals) scales the expected training residual.
     """
-    pix, res_in, sig = ob.pixels[inliers], res[inliers], ob.sigma_mm[inliers]
-    px, expected2 = np.empty_like(res_in), np.empty(len(pix))
-    for a in range(0, len(pix), _BLOCK):  # raster-order blocks: small temporaries
-        sl = slice(a, a + _BLOCK)
-        px[sl], expected2[sl] = _camera_px(model, rc, tc, pix[sl], res_in[sl], sig[sl])
-    expected2 *= dof_shrink
-    n = int(inliers.sum())
-    rms = float(np.sqrt(np.mean(np.sum(px**2, axis=1))))
-    expected = float(np.sqrt(np.mean(expected2)))
+    idx = np.flatnonzero(inliers)
+    n = len(idx)
+    px = np.empty((n, 2))
+    sums = np.zeros(4)  # px^2, expected px^2, screen px^2 and its expectation
+    for a in range(0, n, _BLOCK):  # raster-order blocks: small temporaries
+        sel = idx[a : a + _BLOCK]
+        r, sig = res[sel], ob.sigma_mm[sel]
+        p, expected2 = _camera_px(model, rc, tc, ob.pixels[sel], r, sig)
+        px[a : a + len(sel)] = p
+        sums += [np.vdot(p, p), expected2.sum(), np.sum((r / pitch_mm) ** 2),
+                 np.sum((sig / pitch_mm) ** 2)]
+    rms, expected, rms_screen, expected_screen = np.sqrt(
+        sums / max(n, 1) * [1.0, dof_shrink, 1.0, dof_shrink]
+    ).tolist()
     return px, {
         "rms_px": rms,
         "expected_rms_px": expected,
-        "rms_screen_px": float(np.sqrt(np.mean(np.sum((res[inliers] / pitch_mm) ** 2, axis=1)))),
-        "expected_rms_screen_px": float(
-            np.sqrt(np.mean(np.sum((sig / pitch_mm) ** 2, axis=1)) * dof_shrink)
-        ),
-        "noise_floor_ratio": rms / expected,
+        "rms_screen_px": rms_screen,
+        "expected_rms_screen_px": expected_screen,
+        "noise_floor_ratio": rms / expected if expected > 0 else float("nan"),
         "n_points": n,
         "n_outliers": len(inliers) - n,
         "outlier_fraction": 1.0 - n / max(len(inliers), 1),

@@ -22,6 +22,7 @@ data; where data exist it is negligible, where they do not its large covariance 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -33,6 +34,7 @@ from calibration.decode.arrays import array_module
 from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
+from calibration.fit.sgcc.robust import outlier_cut, robust_terms, sigma_norm
 from calibration.fit.sgcc.screen_terms import N_SCREEN, ScreenTrace
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.models.blas_threads import single_thread_blas
@@ -49,15 +51,6 @@ if TYPE_CHECKING:
 _DAMPING_TRIES = 12  # LM damping increases per iteration before giving up
 _GAUSS_NEWTON_BELOW = 1e-6  # Jacobi-scaled damping under which the undamped step goes first
 _CHORD_MODEL_TOL = 0.1  # relative misfit of the predicted chi^2 drop that still allows chords
-_BLOCK = 1 << 16  # pixels per block of the per-pixel robust terms (small temporaries)
-
-
-def _robust(s: np.ndarray, k: float, cut: float) -> tuple[np.ndarray, np.ndarray]:
-    """Truncated-Huber cost per residual norm s and its IRLS weight."""
-    hub = np.where(s <= k, s * s, 2 * k * s - k * k)
-    cost = np.minimum(hub, 2 * k * cut - k * k)
-    wt = np.where(s <= k, 1.0, k / np.maximum(s, 1e-300)) * (s <= cut)
-    return cost, wt
 
 
 def gauge_constraints(grid: SplineGrid, n_comp: int, n_total: int) -> np.ndarray:
@@ -131,50 +124,6 @@ def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
     return [PoseObs(o.pixels[::k], o.screen_mm[::k], o.sigma_mm[::k]) for o in obs]
 
 
-def _sigma_norm(prob: Problem | DeviceProblem, res: np.ndarray) -> np.ndarray:
-    """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas), computed in
-    blocks so that multi-million-pixel fits make no full-size temporaries."""
-    inv = prob.inv_sigma
-    out = np.empty(res.shape[1])
-    for a in range(0, len(out), _BLOCK):
-        sl = slice(a, a + _BLOCK)
-        r0, r1 = res[0, sl] * inv[0, sl], res[1, sl] * inv[1, sl]
-        np.sqrt(r0 * r0 + r1 * r1, out=out[sl])
-    return out
-
-
-def _robust_terms(
-    s: np.ndarray, ok: np.ndarray, k: float, cut: float
-) -> tuple[float, np.ndarray, float]:
-    """Robust cost of residual norms s (rays missing the plane, not ok, pay the cap), IRLS
-    weights (0 where not ok) and the cost over the ok pixels alone; in blocks."""
-    wt = np.empty_like(s)
-    capped = ok_only = 0.0
-    cap = 2 * k * cut - k * k
-    for a in range(0, len(s), _BLOCK):
-        sl = slice(a, a + _BLOCK)
-        cost, w = _robust(s[sl], k, cut)
-        okb = ok[sl]
-        np.multiply(w, okb, out=wt[sl])
-        inside = float(cost @ okb)
-        ok_only += inside
-        capped += inside + cap * float(okb.size - np.count_nonzero(okb))
-    return capped, wt, ok_only
-
-
-def _cut(s: np.ndarray, ok: np.ndarray, cut_sigmas: float) -> float:
-    """Hard outlier cut: max(cut_sigmas, 5.9 x the median residual norm of the ok pixels).
-    The median is only computed when it can matter (more than half the norms above
-    cut_sigmas / 5.9); s is 0 where not ok."""
-    scale = 4.0 * 1.4826
-    n_ok = int(np.count_nonzero(ok))
-    if n_ok == 0:
-        return max(cut_sigmas, scale)
-    if 2 * int(np.count_nonzero(s > cut_sigmas / scale)) < n_ok:
-        return cut_sigmas  # the median is at most cut_sigmas / scale
-    return max(cut_sigmas, scale * float(np.median(s[ok])))
-
-
 def _spd_inverse(a: np.ndarray) -> np.ndarray:
     """Inverse of a symmetric positive-definite matrix from its Cholesky factor (half the
     work of a general inverse); a general inverse where the factorization fails."""
@@ -201,7 +150,7 @@ def _cost(
     k: float,
 ) -> float:
     """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
-    return _robust_terms(_sigma_norm(prob, res), ok, k, lp.cut)[0] + _prior_cost(x, lp)
+    return robust_terms(sigma_norm(prob, res), ok, k, lp.cut)[0] + _prior_cost(x, lp)
 
 
 def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
@@ -244,9 +193,9 @@ def _iterate(
         if cancelled is not None and cancelled():
             raise Cancelled("sgcc: calibration cancelled")
         st = lp.state
-        s = _sigma_norm(prob, res)
-        lp.cut = _cut(s, ok, options.cut_sigmas)
-        data0, wt, _ = _robust_terms(s, ok, options.huber_k, lp.cut)
+        s = sigma_norm(prob, res)
+        lp.cut = outlier_cut(s, ok, options.cut_sigmas)
+        data0, wt, _ = robust_terms(s, ok, options.huber_k, lp.cut)
         h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
                                         hessian=chord is None)
         if first:
@@ -361,14 +310,18 @@ def _run(
     if options.prior_mean is not None:
         lp.prior_mean = np.asarray(options.prior_mean, dtype=np.float64).ravel()
     sub = _subset(obs, options.subset_pixels)
-    if sub is not None:
-        _iterate(_make_problem(grid, n_comp, sub, options.xp, options.screen), lp, options,
-                 options.max_iterations // 2, progress, cancelled)
-    prob = _make_problem(grid, n_comp, obs, options.xp, options.screen)
+    if sub is None:
+        prob = _make_problem(grid, n_comp, obs, options.xp, options.screen)
+    else:  # the full problem is sorted while the subset iterates (one core each)
+        with ThreadPoolExecutor(1) as pool:
+            full = pool.submit(_make_problem, grid, n_comp, obs, options.xp, options.screen)
+            _iterate(_make_problem(grid, n_comp, sub, options.xp, options.screen), lp, options,
+                     options.max_iterations // 2, progress, cancelled)
+            prob = full.result()
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
-    s = _sigma_norm(prob, res)
-    _, wt, cost = _robust_terms(s, ok, options.huber_k, lp.cut)
+    s = sigma_norm(prob, res)
+    _, wt, cost = robust_terms(s, ok, options.huber_k, lp.cut)
     hr = lp.hr
     if not lp.converged or hr is None:  # the last normal equations are not at `st`
         h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)

@@ -334,9 +334,9 @@ def test_progress_and_cancellation(pinhole_fit):
             "sgcc",
             options=OPTS,
             progress=lambda done, total, msg: seen.append((done, total)),
-            cancelled=lambda: len(seen) >= 2,
+            cancelled=lambda: len(seen) >= 1,  # this fit converges in two iterations
         )
-    assert seen[:2] == [(1, 60), (2, 60)]
+    assert seen == [(1, 60)]
 
 
 def test_monomial_form_matches_bspline_basis_and_evaluation():
