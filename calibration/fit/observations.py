@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,10 @@ def observations(maps: Sequence[DecodedMaps], screen: ScreenGeometry) -> list[Po
     mm; a pixel is valid where the mask is set and its coordinates and sigmas are finite
     (sigmas > 0). Checked on the 2-D maps, then gathered by flat index (no (N, 2) stacks)."""
     pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
-    return [_pose_observations(m, pitch) for m in maps]
+    if len(maps) < 2:
+        return [_pose_observations(m, pitch) for m in maps]
+    with ThreadPoolExecutor(min(len(maps), 4)) as pool:  # NumPy releases the GIL here
+        return list(pool.map(lambda m: _pose_observations(m, pitch), maps))
 
 
 def _pose_observations(m: DecodedMaps, pitch: np.ndarray) -> PoseObs:
