@@ -98,8 +98,9 @@ class _Loop:
     cut: float = np.inf
     lam_prior: float = 0.0
     prior_mean: np.ndarray | float = 0.0  # centre of the prior (LMOptions.prior_mean)
-    res: np.ndarray | None = None  # residuals (2,N) and ok mask of `state`
+    res: np.ndarray | None = None  # residuals (2,N), ok mask and norms (sigmas) of `state`
     ok: np.ndarray | None = None
+    s: np.ndarray | None = None
     hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
 
 
@@ -141,18 +142,6 @@ def _prior_cost(x: np.ndarray, lp: _Loop) -> float:
     return float(lp.lam_prior * dx @ lp.prior_base @ dx)
 
 
-def _cost(
-    prob: Problem | DeviceProblem,
-    res: np.ndarray,
-    ok: np.ndarray,
-    x: np.ndarray,
-    lp: _Loop,
-    k: float,
-) -> float:
-    """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
-    return robust_terms(sigma_norm(prob, res), ok, k, lp.cut)[0] + _prior_cost(x, lp)
-
-
 def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
     """(mu, Cholesky factor of hs + mu I) to try in turn: first the undamped Gauss-Newton
     system once damping has fallen below `_GAUSS_NEWTON_BELOW` (the quadratic model has
@@ -185,6 +174,7 @@ def _iterate(
     """
     ns = prob.n_spline
     res, ok = prob.residuals(lp.state)
+    s = None
     lp.converged = False
     first = True
     chord: tuple[tuple, np.ndarray] | None = None  # (factor, Jacobi scale) for a chord step
@@ -193,7 +183,7 @@ def _iterate(
         if cancelled is not None and cancelled():
             raise Cancelled("sgcc: calibration cancelled")
         st = lp.state
-        s = sigma_norm(prob, res)
+        s = sigma_norm(prob, res) if s is None else s  # kept from the accepted candidate
         lp.cut = outlier_cut(s, ok, options.cut_sigmas)
         data0, wt, _ = robust_terms(s, ok, options.huber_k, lp.cut)
         h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
@@ -230,9 +220,11 @@ def _iterate(
             scr = None if st.screen is None else st.screen + step[ns + 6 * len(rcs):]
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs, scr)
             res1, ok1 = prob.residuals(cand)
-            cost1 = _cost(prob, res1, ok1, cand.coeffs.ravel(), lp, options.huber_k)
+            s1 = sigma_norm(prob, res1)
+            cost1 = robust_terms(s1, ok1, options.huber_k, lp.cut)[0]
+            cost1 += _prior_cost(cand.coeffs.ravel(), lp)
             if cost1 <= cost0:
-                lp.state, res, ok = cand, res1, ok1
+                lp.state, res, ok, s = cand, res1, ok1, s1
                 accepted = True
                 if not was_chord:
                     lp.mu = max((mu or lp.mu) / 10, 1e-15)
@@ -251,7 +243,7 @@ def _iterate(
         if (not accepted and not was_chord) or small or (near_optimum and accepted):
             lp.converged = True
             break
-    lp.res, lp.ok = res, ok
+    lp.res, lp.ok, lp.s = res, ok, s
 
 
 def run_lm(
@@ -320,7 +312,7 @@ def _run(
             prob = full.result()
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
-    s = sigma_norm(prob, res)
+    s = sigma_norm(prob, res) if lp.s is None else lp.s
     _, wt, cost = robust_terms(s, ok, options.huber_k, lp.cut)
     hr = lp.hr
     if not lp.converged or hr is None:  # the last normal equations are not at `st`

@@ -4,7 +4,10 @@ no full-size temporaries."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -12,7 +15,19 @@ if TYPE_CHECKING:
     from calibration.fit.sgcc.device import DeviceProblem
     from calibration.fit.sgcc.problem import Problem
 
+T = TypeVar("T")
 _BLOCK = 1 << 16  # pixels per block (small temporaries)
+_MAX_THREADS = 4  # NumPy's elementwise loops release the GIL; more threads only contend
+
+
+def _over_blocks(n: int, work: Callable[[slice], T]) -> list[T]:
+    """`work` on consecutive blocks of n pixels, in threads when there are many blocks."""
+    blocks = [slice(a, a + _BLOCK) for a in range(0, n, _BLOCK)]
+    threads = min(len(os.sched_getaffinity(0)), _MAX_THREADS, len(blocks) // 4)
+    if threads < 2:
+        return [work(b) for b in blocks]
+    with ThreadPoolExecutor(threads) as pool:
+        return list(pool.map(work, blocks))
 
 
 def robust(s: np.ndarray, k: float, cut: float) -> tuple[np.ndarray, np.ndarray]:
@@ -28,10 +43,12 @@ def sigma_norm(prob: Problem | DeviceProblem, res: np.ndarray) -> np.ndarray:
     blocks so that multi-million-pixel fits make no full-size temporaries."""
     inv = prob.inv_sigma
     out = np.empty(res.shape[1])
-    for a in range(0, len(out), _BLOCK):
-        sl = slice(a, a + _BLOCK)
+
+    def block(sl: slice) -> None:
         r0, r1 = res[0, sl] * inv[0, sl], res[1, sl] * inv[1, sl]
         np.sqrt(r0 * r0 + r1 * r1, out=out[sl])
+
+    _over_blocks(len(out), block)
     return out
 
 
@@ -41,17 +58,17 @@ def robust_terms(
     """Robust cost of residual norms s (rays missing the plane, not ok, pay the cap), IRLS
     weights (0 where not ok) and the cost over the ok pixels alone; in blocks."""
     wt = np.empty_like(s)
-    capped = ok_only = 0.0
     cap = 2 * k * cut - k * k
-    for a in range(0, len(s), _BLOCK):
-        sl = slice(a, a + _BLOCK)
+
+    def block(sl: slice) -> tuple[float, int]:
         cost, w = robust(s[sl], k, cut)
         okb = ok[sl]
         np.multiply(w, okb, out=wt[sl])
-        inside = float(cost @ okb)
-        ok_only += inside
-        capped += inside + cap * float(okb.size - np.count_nonzero(okb))
-    return capped, wt, ok_only
+        return float(cost @ okb), int(okb.size - np.count_nonzero(okb))
+
+    sums = _over_blocks(len(s), block)
+    ok_only = sum(c for c, _ in sums)
+    return ok_only + cap * sum(m for _, m in sums), wt, ok_only
 
 
 def outlier_cut(s: np.ndarray, ok: np.ndarray, cut_sigmas: float) -> float:
