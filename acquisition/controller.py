@@ -52,6 +52,8 @@ from acquisition.usb.trigger_box import TriggerSink
 from calibration.plan import Plan
 from calibration.progress import Cancel, Cancelled, Progress, is_cancelled
 
+SHOW_LEAD = 0.75  # refresh periods before its vsync a show is called (blocks until then)
+
 
 class _Failed(AcquisitionError):
     """Internal: the pose cannot be completed (message is the reason)."""
@@ -202,7 +204,9 @@ class _Runner:
 
     def run(self, order: Sequence[int], accept: Callable[[int, np.ndarray, AcceptedFrame], None]
             ) -> None:
-        """Capture `order`, each position's accepted frame handed to `accept` once, in order.
+        """Capture `order`, each position's accepted frame handed to `accept` once (a torn
+        pattern is shown again after the others, so an index repeated in `order` arrives in
+        order of its positions, other indices in any order).
 
         Event loop over three kinds of timed actions, earliest first: show the next
         pattern (so it flips right after the last shown pattern's exposures end), begin
@@ -213,6 +217,7 @@ class _Runner:
         when the latency exceeds the exposure.
         """
         m = self.opts.margin_s
+        order = list(order)  # torn patterns are appended to be shown again
         if not self.triggered and self.opts.rephase_attempts > 0 and order:
             rephase(self, order[0])
         attempts: dict[int, int] = {}
@@ -223,13 +228,14 @@ class _Runner:
             self.check_cancel()
             now = self.clock.now()
             unbegun = [f for f in inflight if not f["begun"]]
-            t_show = math.inf
+            t_show = t_flip = math.inf  # when to call show, and the vsync it flips at
             if pos < len(order):
                 if inflight:
                     last = inflight[-1]
-                    t_show = self.next_flip_target(last["flip"], last["end"]) - self.period / 2
+                    t_flip = self.next_flip_target(last["flip"], last["end"])
+                    t_show = t_flip - SHOW_LEAD * self.period  # late wake-ups still flip
                 else:
-                    t_show = now
+                    t_show = t_flip = now
             t_begin = unbegun[0]["on"] if unbegun else math.inf
             deadline = min(t_show, t_begin) - 2 * m  # the next action bound to a vsync
             head = inflight[0] if inflight and inflight[0]["begun"] else None
@@ -245,7 +251,7 @@ class _Runner:
                       and now + self.render_cost <= deadline):
                     self.codes(order[pos])  # render the next pattern in idle time
                     continue
-                elif t_show <= t_begin:
+                elif t_flip <= t_begin:  # a show blocks until its flip: no trigger inside
                     self.clock.sleep_until(t_show)
                     i = order[pos]
                     flip = self.show(i)
@@ -274,12 +280,21 @@ class _Runner:
             if not frames:
                 failed = order[done]  # the oldest pattern not yet accepted
                 self.recaptures.append(Recapture(failed, reason))
-                attempts[done] = attempts.get(done, 0) + 1  # by position: indices may repeat
-                if attempts[done] >= self.opts.max_attempts:
+                tries = attempts.pop(done, 0) + 1  # by position: indices may repeat
+                if tries >= self.opts.max_attempts:
                     raise _Failed(f"plan frame {failed}: no valid frame after "
                                   f"{self.opts.max_attempts} attempts (last: {reason})")
-                pos = done  # re-show the failed pattern; later in-flight flips are wasted
-                inflight = []
+                if reason.startswith("torn") and head is not None:
+                    # the camera is in step: the patterns in flight stay valid, and the
+                    # torn one is shown again after the others
+                    order.append(failed)
+                    attempts[len(order) - 1] = tries
+                    inflight.pop(0)
+                    done += 1
+                else:  # the stream restarted: re-show from the failed pattern on
+                    attempts[done] = tries
+                    pos = done
+                    inflight = []
                 continue
             image = frames[0].image if len(frames) == 1 else \
                 np.mean([f.image for f in frames], axis=0, dtype=np.float32)
@@ -331,7 +346,7 @@ def capture_pose(
     frames: dict[int, AcceptedFrame] = {}
 
     def accept(i: int, image: np.ndarray, info: AcceptedFrame) -> None:
-        if len(accepted) == len(order):  # positions past the plan frames: the repeats
+        if i in frames:  # a reference seen before: this is its repeat
             repeats[i] = image
             return
         sink.add(i, image)

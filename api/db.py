@@ -12,9 +12,6 @@ from typing import Any
 from sqlalchemy import JSON, Float, ForeignKey, Integer, LargeBinary, String, create_engine, event
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
-ACTIVE_JOB_STATES = ("queued", "running")
-TERMINAL_JOB_STATES = ("succeeded", "failed", "cancelled", "interrupted")
-
 
 class Base(DeclarativeBase):
     """Declarative base of all tables."""

@@ -68,11 +68,6 @@ def problem_response(status: int, slug: str, detail: str, instance: str | None =
     )
 
 
-def not_found(kind: str, ident: str) -> Problem:
-    """404 for an unknown resource id."""
-    return Problem(404, "not-found", f"{kind} {ident!r} does not exist")
-
-
 def _allowed_methods(request: Request) -> list[str]:
     """Every method some route accepts for this path (FastAPI has one route per method)."""
     from starlette.routing import Match

@@ -38,6 +38,19 @@ class RigHandle:
         """The simulator-only controls of a simulated rig, else None."""
         return self.rig.simulated
 
+    def move_screen(self, screen_pose: dict[str, Any]) -> None:
+        """Place the simulated screen (`rvec`, `tvec_mm`); 409 on a real rig, where a person
+        or robot moves it."""
+        sim = self.simulated
+        if sim is None:
+            raise Problem(409, "not-simulated", f"rig {self.rig_id} is not simulated: move the "
+                          "screen physically and capture without screen_pose")
+        import cv2
+        import numpy as np
+
+        rot, _ = cv2.Rodrigues(np.asarray(screen_pose["rvec"], np.float64))
+        sim.set_pose(rot, np.asarray(screen_pose["tvec_mm"], np.float64))
+
 
 def parse_rig_config(config: dict[str, Any], source: str = "rig config") -> Any:
     """Validate a rig config (the TOML/JSON fields) with `acquisition.rig`; 422 on error."""

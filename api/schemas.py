@@ -6,11 +6,14 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, RootModel, create_model
 
+from api.jobs.model import JobKind as JobKindEnum
+from api.jobs.model import JobStatus as JobStatusEnum
 from calibration.fit.registry import MODEL_NAMES, MODELS
 
 ModelName = Literal[MODEL_NAMES]  # type: ignore[valid-type]  # from the model registry
-JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
-JobKind = Literal["capture", "decode", "calibrate", "intrinsics"]
+# the job vocabulary of api.jobs.model, as plain string enums in the OpenAPI document
+JobStatus = Literal[tuple(s.value for s in JobStatusEnum)]  # type: ignore[valid-type]
+JobKind = Literal[tuple(k.value for k in JobKindEnum)]  # type: ignore[valid-type]
 MAX_POINTS = 200_000
 MAX_OFFSET = 1_000_000_000  # list offsets (SQLite integers overflow past 2**63)
 # Numbers in request bodies are typed strictly: `false` or "1" is not a number, NaN and

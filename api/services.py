@@ -9,7 +9,7 @@ from fastapi import Request
 
 from api.config import ServiceConfig
 from api.db import Database
-from api.jobs import JobManager
+from api.jobs.manager import JobManager
 from api.live_preview import LivePreview
 from api.rigs import RigManager
 from api.store import DataStore

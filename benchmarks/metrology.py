@@ -16,9 +16,10 @@ at --width x --height, every pixel, 6 poses, 10x10 mesh): `sgcc` on the mild pin
 `sgcc-noncentral` on the smooth non-central camera (random poses at 150-450 mm), with the
 screen fitted jointly with the spline and the poses; ray error = direction RMS after the best
 rotation, plus the origin RMS (mm, in the sGCC gauge) for the non-central model.
+Table 5 (`--tables 5`): the sGCC screen estimates' z-scores over seeds (honest sigma: RMS ~1).
 
     .venv/bin/python benchmarks/metrology.py [--width 320 --height 240] [--seeds 6]
-        [--step 2] [--tables 1 2 3 4]
+        [--step 2] [--tables 1 2 3 4 5]
 
 Table 3 (`--tables 3`, at twice --width/--height): sgcc free and with `family_prior: "auto"`
 against OpenCV's fit of the true family on identical pixels (goal <= 1.5x).
@@ -203,6 +204,26 @@ def table2_sgcc(w: int, h: int, seed: int = 11) -> None:
                   f"{res.stats['chi2_dof']:>7.2f}{cpu:>7.1f}  {est}")
 
 
+def table5(w: int, h: int, seeds: int) -> None:
+    """Is the sGCC screen sigma honest? (estimate - truth) / sigma over seeds, per parameter."""
+    print(f"\nTable 5: sGCC screen z-scores, {w}x{h}, 6 poses, 8x8 mesh, {seeds} seeds "
+          "(mean and RMS of (estimate - truth) / sigma; RMS ~1 if the sigma is honest)")
+    keys = ("bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm")
+    truth = np.array([REAL.bow_x_mm, REAL.bow_y_mm, REAL.twist_mm, REAL.glass_mm])
+    print(f"{'model':<18}{'':<6}" + "".join(f"{k:>10}" for k in keys))
+    for model in ("sgcc", "sgcc-noncentral"):
+        z = []
+        for seed in range(20, 20 + seeds):
+            _, maps = _sgcc_scene(model, w, h, seed, REAL)
+            scr = calibrate(maps, SCREEN, model, options={"screen": "fit",
+                                                          "cells": [8, 8]}).stats["screen"]
+            z.append((np.array([scr[k] for k in keys]) - truth)
+                     / np.array([scr["std"][k] for k in keys]))
+        za = np.array(z)
+        for label, row in (("mean", za.mean(axis=0)), ("rms", np.sqrt((za**2).mean(axis=0)))):
+            print(f"{model:<18}{label:<6}" + "".join(f"{v:>10.2f}" for v in row))
+
+
 def table3(w: int, h: int, seeds: int) -> None:
     """sgcc (free, and with the prior centred on an adequate family) on identical pixels."""
     print(f"\nTable 3: sgcc on identical pixels (every 8th of {w}x{h}, 6 poses, {seeds} seeds)")
@@ -248,7 +269,8 @@ def main() -> None:
                     help="table 2 (at twice --width/--height): every step-th pixel")
     ap.add_argument("--tables", type=int, nargs="+", default=[1, 2, 4],
                     help="3: sgcc on identical pixels (at twice --width/--height); 4: table 2's "
-                         "sGCC rows (at --width/--height)")
+                         "sGCC rows (at --width/--height); 5: sGCC screen z-scores (at half "
+                         "--width/--height, --seeds + 4 seeds)")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     if 1 in args.tables:
@@ -257,6 +279,8 @@ def main() -> None:
         table2(2 * args.width, 2 * args.height, args.step)
     if 4 in args.tables:
         table2_sgcc(args.width, args.height)
+    if 5 in args.tables:
+        table5(args.width // 2, args.height // 2, args.seeds + 4)
     if 3 in args.tables:
         table3(2 * args.width, 2 * args.height, args.seeds)
 

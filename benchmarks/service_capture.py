@@ -21,7 +21,9 @@ the time from the last stored plan frame to the job's success as the client sees
 `end` server-sent event: maps written and committed).
 Per pose the server-side stages after the last frame are printed: `tail` (controller: the
 integrity repeats and check), `lag` (decode worker catching up with the last frame),
-`finish` (decoder finish), `write` (maps NPZ, fsync), `commit` (rename into the pose).
+`finish` (decoder finish), `write` (maps NPZ, fsync), `commit` (rename into the pose);
+and the CPU seconds the pose cost the server process (`api cpu`: HTTP, job, controller,
+frame store) and its worker processes (`wkr cpu`: streaming decode, maps write).
 Last line: `service capture: worst R x vsync floor; pose ready S s after the last frame`
 (worst client-side R over all poses, worst S at the largest size).
 """
@@ -110,7 +112,26 @@ def capture(c: httpx.Client, session: str) -> tuple[dict, float, float]:
     return final, t0, seen
 
 
-def bench_size(c: httpx.Client, width: int, height: int, poses: int) -> list[dict]:
+def cpu_seconds(pid: int) -> tuple[float, float]:
+    """CPU seconds (user + system) used so far by the server process and by its children
+    (the worker processes that decode): stable figures on a loaded machine."""
+    import psutil
+
+    def used(p: psutil.Process) -> float:
+        t = p.cpu_times()
+        return t.user + t.system
+
+    server = psutil.Process(pid)
+    workers = 0.0
+    for child in server.children(recursive=True):
+        try:
+            workers += used(child)
+        except psutil.NoSuchProcess:
+            pass
+    return used(server), workers
+
+
+def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -> list[dict]:
     rig = c.post("/rigs", json={"name": f"bench{width}", "config": rig_config(width, height)})
     rig_id = rig.raise_for_status().json()["id"]
     sess = c.post("/sessions", json={"rig_id": rig_id, "preset": "default"}).json()
@@ -118,7 +139,9 @@ def bench_size(c: httpx.Client, width: int, height: int, poses: int) -> list[dic
     rows = []
     for _ in range(poses):
         load = os.getloadavg()[0]
+        api0, workers0 = cpu_seconds(pid)
         job, posted, seen = capture(c, sess["id"])
+        api1, workers1 = cpu_seconds(pid)
         cap, dec = job["result"]["capture"], job["result"]["decode"]
         n = sess["frame_count"]
         floor, last = vsync_floor(n), cap["captured_at"]
@@ -131,6 +154,7 @@ def bench_size(c: httpx.Client, width: int, height: int, poses: int) -> list[dic
                      "lag_s": dec["caught_up_at"] - last, "finish_s": dec["finish_s"],
                      "write_s": dec["write_s"], "commit_s": dec["commit_s"],
                      "server_ready_s": job["finished_at"] - last, "ready_s": seen - last,
+                     "api_cpu": api1 - api0, "worker_cpu": workers1 - workers0,
                      "valid": dec["valid_pixels"], "load": load})
     return rows
 
@@ -143,7 +167,8 @@ COLUMNS = [  # header, row key, width, format
     ("recap", "recaptures", 5, "d"), ("tail s", "tail_s", 6, ".2f"), ("lag s", "lag_s", 6, ".2f"),
     ("finish", "finish_s", 6, ".2f"), ("write", "write_s", 6, ".2f"),
     ("commit", "commit_s", 6, ".3f"), ("S srv", "server_ready_s", 6, ".2f"),
-    ("S", "ready_s", 6, ".2f"), ("valid px", "valid", 9, "d"), ("load", "load", 5, ".1f")]
+    ("S", "ready_s", 6, ".2f"), ("api cpu", "api_cpu", 7, ".2f"),
+    ("wkr cpu", "worker_cpu", 7, ".2f"), ("valid px", "valid", 9, "d"), ("load", "load", 5, ".1f")]
 
 
 def main() -> int:
@@ -157,7 +182,7 @@ def main() -> int:
         proc, url = start_server(data)
         try:
             with httpx.Client(base_url=url, timeout=60) as c:
-                rows = [r for w, h in sizes for r in bench_size(c, w, h, args.poses)]
+                rows = [r for w, h in sizes for r in bench_size(c, proc.pid, w, h, args.poses)]
         finally:
             proc.terminate()
             proc.wait(30)

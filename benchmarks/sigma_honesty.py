@@ -47,6 +47,8 @@ SCENES: dict[str, Scene] = {
     "fisheye150 small screen": replace(FISHEYE, distance_mm=400.0),
     "fisheye150 overexposed": replace(FISHEYE, peak_e=6000.0),
     "fisheye150 gamma no LUT": replace(FISHEYE, monitor=Monitor(lut=False)),
+    "fisheye150 no LUT, vignetted": replace(FISHEYE, monitor=Monitor(lut=False),
+                                            vignetting=0.25),
     "fisheye150 non-central": replace(
         FISHEYE, camera=Camera(160, 120, stride=8, pupil_shift_mm=2.0)),
     "pinhole 50": replace(FISHEYE, camera=Camera(160, 120, fov_deg=50.0, kind="pinhole",
@@ -67,7 +69,7 @@ def line(name: str, scene: Scene, preset: str, seed: int) -> str:
     bands = [z[(r >= a) & (r < b)] for a, b in ((0, 0.3), (0.3, 0.6), (0.6, 0.9), (0.9, 9))]
     band = " ".join(f"{b.std():.2f}" if b.size > 100 else "  - " for b in bands)
     ptc = maps.meta["decoder"]["photon_transfer"]
-    return (f"{name:28s} {preset:7s} {z.size:6d} {z.std():6.3f} {zm.std():6.3f}  {band}  "
+    return (f"{name:30s} {preset:7s} {z.size:6d} {z.std():6.3f} {zm.std():6.3f}  {band}  "
             f"{int(np.sum(np.abs(z) > 5)):3d} {int(np.sum(np.abs(zm) > 5)):3d}  "
             f"{ptc['offset']:+.3f} {ptc['slope']:.4f}")
 
@@ -78,7 +80,7 @@ def main() -> None:
     parser.add_argument("--presets", default="default,fast")
     args = parser.parse_args()
     t0 = time.process_time()
-    print(f"{'scene':28s} {'plan':7s} {'n':>6s} {'std':>6s} {'model':>6s}  "
+    print(f"{'scene':30s} {'plan':7s} {'n':>6s} {'std':>6s} {'model':>6s}  "
           "radial bands      >5 (res, model)  line offset, slope")
     for preset in args.presets.split(","):
         for name, scene in SCENES.items():

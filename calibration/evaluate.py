@@ -119,13 +119,3 @@ def heldout_errors(model: CameraModel, points: list[PointSet], indices: list[int
         st = pose_residuals(model, PoseEstimate(r, t), pts)
         per.append(per_pose_stats(st, idx))
     return {"per_pose": per, **summarize(per)} if per else {}
-
-
-def residual_map(result: CalibrationResult, pose: int) -> np.ndarray:
-    """(H, W, 2) camera-px residual field of one pose, NaN where no point was evaluated."""
-    w, h = result.model.image_size
-    out = np.full((h, w, 2), np.nan)
-    px = np.rint(result.residual_pixels[pose]).astype(np.int64)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-    out[px[ok, 1], px[ok, 0]] = result.residuals[pose][ok]
-    return out

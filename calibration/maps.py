@@ -92,8 +92,20 @@ class DecodedMaps:
 
     def write_npz(self, fh: Any, compress: bool = False) -> None:
         """Write the NPZ to an open binary file. Stored (uncompressed) by default: deflate
-        costs seconds on a 5 Mpixel pose for ~2x smaller files; np.load reads either."""
-        (np.savez_compressed if compress else np.savez)(fh, **self._arrays())
+        costs seconds on a 5 Mpixel pose for ~2x smaller files; np.load reads either.
+        Stored members are written straight from the arrays' memory (np.savez copies each
+        16 MiB chunk first: twice the CPU time on the 205 MB of a 5 Mpixel pose)."""
+        if compress:
+            np.savez_compressed(fh, **self._arrays())
+            return
+        with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+            for name, arr in self._arrays().items():
+                if not arr.flags.c_contiguous:
+                    arr = np.ascontiguousarray(arr)
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as out:
+                    np.lib.format.write_array_header_1_0(
+                        out, np.lib.format.header_data_from_array_1_0(arr))
+                    out.write(memoryview(arr.reshape(-1)).cast("B") if arr.ndim else arr.tobytes())
 
     def to_npz_bytes(self, compress: bool = False) -> bytes:
         """Serialize to NPZ bytes (FORMATS.md layout)."""

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import ast
 import math
-import re
 from pathlib import Path
 from typing import Any
 
@@ -49,15 +48,6 @@ def splined_name(nx: int, ny: int, fov_x_deg: int) -> str:
     """mrcal's lens model string for a cubic splined stereographic model."""
     return (f"LENSMODEL_SPLINED_STEREOGRAPHIC_order={SPLINE_ORDER}_Nx={nx}_Ny={ny}"
             f"_fov_x_deg={int(fov_x_deg)}")
-
-
-def parse_splined(name: str) -> tuple[int, int, int, float]:
-    """(order, Nx, Ny, fov_x_deg) from a splined lens model string."""
-    m = re.fullmatch(r"LENSMODEL_SPLINED_STEREOGRAPHIC_order=(\d+)_Nx=(\d+)_Ny=(\d+)"
-                     r"_fov_x_deg=(\d+)", name)
-    if m is None:
-        raise ModelError(f"lensmodel: malformed splined model name {name!r}")
-    return int(m[1]), int(m[2]), int(m[3]), float(m[4])
 
 
 def stereographic(d: np.ndarray) -> np.ndarray:
@@ -204,13 +194,6 @@ def cameramodel_text(model: CameraModel, *, approximate: bool = False,
             f"    'extrinsics': [ 0.0, 0.0, 0.0, 0.0, 0.0, 0.0 ],\n"
             f"    'imagersize': [ {w}, {h} ],\n}}\n")
     return text, info
-
-
-def write_cameramodel(model: CameraModel, path: str | Path, **kwargs: Any) -> dict[str, Any]:
-    """Write a .cameramodel file; returns `cameramodel_text`'s info."""
-    text, info = cameramodel_text(model, **kwargs)
-    Path(path).write_text(text, encoding="utf-8")
-    return info
 
 
 _FROM_MRCAL = {"LENSMODEL_PINHOLE": (OpenCV5Model, 0), "LENSMODEL_OPENCV4": (OpenCV5Model, 4),

@@ -138,6 +138,15 @@ class SimulatedDisplay:
         if self._row_start(hist[0].flip_s, 0.0) > t0 and hist[0].image_id != 0:
             raise DisplayError(f"{self._info.name}: window starting at {t0:.6f} s is older "
                                f"than the kept history ({self.history_s} s)")
+        # only images on some row during [t0, t1] (plus the next, which ends the last):
+        # image k covers [start of its first row, start of image k+1's last row)
+        first = 0
+        while first + 1 < len(hist) and self._row_start(hist[first + 1].flip_s, 1.0) <= t0:
+            first += 1
+        stop = first + 1
+        while stop < len(hist) and self._row_start(hist[stop].flip_s, 0.0) < t1:
+            stop += 1
+        hist = hist[first:stop + 1]
         frac = np.arange(self._info.height_px) / self._info.height_px
         starts = np.stack([np.broadcast_to(self._row_start(h.flip_s, frac), frac.shape)
                            for h in hist])

@@ -1,7 +1,8 @@
 """Batch re-calibration: N sessions x M model settings as one job spread over the executor.
 
 `POST /batches/calibrations` creates one calibration resource per (session, model setting),
-all tied to one job; the job runs them as sub-tasks (`calibration.worker.dask_batch`), so
+all tied to one job (`api.jobs.calibrations.BatchCalibrateJob`); the job runs them as
+sub-tasks (`calibration.worker.dask_batch`), so
 on a Dask cluster they spread over the workers. Each calibration ends `succeeded` or
 `failed` with its own reason; cancelling the job cancels every one still running.
 """
@@ -17,14 +18,13 @@ from pydantic import BaseModel, ConfigDict, Field, RootModel
 from sqlalchemy import select
 
 from api.db import CalibrationRecord, PoseRecord
+from api.jobs.calibrations import BatchCalibrateJob, BatchEntry
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import _strict, per_model
 from api.services import Services, get_services
 from api.store import new_id
 from calibration.fit.registry import model_spec
-from calibration.progress import TaskContext
-from calibration.worker.dask_batch import BatchItem, run_batch
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -92,60 +92,17 @@ def create_batch(body: BatchCalibrationCreate, svc: Svc) -> JSONResponse:
     if n_items > MAX_BATCH_ITEMS:
         raise Problem(422, "validation-error",
                       f"session_ids x models: {n_items} items, at most {MAX_BATCH_ITEMS}")
-    plan: list[tuple[str, str, list[str], Any]] = []
-    cal_ids = [new_id("cal") for _ in range(n_items)]
     with svc.db.claim_session() as s:
         poses = {sid: _ready_poses(s, sid) for sid in session_ids}
         _check_pose_counts(poses, [m.root.model for m in body.models])
-        job = svc.jobs.create(s, "calibrate", "/calibrations", None, total=n_items,
-                              claims=tuple(cal_ids))
-        for sid in session_ids:
-            for setting in (m.root for m in body.models):
-                cid = cal_ids[len(plan)]
-                s.add(CalibrationRecord(id=cid, session_id=sid, model=setting.model,
-                                        pose_ids=poses[sid], heldout_pose_ids=[],
-                                        options=_options(setting), status="queued",
-                                        job_id=job.id, exports=[], created_at=time.time()))
-                plan.append((cid, sid, poses[sid], setting))
-    cids = [cid for cid, *_ in plan]
-
-    def run(ctx: TaskContext) -> dict[str, Any]:
-        with svc.db.session() as s:
-            for cid in cids:
-                s.get(CalibrationRecord, cid).status = "running"
-        # workers write into the job's staging folder; finished items are moved into place
-        with svc.store.staging(ctx.job_id) as staged:
-            items = [
-                BatchItem(name=cid, plan_path=str(svc.store.dir_for(sid) / "plan.json"),
-                          maps_paths=tuple(str(svc.store.file(p, "maps.npz")) for p in pose_ids),
-                          model=setting.model, out_dir=str(staged / cid),
-                          options=_options(setting))
-                for cid, sid, pose_ids, setting in plan
-            ]
-            result = run_batch(svc.executor, items, ctx)
-            for outcome in result.get("items", []):
-                if outcome["status"] == "succeeded":
-                    cid = outcome["name"]
-                    names = ["model.json", "result.json", *outcome["result"].get("exports", [])]
-                    svc.store.commit(staged / cid, names, svc.store.dir_for(cid))
-                outcome.pop("out_dir", None)
-        return result
-
-    def ok(s: Any, result: dict[str, Any]) -> None:
-        for outcome in result.get("items", []):
-            c = s.get(CalibrationRecord, outcome["name"])
-            c.status = outcome["status"]
-            if outcome["status"] == "succeeded":
-                c.stats = outcome["result"].get("stats")
-                c.exports = ["model.json", "result.json", *outcome["result"].get("exports", [])]
-            else:
-                c.error = outcome.get("error")
-
-    def fail(s: Any, status: str, error: str) -> None:
-        for cid in cids:
-            c = s.get(CalibrationRecord, cid)
-            if c.status in ("queued", "running"):
-                c.status, c.error = status, error
-
-    svc.jobs.start(job.id, run, ok, fail)
-    return accepted(svc.jobs.get(job.id) or {})
+        entries = [BatchEntry(new_id("cal"), sid, tuple(poses[sid]), setting.model,
+                              _options(setting))
+                   for sid in session_ids for setting in (m.root for m in body.models)]
+        job = BatchCalibrateJob(svc=svc, entries=entries)
+        state = svc.jobs.create(s, job)
+        s.add_all(CalibrationRecord(id=e.cal_id, session_id=e.session_id, model=e.model,
+                                    pose_ids=list(e.pose_ids), heldout_pose_ids=[],
+                                    options=e.options, status="queued", job_id=state.id,
+                                    exports=[], created_at=time.time())
+                  for e in entries)
+    return accepted(svc.jobs.start(state.id, job))

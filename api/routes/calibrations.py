@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse, Response
 from sqlalchemy import select
 
 from api.db import CalibrationRecord, PoseRecord
+from api.jobs.calibrations import CalibrateJob
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import (
@@ -26,8 +27,6 @@ from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.fit.registry import model_spec
 from calibration.models.base import CameraModel, load_model
-from calibration.progress import TaskContext
-from calibration.worker.tasks import calibrate_task
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -109,42 +108,15 @@ def create_calibration(session_id: str, request: CalibrationCreate, svc: Svc) ->
         if overlap:
             raise Problem(422, "validation-error",
                           f"heldout_pose_ids: {sorted(overlap)[0]} is also in pose_ids")
-        job = svc.jobs.create(s, "calibrate", f"/calibrations/{cid}", session_id,
-                              claims=(cid,))
+        job = CalibrateJob(svc=svc, session_id=session_id, cal_id=cid, model=body.model,
+                           pose_ids=pose_ids, heldout_pose_ids=list(body.heldout_pose_ids),
+                           options=options)
+        state = svc.jobs.create(s, job)
         s.add(CalibrationRecord(id=cid, session_id=session_id, model=body.model,
                                 pose_ids=pose_ids, heldout_pose_ids=body.heldout_pose_ids,
-                                options=options, status="queued", job_id=job.id,
+                                options=options, status="queued", job_id=state.id,
                                 exports=[], created_at=time.time()))
-    plan_path = str(svc.store.dir_for(session_id) / "plan.json")
-    maps = [str(svc.store.file(p, "maps.npz")) for p in pose_ids]
-    heldout = [str(svc.store.file(p, "maps.npz")) for p in body.heldout_pose_ids]
-    out_dir = svc.store.dir_for(cid)
-
-    def run(ctx: TaskContext) -> dict[str, Any]:
-        with svc.db.session() as s:
-            s.get(CalibrationRecord, cid).status = "running"
-        with svc.store.staging(ctx.job_id) as staged:
-            fut = svc.executor.run_task(calibrate_task, plan_path, maps, body.model,
-                                        str(staged), job_id=ctx.job_id,
-                                        on_progress=ctx.progress, options=options,
-                                        heldout_paths=heldout or None)
-            result = fut.result()
-            ctx.check_cancelled()
-            svc.store.commit(staged, ["model.json", "result.json", *result.get("exports", [])],
-                             out_dir)
-        return result
-
-    def ok(s: Any, result: dict[str, Any]) -> None:
-        c = s.get(CalibrationRecord, cid)
-        c.status, c.stats = "succeeded", result.get("stats")
-        c.exports = ["model.json", "result.json", *result.get("exports", [])]
-
-    def fail(s: Any, status: str, error: str) -> None:
-        c = s.get(CalibrationRecord, cid)
-        c.status, c.error = status, error
-
-    svc.jobs.start(job.id, run, ok, fail)
-    return accepted(svc.jobs.get(job.id) or {})
+    return accepted(svc.jobs.start(state.id, job))
 
 
 @router.get("/calibrations", response_model=list[Calibration])

@@ -12,7 +12,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Response
 from sqlalchemy import delete, select
 
-from api.db import ACTIVE_JOB_STATES, CalibrationRecord, JobLockRecord, PoseRecord, SessionRecord
+from api.db import CalibrationRecord, JobLockRecord, PoseRecord, SessionRecord
+from api.jobs.model import ACTIVE_JOB_STATES
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, get_pose, get_session
 from api.services import Services, get_services

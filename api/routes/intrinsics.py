@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends
@@ -12,6 +11,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import select
 
 from api.db import PoseRecord
+from api.jobs.intrinsics import RESULT, IntrinsicsJob
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import IntrinsicsCreate
@@ -20,12 +20,9 @@ from api.store import check_id
 from calibration.decode.frame_store import FrameStore
 from calibration.fit.classic.quick import white_flat_index
 from calibration.plan import plan_from_dict
-from calibration.progress import TaskContext
-from calibration.worker.intrinsics_task import intrinsics_task
 
 router = APIRouter(tags=["intrinsics"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
-RESULT = "intrinsics.json"
 
 
 def _flat_source(svc: Services, pose: PoseRecord, index: int) -> str:
@@ -84,24 +81,11 @@ def start_intrinsics(session_id: str, body: IntrinsicsCreate, svc: Svc) -> JSONR
         else:
             paths = [str(svc.store.file(p.id, "maps.npz")) for p in poses]
         # one quick-intrinsics job per session at a time (409 job-active otherwise)
-        job = svc.jobs.create(s, "intrinsics", f"/sessions/{session_id}/intrinsics", session_id,
-                              claims=(f"{session_id}:intrinsics",))
-    plan_path = str(svc.store.dir_for(session_id) / "plan.json")
-    out = svc.store.dir_for(session_id) / RESULT
-    pose_ids = [p.id for p in poses]
-
-    def run(ctx: TaskContext) -> dict[str, Any]:
-        tmp = str(out.with_name(f"{job.id}.json"))
-        fut = svc.executor.run_task(intrinsics_task, plan_path, paths, body.source, body.method,
-                                    tmp, job_id=ctx.job_id, on_progress=ctx.progress,
-                                    square_pixels=body.square_pixels, zero_skew=body.zero_skew)
-        result = {**fut.result(), "pose_ids": pose_ids, "source": body.source}
-        svc.store.write_bytes(out, json.dumps(result, indent=1).encode())
-        Path(tmp).unlink(missing_ok=True)
-        return result
-
-    svc.jobs.start(job.id, run, lambda s, r: None, lambda s, st, e: None)
-    return accepted(svc.jobs.get(job.id) or {})
+        job = IntrinsicsJob(svc=svc, session_id=session_id, pose_ids=[p.id for p in poses],
+                            paths=paths, source=body.source, method=body.method,
+                            square_pixels=body.square_pixels, zero_skew=body.zero_skew)
+        state = svc.jobs.create(s, job)
+    return accepted(svc.jobs.start(state.id, job))
 
 
 @router.get("/sessions/{session_id}/intrinsics")

@@ -11,8 +11,8 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
 
-from api.db import TERMINAL_JOB_STATES, JobRecord
-from api.jobs import job_to_dict
+from api.db import JobRecord
+from api.jobs.model import TERMINAL_JOB_STATES, JobState
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES
 from api.schemas import MAX_OFFSET, Job, JobKind, JobPage, JobStatus
@@ -50,7 +50,7 @@ def list_jobs(svc: Svc, status: JobStatus | None = None, kind: JobKind | None = 
         recs = s.scalars(select(JobRecord).where(*conds)
                          .order_by(JobRecord.created_at.desc(), JobRecord.id)
                          .limit(limit).offset(offset)).all()
-        items = [svc.jobs.snapshot(r.id) or job_to_dict(r) for r in recs]
+        items = [svc.jobs.snapshot(r.id) or JobState.from_record(r).to_dict() for r in recs]
     return {"items": items, "total": int(total), "limit": limit, "offset": offset}
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import zipfile
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, BackgroundTasks, Depends, Query
 from fastapi.responses import FileResponse, JSONResponse
@@ -12,12 +12,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from api.capture import frames_path, stored_indices
 from api.db import PoseRecord
+from api.jobs.poses import RedecodeJob
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session
 from api.services import Services, get_services
 from calibration.plan import plan_from_dict
-from calibration.progress import TaskContext
-from calibration.worker.tasks import decode_task
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -70,36 +69,10 @@ def redecode_pose(session_id: str, pose_id: str, svc: Svc,
         if pose.status not in ("ready", "flagged", "failed"):
             raise Problem(409, "conflict", f"pose {pose_id} is {pose.status}; only ready, "
                           "flagged or failed poses are decoded again")
-        job = svc.jobs.create(s, "decode", f"/sessions/{session_id}/poses/{pose_id}",
-                              session_id, claims=(pose_id,))
-        before = pose.status
-    pose_dir = svc.store.dir_for(pose_id)
-    plan_path = svc.store.dir_for(session_id) / "plan.json"
-    meta = {"pose_id": pose_id, "session_id": session_id, "redecoded": True,
-            "decode_options": {"noise_dn": req.noise_dn, **req.options}}
-
-    def body_fn(ctx: TaskContext) -> dict[str, Any]:
-        with svc.store.staging(ctx.job_id) as staged:
-            fut = svc.executor.run_task(decode_task, str(plan_path), str(path),
-                                        str(staged / "maps.npz"), job_id=ctx.job_id,
-                                        on_progress=ctx.progress, noise=req.noise_dn,
-                                        meta=meta, options=dict(req.options))
-            dec = fut.result()
-            ctx.check_cancelled()
-            svc.store.commit(staged, ["maps.npz"], pose_dir)
-        return {"decode": dec}
-
-    def ok(s: Any, result: dict[str, Any]) -> None:
-        p = s.get(PoseRecord, pose_id)
-        p.status = "ready" if before != "flagged" else "flagged"
-        p.error = None if before != "flagged" else p.error
-        p.valid_pixels = result["decode"]["valid_pixels"]
-
-    def fail(s: Any, status: str, error: str) -> None:
-        pass  # the old maps stay in place and the pose keeps its state; the job has the error
-
-    svc.jobs.start(job.id, body_fn, ok, fail)
-    return accepted(svc.jobs.get(job.id) or {})
+        job = RedecodeJob(svc=svc, session_id=session_id, pose_id=pose_id, frames=path,
+                          before=pose.status, noise_dn=req.noise_dn, options=dict(req.options))
+        state = svc.jobs.create(s, job)
+    return accepted(svc.jobs.start(state.id, job))
 
 
 @router.get("/sessions/{session_id}/poses/{pose_id}/frames.zip", response_class=FileResponse,

@@ -100,13 +100,11 @@ def change_camera_settings(rig_id: str, body: CameraSettingsModel, svc: Svc) -> 
 def move_screen(rig_id: str, body: ScreenPoseIn, svc: Svc) -> dict[str, Any]:
     """Place the simulated screen for the next capture (409 on a real rig or while capturing)."""
     rig_id = _rig_id(svc, rig_id)
-    from api.routes.sessions import _move_screen
-
     h = svc.rigs.handle(rig_id)
     if not h.lock.acquire(blocking=False):
         raise Problem(409, "rig-busy", f"rig {rig_id} is capturing; move the screen between poses")
     try:
-        _move_screen(h, body.model_dump())
+        h.move_screen(body.model_dump())
     finally:
         h.lock.release()
     return body.model_dump()

@@ -12,9 +12,9 @@ from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy import func, select
 
-from api.capture import capture_frames, stored_indices
 from api.db import PoseRecord, SessionRecord
 from api.frames_upload import store_images, store_npy
+from api.jobs.poses import CaptureJob, ImportDecodeJob, PoseJob
 from api.maps_upload import validated_maps
 from api.previews import PREVIEW_KINDS, preview_png
 from api.problems import Problem
@@ -23,9 +23,7 @@ from api.schemas import MAX_OFFSET, CaptureRequest, Pose, Session, SessionCreate
 from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration.maps import load_maps
-from calibration.plan import Plan, plan_from_dict
-from calibration.progress import TaskContext
-from calibration.worker.tasks import decode_task, stream_decode_task
+from calibration.plan import plan_from_dict
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -89,133 +87,22 @@ def read_plan(session_id: str, svc: Svc) -> dict[str, Any]:
         return get_session(s, session_id).plan
 
 
-def _new_pose(svc: Services, session_id: str, source: str, kind: str,
-              screen_pose: dict[str, Any] | None) -> tuple[str, dict[str, Any]]:
-    """Insert a pose and its queued job in one transaction."""
-    pid = new_id("pose")
-    with svc.db.claim_session() as s:
-        get_session(s, session_id)
-        index = _next_index(s, session_id)
-        job = svc.jobs.create(s, kind, f"/sessions/{session_id}/poses/{pid}", session_id,
-                              claims=(pid,))
-        s.add(PoseRecord(id=pid, session_id=session_id, index=int(index), source=source,
-                         status="pending", job_id=job.id, frames_done=0,
-                         screen_pose=screen_pose, created_at=time.time()))
-    return pid, svc.jobs.get(job.id) or {}
-
-
 def _next_index(s: Any, session_id: str) -> int:
     """The next pose index of a session (after the highest: poses can be deleted)."""
     last = s.scalar(select(func.max(PoseRecord.index)).where(PoseRecord.session_id == session_id))
     return 0 if last is None else int(last) + 1
 
 
-def _pose_hooks(pose_id: str, frames: Path | None = None) -> tuple[Any, Any]:
-    """Success and failure hooks of a pose's job; `frames`: the pose folder, whose stored
-    frames are the pose's progress when the job stops early."""
-
-    def ok(s: Any, result: dict[str, Any]) -> None:
-        p = s.get(PoseRecord, pose_id)
-        dec = result.get("decode", {})
-        flagged = result.get("capture", {}).get("flagged")
-        # a pose that failed its integrity check keeps its maps but is not used by default
-        if flagged:
-            p.status, p.error = "flagged", f"integrity check: {flagged}"
-        else:
-            p.status, p.error = "ready", None
-        p.valid_pixels = dec.get("valid_pixels")
-        p.width, p.height = dec.get("width"), dec.get("height")
-        p.frames_done = result.get("frames", p.frames_done)
-
-    def fail(s: Any, status: str, error: str) -> None:
-        p = s.get(PoseRecord, pose_id)
-        p.status = status if status in ("cancelled", "interrupted") else "failed"
-        p.error = error
-        if frames is not None:
-            p.frames_done = len(stored_indices(frames))
-
-    return ok, fail
-
-
-def _set_pose_status(svc: Services, pose_id: str, status: str) -> None:
-    with svc.db.session() as s:
-        s.get(PoseRecord, pose_id).status = status
-
-
-def _decode(svc: Services, ctx: TaskContext, session_dir: Path, frames: Path, pose_dir: Path,
-            meta: dict[str, Any], noise: Any) -> dict[str, Any]:
-    """Run the decode task on the executor and wait for it (cancel propagates).
-
-    The worker writes into the job's staging folder; only this server moves the maps into
-    the pose folder, once the task succeeded.
-    """
-    with svc.store.staging(ctx.job_id) as staged:
-        fut = svc.executor.run_task(decode_task, str(session_dir / "plan.json"), str(frames),
-                                    str(staged / "maps.npz"), job_id=ctx.job_id,
-                                    on_progress=ctx.progress, noise=noise, meta=meta)
-        result = fut.result()
-        ctx.check_cancelled()
-        svc.store.commit(staged, ["maps.npz"], pose_dir)
-    return result
-
-
-def _start_capture(svc: Services, session_id: str, pose_id: str, rig_id: str, plan: Plan,
-                   screen_pose: dict[str, Any] | None, job_id: str,
-                   noise_dn: float | None = None) -> None:
-    """Capture into the pose's frame store while a worker decodes the stored frames live."""
-    session_dir = svc.store.dir_for(session_id)
-    pose_dir = svc.store.dir_for(pose_id)
-
-    def body(ctx: TaskContext) -> dict[str, Any]:
-        handle = svc.rigs.handle(rig_id)
-        ctx.progress(0, len(plan.frames), "waiting for rig")
-        meta = {"pose_id": pose_id, "session_id": session_id, "plan_digest": plan.digest(),
-                "camera": handle.rig.camera.info.name}
-        with svc.store.staging(ctx.job_id) as staged:
-            with handle.lock:
-                ctx.check_cancelled()
-                _set_pose_status(svc, pose_id, "capturing")
-                if screen_pose is not None:
-                    _move_screen(handle, screen_pose)
-                # simulated rigs decode like real ones: the noise is the client's noise_dn
-                # or is estimated from the residuals (the simulator's model is ground truth)
-                fut = svc.executor.run_task(
-                    stream_decode_task, str(session_dir / "plan.json"), str(pose_dir),
-                    str(staged / "maps.npz"), job_id=ctx.job_id, on_progress=ctx.progress,
-                    noise=noise_dn, meta=meta)
-                try:
-                    cap = capture_frames(ctx, handle.rig, plan, pose_dir,
-                                         on_frame=svc.preview.publisher(rig_id))
-                except BaseException:
-                    svc.executor.cancel(ctx.job_id)  # the worker stops following the store
-                    raise
-                finally:
-                    svc.preview.capture_ended(rig_id)
-            _set_pose_status(svc, pose_id, "decoding")
-            dec = fut.result()
-            ctx.check_cancelled()
-            decoded_at = time.time()
-            svc.store.commit(staged, ["maps.npz"], pose_dir)
-            dec["commit_s"] = round(time.time() - decoded_at, 4)
-        return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
-
-    ok, fail = _pose_hooks(pose_id, pose_dir)
-    svc.jobs.start(job_id, body, ok, fail)
-
-
-def _move_screen(handle: Any, screen_pose: dict[str, Any]) -> None:
-    """Place the simulated screen (409 on a real rig, where a person or robot moves it)."""
-    sim = handle.simulated
-    if sim is None:
-        raise Problem(409, "not-simulated", f"rig {handle.rig_id} is not simulated: move the "
-                      "screen physically and capture without screen_pose")
-    import cv2
-    import numpy as np
-
-    rot, _ = cv2.Rodrigues(np.asarray(screen_pose["rvec"], np.float64))
-    sim.set_pose(rot, np.asarray(screen_pose["tvec_mm"], np.float64))
-
-
+def _add_pose(s: Any, svc: Services, job: PoseJob, source: str,
+              screen_pose: dict[str, Any] | None) -> str:
+    """Insert the pose and its queued job in one transaction; the job's id."""
+    get_session(s, job.session_id or "")
+    index = _next_index(s, job.session_id or "")
+    state = svc.jobs.create(s, job)
+    s.add(PoseRecord(id=job.pose_id, session_id=job.session_id, index=int(index),
+                     source=source, status="pending", job_id=state.id, frames_done=0,
+                     screen_pose=screen_pose, created_at=time.time()))
+    return state.id
 
 
 @router.post("/sessions/{session_id}/poses", status_code=202, response_model=None,
@@ -231,11 +118,12 @@ def capture_pose(session_id: str, svc: Svc, body: CaptureRequest | None = None) 
     if screen_pose is not None and svc.rigs.handle(rig_id).simulated is None:
         raise Problem(409, "not-simulated",
                       f"rig {rig_id} is not simulated: screen_pose moves only a simulated screen")
-    plan = plan_from_dict(plan_data, f"session {session_id} plan")
-    pid, job = _new_pose(svc, session_id, "capture", "capture", screen_pose)
-    _start_capture(svc, session_id, pid, rig_id, plan, screen_pose, job["id"],
-                   body.noise_dn if body else None)
-    return accepted(job)
+    job = CaptureJob(svc=svc, session_id=session_id, pose_id=new_id("pose"), rig_id=rig_id,
+                     plan=plan_from_dict(plan_data, f"session {session_id} plan"),
+                     screen_pose=screen_pose, noise_dn=body.noise_dn if body else None)
+    with svc.db.claim_session() as s:
+        job_id = _add_pose(s, svc, job, "capture", screen_pose)
+    return accepted(svc.jobs.start(job_id, job))
 
 
 @router.post("/sessions/{session_id}/poses/{pose_id}/resume", status_code=202, response_model=None)
@@ -249,13 +137,13 @@ def resume_pose(session_id: str, pose_id: str, svc: Svc) -> JSONResponse:
         if pose.status not in ("interrupted", "cancelled", "failed"):
             raise Problem(409, "conflict", f"pose {pose_id} is {pose.status}; only interrupted, "
                           "cancelled or failed captures can be resumed")
-        job = svc.jobs.create(s, "capture", f"/sessions/{session_id}/poses/{pose_id}",
-                              session_id, claims=(pose_id,))
-        pose.job_id, pose.status, pose.error = job.id, "pending", None
-        rig_id, plan_data, screen_pose = sess.rig_id, sess.plan, pose.screen_pose
-    plan = plan_from_dict(plan_data, f"session {session_id} plan")
-    _start_capture(svc, session_id, pose_id, rig_id or "", plan, screen_pose, job.id)
-    return accepted(svc.jobs.get(job.id) or {})
+        job = CaptureJob(svc=svc, session_id=session_id, pose_id=pose_id,
+                         rig_id=sess.rig_id or "",
+                         plan=plan_from_dict(sess.plan, f"session {session_id} plan"),
+                         screen_pose=pose.screen_pose)
+        state = svc.jobs.create(s, job)
+        pose.job_id, pose.status, pose.error = state.id, "pending", None
+    return accepted(svc.jobs.start(state.id, job))
 
 
 @router.post("/sessions/{session_id}/poses/import", status_code=202, response_model=None,
@@ -275,23 +163,19 @@ def import_pose(session_id: str, svc: Svc, files: Annotated[list[UploadFile], Fi
             frames_name = "frames"
             h, w = store_images([(f.filename or "", f.file.read()) for f in files], plan,
                                 scratch / frames_name)
-        pid, job = _new_pose(svc, session_id, "import", "decode", None)
-        pose_dir = svc.store.dir_for(pid)
-        svc.store.replace_dir(scratch / frames_name, pose_dir / frames_name)
+        pid = new_id("pose")
+        pose_dir = svc.store.dir_for(pid, create=False)
+        meta = {"pose_id": pid, "session_id": session_id, "plan_digest": plan.digest(),
+                "camera": "imported"}
+        job = ImportDecodeJob(svc=svc, session_id=session_id, pose_id=pid,
+                              frames=pose_dir / frames_name, frame_count=len(plan.frames),
+                              meta=meta, shape=(h, w), noise_dn=noise_dn)
+        with svc.db.claim_session() as s:
+            job_id = _add_pose(s, svc, job, "import", None)
+        svc.store.replace_dir(scratch / frames_name, svc.store.dir_for(pid) / frames_name)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    session_dir = svc.store.dir_for(session_id)
-    meta = {"pose_id": pid, "session_id": session_id, "plan_digest": plan.digest(),
-            "camera": "imported"}
-
-    def body(ctx: TaskContext) -> dict[str, Any]:
-        _set_pose_status(svc, pid, "decoding")
-        dec = _decode(svc, ctx, session_dir, pose_dir / frames_name, pose_dir, meta, noise_dn)
-        return {"decode": dec, "frames": len(plan.frames), "shape": [h, w]}
-
-    ok, fail = _pose_hooks(pid)
-    svc.jobs.start(job["id"], body, ok, fail)
-    return accepted(job)
+    return accepted(svc.jobs.start(job_id, job))
 
 
 @router.post("/sessions/{session_id}/poses/import-maps", status_code=201, response_model=Pose)

@@ -27,8 +27,11 @@ from calibration.decode.noise import (
     NoiseModel,
     NoiseSource,
     VarianceFn,
-    fit_photon_transfer,
     line_pixels,
+    nyquist_power,
+    phase_level,
+    residual_line,
+    sample_pieces,
     undithered,
     variance_function,
 )
@@ -117,6 +120,7 @@ class StreamingDecoder:
         )
         self._finished = False
         self._ptc: LinearVariance | None = None
+        self._leak: Any = None  # per set r^2 of the display harmonic in the residuals
         # Large NumPy images may take the compiled per-pixel kernel; other namespaces (CuPy)
         # the array-namespace path.
         self._large = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
@@ -197,6 +201,7 @@ class StreamingDecoder:
             "decoder": {
                 "noise": self._noise_kind,
                 "photon_transfer": asdict(self._ptc) if self._ptc is not None else None,
+                "display_harmonic_r2": self._leak,
                 "clip_threshold_dn": acc.high,
                 "max_sample_dn": acc.max_seen if math.isfinite(acc.max_seen) else None,
                 "frame_dtype": str(acc.dtype),
@@ -250,8 +255,10 @@ class StreamingDecoder:
         rss = self._acc.squares.reshape(-1)[sl].astype(xp.float64)
         dof = xp.zeros_like(rss)
         level = xp.zeros_like(rss)
-        for f in fits:
+        for f, s, r2 in zip(fits, self._acc.sets, self._leak or [0.0] * len(fits), strict=True):
             rss = rss - xp.where(f.ok, f.explained, 0.0)
+            if r2:  # the display harmonic in the residual is not noise (`harmonic_leak`)
+                rss = rss - r2 * nyquist_power(xp, [f], [s])[0]
             dof = dof + xp.where(f.ok, f.dof, 0.0)
             level = level + xp.where(f.ok, f.dof * f.level, 0.0)
         return xp.maximum(rss, 0.0), dof, level / xp.maximum(dof, 1.0)
@@ -259,11 +266,13 @@ class StreamingDecoder:
     def _estimate_noise(self, npix: int) -> None:
         """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass),
         on the pixels `line_pixels` chooses, held at or above the floor from the median
-        dark-flat level up (the lowest level the sensor records there)."""
+        dark-flat level up (the lowest level the sensor records there), less the display
+        harmonic that falls into the residual (`harmonic_leak`)."""
         acc = self._acc
-        pieces = self._noise_sample(npix)
+        pieces = sample_pieces(npix, self.options.chunk_pixels, _NOISE_PIECE, _NOISE_SAMPLE)
         size = sum(sl.stop - sl.start for sl in pieces)
         mean, rss, dof, span, dark = (np.empty(size, dtype=np.float32) for _ in range(5))
+        power = np.empty((len(acc.sets), size), dtype=np.float32)
         clean, no_dark_clip = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
         offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
 
@@ -273,6 +282,7 @@ class StreamingDecoder:
             fits = [fit_set(self.xp, s, sl, residuals=True, skip=skip) for s in acc.sets]
             r, d, m = self._residuals(fits, sl)
             rss[to], dof[to], mean[to] = to_host(r), to_host(d), to_host(m)
+            power[:, to] = to_host(self.xp.stack(nyquist_power(self.xp, fits, acc.sets)))
             dark[to] = to_host(acc.dark.reshape(-1)[sl] / acc.n_dark)
             span[to] = to_host(acc.bright.reshape(-1)[sl] / acc.n_bright) - dark[to]
             clean[to] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
@@ -282,17 +292,8 @@ class StreamingDecoder:
         self._map(one, list(range(len(pieces))))
         spread = ~undithered(span, rss, dof, no_dark_clip, quantized=acc.dtype.kind == "u")
         use = line_pixels(clean, no_dark_clip, spread, dof, _MIN_CLEAN_PIXELS)
-        low = float(np.median(dark[use])) if use.any() else None
-        self._ptc = fit_photon_transfer(mean[use], rss[use], dof[use], self._floor, low=low)
-
-    def _noise_sample(self, npix: int) -> list[slice]:
-        """Pixel ranges the photon-transfer line is fitted on: all pixels, or evenly spread
-        pieces of `_NOISE_PIECE` pixels totalling about `_NOISE_SAMPLE` on large images."""
-        if npix <= _NOISE_SAMPLE:
-            step = self.options.chunk_pixels
-            return [slice(s, min(s + step, npix)) for s in range(0, npix, step)]
-        starts = np.linspace(0, npix - _NOISE_PIECE, _NOISE_SAMPLE // _NOISE_PIECE)
-        return [slice(int(s), int(s) + _NOISE_PIECE) for s in starts]
+        self._ptc, self._leak = residual_line(mean[use], rss[use], dof[use], power[:, use],
+                                              self._floor, dark[use])
 
     def _sees_no_screen(self, sl: slice) -> Any:
         """Pixels whose flat contrast fails `min_contrast_snr` even at the smallest credible
@@ -320,7 +321,8 @@ class StreamingDecoder:
         xp = self.xp
         if self._variance is not None:
             fn = self._variance
-            per_set = [fn(xp.maximum(f.mean, 0.0)) for f in fits]
+            per_set = [fn(phase_level(xp, f, s, sl)) for f, s in zip(fits, self._acc.sets,
+                                                                      strict=True)]
             everywhere = xp.ones(fits[0].mean.shape, dtype=bool)
             for f, var in zip(fits, per_set, strict=True):
                 f.use_step_levels(xp, fn, var, everywhere)
@@ -332,7 +334,8 @@ class StreamingDecoder:
         ptc = self._ptc.variance
         limit = xp.asarray(_chi2_tail(int(to_host(dof).max()) if dof.size else 0))
         excess = own > ptc(xp.maximum(fits[0].mean, 0.0)) * limit[dof.astype(xp.int64)]
-        per_set = [xp.where(excess, own, ptc(xp.maximum(f.mean, 0.0))) for f in fits]
+        per_set = [xp.where(excess, own, ptc(phase_level(xp, f, s, sl)))
+                   for f, s in zip(fits, self._acc.sets, strict=True)]
         for f, var in zip(fits, per_set, strict=True):
             f.use_step_levels(xp, ptc, var, ~excess)
         return per_set, ptc  # the flats are not subject to the cosine-fit model error

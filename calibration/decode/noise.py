@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -122,6 +123,113 @@ def undithered(span: np.ndarray, rss: np.ndarray, dof: np.ndarray, candidates: n
     return low if pooled < DITHERED_VARIANCE else np.zeros(span.shape, dtype=bool)
 
 
+def nyquist_power(xp: Any, fits: list, sets: list) -> list:
+    """Per set, `nyquist_power_of` its fit."""
+    return [nyquist_power_of(xp, f.alpha, f.beta, s.layout.steps, f.clipped)
+            for f, s in zip(fits, sets, strict=True)]
+
+
+def nyquist_power_of(xp: Any, alpha: Any, beta: Any, steps: int, clipped: Any) -> Any:
+    """`N B^2 cos^2(N phi / 2)` of one set's fit: the residual sum of squares that a display
+    harmonic of order N/2 with amplitude B (the fundamental's) adds (even N; odd N: 0).
+
+    An even-N plan's last residual column is cos(N psi / 2) = (-1)^i: harmonic N/2 of the
+    light, `h cos(N/2 (phi + psi_i))`, sums there to `N h cos(N phi / 2)` and adds
+    `N h^2 cos^2(N phi / 2)` to the residual; h = r B with r the display's harmonic ratio.
+    0 at `clipped` pixels (their kept steps have other residual columns).
+    """
+    if steps % 2:
+        return xp.zeros(alpha.shape, dtype=xp.float32)
+    b2 = alpha * alpha + beta * beta  # float32: a relative precision of 1e-7 is plenty here
+    u = beta / xp.sqrt(xp.where(b2 > 0, b2, xp.float32(1.0)))  # cos(phi)
+    prev, cheb = xp.ones_like(u), u  # Chebyshev T_k(cos phi) = cos(k phi)
+    for _ in range(steps // 2 - 1):
+        prev, cheb = cheb, xp.float32(2.0) * u * cheb - prev
+    return xp.where(clipped, xp.float32(0.0), xp.float32(steps) * b2 * cheb * cheb)
+
+
+def phase_level(xp: Any, fit: Any, sums: Any, sl: slice) -> Any:
+    """Level (DN) whose noise variance is the phase's, for pixels with all steps kept.
+
+    The phase rests on the steps where the fundamental crosses its mean (gain ~ sin theta_i,
+    theta = phi + psi), not on its peaks. With noise linear in the level, the phase variance
+    is `sum_i var(mu_i) sin^2 theta_i` over `sum_i sin^2 theta_i` times the usual factor,
+    which puts the level at `C - h2c / 2`: h2c, the second harmonic in phase with the
+    fundamental (display gamma without LUT: positive, the light at the crossings is below
+    the mean), is the only fitted term that does not cancel. The mean level C overstated
+    the phase noise there (normalized-error std 0.92 with the true sensor model too).
+    """
+    if 2 not in sums.harmonics:
+        return xp.maximum(fit.mean, 0.0)
+    j, scale = 2 * sums.harmonics.index(2), 2.0 / sums.layout.steps
+    s2, c2 = (sums.extra[j + k].reshape(-1)[sl] * scale for k in (0, 1))
+    b2 = fit.b2
+    safe = xp.where(b2 > 0, b2, 1.0)
+    h2c = (c2 * (fit.beta**2 - fit.alpha**2) + s2 * 2.0 * fit.alpha * fit.beta) / safe
+    return xp.maximum(fit.mean - 0.5 * h2c, 0.0)
+
+
+def harmonic_leak(rss: np.ndarray, dof: np.ndarray, level: np.ndarray, power: np.ndarray,
+                  first: LinearVariance | None, max_rows: int = 1 << 16) -> np.ndarray | None:
+    """Per set, the squared harmonic ratio r^2 of the display's harmonic N/2 in the residuals.
+
+    Display gamma without a LUT puts harmonics into the light, phase-locked to the
+    fundamental and in the same ratio at every pixel (the display's response; camera blur
+    lowers it a little on the finest periods, hence one ratio per set). Harmonic N/2 falls
+    into an even-N plan's last residual column: with 6 steps (`fast`) it is the residual's
+    only degree of freedom per set, and taken for noise it overstated sigma (std 0.70 on a
+    150-degree fisheye, gamma 2.2 without LUT). A weighted least-squares fit across pixels
+    of `rss = dof (a + b level) + sum_s r_s^2 power_s` separates it (`power` from
+    `nyquist_power`, (sets, pixels)); the caller subtracts `r^2 power` before fitting the
+    noise line. Rows: relative weights from the `first` (contaminated) line; pixels with
+    residuals over 10x it (model errors) left out. A ratio not 5 standard errors above 0 is
+    taken as 0 (subtracting a fitted noise-level ratio would only take noise away). None
+    without an even-N set, or when the harmonic is under 1 % of the residual variance
+    (gamma 2.2's harmonic 4 in an 8-step plan: ~0.1 %).
+    """
+    if first is None or not power.any() or rss.size < 1000:
+        return None
+    step = max(1, rss.size // max_rows)
+    rss, dof, level, power = rss[::step], dof[::step], level[::step], power[:, ::step]
+    var = np.asarray(first.variance(level), dtype=np.float64)
+    ok = rss < 10.0 * dof * var
+    w = 1.0 / (dof * var)[ok]
+    design = np.column_stack([dof[ok] * w, dof[ok] * level[ok] * w, *(p[ok] * w for p in power)])
+    used = np.flatnonzero(np.abs(design).sum(axis=0) > 0)  # sets with even steps and pixels
+    coef = np.zeros(design.shape[1])
+    coef[used] = np.linalg.lstsq(design[:, used], rss[ok] * w, rcond=None)[0]
+    scatter = np.sum((design @ coef - rss[ok] * w) ** 2) / max(design.shape[0] - used.size, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.sqrt(scatter / np.einsum("ij,ij->j", design, design))  # uncorrelated approx
+    r2 = np.where(coef[2:] > 5.0 * err[2:], coef[2:], 0.0)
+    # Under 1 % of the residual variance (an 8-step plan's harmonic 4): not worth its cost.
+    share = float(np.sum(r2 * power[:, ok].mean(axis=1)) / np.mean(dof[ok] * var[ok]))
+    return r2 if share >= 0.01 else None
+
+
+def sample_pieces(npix: int, chunk: int, piece: int, total: int) -> list[slice]:
+    """Pixel ranges the photon-transfer line is fitted on: all pixels (in `chunk`s), or
+    evenly spread pieces of `piece` pixels, about `total` in all, on larger images."""
+    if npix <= total:
+        return [slice(s, min(s + chunk, npix)) for s in range(0, npix, chunk)]
+    starts = np.linspace(0, npix - piece, total // piece)
+    return [slice(int(s), int(s) + piece) for s in starts]
+
+
+def residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.ndarray,
+                  floor: float, dark: np.ndarray) -> tuple[LinearVariance | None, Any]:
+    """The noise line of the residuals and the display harmonic's per-set r^2 (None if not
+    found): a first line, the harmonic fitted against it (`harmonic_leak`), subtracted, and
+    the line fitted again; at or above `floor` from the median `dark` flat level up."""
+    low = float(np.median(dark)) if dark.size else None
+    line = fit_photon_transfer(mean, rss, dof, floor, low=low)
+    leak = harmonic_leak(rss, dof, mean, power, line)
+    if leak is None:
+        return line, None
+    rss = np.maximum(rss - leak.astype(np.float32) @ power, 0.0)
+    return fit_photon_transfer(mean, rss, dof, floor, low=low), [float(r2) for r2 in leak]
+
+
 def line_pixels(clean: np.ndarray, no_dark_clip: np.ndarray, spread: np.ndarray,
                 dof: np.ndarray, minimum: int) -> np.ndarray:
     """The pixels the photon-transfer line is fitted on: the first choice with `minimum`.
@@ -173,21 +281,25 @@ def fit_photon_transfer(
     ratio = rss[good] / d / (median / dofs)[d - 1]
     edges = np.unique(np.quantile(m, np.linspace(0.0, 1.0, bins + 1)))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
-    count = np.bincount(which, minlength=len(edges) - 1)
-    keep = [b for b in range(len(edges) - 1) if count[b] >= 16]  # a loop over 16 bins
-    x = np.array([float(np.median(m[which == b])) for b in keep])
+    order = np.argsort(which, kind="stable")  # each bin a contiguous slice
+    m, ratio = m[order], ratio[order]
+    bounds = np.searchsorted(which[order], np.arange(len(edges)))
+    # a loop over 16 bins, not over pixels
+    bins_ = [slice(int(lo), int(hi)) for lo, hi in itertools.pairwise(bounds) if hi - lo >= 16]
+    count = np.array([b.stop - b.start for b in bins_], dtype=np.float64)
+    x = np.array([float(np.median(m[b])) for b in bins_])
     line: LinearVariance | None = None
     for _ in range(2):
         # Second pass: each ratio over the first line at its own level, so a bin whose levels
         # (hence variances) span a factor of several still gives the line at its median level
         # (the plain median of such a mixture sat 6 % low in the darkest bin).
-        scale = np.ones(m.shape) if line is None else line.variance(m)
+        rel = ratio if line is None else ratio / line.variance(m)
         at = np.ones(x.shape) if line is None else line.variance(x)
-        y = np.array([float(np.median(ratio[which == b] / scale[which == b])) for b in keep]) * at
+        y = np.array([float(np.median(rel[b])) for b in bins_]) * at
         ok = y > 0  # mostly constant readings (a black level under the noise) say nothing
         if ok.sum() < 4:  # about the line, and 1/y weights would be infinite
             return line
-        line = _weighted_line(x[ok], y[ok], count[keep][ok].astype(np.float64), floor, low)
+        line = _weighted_line(x[ok], y[ok], count[ok], floor, low)
     return line
 
 

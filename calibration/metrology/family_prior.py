@@ -29,7 +29,7 @@ from calibration.fit.sgcc.lm import gauge_constraints
 from calibration.fit.sgcc.state import LMState
 from calibration.metrology.lm import fit_dense
 from calibration.metrology.refine import fit_parametric_dense
-from calibration.metrology.screen import ScreenModel
+from calibration.metrology.screen import PARAM_NAMES, ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.parametric import OpenCVRationalModel
 from calibration.models.sgcc import logmap
@@ -45,7 +45,7 @@ def _point_sets(obs: list[PoseObs], pitch: np.ndarray) -> list[PointSet]:
             for o in obs]
 
 
-def _rational_from_init(pts: list[PointSet], screen: ScreenGeometry,
+def _rational_from_init(pts: list[PointSet], screen: ScreenModel,
                        image_size: tuple[int, int], cv_fit: tuple) -> tuple[Any, list, dict]:
     """Dense opencv-rational fit started from sGCC's own OpenCV init (no second OpenCV run)."""
     k, dist, rvecs, tvecs = cv_fit
@@ -55,17 +55,20 @@ def _rational_from_init(pts: list[PointSet], screen: ScreenGeometry,
                                                                              strict=True)]
     free = np.zeros(model.get_params().size, dtype=bool)
     free[:12] = True  # K and k1..k6, p1, p2; thin prism stays 0
-    dense = fit_dense(model, poses, pts, ScreenModel(screen), free)
+    dense = fit_dense(model, poses, pts, screen, free)
     std = dict(zip(model.param_names(), dense.param_std.tolist(), strict=True))
     return dense.model, dense.poses, {"reduced_chi2": dense.stats["reduced_chi2"],
-                                      "param_std": std, "family": "opencv-rational"}
+                                      "param_std": std, "family": "opencv-rational",
+                                      "screen": dense.screen.to_json()}
 
 
-def _fisheye(pts: list[PointSet], screen: ScreenGeometry, image_size: tuple[int, int]
+def _fisheye(pts: list[PointSet], screen: ScreenModel, image_size: tuple[int, int]
              ) -> tuple[Any, list, dict] | None:
     """Dense fisheye fit (OpenCV init), or None where the views do not determine it."""
     try:
-        model, poses, _, stats, _ = fit_parametric_dense(pts, image_size, "fisheye", screen)
+        model, poses, _, stats, _ = fit_parametric_dense(
+            pts, image_size, "fisheye", screen.geometry,
+            {"screen": screen.mode, "glass_index": screen.glass_index})
     except (DegenerateError, ValueError, np.linalg.LinAlgError):
         return None
     return model, poses, {**stats, "family": "fisheye"}
@@ -102,18 +105,22 @@ def family_adequate(family_stats: dict[str, Any], spline_chi2_dof: float, n_resi
 
 
 def prior_state(obs: list[PoseObs], screen: ScreenGeometry, grid: SplineGrid, n_comp: int,
-                free_fit_chi2: float, n_residuals: int, cv_fit: tuple
-                ) -> tuple[LMState, dict[str, Any]]:
+                free_fit_chi2: float, n_residuals: int, cv_fit: tuple,
+                screen_model: ScreenModel | None = None) -> tuple[LMState, dict[str, Any]]:
     """The state of the adequate family (rational from `cv_fit`, fisheye) with the lower chi2
     in the mesh, with the test's verdict; if none is adequate, the verdict of the best.
 
     `free_fit_chi2` / `n_residuals`: the free spline fit's chi2/dof and residual count.
+    `screen_model` (mode "fit": sGCC's `screen: "fit"`): the families fit the screen too,
+    so they are judged on the same screen model as the spline; its estimate starts the state.
     """
+    scr = screen_model or ScreenModel(screen)
     pts = _point_sets(obs, np.asarray(screen.pitch_mm, dtype=np.float64))
     n_gauge = len(gauge_constraints(grid, n_comp, grid.size * n_comp))
     best = None
-    for fit in (lambda: _rational_from_init(pts, screen, grid.image_size, cv_fit),
-                lambda: _fisheye(pts, screen, grid.image_size)):
+    for fit in (lambda: _rational_from_init(pts, ScreenModel(screen, scr.mode, scr.glass_index),
+                                            grid.image_size, cv_fit),
+                lambda: _fisheye(pts, scr, grid.image_size)):
         found = fit()
         if found is None:
             continue
@@ -125,9 +132,12 @@ def prior_state(obs: list[PoseObs], screen: ScreenGeometry, grid: SplineGrid, n_
                 "spline_chi2_dof": free_fit_chi2, "extra_dof": extra, **test, "adequate": ok,
                 "weight": PRIOR_WEIGHT if ok else None}
         if best is None or test["chi2_gain"] < best[2]["chi2_gain"]:
-            best = (model, poses, info)
+            best = (model, poses, info, stats["screen"])
     assert best is not None  # the rational fit always returns
-    model, poses, info = best
+    model, poses, info, fitted_screen = best
     if not info["adequate"]:
         return LMState(np.zeros((grid.size, n_comp)), [], []), info
-    return state_from_model(model, poses, obs, grid, n_comp), info
+    state = state_from_model(model, poses, obs, grid, n_comp)
+    if scr.mode == "fit":
+        state.screen = np.array([fitted_screen[k] for k in PARAM_NAMES])
+    return state, info

@@ -108,7 +108,7 @@ def model_from_dict(data: Any, source: str = "model") -> CameraModel:
     _import_builtin_models()
     mtype = data.get("type")
     if mtype not in _REGISTRY:
-        raise ModelError(f"{source}: type: unknown model {mtype!r}; known: {sorted(_REGISTRY)}")
+        raise ModelError(f"{source}: type: unknown model {mtype!r}; known: {model_types()}")
     size = data.get("image_size")
     if (
         not isinstance(size, list)

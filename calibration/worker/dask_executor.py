@@ -18,15 +18,15 @@ elsewhere; after `distributed.scheduler.allowed-failures` deaths the job fails w
 
 from __future__ import annotations
 
-import threading
 import uuid
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
 from calibration.extras import require
-from calibration.progress import Cancelled, ProgressFn
+from calibration.progress import Cancelled
 from calibration.worker.dask_context import PROGRESS_TOPIC, cancel_event_name, run_in_worker
+from calibration.worker.task_runner import TaskRunner, Ticket
 
 LOCAL_PREFIX = "local"
 DEFAULT_MAX_ARG_BYTES = 1 << 20
@@ -37,15 +37,28 @@ class WorkerLost(RuntimeError):
 
 
 class _Job:
-    """Client-side bookkeeping of one submitted job."""
+    """Client-side state of one submitted job; `set()` is its cancel flag.
 
-    def __init__(self, job_id: str, on_progress: ProgressFn | None) -> None:
+    Cancel sets the job's `distributed.Event` (a running task sees `cancelled()`) and drops
+    the task if no worker has started it yet.
+    """
+
+    def __init__(self, client: Any, job_id: str) -> None:
+        self.client = client
         self.job_id = job_id
-        self.on_progress = on_progress
         self.started = False
         self.cancel_requested = False
         self.dask_future: Any = None
         self.future: Future = Future()
+
+    def set(self) -> None:
+        """Ask the job to stop."""
+        from distributed import Event
+
+        self.cancel_requested = True
+        Event(cancel_event_name(self.job_id), client=self.client).set()
+        if not self.started and self.dask_future is not None:
+            self.client.cancel(self.dask_future)
 
 
 def _parse_local(address: str) -> int | None:
@@ -92,8 +105,10 @@ def _nbytes(value: Any) -> int:
     return 0
 
 
-class DaskExecutor:
+class DaskExecutor(TaskRunner):
     """Runs job tasks on a Dask cluster with progress, cooperative cancel and clean failure."""
+
+    unique_jobs = True
 
     def __init__(
         self,
@@ -107,6 +122,7 @@ class DaskExecutor:
         require("dask", "the Dask executor")
         from distributed import Client
 
+        super().__init__()
         self._cluster: Any = None
         if isinstance(address, Client):
             self.client = address
@@ -131,8 +147,6 @@ class DaskExecutor:
         self.cancel_poll_s = float(cancel_poll_s)
         self.progress_interval_s = float(progress_interval_s)
         self.max_arg_bytes = int(max_arg_bytes)
-        self._jobs: dict[str, _Job] = {}
-        self._lock = threading.Lock()
         self._closed = False
         self.client.subscribe_topic(PROGRESS_TOPIC, self._on_event)
 
@@ -150,75 +164,48 @@ class DaskExecutor:
         dfut.add_done_callback(lambda f: self._settle(out, f, getattr(fn, "__name__", "task")))
         return out
 
-    def run_task(
-        self,
-        task_fn: Callable[..., Any],
-        /,
-        *args: Any,
-        job_id: str,
-        on_progress: ProgressFn | None = None,
-        **kwargs: Any,
-    ) -> Future:
-        """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` on a worker."""
+    def _admit(self, task_fn: Callable[..., Any], args: tuple[Any, ...],
+               kwargs: dict[str, Any]) -> None:
         self._check_open()
         self._check_by_reference(task_fn, args, kwargs)
-        job = _Job(job_id, on_progress)
-        with self._lock:
-            if job_id in self._jobs:
-                raise ValueError(f"job {job_id!r} is already running on {self.address}")
-            self._jobs[job_id] = job
+
+    def _new_flag(self, job_id: str) -> _Job:
+        return _Job(self.client, job_id)
+
+    def _launch(self, task_fn: Callable[..., Any], ticket: Ticket, args: tuple[Any, ...],
+                kwargs: dict[str, Any]) -> Future:
+        job: _Job = ticket.flag  # type: ignore[assignment]
         job.future.set_running_or_notify_cancel()
         name = getattr(task_fn, "__name__", "task")
         options = {"cancel_poll_s": self.cancel_poll_s, "progress_s": self.progress_interval_s}
-        try:
-            job.dask_future = self.client.submit(
-                run_in_worker,
-                task_fn,
-                job_id,
-                args,
-                kwargs,
-                options,
-                key=f"phasecal-{name}-{job_id}-{uuid.uuid4().hex[:8]}",
-                pure=False,
-            )
-        except BaseException:
-            with self._lock:
-                self._jobs.pop(job_id, None)
-            raise
-        job.dask_future.add_done_callback(lambda f: self._finish(job, f, name))
+        job.dask_future = self.client.submit(
+            run_in_worker,
+            task_fn,
+            ticket.job_id,
+            args,
+            kwargs,
+            options,
+            key=f"phasecal-{name}-{ticket.job_id}-{uuid.uuid4().hex[:8]}",
+            pure=False,
+        )
+        job.dask_future.add_done_callback(lambda f: self._finish(ticket, f, name))
         return job.future
-
-    def cancel(self, job_id: str) -> bool:
-        """Ask job `job_id` to stop: a queued task is dropped, a running one sees cancelled()."""
-        with self._lock:
-            job = self._jobs.get(job_id)
-        if job is None:
-            return False
-        from distributed import Event
-
-        job.cancel_requested = True
-        Event(cancel_event_name(job_id), client=self.client).set()
-        if not job.started and job.dask_future is not None:
-            self.client.cancel(job.dask_future)
-        return True
 
     def running_jobs(self) -> list[str]:
         """Ids of jobs submitted and not finished yet."""
-        with self._lock:
-            return sorted(self._jobs)
+        return sorted(t.job_id for t in self.tickets())
 
     def shutdown(self, wait: bool = True) -> None:
         """Wait for every job, or (wait=False) flag them cancelled and fail their futures now;
         then close the client and any cluster this executor started."""
         if self._closed:
             return
-        with self._lock:
-            jobs = list(self._jobs.values())
+        jobs: list[_Job] = [t.flag for t in self.tickets()]  # type: ignore[misc]
         for job in jobs:
             if wait:
                 job.future.exception()
             else:
-                self.cancel(job.job_id)
+                job.set()
                 _set_exception(job.future, Cancelled(
                     f"job {job.job_id}: the executor was shut down while it was active"))
         self._closed = True
@@ -257,20 +244,18 @@ class DaskExecutor:
         _stamp, msg = event
         if not isinstance(msg, dict):
             return
-        with self._lock:
-            job = self._jobs.get(str(msg.get("job_id")))
-        if job is None:
+        ticket = self.ticket(str(msg.get("job_id")))
+        if ticket is None:
             return
         if msg.get("kind") == "start":
-            job.started = True
-        elif msg.get("kind") == "progress" and job.on_progress is not None:
-            job.on_progress(int(msg["done"]), int(msg["total"]), str(msg["stage"]))
+            ticket.flag.started = True  # type: ignore[attr-defined]
+        elif msg.get("kind") == "progress":
+            ticket.report(msg["done"], msg["total"], msg["stage"])
 
-    def _finish(self, job: _Job, dfut: Any, name: str) -> None:
-        """Settle the job's future from the Dask future and forget the job."""
-        with self._lock:
-            if self._jobs.get(job.job_id) is job:
-                del self._jobs[job.job_id]
+    def _finish(self, ticket: Ticket, dfut: Any, name: str) -> None:
+        """Forget the job, then settle its future from the Dask future."""
+        job: _Job = ticket.flag  # type: ignore[assignment]
+        self._forget(ticket)  # before settling: a waiter woken by the result sees it gone
         self._settle(job.future, dfut, name, job.job_id)
         if not job.cancel_requested:
             self._clear_event(job.job_id)

@@ -17,6 +17,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Protocol, runtime_checkable
 
 from calibration.progress import ProgressFn, TaskContext
+from calibration.worker.task_runner import TaskRunner, Ticket
 
 DASK_ENV = "PHASECAL_DASK"
 
@@ -42,77 +43,30 @@ class Executor(Protocol):
     def shutdown(self, wait: bool = True) -> None: ...
 
 
-class _CancelFlags:
-    """Cancel flags (anything with `.set()`) of the tasks a local executor has in flight."""
-
-    def __init__(self) -> None:
-        self._flags: dict[str, Any] = {}
-        self._lock = threading.Lock()
-
-    def add(self, job_id: str, flag: Any) -> None:
-        """Track `flag` as job `job_id`'s cancel flag."""
-        with self._lock:
-            self._flags[job_id] = flag
-
-    def cancel(self, job_id: str) -> bool:
-        """Set the job's flag; False if no such task is queued or running."""
-        with self._lock:
-            flag = self._flags.get(job_id)
-        if flag is None:
-            return False
-        flag.set()
-        return True
-
-    def cancel_all(self) -> None:
-        """Set every tracked flag (shutdown without waiting)."""
-        with self._lock:
-            for flag in self._flags.values():
-                flag.set()
-
-    def forget(self, job_id: str, flag: Any) -> None:
-        """Stop tracking the job, unless a newer task with the same id replaced `flag`."""
-        with self._lock:
-            if self._flags.get(job_id) is flag:
-                del self._flags[job_id]
-
-
-class InProcessExecutor:
+class InProcessExecutor(TaskRunner):
     """Runs tasks on a thread pool in this process; cancel sets the task's flag."""
 
     def __init__(self, max_workers: int | None = None) -> None:
+        super().__init__()
         workers = max_workers or max(1, min(4, os.cpu_count() or 1))
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="phasecal-task")
-        self._flags = _CancelFlags()
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
         """Run a plain callable on the pool."""
         return self._pool.submit(fn, *args, **kwargs)
 
-    def run_task(
-        self,
-        task_fn: Callable[..., Any],
-        /,
-        *args: Any,
-        job_id: str,
-        on_progress: ProgressFn | None = None,
-        **kwargs: Any,
-    ) -> Future:
-        """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id`."""
-        event = threading.Event()
-        self._flags.add(job_id, event)
-        ctx = TaskContext(job_id, on_progress, event)
-        fut = self._pool.submit(task_fn, ctx, *args, **kwargs)
-        fut.add_done_callback(lambda _f: self._flags.forget(job_id, event))
-        return fut
+    def _new_flag(self, job_id: str) -> threading.Event:
+        return threading.Event()
 
-    def cancel(self, job_id: str) -> bool:
-        """Ask the task of `job_id` to stop; False if no such task is queued or running."""
-        return self._flags.cancel(job_id)
+    def _launch(self, task_fn: Callable[..., Any], ticket: Ticket, args: tuple[Any, ...],
+                kwargs: dict[str, Any]) -> Future:
+        ctx = TaskContext(ticket.job_id, ticket.on_progress, ticket.flag)  # type: ignore[arg-type]
+        return self._pool.submit(task_fn, ctx, *args, **kwargs)
 
     def shutdown(self, wait: bool = True) -> None:
         """Stop accepting work; flag every running task as cancelled when not waiting."""
         if not wait:
-            self._flags.cancel_all()
+            self.cancel_all()
         self._pool.shutdown(wait=wait, cancel_futures=not wait)
 
 
@@ -140,7 +94,7 @@ def _run_remote(task_fn: Callable[..., Any], job_id: str, queue: Any, cancel_eve
     return task_fn(_RemoteContext(job_id, queue, cancel_event), *args, **kwargs)
 
 
-class ProcessExecutor:
+class ProcessExecutor(TaskRunner):
     """Runs tasks in worker processes (spawned), so GIL-bound numerics never stall the API.
 
     Workers and the manager process exit when this process dies (`worker.lifetime`).
@@ -156,6 +110,7 @@ class ProcessExecutor:
 
         from calibration.worker.lifetime import die_with_parent, guard_args
 
+        super().__init__()
         ctx = mp.get_context("spawn")
         workers = max_workers or max(1, min(2, os.cpu_count() or 1))
         guard = guard_args()  # workers and the manager die with this process (kill -9 too)
@@ -170,7 +125,6 @@ class ProcessExecutor:
         self._manager = SyncManager(ctx=ctx)
         self._manager.start(die_with_parent, guard)
         self._queue = self._manager.Queue()
-        self._flags = _CancelFlags()
         self._callbacks: dict[str, ProgressFn] = {}
         self._lock = threading.Lock()
         self._drain = threading.Thread(target=self._forward, name="phasecal-progress",
@@ -181,33 +135,21 @@ class ProcessExecutor:
         """Run a picklable callable in a worker process."""
         return self._pool.submit(fn, *args, **kwargs)
 
-    def run_task(
-        self,
-        task_fn: Callable[..., Any],
-        /,
-        *args: Any,
-        job_id: str,
-        on_progress: ProgressFn | None = None,
-        **kwargs: Any,
-    ) -> Future:
-        """Run `task_fn(TaskContext, *args, **kwargs)` for job `job_id` in a worker."""
-        event = self._manager.Event()
-        self._flags.add(job_id, event)
-        if on_progress is not None:
-            with self._lock:
-                self._callbacks[job_id] = on_progress
-        fut = self._pool.submit(_run_remote, task_fn, job_id, self._queue, event, args, kwargs)
-        fut.add_done_callback(lambda _f: self._forget(job_id, event))
-        return fut
+    def _new_flag(self, job_id: str) -> Any:
+        return self._manager.Event()
 
-    def cancel(self, job_id: str) -> bool:
-        """Ask the task of `job_id` to stop; False if it is not queued or running."""
-        return self._flags.cancel(job_id)
+    def _launch(self, task_fn: Callable[..., Any], ticket: Ticket, args: tuple[Any, ...],
+                kwargs: dict[str, Any]) -> Future:
+        if ticket.on_progress is not None:
+            with self._lock:
+                self._callbacks[ticket.job_id] = ticket.on_progress
+        return self._pool.submit(_run_remote, task_fn, ticket.job_id, self._queue, ticket.flag,
+                                 args, kwargs)
 
     def shutdown(self, wait: bool = True) -> None:
         """Stop the workers (flagging running tasks cancelled when not waiting)."""
         if not wait:
-            self._flags.cancel_all()
+            self.cancel_all()
         self._pool.shutdown(wait=wait, cancel_futures=not wait)
         self._queue.put(None)
         self._drain.join(5)
@@ -231,10 +173,9 @@ class ProcessExecutor:
             if cb is not None:
                 cb(done, total, stage)
 
-    def _forget(self, job_id: str, event: Any) -> None:
+    def _settled(self, ticket: Ticket) -> None:
         # The worker queued all its progress before returning, so this marker comes last.
-        self._flags.forget(job_id, event)
-        self._queue.put((_FORGET, job_id))
+        self._queue.put((_FORGET, ticket.job_id))
 
 
 def make_executor(address: str | None = None) -> Executor:

@@ -259,3 +259,20 @@ def test_integrity_repeats_follow_the_plan_frames_in_one_pipeline():
     assert len(shown) == len(PLAN.frames) + 3 and res.recaptures == []
     assert np.round(np.diff(shown) * 60).astype(int).tolist() == [2] * (len(shown) - 1)
     assert sorted(res.accepted) == list(range(len(PLAN.frames)))
+
+
+def test_a_torn_pattern_is_shown_again_later_without_discarding_the_pipeline():
+    """Two late triggers tear two patterns; each is shown once more after the others, the
+    patterns already in flight stay valid: one extra show per recapture, nothing else."""
+    r = make_rig(2, CameraFaults(late_triggers={5: 0.02, 20: 0.03}), timestamp_jitter_s=0.0)
+    store = MemoryFrameStore()
+    s = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    res = capture_pose(r.rig, PLAN, store, settings=s, options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete" and res.integrity is not None and res.integrity.ok
+    torn = [rc.index for rc in res.recaptures]
+    assert len(torn) == 2 and all(rc.reason.startswith("torn") for rc in res.recaptures)
+    shown = [h for h in r.display.history() if h.image_id > 0]
+    assert len(shown) == len(PLAN.frames) + 3 + len(torn)
+    assert sorted(store.frames) == list(range(len(PLAN.frames))) and mis_synced(r, res) == []
+    assert shown_codes_match(r, res)
+    assert [res.accepted.index(i) for i in torn] == [len(PLAN.frames) - 2, len(PLAN.frames) - 1]

@@ -19,6 +19,7 @@ from api.problems import Problem
 from api.recovery import mark_interrupted
 from calibration.worker.executor import InProcessExecutor
 from tests.api.test_api_session import screen_poses, small_rig
+from tests.api.test_api_units import FnJob
 
 
 def _wait(c: TestClient, job_id: str, cond, timeout_s: float = 120) -> dict:
@@ -72,25 +73,25 @@ def test_job_claims_are_exclusive_until_the_job_ends(tmp_path: Path) -> None:
     ex = InProcessExecutor(max_workers=1)
     jm = JobManager(db, ex)
     gate = threading.Event()
+    claim = ("cal_0000000000000001",)
+    fn = FnJob(kind_="calibrate", resource="/calibrations/cal_0000000000000001", claims=claim,
+               body=lambda ctx: gate.wait(10) and {})
     with db.claim_session() as s:
-        first = jm.create(s, "calibrate", "/calibrations/cal_0000000000000001", None,
-                          claims=("cal_0000000000000001",))
+        first = jm.create(s, fn)
     with pytest.raises(Problem) as err, db.claim_session() as s:
-        jm.create(s, "calibrate", "/calibrations/cal_0000000000000001", None,
-                  claims=("cal_0000000000000001",))
+        jm.create(s, FnJob(kind_="calibrate", claims=claim))
     assert err.value.status == 409 and first.id in err.value.detail
-    jm.start(first.id, lambda ctx: gate.wait(10) and {}, lambda s, r: None,
-             lambda s, st, e: None)
+    jm.start(first.id, fn)
     gate.set()
     deadline = time.monotonic() + 10
     while jm.get(first.id)["status"] != "succeeded":
         assert time.monotonic() < deadline
         time.sleep(0.01)
     with db.claim_session() as s:  # the claim ended with the job
-        jm.create(s, "calibrate", None, None, claims=("cal_0000000000000001",))
+        jm.create(s, FnJob(kind_="calibrate", claims=claim))
     assert jm.recover("restart") != []
     with db.claim_session() as s:  # recovery drops the claims of interrupted jobs
-        jm.create(s, "calibrate", None, None, claims=("cal_0000000000000001",))
+        jm.create(s, FnJob(kind_="calibrate", claims=claim))
     ex.shutdown()
     db.close()
 

@@ -2,7 +2,7 @@
 
 from types import SimpleNamespace
 
-from api.routes.sessions import _pose_hooks
+from api.jobs.poses import PoseJob
 
 
 class _OneRecord:
@@ -15,8 +15,8 @@ class _OneRecord:
 
 def _finish(result):
     pose = SimpleNamespace(status="decoding", error=None, frames_done=0)
-    ok, _ = _pose_hooks("pose_0123456789abcdef")
-    ok(_OneRecord(pose), result)
+    job = PoseJob(svc=None, session_id="ses_0123456789abcdef", pose_id="pose_0123456789abcdef")
+    job.succeeded(_OneRecord(pose), result)
     return pose
 
 

@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
@@ -13,7 +16,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from api.config import ServiceConfig, is_loopback
 from api.db import Database
-from api.jobs import JobManager
+from api.jobs import Job, JobKind, JobManager
 from api.problems import Problem
 from api.store import DataStore, check_id, new_id
 from calibration.progress import Cancelled, TaskContext
@@ -81,6 +84,28 @@ def test_store_ids_and_paths(tmp_path: Path) -> None:
     assert not list(folder.glob("*.tmp"))
 
 
+@dataclass(kw_only=True)
+class FnJob(Job):
+    """A job made of test callables (body, success and failure hooks)."""
+
+    kind_: str = "decode"
+    body: Callable[[TaskContext], dict[str, Any]] = lambda ctx: {}
+    ok: Callable[[Any, dict[str, Any]], None] = lambda s, r: None
+    fail: Callable[[Any, str, str], None] = lambda s, st, e: None
+
+    def __post_init__(self) -> None:
+        self.kind = JobKind(self.kind_)  # type: ignore[misc]  # one class for every kind
+
+    def run(self, ctx: TaskContext) -> dict[str, Any]:
+        return self.body(ctx)
+
+    def succeeded(self, s: Any, result: dict[str, Any]) -> None:
+        self.ok(s, result)
+
+    def ended(self, s: Any, status: str, error: str) -> None:
+        self.fail(s, status, error)
+
+
 def test_job_manager_states_progress_cancel_recover(tmp_path: Path) -> None:
     db = Database(tmp_path / "db.sqlite")
     jm = JobManager(db, InProcessExecutor(max_workers=2))
@@ -90,31 +115,33 @@ def test_job_manager_states_progress_cancel_recover(tmp_path: Path) -> None:
         return jm.executor.run_task(_count_task, 5, 0.01, job_id=ctx.job_id,
                                     on_progress=ctx.progress).result()
 
+    fn = FnJob(body=body, ok=lambda s, r: outcomes.__setitem__("ok", r["n"]),
+               fail=lambda s, st, e: outcomes.__setitem__("fail", st))
     with db.session() as s:
-        job = jm.create(s, "decode", None, None)
-    jm.start(job.id, body, lambda s, r: outcomes.__setitem__("ok", r["n"]),
-             lambda s, st, e: outcomes.__setitem__("fail", st))
+        job = jm.create(s, fn)
+    jm.start(job.id, fn)
     _wait(lambda: jm.get(job.id)["status"] == "succeeded")
     got = jm.get(job.id)
     assert (got["done"], got["total"], outcomes) == (5, 5, {"ok": 5})
 
+    slow_job = FnJob(fail=lambda s, st, e: outcomes.__setitem__("fail", st))
     with db.session() as s:
-        slow = jm.create(s, "decode", None, None)
+        slow = jm.create(s, slow_job)
     started = threading.Event()
 
     def slow_body(ctx: TaskContext) -> dict:
         started.set()
         return jm.executor.run_task(_count_task, 10_000, 0.005, job_id=ctx.job_id).result()
 
-    jm.start(slow.id, slow_body, lambda s, r: None,
-             lambda s, st, e: outcomes.__setitem__("fail", st))
+    slow_job.body = slow_body
+    jm.start(slow.id, slow_job)
     started.wait(5)
     assert jm.cancel(slow.id)
     _wait(lambda: jm.get(slow.id)["status"] == "cancelled")
     assert outcomes["fail"] == "cancelled"
 
     with db.session() as s:
-        stale = jm.create(s, "capture", None, None)
+        stale = jm.create(s, FnJob(kind_="capture"))
     restarted = JobManager(db, jm.executor)
     assert restarted.recover("server restarted") == [stale.id]
     rec = restarted.get(stale.id)
@@ -139,9 +166,10 @@ def test_job_is_reported_finished_only_after_its_outcome_is_committed(tmp_path: 
 
     db = SlowCommitDatabase(tmp_path / "db.sqlite")
     jm = JobManager(db, InProcessExecutor(max_workers=1))
+    fn = FnJob(body=lambda ctx: {"n": 1})
     with db.session() as s:
-        job = jm.create(s, "decode", None, None)
-    jm.start(job.id, lambda ctx: {"n": 1}, lambda s, r: None, lambda s, st, e: None)
+        job = jm.create(s, fn)
+    jm.start(job.id, fn)
     while jm.get(job.id)["status"] != "succeeded":
         time.sleep(0.001)
     with db.session() as s:

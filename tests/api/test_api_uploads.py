@@ -18,6 +18,7 @@ from api.config import ServiceConfig
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.poses import random_poses
 from hw_mocks.synthetic import synthetic_maps
+from tests.api.test_api_units import FnJob
 
 PLAN = build_plan(640, 480, 0.5, preset="fast")
 W, H = 64, 48
@@ -140,7 +141,8 @@ def test_delete_pose_calibration_session(env) -> None:
     assert (data_dir / "poses" / poses[0] / "maps.npz").exists()
     # a job holding a pose: DELETE answers 409 and removes nothing
     with svc.db.claim_session() as s:
-        job = svc.jobs.create(s, "decode", None, sid, claims=(poses[1],))
+        holder = FnJob(session_id=sid, claims=(poses[1],))
+        job = svc.jobs.create(s, holder)
     r = c.delete(f"/sessions/{sid}/poses/{poses[1]}")
     assert r.status_code == 409 and job.id in r.json()["detail"]
     assert c.delete(f"/sessions/{sid}").status_code == 409
@@ -153,7 +155,7 @@ def test_delete_pose_calibration_session(env) -> None:
     assert nxt["index"] == 3  # indices stay unique after a delete
     svc.jobs.cancel(job.id)
     with svc.db.session() as s:  # end the never-started job as its driver would
-        svc.jobs._finish(job.id, "cancelled", "test", None, None, None)
+        svc.jobs._finish(job.id, holder, "cancelled", "test")
     assert c.delete("/calibrations/cal_0123456789abcdef").status_code == 404
     job = c.post(f"/sessions/{sid}/calibrations", json={  # 3 poses: the model's minimum
         "model": "opencv5", "pose_ids": [poses[1], poses[2], nxt["id"]]})

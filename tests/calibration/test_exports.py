@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import subprocess
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from calibration.formats import (
 )
 from calibration.models.base import ModelError, save_model
 from calibration.models.parametric import FisheyeModel, OpenCV5Model, OpenCVRationalModel
-from calibration.mrcal_io import parse_splined, project_splined, read_cameramodel
+from calibration.mrcal_io import project_splined, read_cameramodel
 from calibration.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 
@@ -338,3 +339,12 @@ def test_calibrate_refuses_opencv_export_of_a_generic_model_before_fitting(tmp_p
                "-o", str(tmp_path / "m.json")])
     assert rc == 1
     assert "no OpenCV/ROS form" in capsys.readouterr().err
+
+
+def parse_splined(name: str) -> tuple[int, int, int, float]:
+    """(order, Nx, Ny, fov_x_deg) from a splined lens model string (mrcal's naming)."""
+    m = re.fullmatch(r"LENSMODEL_SPLINED_STEREOGRAPHIC_order=(\d+)_Nx=(\d+)_Ny=(\d+)"
+                     r"_fov_x_deg=(\d+)", name)
+    if m is None:
+        raise ModelError(f"lensmodel: malformed splined model name {name!r}")
+    return int(m[1]), int(m[2]), int(m[3]), float(m[4])

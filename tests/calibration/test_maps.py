@@ -56,3 +56,30 @@ def test_missing_keys_and_wrong_format(tmp_path):
 def test_missing_file():
     with pytest.raises(MapsError, match="not found"):
         load_maps("/nonexistent/maps.npz")
+
+
+def test_stored_npz_matches_numpy_savez_member_for_member(tmp_path):
+    """The direct writer (no chunk copies) gives what np.savez gives: same members, dtypes,
+    shapes and values, also for non-contiguous arrays; members stored, not deflated."""
+    import io
+    import zipfile
+
+    m = _maps(6, 7)
+    m.x = np.asfortranarray(m.x)  # not C-contiguous
+    m.modulation_y = np.ones((7, 6), np.float32).T  # a transposed view
+    save_maps(m, tmp_path / "direct.npz")
+    reference = io.BytesIO()
+    np.savez(reference, **m._arrays())
+    reference.seek(0)
+    with np.load(tmp_path / "direct.npz") as got, np.load(reference) as want:
+        assert got.files == want.files
+        for key in want.files:
+            assert got[key].dtype == want[key].dtype and got[key].shape == want[key].shape
+            assert got[key].tobytes() == want[key].tobytes(), key
+    with zipfile.ZipFile(tmp_path / "direct.npz") as zf:
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_STORED}
+        assert zf.testzip() is None  # CRCs right
+    small = io.BytesIO()
+    m.write_npz(small, compress=True)
+    with zipfile.ZipFile(io.BytesIO(small.getvalue())) as zf:
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_DEFLATED}

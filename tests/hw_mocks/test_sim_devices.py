@@ -156,3 +156,35 @@ def test_rig_from_config_and_unknown_key():
     assert sim.camera.info.width == 40
     with pytest.raises(DeviceSettingsError, match="latency_frames"):
         SimulatedRig.from_config({"display": {"latency_frames": 2}})
+
+
+def test_row_weights_over_a_long_history_match_the_full_computation():
+    """row_weights looks only at the images near the window (a 10 s history is hundreds of
+    images): the same images and weights as weighing every remembered image."""
+    from hw_mocks.display import SimulatedDisplay
+
+    clock = VirtualClock()
+    display = SimulatedDisplay(32, 20, clock, latency_periods=2, history_s=1e9)
+    rng = np.random.default_rng(5)
+    for k in range(400):
+        display.show(np.full((20, 32), k % 256, np.uint8))
+        clock.advance(float(rng.uniform(0, 3 / 60)))
+
+    def full(t0: float, t1: float) -> tuple[list[int], np.ndarray]:
+        hist = display.history()
+        frac = np.arange(20) / 20
+        starts = np.stack([np.broadcast_to(h.flip_s + (2 + frac) / 60, frac.shape)
+                           for h in hist])
+        ends = np.vstack([starts[1:], np.full((1, 20), np.inf)])
+        w = np.clip(np.minimum(ends, t1) - np.maximum(starts, t0), 0.0, None) / (t1 - t0)
+        keep = w.max(axis=1) > 0
+        return [h.image_id for h, k in zip(hist, keep, strict=True) if k], w[keep]
+
+    first, now = display.history()[1].flip_s, clock.now()
+    for _ in range(500):
+        t0 = float(rng.uniform(first, now + 0.1))
+        t1 = t0 + float(rng.uniform(1e-4, 0.1))
+        shown, weights = display.row_weights(t0, t1)
+        ids, want = full(t0, t1)
+        assert [h.image_id for h in shown] == ids
+        np.testing.assert_allclose(weights, want, rtol=0, atol=1e-12)

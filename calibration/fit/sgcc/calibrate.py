@@ -44,6 +44,7 @@ from calibration.fit.sgcc.screen_terms import (
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
 from calibration.metrology.family_prior import PRIOR_WEIGHT, prior_state
+from calibration.metrology.screen import ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.heap import retained_heap
 from calibration.models.sgcc import SGCCBase, expmap_jacobian_rows
@@ -164,9 +165,11 @@ def _centred_on_family(
     free spline (calibration.metrology.family_prior); else the free fit and the verdict."""
     fitted, out = free
     n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
-    state, info = prior_state(obs, screen, grid, cls.n_components, out.chi2_dof, n_res, cv_fit)
+    mode = "flat" if lm.screen is None else "fit"  # the families fit the same screen model
+    scr = ScreenModel(screen, mode, 1.52 if lm.screen is None else lm.screen.index)
+    state, info = prior_state(obs, screen, grid, cls.n_components, out.chi2_dof, n_res, cv_fit,
+                              scr)
     if info["adequate"]:
-        state.screen = out.state.screen  # the fitted screen stays (a flat one: None)
         centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=state.coeffs.ravel())
         fitted, out = _fit(cls, obs, grid, state, centred, progress, cancelled)
     return fitted, out, info
@@ -286,14 +289,14 @@ def _calibrate(
             raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
     cls = spec.model_class
     cv_fit = opencv_init(obs, (w, h))
+    spread = normal_spread_deg(cv_fit[2])  # between the initial poses' screen normals
+    if lm.screen is not None:
+        lm = replace(lm, hold_glass=holds_glass(cls.n_components, spread))
     mesh_choice = None
     if cells == "auto":
         cells, mesh_choice = choose_mesh(obs, (w, h), cls.n_components, lm, cv_fit)
     grid = SplineGrid((w, h), cells)
     init = initial_state(obs, grid, cls.n_components, cv_fit)
-    spread = normal_spread_deg(init.rc)
-    if lm.screen is not None:
-        lm = replace(lm, hold_glass=holds_glass(cls.n_components, init.rc))
     fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
     prior = None
     if prior_mode == "auto":

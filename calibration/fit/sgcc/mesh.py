@@ -70,7 +70,7 @@ def choose_mesh(
             break
         out = run_lm(grid, n_comp, train, initial_state(train, grid, n_comp, cv_fit),
                      replace(lm, subset_pixels=n_train))
-        prob = Problem(grid, n_comp, val)
+        prob = Problem(grid, n_comp, val, lm.screen)  # validated through the fitted screen
         res, ok = prob.residuals(out.state)
         s = sigma_norm(prob, res)
         s = s[ok & (s <= _VALIDATION_CUT)]

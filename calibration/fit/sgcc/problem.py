@@ -184,8 +184,9 @@ def spline_terms(
     if k == 6:  # bare plane: jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
         xg[:, _JP_DENSE] = gw[0, :, None] * jp[0, _JP_DENSE] + gw[1, :, None] * jp[1, _JP_DENSE]
         xg[:, 3], xg[:, 4] = gw[0], gw[1]
-    else:
-        xg[:, :k] = gw[0, :, None] * jp[0] + gw[1, :, None] * jp[1]
+    else:  # in place: two (C, k, n) products without a third temporary
+        xp.multiply(gw[0, :, None], jp[0], out=xg[:, :k])
+        xg[:, :k] += gw[1, :, None] * jp[1]
     xg[:, k] = gw[0] * e[0] + gw[1] * e[1]
     return hp, xg.reshape((k + 1) * c, n)
 

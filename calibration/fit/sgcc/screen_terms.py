@@ -9,11 +9,13 @@ feature-major ((k, n) arrays) and on any array module, so the threaded CPU path
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calibration.metrology.screen import ScreenModel
 from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
@@ -41,12 +43,11 @@ class ScreenTrace:
         return cls(0.5 * (geometry.width_px - 1) * px, 0.5 * (geometry.height_px - 1) * py,
                    0.5 * geometry.width_px * px, 0.5 * geometry.height_px * py, float(index))
 
-    def _shape(self, params: Any, x: Any, y: Any) -> tuple[Any, Any, Any, Any, Any]:
-        """Normalised coordinates xi, eta (n,) and depth z_s with its x/y slopes (n,)."""
+    def _depth(self, params: Any, x: Any, y: Any) -> tuple[Any, Any, Any]:
+        """Normalised coordinates xi, eta (n,) and the panel depth z_s (n,) there."""
         bx, by, tw = (float(v) for v in params[:3])
         xi, eta = (x - self.cx) / self.ax, (y - self.cy) / self.ay
-        zs = bx * (xi * xi - 1 / 3) + by * (eta * eta - 1 / 3) + tw * xi * eta
-        return xi, eta, zs, (2 * bx * xi + tw * eta) / self.ax, (2 * by * eta + tw * xi) / self.ay
+        return xi, eta, bx * (xi * xi - 1 / 3) + by * (eta * eta - 1 / 3) + tw * xi * eta
 
     def trace(self, xp: ModuleType, params: Any, o: Any, q: Any) -> tuple[Any, Any, Any, Any]:
         """Panel points Q (2,n) mm of rays with origins o (3,n) and slopes q = r_xy/r_z (2,n)
@@ -61,12 +62,14 @@ class ScreenTrace:
         base = o[:2] - (h + o[2]) * q
         pts = base + h * m
         for _ in range(_FIXED_POINT_ITERS):
-            new = base + (self._shape(params, pts[0], pts[1])[2] + h) * m
+            new = base + (self._depth(params, pts[0], pts[1])[2] + h) * m
             step = float(xp.max(xp.abs(new - pts))) if pts.size else 0.0
             pts = new
             if step < _FIXED_POINT_TOL_MM:
                 break
-        xi, eta, zs, gx, gy = self._shape(params, pts[0], pts[1])
+        xi, eta, zs = self._depth(params, pts[0], pts[1])
+        bx, by, tw = (float(v) for v in params[:3])
+        gx, gy = (2 * bx * xi + tw * eta) / self.ax, (2 * by * eta + tw * xi) / self.ay
         cc = zs + h
         # A = (I - m g^T)^-1 = I + m g^T / (1 - g.m) (Sherman-Morrison): dQ/d(base).
         den = 1.0 / (1.0 - (gx * m[0] + gy * m[1]))
@@ -120,11 +123,11 @@ def panel_ray_terms(
     jr_s = xp.empty((2, 3, len(rz)))
     jr_s[:, 0], jr_s[:, 1] = jq[:, 0] / rz, jq[:, 1] / rz
     jr_s[:, 2] = -(jq[:, 0] * slope[0] + jq[:, 1] * slope[1]) / rz
-    mrc = (jr_s[:, :, None, :] * rc[None, :, :, None]).sum(axis=1)  # (2,3,n): dQ/dr_s Rc
+    mrc = xp.tensordot(rc, jr_s, axes=([0], [1])).transpose(1, 0, 2)  # (2,3,n): dQ/dr_s Rc
     g = xp.empty((2, c, len(rz)))
     g[:, :2] = (mrc[:, :, None, :] * jr[None]).sum(axis=1)
     if c == 4:
-        g[:, 2:] = (jo[:, :, None, :] * rc[None, :, :2, None]).sum(axis=1)
+        g[:, 2:] = xp.tensordot(rc[:, :2], jo, axes=([0], [1])).transpose(1, 0, 2)
     jp = xp.empty((2, 6 + N_SCREEN, len(rz)))
     for i in range(2):  # d/d(omega) = -(dQ/do_s [o_s]x + dQ/dr_s [r_s]x), row-wise o x row
         jp[i, :3] = _cross(o_s, jo[i]) + _cross(r_s, jr_s[i])
@@ -151,16 +154,17 @@ GAUGE_NONCENTRAL = ("; sgcc-noncentral: the glass's lateral shift depends only o
                     "spread of normals and distances between poses, and their std says how well")
 
 
-def normal_spread_deg(rcs: list[np.ndarray]) -> float:
-    """Largest angle (degrees) between two poses' screen normals in the camera frame."""
-    normals = np.array([rc[2] for rc in rcs])  # Rc = R^T: row 2 is the normal R e_z
+def normal_spread_deg(rvecs: Sequence[np.ndarray]) -> float:
+    """Largest angle (degrees) between two poses' screen normals in the camera frame, from the
+    poses' rotation vectors (screen -> camera, OpenCV's rvecs)."""
+    normals = np.array([Rotation.from_rotvec(np.ravel(r)).as_matrix()[:, 2] for r in rvecs])
     cos = np.clip(normals @ normals.T, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos.min())))
 
 
-def holds_glass(n_comp: int, rcs: list[np.ndarray]) -> bool:
+def holds_glass(n_comp: int, spread_deg: float) -> bool:
     """Whether the glass thickness is a gauge freedom: non-central, one screen normal."""
-    return n_comp == 4 and normal_spread_deg(rcs) < MIN_NORMAL_SPREAD_DEG
+    return n_comp == 4 and spread_deg < MIN_NORMAL_SPREAD_DEG
 
 
 def screen_stats(geometry: ScreenGeometry, mode: str, index: float, params: np.ndarray | None,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.evaluate import residual_map
 from calibration.fit.dispatch import calibrate
 from calibration.fit.ransac import DegenerateError
 from calibration.plan import ScreenGeometry
@@ -136,3 +135,13 @@ def test_cancel_and_progress(pinhole_fit) -> None:
     calibrate(maps[:3], SCREEN, "opencv5", options={"max_points_per_pose": 300},
               progress=lambda i, n, msg: seen.append((i, n, msg)))
     assert seen and all(0 <= i <= n for i, n, _ in seen) and "evaluating" in seen[-1][2]
+
+
+def residual_map(result, pose: int) -> np.ndarray:
+    """(H, W, 2) camera-px residual field of one pose, NaN where no point was evaluated."""
+    w, h = result.model.image_size
+    out = np.full((h, w, 2), np.nan)
+    px = np.rint(result.residual_pixels[pose]).astype(np.int64)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    out[px[ok, 1], px[ok, 0]] = result.residuals[pose][ok]
+    return out

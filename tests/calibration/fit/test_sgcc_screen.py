@@ -143,7 +143,8 @@ def _errors(model, cam, central: bool) -> tuple[float, float]:
 @pytest.mark.parametrize("model", ["sgcc", "sgcc-noncentral"])
 def test_screen_fit_recovers_camera_bow_and_glass(model: str) -> None:
     """Bowed panel (0.5/0.3 mm) behind 1.5 mm glass: "fit" recovers the camera within 1.5x of
-    the ideal-screen fit and the screen within 3 sigma; "flat" is >= 5x worse."""
+    the ideal-screen fit and the screen within 3 sigma; "flat" is >= 5x worse. On an ideal
+    screen "fit" finds zero shape and glass."""
     central = model == "sgcc"
     cam = cameras.mild_pinhole(W, H) if central else cameras.smooth_noncentral(W, H)
     opts = {"cells": [8, 8]}
@@ -161,6 +162,12 @@ def test_screen_fit_recovers_camera_bow_and_glass(model: str) -> None:
     assert 0.9 < fit.stats["chi2_dof"] < 1.1 < flat.stats["chi2_dof"]
     assert flat.stats["screen"] == {"mode": "flat", "glass_index": 1.52}
     assert fit.stats["warnings"] == [] and fit.model.stats["screen"] == scr
+    # On an ideal screen "fit" finds a flat bare one and costs little accuracy.
+    bare = calibrate_generic(_maps(cam, None, central), SCREEN, model,
+                             options={**opts, "screen": "fit"})
+    for key, value in bare.stats["screen"]["std"].items():
+        assert abs(bare.stats["screen"][key]) < 3 * value, key
+    assert _errors(bare.model, cam, central)[0] < 1.3 * e_ideal[0]
     # The screen rides along in model.json.
     assert json.loads(json.dumps(fit.model.to_dict()))["stats"]["screen"]["glass_mm"] == \
         scr["glass_mm"]
@@ -205,3 +212,32 @@ def test_screen_fit_on_the_device_path(monkeypatch) -> None:
     for key in TRUTH:
         assert abs(got.stats["screen"][key] - ref.stats["screen"][key]) < \
             1e-4 * ref.stats["screen"]["std"][key]
+
+
+def test_auto_mesh_validates_through_the_fitted_screen() -> None:
+    """cells "auto" with screen "fit": the validation residuals see the fitted screen, so the
+    chosen mesh's validation chi2 is at the noise level (a bare plane would leave ~2.5)."""
+    cam = cameras.mild_pinhole(W, H)
+    res = calibrate_generic(_maps(cam, REAL, True), SCREEN, "sgcc",
+                            options={"cells": "auto", "screen": "fit"})
+    chosen = next(r for r in res.stats["mesh_choice"] if r["cells"] == res.stats["cells"])
+    assert chosen["validation_chi2"] < 1.1
+    scr = res.stats["screen"]
+    assert abs(scr["glass_mm"] - 1.5) < 3 * scr["std"]["glass_mm"]
+
+
+def test_family_prior_judges_the_families_on_the_fitted_screen() -> None:
+    """family_prior "auto" with screen "fit": the families fit the screen too, so on a real
+    screen the pinhole's family is still adequate (on a flat screen model it was not,
+    chi2/dof 3.2) and the centred refit keeps the screen within 3 sigma of the truth."""
+    cam = cameras.mild_pinhole(W, H)
+    maps = _maps(cam, REAL, True)
+    opts = {"cells": [8, 8], "screen": "fit"}
+    free = calibrate_generic(maps, SCREEN, "sgcc", options=opts)
+    res = calibrate_generic(maps, SCREEN, "sgcc", options={**opts, "family_prior": "auto"})
+    prior = res.stats["family_prior"]
+    assert prior["adequate"] and prior["family_chi2_dof"] < 1.1
+    scr = res.stats["screen"]
+    for key, true in TRUTH.items():
+        assert abs(scr[key] - true) < 3 * scr["std"][key], key
+    assert _errors(res.model, cam, True)[0] < 1.2 * _errors(free.model, cam, True)[0]

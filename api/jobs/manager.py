@@ -1,4 +1,4 @@
-"""Job manager: every long operation is a job with state, progress, ETA, cancel and events.
+"""Job manager: runs `Job` definitions with state, progress, ETA, cancel and events.
 
 States: queued -> running -> succeeded | failed | cancelled; jobs found active at
 startup become `interrupted` (with the reason). Each job runs a small driver on its
@@ -14,7 +14,6 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,7 +21,8 @@ from sqlalchemy import delete, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.db import ACTIVE_JOB_STATES, Database, JobLockRecord, JobRecord
+from api.db import Database, JobLockRecord, JobRecord
+from api.jobs.model import ACTIVE_JOB_STATES, Job, JobState, JobStatus
 from api.problems import Problem
 from api.store import new_id
 from calibration.progress import Cancelled, TaskContext
@@ -33,15 +33,11 @@ log = logging.getLogger("phasecal.jobs")
 PERSIST_INTERVAL_S = 0.5
 RECENT_CAPACITY = 2048  # finished jobs answered from memory (status polls after the end)
 
-Hook = Callable[[Session, dict[str, Any]], None]
-FailHook = Callable[[Session, str, str], None]
-
-
 @dataclass
 class _Live:
     """In-memory state of a running job."""
 
-    record: dict[str, Any]
+    record: JobState
     cancel: threading.Event = field(default_factory=threading.Event)
     stage_started: float = field(default_factory=time.monotonic)
     stage_done0: int = 0
@@ -50,28 +46,13 @@ class _Live:
     seq: int = 0  # events published so far: the SSE event id (resume with Last-Event-ID)
 
 
-def job_to_dict(rec: JobRecord) -> dict[str, Any]:
-    """A job record as plain data (the API's Job schema, without ETA)."""
-    return {
-        "id": rec.id,
-        "kind": rec.kind,
-        "status": rec.status,
-        "stage": rec.stage,
-        "done": rec.done,
-        "total": rec.total,
-        "eta_s": None,
-        "resource": rec.resource,
-        "session_id": rec.session_id,
-        "error": rec.error,
-        "result": rec.result,
-        "created_at": rec.created_at,
-        "started_at": rec.started_at,
-        "finished_at": rec.finished_at,
-    }
-
-
 class JobManager:
-    """Creates, runs, tracks, cancels and recovers jobs; publishes events to SSE listeners."""
+    """Creates, runs, tracks, cancels and recovers jobs; publishes events to SSE listeners.
+
+    A route validates its request, builds a `Job` definition, `create`s it in the same
+    transaction as the resource it works on, and `start`s it once that transaction
+    committed.
+    """
 
     def __init__(self, db: Database, executor: Executor) -> None:
         self.db = db
@@ -95,23 +76,23 @@ class JobManager:
             recs = s.scalars(select(JobRecord).where(JobRecord.status.in_(ACTIVE_JOB_STATES)))
             ids = []
             for rec in recs:
-                rec.status = "interrupted"
+                rec.status = JobStatus.INTERRUPTED.value
                 rec.error = reason
                 rec.finished_at = now
                 ids.append(rec.id)
             s.execute(delete(JobLockRecord))
         return ids
 
-    def create(self, s: Session, kind: str, resource: str | None, session_id: str | None,
-               total: int = 0, claims: tuple[str, ...] = ()) -> JobRecord:
-        """Insert a queued job in the caller's transaction (started later with `start`).
-
-        `claims`: ids of the poses/calibrations the job works on; a resource already
-        claimed by an active job is a 409 (enforced by the job_locks primary key).
-        """
-        rec = JobRecord(id=new_id("job"), kind=kind, status="queued", stage="queued", done=0,
-                        total=total, resource=resource, session_id=session_id,
-                        created_at=time.time())
+    def create(self, s: Session, job: Job) -> JobState:
+        """Insert `job` queued, with its claims, in the caller's transaction (started later
+        with `start`). A resource already claimed by an active job is a 409 (enforced by
+        the job_locks primary key)."""
+        state = JobState(id=new_id("job"), kind=job.kind.value, total=job.total,
+                         resource=job.resource, session_id=job.session_id)
+        rec = JobRecord(id=state.id, kind=state.kind, status=state.status, stage=state.stage,
+                        done=0, total=state.total, resource=state.resource,
+                        session_id=state.session_id, created_at=state.created_at)
+        claims = job.claims
         for key in claims:
             held = s.get(JobLockRecord, key)
             if held is not None:
@@ -125,68 +106,71 @@ class JobManager:
             raise Problem(409, "job-active", f"{', '.join(claims)}: another job was started "
                           "on it at the same time") from None
         with self._lock:
-            self._live[rec.id] = _Live(job_to_dict(rec))
-        return rec
+            self._live[rec.id] = _Live(state)
+        return state.copy()
 
-    def start(self, job_id: str, body: Callable[[TaskContext], dict[str, Any]],
-              on_success: Hook, on_failure: FailHook) -> None:
-        """Run `body(ctx)` on a driver thread; hooks update the resource in the same commit."""
+    def start(self, job_id: str, job: Job) -> dict[str, Any]:
+        """Run `job` (created with `create`) on a driver thread; the job as the API shows it."""
         live = self._live[job_id]
         ctx = TaskContext(job_id, lambda d, t, st: self.progress(job_id, d, t, st), live.cancel)
-        th = threading.Thread(target=self._drive, args=(job_id, body, ctx, on_success, on_failure),
+        th = threading.Thread(target=self._drive, args=(job_id, job, ctx),
                               name=f"job-{job_id}", daemon=True)
         self._threads = [t for t in self._threads if t.is_alive()] + [th]
         th.start()
+        return self.get(job_id) or live.record.to_dict()
 
-    def _drive(self, job_id: str, body: Callable[[TaskContext], dict[str, Any]],
-               ctx: TaskContext, on_success: Hook, on_failure: FailHook) -> None:
-        self._set(job_id, status="running", started_at=time.time(), stage="starting")
+    def _drive(self, job_id: str, job: Job, ctx: TaskContext) -> None:
+        self._set(job_id, status=JobStatus.RUNNING.value, started_at=time.time(),
+                  stage="starting")
         try:
             ctx.check_cancelled()
-            result = body(ctx)
+            result = job.run(ctx)
         except Cancelled:
-            self._finish(job_id, *self._stop_reason(), None, on_failure, None)
+            self._finish(job_id, job, *self._stop_reason())
         except Exception as exc:  # every failure of a job is reported on the job
             if self._live[job_id].cancel.is_set():
-                self._finish(job_id, *self._stop_reason(), None, on_failure, None)
+                self._finish(job_id, job, *self._stop_reason())
             else:
                 log.info("job %s failed", job_id, exc_info=True)
-                self._finish(job_id, "failed", _describe(exc), None, on_failure, None)
+                self._finish(job_id, job, JobStatus.FAILED.value, _describe(exc))
         else:
-            self._finish(job_id, "succeeded", None, result, None, on_success)
+            self._finish(job_id, job, JobStatus.SUCCEEDED.value, None, result)
 
     def _stop_reason(self) -> tuple[str, str]:
         """(status, reason) of a job stopped by cancel or by the server shutting down."""
         if self._stopping:
-            return "interrupted", "interrupted: the server shut down while this job was active"
-        return "cancelled", "cancelled on request"
+            return (JobStatus.INTERRUPTED.value,
+                    "interrupted: the server shut down while this job was active")
+        return JobStatus.CANCELLED.value, "cancelled on request"
 
-    def _finish(self, job_id: str, status: str, error: str | None, result: dict[str, Any] | None,
-                on_failure: FailHook | None, on_success: Hook | None) -> None:
+    def _finish(self, job_id: str, job: Job, status: str, error: str | None,
+                result: dict[str, Any] | None = None) -> None:
+        """Store the outcome, update the resource and drop the claims in one transaction."""
         live = self._live[job_id]
         # The in-memory record (what GET /jobs serves) takes the final state only after the
         # commit: a client seeing "succeeded" must find the resource updated too.
-        final = dict(live.record, status=status, error=error, result=result,
-                     finished_at=time.time(), stage=status)
+        final = live.record.copy(status=status, error=error, result=result,
+                                 finished_at=time.time(), stage=status, eta_s=None)
         try:
             with self.db.session() as s:
-                if on_success is not None:
-                    on_success(s, result or {})
-                if on_failure is not None:
-                    on_failure(s, status, error or "")
+                if status == JobStatus.SUCCEEDED:
+                    job.succeeded(s, result or {})
+                else:
+                    job.ended(s, status, error or "")
                 self._write(s, job_id, final)
                 s.execute(delete(JobLockRecord).where(JobLockRecord.job_id == job_id))
         except Exception as exc:  # a failing hook must still end the job
             log.exception("finishing job %s failed", job_id)
-            final = dict(live.record, status="failed",
-                         error=f"could not store the job's outcome: {_describe(exc)}",
-                         finished_at=time.time(), stage="failed")
+            final = live.record.copy(status=JobStatus.FAILED.value,
+                                     error=f"could not store the job's outcome: {_describe(exc)}",
+                                     finished_at=time.time(), stage=JobStatus.FAILED.value,
+                                     eta_s=None)
             with self.db.session() as s:
                 self._write(s, job_id, final)
                 s.execute(delete(JobLockRecord).where(JobLockRecord.job_id == job_id))
-        live.record.update(final)
+        live.record = final
         with self._lock:
-            self._recent[job_id] = dict(live.record, eta_s=None)
+            self._recent[job_id] = final.to_dict()
             while len(self._recent) > RECENT_CAPACITY:
                 self._recent.popitem(last=False)
         self._publish(job_id, "end")
@@ -201,9 +185,9 @@ class JobManager:
             return
         rec = live.record
         now = time.monotonic()
-        if stage != rec["stage"]:
+        if stage != rec.stage:
             live.stage_started, live.stage_done0 = now, done
-        rec.update(done=done, total=total, stage=stage)
+        rec.done, rec.total, rec.stage = done, total, stage
         if now - live.persisted_at >= PERSIST_INTERVAL_S:
             live.persisted_at = now
             with self.db.session() as s:
@@ -230,9 +214,7 @@ class JobManager:
         live = self._live.get(job_id)
         if live is None:
             return None
-        rec = dict(live.record)
-        rec["eta_s"] = _eta(live, rec)
-        return rec
+        return live.record.copy(eta_s=_eta(live)).to_dict()
 
     def cached(self, job_id: str) -> dict[str, Any] | None:
         """The state from memory (live, or finished recently in this process), else None."""
@@ -249,7 +231,7 @@ class JobManager:
             return cached
         with self.db.session() as s:
             rec = s.get(JobRecord, job_id)
-            return job_to_dict(rec) if rec is not None else None
+            return JobState.from_record(rec).to_dict() if rec is not None else None
 
     def subscribe(self, job_id: str) -> asyncio.Queue | None:
         """A queue receiving (event, job dict) tuples until 'end'; None if not live."""
@@ -284,19 +266,16 @@ class JobManager:
     # -- internals -------------------------------------------------------------------
     def _set(self, job_id: str, **fields: Any) -> None:
         live = self._live[job_id]
-        live.record.update(fields)
+        for key, value in fields.items():
+            setattr(live.record, key, value)
         with self.db.session() as s:
             self._write(s, job_id, live.record)
         self._publish(job_id, "progress")
 
-    def _write(self, s: Session, job_id: str, rec: dict[str, Any], **fields: Any) -> None:
-        rec.update(fields)
+    def _write(self, s: Session, job_id: str, state: JobState) -> None:
         row = s.get(JobRecord, job_id)
-        if row is None:
-            return
-        for key in ("status", "stage", "done", "total", "error", "result", "started_at",
-                    "finished_at"):
-            setattr(row, key, rec[key])
+        if row is not None:
+            state.to_record(row)
 
     def _publish(self, job_id: str, event: str) -> None:
         loop = self._loop
@@ -305,8 +284,7 @@ class JobManager:
             live.seq += 1
         if loop is None or live is None or not live.subscribers:
             return
-        payload = dict(live.record)
-        payload["eta_s"] = _eta(live, payload)
+        payload = live.record.copy(eta_s=_eta(live)).to_dict()
         payload["_seq"] = live.seq
         for q in list(live.subscribers):
             loop.call_soon_threadsafe(_offer, q, (event, payload))
@@ -324,10 +302,11 @@ def _offer(q: asyncio.Queue, item: tuple[str, dict[str, Any]]) -> None:
     q.put_nowait(item)
 
 
-def _eta(live: _Live, rec: dict[str, Any]) -> float | None:
+def _eta(live: _Live) -> float | None:
     """Seconds left in the current stage from its rate so far (None until measurable)."""
-    done, total = rec.get("done", 0), rec.get("total", 0)
-    if rec.get("status") != "running" or total <= 0 or done <= live.stage_done0:
+    rec = live.record
+    done, total = rec.done, rec.total
+    if rec.status != JobStatus.RUNNING or total <= 0 or done <= live.stage_done0:
         return None
     elapsed = time.monotonic() - live.stage_started
     rate = (done - live.stage_done0) / max(elapsed, 1e-6)

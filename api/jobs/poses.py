@@ -1,0 +1,179 @@
+"""Pose jobs: capture on a rig (decoded live), decode imported frames, decode stored frames
+again. Workers write into the job's staging folder (<data>/tmp/<job>); only this server
+moves the finished maps into the pose folder, once the task succeeded."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy.orm import Session
+
+from api.capture import capture_frames, stored_indices
+from api.db import PoseRecord
+from api.jobs.model import STOPPED_STATES, Job, JobKind
+from calibration.plan import Plan
+from calibration.progress import TaskContext
+from calibration.worker.tasks import decode_task, stream_decode_task
+
+if TYPE_CHECKING:
+    from api.services import Services
+
+
+def decode_staged(svc: Services, ctx: TaskContext, plan_path: Path, frames: Path,
+                  pose_dir: Path, **task_kwargs: Any) -> dict[str, Any]:
+    """Decode `frames` on the executor into the job's staging folder and wait (cancel
+    propagates); on success move maps.npz into `pose_dir`."""
+    with svc.store.staging(ctx.job_id) as staged:
+        fut = svc.executor.run_task(decode_task, str(plan_path), str(frames),
+                                    str(staged / "maps.npz"), job_id=ctx.job_id,
+                                    on_progress=ctx.progress, **task_kwargs)
+        result = fut.result()
+        ctx.check_cancelled()
+        svc.store.commit(staged, ["maps.npz"], pose_dir)
+    return result
+
+
+def set_pose_status(svc: Services, pose_id: str, status: str) -> None:
+    """Show where a pose's job is (capturing, decoding) on the pose."""
+    with svc.db.session() as s:
+        s.get(PoseRecord, pose_id).status = status
+
+
+@dataclass(kw_only=True)
+class PoseJob(Job):
+    """A job that makes a pose's maps; the pose shows its outcome."""
+
+    svc: Services
+    pose_id: str
+    #: the pose folder, whose stored frames are the pose's progress when the job stops early
+    frames_dir: Path | None = None
+
+    def __post_init__(self) -> None:
+        self.resource = f"/sessions/{self.session_id}/poses/{self.pose_id}"
+        self.claims = (self.pose_id,)
+
+    def succeeded(self, s: Session, result: dict[str, Any]) -> None:
+        p = s.get(PoseRecord, self.pose_id)
+        dec = result.get("decode", {})
+        flagged = result.get("capture", {}).get("flagged")
+        # a pose that failed its integrity check keeps its maps but is not used by default
+        if flagged:
+            p.status, p.error = "flagged", f"integrity check: {flagged}"
+        else:
+            p.status, p.error = "ready", None
+        p.valid_pixels = dec.get("valid_pixels")
+        p.width, p.height = dec.get("width"), dec.get("height")
+        p.frames_done = result.get("frames", p.frames_done)
+
+    def ended(self, s: Session, status: str, error: str) -> None:
+        p = s.get(PoseRecord, self.pose_id)
+        p.status = status if status in STOPPED_STATES else "failed"
+        p.error = error
+        if self.frames_dir is not None:
+            p.frames_done = len(stored_indices(self.frames_dir))
+
+
+@dataclass(kw_only=True)
+class CaptureJob(PoseJob):
+    """Capture a pose into its frame store while a worker decodes the stored frames live."""
+
+    kind = JobKind.CAPTURE
+    rig_id: str
+    plan: Plan
+    screen_pose: dict[str, Any] | None = None
+    noise_dn: float | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.frames_dir = self.svc.store.dir_for(self.pose_id, create=False)
+
+    def run(self, ctx: TaskContext) -> dict[str, Any]:
+        svc, plan = self.svc, self.plan
+        pose_dir = svc.store.dir_for(self.pose_id)
+        plan_path = svc.store.dir_for(self.session_id or "") / "plan.json"
+        handle = svc.rigs.handle(self.rig_id)
+        ctx.progress(0, len(plan.frames), "waiting for rig")
+        meta = {"pose_id": self.pose_id, "session_id": self.session_id,
+                "plan_digest": plan.digest(), "camera": handle.rig.camera.info.name}
+        with svc.store.staging(ctx.job_id) as staged:
+            with handle.lock:
+                ctx.check_cancelled()
+                set_pose_status(svc, self.pose_id, "capturing")
+                if self.screen_pose is not None:
+                    handle.move_screen(self.screen_pose)
+                # simulated rigs decode like real ones: the noise is the client's noise_dn
+                # or is estimated from the residuals (never the simulator's own model)
+                fut = svc.executor.run_task(
+                    stream_decode_task, str(plan_path), str(pose_dir), str(staged / "maps.npz"),
+                    job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta)
+                try:
+                    cap = capture_frames(ctx, handle.rig, plan, pose_dir,
+                                         on_frame=svc.preview.publisher(self.rig_id))
+                except BaseException:
+                    svc.executor.cancel(ctx.job_id)  # the worker stops following the store
+                    raise
+                finally:
+                    svc.preview.capture_ended(self.rig_id)
+            set_pose_status(svc, self.pose_id, "decoding")
+            dec = fut.result()
+            ctx.check_cancelled()
+            decoded_at = time.time()
+            svc.store.commit(staged, ["maps.npz"], pose_dir)
+            dec["commit_s"] = round(time.time() - decoded_at, 4)
+        return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
+
+
+@dataclass(kw_only=True)
+class ImportDecodeJob(PoseJob):
+    """Decode frames imported into the pose folder (a stack or PNG/TIFF images)."""
+
+    kind = JobKind.DECODE
+    frames: Path
+    frame_count: int
+    meta: dict[str, Any]
+    shape: tuple[int, int]
+    noise_dn: float | None = None
+
+    def run(self, ctx: TaskContext) -> dict[str, Any]:
+        svc = self.svc
+        set_pose_status(svc, self.pose_id, "decoding")
+        plan_path = svc.store.dir_for(self.session_id or "") / "plan.json"
+        dec = decode_staged(svc, ctx, plan_path, self.frames, self.frames.parent,
+                            noise=self.noise_dn, meta=self.meta)
+        return {"decode": dec, "frames": self.frame_count, "shape": list(self.shape)}
+
+
+@dataclass(kw_only=True)
+class RedecodeJob(Job):
+    """Decode a pose's stored frames again with other options; the new maps replace the old
+    ones on success, and on failure the pose keeps its maps and state (the job has the error)."""
+
+    kind = JobKind.DECODE
+    svc: Services
+    pose_id: str
+    frames: Path
+    before: str  # the pose's status when the job was asked for
+    noise_dn: float | None = None
+    options: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.resource = f"/sessions/{self.session_id}/poses/{self.pose_id}"
+        self.claims = (self.pose_id,)
+
+    def run(self, ctx: TaskContext) -> dict[str, Any]:
+        svc = self.svc
+        meta = {"pose_id": self.pose_id, "session_id": self.session_id, "redecoded": True,
+                "decode_options": {"noise_dn": self.noise_dn, **self.options}}
+        plan_path = svc.store.dir_for(self.session_id or "") / "plan.json"
+        dec = decode_staged(svc, ctx, plan_path, self.frames, svc.store.dir_for(self.pose_id),
+                            noise=self.noise_dn, meta=meta, options=dict(self.options))
+        return {"decode": dec}
+
+    def succeeded(self, s: Session, result: dict[str, Any]) -> None:
+        p = s.get(PoseRecord, self.pose_id)
+        if self.before != "flagged":
+            p.status, p.error = "ready", None
+        p.valid_pixels = result["decode"]["valid_pixels"]
