@@ -306,7 +306,8 @@ def _calibrate(
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
     dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)
     poses, per_pose, res_px, pix_out = [], [], {}, {}
-    with ThreadPoolExecutor(min(len(obs), len(os.sched_getaffinity(0)))) as pool:  # NumPy-bound
+    # One thread per pose (up to 2 per CPU): 3 poses on 2 cores then end together.
+    with ThreadPoolExecutor(min(len(obs), 2 * len(os.sched_getaffinity(0)))) as pool:
         stats_of = pool.map(
             lambda j: pose_statistics(fitted, out.state.rc[j], out.state.tc[j], obs[j],
                                       out.residuals[j], out.inliers[j], pitch, dof_shrink),

@@ -230,7 +230,13 @@ class Problem:
 
     def unsort(self, values: np.ndarray) -> list[np.ndarray]:
         """Per-pose arrays (feature-major rows in, pixel-major out) in the callers' order."""
-        return np.split(values.T[self.inverse], np.cumsum(self.counts)[:-1])
+        if values.ndim == 1:
+            out = values[self.inverse]
+        else:  # row by row: 3x faster than gathering rows of the transposed view
+            out = np.empty(values.shape[::-1], dtype=values.dtype)
+            for k, row in enumerate(values):
+                out[:, k] = row[self.inverse]
+        return np.split(out, np.cumsum(self.counts)[:-1])
 
     def _chunk(
         self, st: LMState, poly: np.ndarray, ch: _Chunk, jacobian: bool
