@@ -261,9 +261,10 @@ def run_lm(
     Large problems first converge on an even subset of about `options.subset_pixels`
     points (cheap iterations, at most half of `max_iterations`); the final iterations,
     the outlier decisions and the covariance use every point. At convergence the
-    covariance reuses the last iteration's normal equations: exact when its step was
-    rejected, else evaluated one Gauss-Newton step (chi^2 change <= chi2_tol, well inside
-    the uncertainty) before the final state.
+    covariance reuses the last full normal equations: exact when their step was rejected,
+    else evaluated a Gauss-Newton step (and a chord step, `_iterate`) before the final
+    state; for large problems that is the subset's optimum, a few sigma per coefficient
+    away (standard deviations within ~0.2 %, docs/generic.md).
     BLAS runs single-threaded here: the dense solves are small and threads only contend.
     """
     with single_thread_blas():
