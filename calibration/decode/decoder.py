@@ -232,12 +232,13 @@ class StreamingDecoder:
         if summed is not None:
             summed()
         mark_screen_edges(reason.reshape(h, w))
-        counts = {name: int((reason == code).sum()) for code, name in enumerate(REASONS)}
+        tally = np.bincount(reason, minlength=len(REASONS))
+        counts = {name: int(tally[code]) for code, name in enumerate(REASONS)}
         if counts["valid"] == 0:
             raise DecodeError(no_valid_message(counts, npix))
         mask = reason == 0
-        for key in ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y"):
-            out[key][~mask] = np.nan
+        self._map(lambda sl: [np.copyto(out[key][sl], np.nan, where=~mask[sl]) for key in
+                              ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y")], chunks)
         info = {
             "format": MAPS_FORMAT,
             "plan_digest": self.plan.digest(),
