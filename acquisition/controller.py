@@ -37,7 +37,7 @@ from acquisition.integrity import (
     compare_references,
     reference_indices,
 )
-from acquisition.patterns import render_frame
+from acquisition.pattern_cache import cache_for
 from acquisition.pose_types import (
     AcceptedFrame,
     ControllerOptions,
@@ -86,6 +86,7 @@ class _Runner:
         self.collect_cost = 0.0  # learned time to grab, check and accept an arrived frame
         self.render_cost = 0.0  # learned time to render a pattern's device codes
         self._codes: dict[int, np.ndarray] = {}
+        self.patterns, self.digest = cache_for(display), plan.digest()  # codes across poses
 
     # -- devices ----------------------------------------------------------------------
     def codes(self, index: int) -> np.ndarray:
@@ -94,10 +95,9 @@ class _Runner:
             if len(self._codes) >= 2:
                 del self._codes[next(iter(self._codes))]
             t0 = self.clock.now()
-            self._codes[index] = render_frame(self.plan, index,
-                                              bit_depth=self.display.info.bit_depth,
-                                              response=self.opts.response,
-                                              dither=self.opts.dither)
+            self._codes[index] = self.patterns.codes(
+                self.plan, self.digest, index, bit_depth=self.display.info.bit_depth,
+                response=self.opts.response, dither=self.opts.dither)
             self.render_cost = _slow_max(self.clock.now() - t0, self.render_cost, self.period)
         return self._codes[index]
 

@@ -10,7 +10,9 @@ when resumed.
 
 from __future__ import annotations
 
+import queue
 import re
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -61,26 +63,62 @@ def _import_legacy(store: FrameStore, pose_dir: Path) -> None:
 
 
 class StoreSink:
-    """A `FrameSink`: stores frames not yet stored, reports progress over the whole plan."""
+    """A `FrameSink`: stores frames not yet stored, reports progress over the whole plan.
+
+    The copy into the store (5 MB per 5 Mpixel frame, with first-touch page faults) runs in
+    a writer thread, in order, so the capture thread never waits for it between a frame and
+    the next vsync-bound show or trigger; NumPy's copy releases the GIL. Frames handed over
+    are not modified afterwards (as for every `FrameSink`). `close` waits for the writer and
+    raises its first error; an error also surfaces at the next `add`.
+    """
 
     def __init__(self, store: FrameStore, ctx: TaskContext, total: int,
                  on_frame: Any = None) -> None:
         self.store, self.ctx, self.total = store, ctx, total
-        self.have = {int(i) for i in store.stored()}
+        self.have = {int(i) for i in store.stored()}  # stored or handed to the writer
         self.on_frame = on_frame
-        self.store_s = 0.0  # time spent storing frames (on the capture thread)
+        self.store_s = 0.0  # time spent storing frames (writer thread)
         self.last_stored_at: float | None = None  # wall time the newest frame was stored
+        self._queue: queue.Queue[tuple[int, np.ndarray] | None] = queue.Queue()
+        self._writer: threading.Thread | None = None
+        self._error: BaseException | None = None
 
     def add(self, index: int, image: np.ndarray) -> None:
+        if self._error is not None:
+            raise self._error
         if index not in self.have:
+            if self._writer is None:
+                self._writer = threading.Thread(target=self._write_loop, daemon=True,
+                                                name="frame-store-writer")
+                self._writer.start()
+            self.have.add(index)
+            self._queue.put((index, image))
+        self.ctx.progress(len(self.have), self.total, "capture")
+
+    def _write_loop(self) -> None:
+        while (item := self._queue.get()) is not None:
+            if self._error is not None:
+                continue  # drain: the capture side raises the first error
+            index, image = item
             t0 = time.perf_counter()
-            self.store.add(index, image)
+            try:
+                self.store.add(index, image)
+            except BaseException as exc:
+                self._error = exc
+                continue
             self.store_s += time.perf_counter() - t0
             self.last_stored_at = time.time()
-            self.have.add(index)
             if self.on_frame is not None:
                 self.on_frame(self.store, index)
-        self.ctx.progress(len(self.have), self.total, "capture")
+
+    def close(self) -> None:
+        """Wait until every frame handed over is in the store; raise the writer's error."""
+        if self._writer is not None:
+            self._queue.put(None)
+            self._writer.join()
+            self._writer = None
+        if self._error is not None:
+            raise self._error
 
 
 def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
@@ -105,7 +143,10 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
                               cancelled=ctx.cancelled)
     finally:
         returned_at = time.time()
-        store.close()  # durable at the end of the pose, whatever happened
+        try:
+            sink.close()  # the writer's last copies
+        finally:
+            store.close()  # durable at the end of the pose, whatever happened
     timing = {"capture_s": round(time.perf_counter() - t0, 4), "store_s": round(sink.store_s, 4),
               "captured_at": sink.last_stored_at,  # the last frame, not the controller's end
               "controller_done_at": returned_at,  # after the integrity repeats and check

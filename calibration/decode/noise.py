@@ -112,15 +112,25 @@ def undithered(span: np.ndarray, rss: np.ndarray, dof: np.ndarray, candidates: n
     code and its residual variance is far below read^2 + q^2/12 (read 0.2 DN: ~0.03 DN^2,
     not 0.12). With many such pixels at the dark level the line's offset fell below the
     floor and the refit pulled its slope to ~0 (std of normalized errors 1.25-1.75 on an
-    8-bit fisheye). Low-contrast `candidates` whose pooled variance `sum rss / sum dof`
-    shows dithering noise are honest points at the dark level and stay.
+    8-bit fisheye). Low-contrast `candidates` whose typical variance shows dithering noise
+    are honest points at the dark level and stay.
     """
     low = span < MIN_SPAN_DN
     group = low & candidates & (dof >= 1)
     if not quantized or not group.any():
         return np.zeros(span.shape, dtype=bool)
-    pooled = float(np.sum(rss[group], dtype=np.float64) / np.sum(dof[group], dtype=np.float64))
-    return low if pooled < DITHERED_VARIANCE else np.zeros(span.shape, dtype=bool)
+    # the median: a few pixels at the screen's edge with model errors must not decide
+    typical = float(np.median(variance_ratio(rss[group], np.rint(dof[group]).astype(np.int64))))
+    return low if typical < DITHERED_VARIANCE else np.zeros(span.shape, dtype=bool)
+
+
+def variance_ratio(rss: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """`rss/dof` over each pixel's chi-square median `chi2.median(dof)/dof` (integer dof >=
+    1): its median over pixels estimates the variance, also where dof differ (clipped steps
+    leave fewer), and ignores the few pixels with model errors."""
+    dofs = np.arange(1, int(dof.max()) + 1)
+    median = 2.0 * gammaincinv(dofs / 2.0, 0.5)  # chi-square medians
+    return rss / dof / (median / dofs)[dof - 1]
 
 
 def nyquist_power(xp: Any, fits: list, sets: list) -> list:
@@ -273,12 +283,8 @@ def fit_photon_transfer(
     if good.size < 64:
         return None
     good = good[:: max(1, good.size // max_pixels)]  # an even subsample bounds the work
-    m, d = mean[good], np.rint(dof[good]).astype(np.int64)
-    # Each ratio over its own dof's chi-square median (dof differ between pixels: clipped
-    # steps leave fewer), so every bin's median estimates the variance itself.
-    dofs = np.arange(1, int(d.max()) + 1)
-    median = 2.0 * gammaincinv(dofs / 2.0, 0.5)  # chi-square medians
-    ratio = rss[good] / d / (median / dofs)[d - 1]
+    m = mean[good]
+    ratio = variance_ratio(rss[good], np.rint(dof[good]).astype(np.int64))
     edges = np.unique(np.quantile(m, np.linspace(0.0, 1.0, bins + 1)))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
     order = np.argsort(which, kind="stable")  # each bin a contiguous slice

@@ -188,3 +188,32 @@ def test_row_weights_over_a_long_history_match_the_full_computation():
         ids, want = full(t0, t1)
         assert [h.image_id for h in shown] == ids
         np.testing.assert_allclose(weights, want, rtol=0, atol=1e-12)
+
+
+def test_replay_blends_a_torn_frame_from_replayed_frames_instead_of_rendering(monkeypatch):
+    """With `replay`, a pose of the same screen content renders nothing, even when a late
+    trigger tears a frame: the torn frame is blended from the images it mixes."""
+    from acquisition.controller import ControllerOptions, capture_pose
+    from acquisition.patterns import build_plan
+    from acquisition.sinks import MemoryFrameStore
+    from hw_mocks.rig import SimulatedRig
+
+    screen = ScreenGeometry(320, 200, (0.5, 0.5))
+    plan = build_plan(320, 200, 0.5)
+    r = SimulatedRig(mild_pinhole(80, 60), screen, display={"history_s": 1e9},
+                     camera={"replay": True, "timestamp_jitter_s": 0.0})
+    settings = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    opts = ControllerOptions(latency_s=2 / 60)
+    first = MemoryFrameStore()
+    assert capture_pose(r.rig, plan, first, settings=settings, options=opts).status == "complete"
+    renders: list[int] = []
+    render = r.camera.optics.render_irradiance
+    monkeypatch.setattr(r.camera.optics, "render_irradiance",
+                        lambda light: renders.append(1) or render(light))
+    r.camera.faults.late_triggers[r.camera._triggers + 6] = 0.02
+    second = MemoryFrameStore()
+    res = capture_pose(r.rig, plan, second, settings=settings, options=opts)
+    assert res.status == "complete" and [rc.reason[:4] for rc in res.recaptures] == ["torn"]
+    torn = [t for t in r.camera.truth.values() if not t.pure]
+    assert torn and renders == []
+    np.testing.assert_array_equal(first.stack(len(plan.frames)), second.stack(len(plan.frames)))
