@@ -40,6 +40,10 @@ def pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(min(os.cpu_count() or 1, 4), thread_name_prefix="decode")
 
 
+# a forked child has none of the parent's threads: it starts its own pool
+os.register_at_fork(after_in_child=pool.cache_clear)
+
+
 def run_parallel(fn: Callable[[Any], None], items: Sequence[Any]) -> None:
     """Run `fn` over `items` in the shared pool (the kernels release the GIL)."""
     if len(items) <= 1:
