@@ -5,10 +5,11 @@ Public API: `StreamingDecoder` (a `FrameSink`), `decode_stack`, `DecodeOptions`,
 """
 
 from calibration.decode.accumulate import DecodeError
-from calibration.decode.decoder import StreamingDecoder, decode_stack
+from calibration.decode.decoder import StreamingDecoder
 from calibration.decode.frames_io import FrameSource, read_frames
 from calibration.decode.noise import NoiseModel
 from calibration.decode.options import DecodeOptions
+from calibration.decode.stack import decode_stack
 from calibration.decode.validity import REASONS
 
 __all__ = [

@@ -73,6 +73,11 @@ class SetSums:
     extra: list[Any] = field(default_factory=list)  # sum v sin(k psi), sum v cos(k psi) per k
     seen: int = 0
 
+    @property
+    def rows(self) -> int:
+        """Number of sums kept: s0, a, b and two per extra harmonic."""
+        return 3 + 2 * len(self.harmonics)
+
 
 def _bits_dtype(steps: int) -> np.dtype:
     """Smallest unsigned integer dtype that holds one bit per phase step."""
@@ -108,6 +113,7 @@ class FrameAccumulator:
         self.low: float | None = None
         self._seen = np.zeros(len(plan.frames), dtype=bool)
         self.sets: list[SetSums] = []
+        self.row0: list[int] = []  # first row of each set's sums (s0, a, b, extras) in `block`
         self._role: dict[int, tuple[str, int, int]] = {}
         for k, ps in enumerate(plan.period_sets()):
             frames = [plan.frames[i] for i in ps.frame_indices]
@@ -119,12 +125,14 @@ class FrameAccumulator:
                 )
             psi = tuple(2.0 * math.pi * s / ps.steps for s in range(ps.steps))
             layout = SetLayout(ps.axis, ps.period_px, amps.pop(), ps.steps, psi)
-            sums = SetSums(layout, *(self._zeros(np.float32) for _ in range(3)))
+            sums = SetSums(layout, None, None, None)
             sums.harmonics = harmonic_orders(ps.steps, need_squares)
-            sums.extra = [self._zeros(np.float32) for _ in range(2 * len(sums.harmonics))]
+            self.row0.append(sum(s.rows for s in self.sets))
             self.sets.append(sums)
             for step, idx in enumerate(ps.frame_indices):
                 self._role[idx] = ("cos", k, step)
+        self.rows = sum(s.rows for s in self.sets)
+        self.bits_dtype = _bits_dtype(max(s.layout.steps for s in self.sets))
         levels = [f.level for f in plan.frames if isinstance(f, FlatFrame)]
         self.bright_level = max(levels)
         for i, f in enumerate(plan.frames):
@@ -132,16 +140,37 @@ class FrameAccumulator:
                 self._role[i] = ("dark", 0, 0)
             elif isinstance(f, FlatFrame) and f.level == self.bright_level:
                 self._role[i] = ("bright", 0, 0)
-        self.bright = self._zeros(np.float64)
-        self.dark = self._zeros(np.float64)
+        self.compiled = False  # accumulate with the numba kernel (set by the decoder)
+        self.block: Any | None = None  # (rows, H*W) float32 sums, allocated by `allocate`
+        self.bits: Any | None = None  # (sets, H*W) bit masks of excluded steps, or None
+        self.bright: Any | None = None
+        self.dark: Any | None = None
         self.n_bright = 0
         self.n_dark = 0
         self.squares: Any | None = None
+        self.squares_dtype = np.dtype(np.float64)
         self.max_seen = -math.inf  # brightest cosine sample seen (reported: saturation hint)
 
-    def _zeros(self, dtype: Any) -> Any:
+    def allocate(self) -> None:
+        """Allocate and zero the full-image sums (once): the first `add` or a live capture's
+        `prepare` pays the page faults, not the pose's last frame."""
+        if self.block is not None:
+            return
+        h, w = self.shape
+        self.block = self._zeros((self.rows, h * w), np.float32)
+        for sums, r0 in zip(self.sets, self.row0, strict=True):
+            rows = [self.block[r0 + r].reshape(self.shape) for r in range(sums.rows)]
+            sums.s0, sums.a, sums.b, *sums.extra = rows
+        self.bright = self._zeros(self.shape, np.float64)
+        self.dark = self._zeros(self.shape, np.float64)
+        if self.need_squares and self.dtype is not None:
+            self.squares = self._zeros(self.shape, self.squares_dtype)
+        if self.compiled:  # calloc'd: pages are touched only where a step clips
+            self.bits = self.xp.zeros((len(self.sets), h * w), dtype=self.bits_dtype)
+
+    def _zeros(self, shape: tuple[int, ...], dtype: Any) -> Any:
         """A zeroed array, written now so page faults happen here and not during capture."""
-        arr = self.xp.empty(self.shape, dtype=dtype)
+        arr = self.xp.empty(shape, dtype=dtype)
         arr.fill(0)
         return arr
 
@@ -200,16 +229,24 @@ class FrameAccumulator:
                 else float(self.saturation_dn) * (1.0 - self.saturation_margin)
             )
             self.low = None
-        if self.need_squares:
-            # uint8 squares summed in float32 stay exact integers (< 2**24 for <= 258 frames).
-            sq_dtype = np.float32 if dt == np.uint8 and len(self.plan.frames) <= 258 else np.float64
-            self.squares = self._zeros(sq_dtype)
+        # uint8 squares summed in float32 stay exact integers (< 2**24 for <= 258 frames).
+        small = dt == np.uint8 and len(self.plan.frames) <= 258
+        self.squares_dtype = np.dtype(np.float32 if small else np.float64)
+        if self.need_squares and self.block is not None:
+            self.squares = self._zeros(self.shape, self.squares_dtype)
+
+    def accept(self, index: int, image: Any) -> Any:
+        """Validate plan frame `index`, allocate the sums, mark it seen; the frame as an xp
+        array (for the compiled path, which sums it itself: calibration/decode/batch.py)."""
+        img = self._check(index, image)
+        self.allocate()
+        self._seen[index] = True
+        return img
 
     def add(self, index: int, image: Any) -> None:
         """Fold one frame into the sums (any order, each plan index once)."""
-        img = self._check(index, image)
+        img = self.accept(index, image)
         role = self._role.get(int(index))
-        self._seen[index] = True
         if role is None:
             return  # a flat at another level: not used by the decoder
         kind, k, step = role
@@ -220,7 +257,7 @@ class FrameAccumulator:
             self._add_flat(self.dark, img)
             self.n_dark += 1
         else:
-            self._add_cosine(self.sets[k], step, img)
+            self._add_cosine(k, step, img)
 
     def _add_flat(self, total: Any, img: Any) -> None:
         """Sum a flat frame (float64) for its per-pixel average."""
@@ -229,7 +266,17 @@ class FrameAccumulator:
         else:
             total += img
 
-    def _exclude_clipped(self, sums: SetSums, step: int, img: Any) -> Any:
+    def excluded_row(self, k: int) -> Any:
+        """Set k's (H, W) bit mask of excluded steps, allocated on its first clipped sample."""
+        sums = self.sets[k]
+        if sums.excluded is None:
+            if self.bits is None:
+                h, w = self.shape
+                self.bits = self.xp.zeros((len(self.sets), h * w), dtype=self.bits_dtype)
+            sums.excluded = self.bits[k].reshape(self.shape)
+        return sums.excluded
+
+    def _exclude_clipped(self, k: int, step: int, img: Any) -> Any:
         """Zero the frame's clipped samples and record their step; fast when there are none."""
         if self.high is None and self.low is None:
             return img
@@ -241,26 +288,26 @@ class FrameAccumulator:
         hit_lo = self.low is not None and lo <= self.low
         if not (hit_hi or hit_lo):
             return img
-        if sums.excluded is None:
-            sums.excluded = self._zeros(_bits_dtype(sums.layout.steps))
-        bit = sums.excluded.dtype.type(1 << step)
+        excluded = self.excluded_row(k)
+        bit = excluded.dtype.type(1 << step)
         if fast and img.dtype.kind == "u":
             # One fused range test and one masked copy (OpenCV SIMD) instead of 4 NumPy passes.
             top = np.iinfo(img.dtype).max
             lo_keep = int(self.low) + 1 if hit_lo else 0
             hi_keep = math.ceil(self.high) - 1 if hit_hi else top
             kept = cv2.inRange(img, lo_keep, hi_keep)
-            np.bitwise_or(sums.excluded, bit, out=sums.excluded, where=kept == 0)
+            np.bitwise_or(excluded, bit, out=excluded, where=kept == 0)
             return cv2.bitwise_and(img, img, mask=kept)
         clip = img >= self.high if hit_hi else None
         if hit_lo:
             clip = img <= self.low if clip is None else clip | (img <= self.low)
-        sums.excluded |= clip.astype(sums.excluded.dtype) * bit
+        excluded |= clip.astype(excluded.dtype) * bit
         return xp.where(clip, xp.zeros((), dtype=img.dtype), img)
 
-    def _add_cosine(self, sums: SetSums, step: int, img: Any) -> None:
+    def _add_cosine(self, k: int, step: int, img: Any) -> None:
         """a += v sin(psi), b += v cos(psi), s0 += v, squares += v^2 over the kept samples."""
-        img = self._exclude_clipped(sums, step, img)
+        sums = self.sets[k]
+        img = self._exclude_clipped(k, step, img)
         psi = sums.layout.psi[step]
         pairs = [(sums.a, math.sin(psi)), (sums.b, math.cos(psi))]
         for j, k in enumerate(sums.harmonics):

@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import sys
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from types import ModuleType
 from typing import Any
@@ -20,8 +18,24 @@ from typing import Any
 import numpy as np
 
 from calibration.decode.accumulate import DecodeError, FrameAccumulator
-from calibration.decode.arrays import array_module, chi2_isf, to_host
+from calibration.decode.arrays import array_module, to_host
 from calibration.decode.axes import decode_axes_compiled, decode_axes_xp
+from calibration.decode.batch import (
+    ChunkSums,
+    add_frames,
+    chunk_view,
+    ready_frames,
+    run_parallel,
+)
+from calibration.decode.finish import (
+    chi2_tail,
+    finish_range,
+    no_valid_message,
+    output_planes,
+    residual_arrays,
+    residual_stats,
+    software_version,
+)
 from calibration.decode.noise import (
     LinearVariance,
     NoiseModel,
@@ -40,7 +54,6 @@ from calibration.decode.phase import SetFit, fit_set
 from calibration.decode.validity import REASONS, mark_screen_edges
 from calibration.maps import MAPS_FORMAT, DecodedMaps
 from calibration.plan import Plan
-from calibration.progress import CancelCheck, Cancelled, ProgressFn
 
 # The photon-transfer fit uses only pixels without clipped steps when at least this many exist.
 _MIN_CLEAN_PIXELS = 2000
@@ -49,39 +62,10 @@ _MIN_CLEAN_PIXELS = 2000
 _NOISE_PIECE = 1 << 14
 _NOISE_SAMPLE = 1 << 20
 _COMPILED_MIN_PIXELS = 1 << 20
-
-
-def _output_planes(npix: int, axes: list[str]) -> dict[str, np.ndarray]:
-    """(2, npix) output arrays (rows x, y) for the compiled kernel; absent axes stay NaN."""
-    planes = {}
-    for name, dtype in (("position", np.float64), ("sigma", np.float32),
-                        ("modulation", np.float32), ("blur", np.float32)):
-        arr = np.empty((2, npix), dtype=dtype)
-        for row, axis in enumerate(("x", "y")):
-            if axis not in axes:
-                arr[row] = np.nan
-        planes[name] = arr
-    return planes
-
-
-@functools.lru_cache(maxsize=8)
-def _chi2_tail(max_dof: int) -> np.ndarray:
-    """Per-dof ratio chi2.isf(1e-6, d)/d for d = 0..max_dof (inf for d = 0)."""
-    d = np.arange(max_dof + 1, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = chi2_isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
-    ratio[0] = np.inf
-    return ratio
-
-
-def _software_version() -> str:
-    """Installed phasecal version, or 'unknown' when running from a bare checkout."""
-    try:
-        from importlib.metadata import version
-
-        return version("phasecal")
-    except Exception:
-        return "unknown"
+# One-off decodes (decode_stack) of images this large load the compiled kernels (~0.7 s of
+# CPU once per process) even when no live capture has loaded them yet: they pay back.
+_ALWAYS_COMPILED_PIXELS = 1 << 21
+_KERNELS = ("calibration.decode.kernel_sums", "calibration.decode.accumulate_kernel")
 
 
 class StreamingDecoder:
@@ -107,6 +91,7 @@ class StreamingDecoder:
         self.plan = plan
         self.options = options or DecodeOptions()
         self.xp = array_module(xp)
+        self._noise = noise
         self._variance = variance_function(noise)
         constant = isinstance(noise, int | float)
         self._noise_kind = "residual" if noise is None else "constant" if constant else "model"
@@ -124,6 +109,7 @@ class StreamingDecoder:
         # Large NumPy images may take the compiled per-pixel kernel; other namespaces (CuPy)
         # the array-namespace path.
         self._large = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
+        self._acc.compiled = self._compiled
 
     @property
     def missing(self) -> list[int]:
@@ -131,25 +117,46 @@ class StreamingDecoder:
         return self._acc.missing
 
     def prepare(self) -> None:
-        """Load the compiled finish kernel now, for images of >= 1 Mpixel (a live capture
-        calls this while frames arrive). Loading it costs ~1 s of CPU (numba's import and
-        its cached machine code), more than it saves on one 5 Mpixel finish, so a decoder
-        uses it only once it is loaded in the process (long-lived workers, live captures)."""
+        """Load the compiled kernels now, for images of >= 1 Mpixel, and allocate the sums
+        (a live capture calls this before frames arrive). Loading costs ~0.7 s of CPU
+        (numba's import and its cached machine code), so a decoder uses the kernels only
+        once they are loaded in the process (long-lived workers, live captures, large
+        one-off decodes)."""
         if self._large:
-            from calibration.decode.kernel import warm_up
+            from calibration.decode.kernel_warm import warm_up
 
             warm_up()
+            self._acc.compiled = self._compiled
+        self._acc.allocate()
 
     @property
     def _compiled(self) -> bool:
-        """Finish with the compiled kernel: a large NumPy image and the kernel loaded."""
-        return self._large and "calibration.decode.kernel" in sys.modules
+        """Accumulate and finish with the compiled kernels: a large NumPy image, loaded."""
+        return self._large and all(name in sys.modules for name in _KERNELS)
 
     def add(self, index: int, image: np.ndarray) -> None:
         """Fold plan frame `index` into the running sums (any order, each index once)."""
+        self.add_frames([index], [image])
+
+    def ready_frames(self, available: Any) -> list[int]:
+        """Of the plan indices `available` (stored, not yet added), those worth adding now:
+        flats and the frames of period groups all of whose frames are available (one
+        cache-blocked pass per group instead of one memory-bound pass per frame)."""
+        return ready_frames(self._acc, available)
+
+    def add_frames(self, indices: list[int], stack: Any, rows: list[int] | None = None) -> None:
+        """Fold several frames at once: `stack[rows[j]]` (default `stack[j]`) is plan frame
+        `indices[j]`. The compiled path reads each frame once, in cache blocks: a live
+        decoder catching up on the frames stored since its last look (a frame store's
+        memory map and the new indices) pays one pass for all of them."""
         if self._finished:
-            raise DecodeError(f"frame {index}: the decoder has already finished")
-        self._acc.add(index, image)
+            raise DecodeError(f"frames {list(indices)[:10]}: the decoder has already finished")
+        if self._compiled:
+            self._acc.compiled = True
+            add_frames(self._acc, indices, stack, rows)
+            return
+        for j, index in enumerate(indices):
+            self._acc.add(index, stack[j if rows is None else rows[j]])
 
     # -- finishing ---------------------------------------------------------------------
     def finish(self, meta: dict[str, Any] | None = None) -> DecodedMaps:
@@ -162,12 +169,42 @@ class StreamingDecoder:
                 "every cosine and flat frame of the plan is needed"
             )
         self._finished = True
+        acc.allocate()  # (a plan of flats only: nothing was added)
+        return self._decode(lambda sl: chunk_view(acc, sl), meta)
+
+    def finish_stack(self, stack: np.ndarray, meta: dict[str, Any] | None = None,
+                     step: Callable[[float], None] | None = None) -> DecodedMaps:
+        """Decode a whole (F, H, W) stack in plan order (compiled path, nothing added yet):
+        each pixel range's sums are accumulated right before it is finished, so no
+        full-image sums exist (no page faults for them) and each frame byte is read once.
+        `step(fraction)` runs between groups of ranges (progress, cancellation)."""
+        from calibration.decode.batch import accumulate_range, finish_stack_state, stack_state
+
+        acc = self._acc
+        if self._finished or acc._seen.any():
+            raise DecodeError("frames: finish_stack needs a fresh decoder")
+        for i in range(stack.shape[0]):
+            acc._check(i, stack[i])
+        self._finished = True
+        flat = stack.reshape(stack.shape[0], -1)
+        if not flat.flags.c_contiguous:
+            flat = np.ascontiguousarray(flat)
+        state = stack_state(acc)  # frame counts are known from the plan
+        return self._decode(lambda sl: accumulate_range(acc, flat, sl.start, sl.stop - sl.start,
+                                                        state), meta, step,
+                            lambda: finish_stack_state(acc, state))
+
+    def _decode(self, chunk_of: Callable[[slice], ChunkSums], meta: dict[str, Any] | None,
+                step: Callable[[float], None] | None = None,
+                summed: Callable[[], None] | None = None) -> DecodedMaps:
+        """Noise estimate, then every pixel range's finish; `chunk_of` gives a range's sums."""
+        acc = self._acc
         h, w = acc.shape
         npix = h * w
         axes = self.plan.axes()
         # Chunks write every pixel of the plan's axes: no NaN pre-fill there (first-touch
         # page faults of ~300 MB of outputs then happen in the worker threads, in parallel).
-        planes = _output_planes(npix, axes) if self._compiled else None
+        planes = output_planes(npix, axes) if self._compiled else None
         if planes is not None:
             out = {f"{kind}{axis}": planes[kind.rstrip("_") or "position"][row]
                    for row, axis in enumerate(("x", "y"))
@@ -182,22 +219,30 @@ class StreamingDecoder:
                 for kind in ("", "sigma_", "modulation_", "blur_")
             }
         reason = np.zeros(npix, dtype=np.uint8)
-        step = self.options.chunk_pixels
+        size = self.options.chunk_pixels
         if self._variance is None:
-            self._estimate_noise(npix)
-        chunks = [slice(s, min(s + step, npix)) for s in range(0, npix, step)]
-        self._map(lambda sl: self._finish_chunk(sl, out, planes, reason), chunks)
+            self._estimate_noise(npix, chunk_of)
+        chunks = [slice(s, min(s + size, npix)) for s in range(0, npix, size)]
+        group = max(1, len(chunks) // 16) if step is not None else len(chunks)
+        for g in range(0, len(chunks), group):
+            self._map(lambda sl: self._finish_chunk(chunk_of(sl), sl, out, planes, reason),
+                      chunks[g:g + group])
+            if step is not None:
+                step(min(g + group, len(chunks)) / len(chunks))
+        if summed is not None:
+            summed()
         mark_screen_edges(reason.reshape(h, w))
-        counts = {name: int((reason == code).sum()) for code, name in enumerate(REASONS)}
+        tally = np.bincount(reason, minlength=len(REASONS))
+        counts = {name: int(tally[code]) for code, name in enumerate(REASONS)}
         if counts["valid"] == 0:
-            raise DecodeError(self._no_valid_message(counts, npix))
+            raise DecodeError(no_valid_message(counts, npix))
         mask = reason == 0
-        for key in ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y"):
-            out[key][~mask] = np.nan
+        self._map(lambda sl: [np.copyto(out[key][sl], np.nan, where=~mask[sl]) for key in
+                              ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y")], chunks)
         info = {
             "format": MAPS_FORMAT,
             "plan_digest": self.plan.digest(),
-            "software": f"phasecal {_software_version()}",
+            "software": f"phasecal {software_version()}",
             "decoder": {
                 "noise": self._noise_kind,
                 "photon_transfer": asdict(self._ptc) if self._ptc is not None else None,
@@ -225,26 +270,15 @@ class StreamingDecoder:
         )
 
     def _map(self, fn: Callable[[slice], None], chunks: list[slice]) -> None:
-        """Run `fn` on disjoint pixel chunks; NumPy releases the GIL, so threads use the cores."""
-        workers = min(len(chunks), os.cpu_count() or 1, 4) if self.xp is np else 1
-        if workers <= 1:
-            for sl in chunks:
-                fn(sl)
+        """Run `fn` on disjoint pixel chunks in the shared pool (NumPy and the kernels release
+        the GIL, so threads use the cores); one after another for other namespaces."""
+        if self.xp is np:
+            run_parallel(fn, chunks)
             return
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(fn, chunks))
+        for sl in chunks:
+            fn(sl)
 
-    def _no_valid_message(self, counts: dict[str, int], npix: int) -> str:
-        """One line saying why no pixel could be decoded."""
-        worst = max((n, name) for name, n in counts.items() if name != "valid")[1]
-        if counts["no_screen"] == npix:
-            return (
-                "frames: no pixel sees the screen (the bright flat is nowhere brighter than "
-                "the dark flat beyond the noise): all-dark stack, display off or lens capped?"
-            )
-        return f"frames: no pixel could be decoded; most common reason: {worst} ({counts})"
-
-    def _residuals(self, fits: list[SetFit], sl: slice) -> tuple[Any, Any, Any]:
+    def _residuals(self, fits: list[SetFit], chunk: ChunkSums) -> tuple[Any, Any, Any]:
         """Per-pixel residual sum of squares, its degrees of freedom and their noise level.
 
         The level is the dof-weighted average of the sets' residual levels (`SetFit.level`),
@@ -252,10 +286,10 @@ class StreamingDecoder:
         exactly, also for pixels whose bright steps clipped.
         """
         xp = self.xp
-        rss = self._acc.squares.reshape(-1)[sl].astype(xp.float64)
+        rss = chunk.squares.astype(xp.float64)
         dof = xp.zeros_like(rss)
         level = xp.zeros_like(rss)
-        for f, s, r2 in zip(fits, self._acc.sets, self._leak or [0.0] * len(fits), strict=True):
+        for f, s, r2 in zip(fits, chunk.sets, self._leak or [0.0] * len(fits), strict=True):
             rss = rss - xp.where(f.ok, f.explained, 0.0)
             if r2:  # the display harmonic in the residual is not noise (`harmonic_leak`)
                 rss = rss - r2 * nyquist_power(xp, [f], [s])[0]
@@ -263,7 +297,7 @@ class StreamingDecoder:
             level = level + xp.where(f.ok, f.dof * f.level, 0.0)
         return xp.maximum(rss, 0.0), dof, level / xp.maximum(dof, 1.0)
 
-    def _estimate_noise(self, npix: int) -> None:
+    def _estimate_noise(self, npix: int, chunk_of: Callable[[slice], ChunkSums]) -> None:
         """Residual mode: fit a photon-transfer line to the pixels' residuals (first pass),
         on the pixels `line_pixels` chooses, held at or above the floor from the median
         dark-flat level up (the lowest level the sensor records there), less the display
@@ -277,17 +311,11 @@ class StreamingDecoder:
         offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
 
         def one(k: int) -> None:
-            sl, to = pieces[k], slice(int(offsets[k]), int(offsets[k + 1]))
-            skip = self._sees_no_screen(sl)
-            fits = [fit_set(self.xp, s, sl, residuals=True, skip=skip) for s in acc.sets]
-            r, d, m = self._residuals(fits, sl)
-            rss[to], dof[to], mean[to] = to_host(r), to_host(d), to_host(m)
-            power[:, to] = to_host(self.xp.stack(nyquist_power(self.xp, fits, acc.sets)))
-            dark[to] = to_host(acc.dark.reshape(-1)[sl] / acc.n_dark)
-            span[to] = to_host(acc.bright.reshape(-1)[sl] / acc.n_bright) - dark[to]
-            clean[to] = to_host(~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits]))
-            low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
-            no_dark_clip[to] = to_host(~low)
+            to, chunk = slice(int(offsets[k]), int(offsets[k + 1])), chunk_of(pieces[k])
+            stats = (residual_stats if self._compiled else residual_arrays)(self, chunk)
+            mean[to], rss[to], dof[to], clean[to], no_dark_clip[to], power[:, to] = stats
+            dark[to] = to_host(chunk.dark / acc.n_dark)
+            span[to] = to_host(chunk.bright / acc.n_bright) - dark[to]
 
         self._map(one, list(range(len(pieces))))
         spread = ~undithered(span, rss, dof, no_dark_clip, quantized=acc.dtype.kind == "u")
@@ -295,13 +323,12 @@ class StreamingDecoder:
         self._ptc, self._leak = residual_line(mean[use], rss[use], dof[use], power[:, use],
                                               self._floor, dark[use])
 
-    def _sees_no_screen(self, sl: slice) -> Any:
+    def _sees_no_screen(self, chunk: ChunkSums) -> Any:
         """Pixels whose flat contrast fails `min_contrast_snr` even at the smallest credible
         noise (the floor): `no_screen` whatever the noise estimate, so their clipped steps
         (a dark surround reading 0 DN) need no least-squares fit, the costliest part."""
         acc = self._acc
-        bright = acc.bright.reshape(-1)[sl] / acc.n_bright
-        dark = acc.dark.reshape(-1)[sl] / acc.n_dark
+        bright, dark = chunk.bright / acc.n_bright, chunk.dark / acc.n_dark
         floor_sigma = math.sqrt(self._floor * (1.0 / acc.n_bright + 1.0 / acc.n_dark))
         return ~((bright - dark) >= self.options.min_contrast_snr * floor_sigma)
 
@@ -310,7 +337,8 @@ class StreamingDecoder:
         """Smallest credible sample variance: quantization of integer frames."""
         return 1.0 / 12.0 if self._acc.dtype.kind == "u" else 1e-12
 
-    def _noise_variances(self, fits: list[SetFit], sl: slice) -> tuple[list[Any], VarianceFn]:
+    def _noise_variances(self, fits: list[SetFit], chunk: ChunkSums
+                         ) -> tuple[list[Any], VarianceFn]:
         """Per-set sample variance (DN^2) for this chunk, and the variance function for flats.
 
         With a given noise model it is evaluated at each period's mean level. In residual
@@ -321,80 +349,50 @@ class StreamingDecoder:
         xp = self.xp
         if self._variance is not None:
             fn = self._variance
-            per_set = [fn(phase_level(xp, f, s, sl)) for f, s in zip(fits, self._acc.sets,
-                                                                      strict=True)]
+            per_set = [fn(phase_level(xp, f, s, slice(None)))
+                       for f, s in zip(fits, chunk.sets, strict=True)]
             everywhere = xp.ones(fits[0].mean.shape, dtype=bool)
             for f, var in zip(fits, per_set, strict=True):
                 f.use_step_levels(xp, fn, var, everywhere)
             return per_set, fn
-        rss, dof, _ = self._residuals(fits, sl)
+        rss, dof, _ = self._residuals(fits, chunk)
         own = xp.where(dof > 0, xp.maximum(rss / xp.maximum(dof, 1.0), self._floor), xp.nan)
         if self._ptc is None:
             return [own] * len(fits), lambda level: own
         ptc = self._ptc.variance
-        limit = xp.asarray(_chi2_tail(int(to_host(dof).max()) if dof.size else 0))
+        limit = xp.asarray(chi2_tail(int(to_host(dof).max()) if dof.size else 0))
         excess = own > ptc(xp.maximum(fits[0].mean, 0.0)) * limit[dof.astype(xp.int64)]
-        per_set = [xp.where(excess, own, ptc(phase_level(xp, f, s, sl)))
-                   for f, s in zip(fits, self._acc.sets, strict=True)]
+        per_set = [xp.where(excess, own, ptc(phase_level(xp, f, s, slice(None))))
+                   for f, s in zip(fits, chunk.sets, strict=True)]
         for f, var in zip(fits, per_set, strict=True):
             f.use_step_levels(xp, ptc, var, ~excess)
         return per_set, ptc  # the flats are not subject to the cosine-fit model error
 
-    def _finish_chunk(self, sl: slice, out: dict, planes: dict | None,
+    def _finish_chunk(self, chunk: ChunkSums, sl: slice, out: dict, planes: dict | None,
                       reason: np.ndarray) -> None:
         """Decode one flattened pixel range into `out` (or `planes`) and `reason`."""
+        if planes is not None:
+            finish_range(self, chunk, sl, planes, reason)
+        else:
+            reason[sl] = self._finish_arrays(chunk, sl, out=out)
+
+    def _finish_arrays(self, chunk: ChunkSums, sl: slice, out: dict | None = None,
+                       planes: dict | None = None) -> np.ndarray:
+        """Array path of one range: outputs into `out[..][sl]` or `planes[..][:, sl]`;
+        returns its reason codes."""
         xp, acc = self.xp, self._acc
-        skip = self._sees_no_screen(sl)
-        fits = [fit_set(xp, s, sl, residuals=self._variance is None, skip=skip)
-                for s in acc.sets]
-        variances, level_var = self._noise_variances(fits, sl)
-        bright = acc.bright.reshape(-1)[sl] / acc.n_bright
-        dark = acc.dark.reshape(-1)[sl] / acc.n_dark
+        skip = self._sees_no_screen(chunk)
+        fits = [fit_set(xp, s, slice(None), residuals=self._variance is None, skip=skip)
+                for s in chunk.sets]
+        variances, level_var = self._noise_variances(fits, chunk)
+        bright, dark = chunk.bright / acc.n_bright, chunk.dark / acc.n_dark
         var_b, var_d = level_var(bright), level_var(xp.maximum(dark, 0.0))
         contrast_var = var_b / acc.n_bright + var_d / acc.n_dark
         contrast_snr = (bright - dark) / xp.sqrt(contrast_var)
         contrast_snr = xp.where(xp.isfinite(contrast_snr), contrast_snr, 0.0)
         if planes is not None:
-            reason[sl] = decode_axes_compiled(self.plan, acc.sets, fits, variances,
-                                              contrast_snr, self.options, planes, sl)
-        else:
-            reason[sl] = decode_axes_xp(xp, self.plan, acc.sets, fits, variances, contrast_snr,
-                                        self.options, out, sl)
+            return decode_axes_compiled(self.plan, acc.sets, fits, variances, contrast_snr,
+                                        self.options, planes, sl)
+        return decode_axes_xp(xp, self.plan, acc.sets, fits, variances, contrast_snr,
+                              self.options, out, sl)
 
-
-def decode_stack(
-    plan: Plan,
-    frames: Any,
-    *,
-    noise: NoiseModel | NoiseSource | float | None = None,
-    saturation_dn: float | None = None,
-    options: DecodeOptions | None = None,
-    xp: ModuleType | str | None = np,
-    meta: dict[str, Any] | None = None, progress: ProgressFn | None = None,
-    cancelled: CancelCheck | None = None, prepare: bool = False,
-) -> DecodedMaps:
-    """The one decode loop: frames in plan order (an (F, H, W) stack, a `FrameSource` or any
-    sized iterable of 2-D frames) to maps; progress per frame, `Cancelled` between frames."""
-    count = len(frames)
-    if count != len(plan.frames):
-        raise DecodeError(f"frames: {count} frames given, the plan has {len(plan.frames)} "
-                          "(frame i must be captured while plan frame i was shown)")
-    dec: StreamingDecoder | None = None
-    for i, frame in enumerate(frames):
-        if cancelled is not None and cancelled():
-            raise Cancelled(f"decode cancelled after {i} of {count} frames")
-        if dec is None:
-            if getattr(frame, "ndim", None) != 2:
-                raise DecodeError("frames: expected a (F, H, W) stack of single-channel frames, "
-                                  f"got frame shape {getattr(frame, 'shape', None)}")
-            dec = StreamingDecoder(plan, tuple(frame.shape), noise=noise,
-                                   saturation_dn=saturation_dn, options=options, xp=xp)
-            if prepare:
-                dec.prepare()
-        dec.add(i, frame)
-        if progress is not None:
-            progress(i + 1, count, "decode")
-    assert dec is not None  # count == len(plan.frames) > 0
-    if progress is not None:
-        progress(count, count, "unwrap")
-    return dec.finish(meta)

@@ -86,6 +86,13 @@ class FrameStore:
         view.flags.writeable = False
         return view
 
+    def array(self) -> np.ndarray:
+        """The whole (F, H, W) store, memory-mapped read-only (rows of unstored frames are
+        zeros); `StreamingDecoder.add_frames` folds in the stored ones in one pass."""
+        if not self._open(writable=False):
+            raise DecodeError(f"{self.frames_path}: no frames stored")
+        return self._frames
+
     # -- writing -----------------------------------------------------------------------
     def _create(self, image: np.ndarray) -> None:
         """Create both files for frames like `image` (temp names, then renames)."""

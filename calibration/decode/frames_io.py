@@ -31,6 +31,12 @@ class FrameSource:
     def __len__(self) -> int:
         return self.count
 
+    def array(self) -> np.ndarray | None:
+        """The whole `.npy` stack, memory-mapped (no copy); None for a folder of images."""
+        if self.files:
+            return None
+        return np.load(self.path, mmap_mode="r", allow_pickle=False)
+
     def __iter__(self) -> Iterator[np.ndarray]:
         if not self.files:
             stack = np.load(self.path, mmap_mode="r", allow_pickle=False)

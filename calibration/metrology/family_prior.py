@@ -5,12 +5,13 @@ but variance. A 10x10 cubic mesh gives each ray component 169 free control point
 the family's 8-12 parameters, and the second-difference prior (weight 1e-10) hardly
 constrains them; a stronger plain prior pulls towards *linear* ray fields and biases
 (measured: weight 1e-4 -> 3.8x, 1e-2 -> 1700x). The fix keeps the generic model and moves
-the prior's centre: a dense parametric fit (`points: "all"`; opencv-rational from sGCC's
-own OpenCV init, or fisheye, whichever fits better), its ray field fitted into the mesh.
-If that family fits as well as the free spline (a likelihood-ratio test: the spline's chi2
-gain within dof + 3 sqrt(2 dof) of noise), the spline is refitted with a strong
-second-difference prior on its deviation from the family (weight 1, relative); otherwise
-the free fit stands.
+the prior's centre: a dense parametric fit (`points: "all"`), simplest family first:
+opencv5, fisheye, opencv-rational (from sGCC's own OpenCV init). The first that fits as well
+as the free spline (a likelihood-ratio test: the spline's chi2 gain within 3 sqrt(2 dof) of
+its expectation under the family) is used: the spline is refitted with a strong prior
+(weight `PRIOR_WEIGHT`, relative) on its deviation from the family's field, with the
+family's parameters left free; its covariance comes from `calibration.fit.sgcc.prior`
+(why: docs/generic.md). Otherwise the free fit stands.
 """
 
 from __future__ import annotations
@@ -24,19 +25,16 @@ from calibration.fit.correspondences import PointSet
 from calibration.fit.observations import PoseObs
 from calibration.fit.ransac import DegenerateError
 from calibration.fit.result import PoseEstimate
-from calibration.fit.sgcc.initial import gauge_rotation
 from calibration.fit.sgcc.lm import gauge_constraints
-from calibration.fit.sgcc.state import LMState
 from calibration.metrology.lm import fit_dense
 from calibration.metrology.refine import fit_parametric_dense
 from calibration.metrology.screen import PARAM_NAMES, ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.parametric import OpenCVRationalModel
-from calibration.models.sgcc import logmap
-from calibration.plan import ScreenGeometry
 
-PRIOR_WEIGHT = 1.0  # relative to the mean diagonal of the spline normal equations
-_FIT_POINTS = 40000
+# A family the views do not determine (or OpenCV cannot initialize) is skipped.
+_NOT_DETERMINED = (DegenerateError, ValueError, np.linalg.LinAlgError, cv2.error)
+PRIOR_WEIGHT = 100.0  # relative to the mean diagonal of the spline normal equations
 
 
 def _point_sets(obs: list[PoseObs], pitch: np.ndarray) -> list[PointSet]:
@@ -62,82 +60,71 @@ def _rational_from_init(pts: list[PointSet], screen: ScreenModel,
                                       "screen": dense.screen.to_json()}
 
 
-def _fisheye(pts: list[PointSet], screen: ScreenModel, image_size: tuple[int, int]
-             ) -> tuple[Any, list, dict] | None:
-    """Dense fisheye fit (OpenCV init), or None where the views do not determine it."""
+def _dense(pts: list[PointSet], screen: ScreenModel, image_size: tuple[int, int],
+           family: str) -> tuple[Any, list, dict] | None:
+    """Dense fit of `family` (OpenCV init) on the same screen model, or None where the views
+    do not determine it."""
     try:
         model, poses, _, stats, _ = fit_parametric_dense(
-            pts, image_size, "fisheye", screen.geometry,
+            pts, image_size, family, screen.geometry,
             {"screen": screen.mode, "glass_index": screen.glass_index})
-    except (DegenerateError, ValueError, np.linalg.LinAlgError):
+    except _NOT_DETERMINED:
         return None
-    return model, poses, {**stats, "family": "fisheye"}
-
-
-def state_from_model(model: Any, poses: list, obs: list[PoseObs], grid: SplineGrid,
-                     n_comp: int) -> LMState:
-    """The model's ray field fitted into the mesh and its poses, in the sGCC gauge."""
-    w, h = grid.image_size
-    c = np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 1.0, (h - 1) / 2]])
-    dc = model.unproject(c)[1]
-    q = gauge_rotation(dc[0], dc[1] - dc[0])
-    pix = np.unique(np.concatenate([o.pixels for o in obs]), axis=0)
-    pix = pix[np.unique(np.linspace(0, len(pix) - 1, min(len(pix), _FIT_POINTS)).astype(int))]
-    d = model.unproject(pix)[1]
-    ok = np.all(np.isfinite(d), axis=1)
-    coeffs = np.zeros((grid.size, n_comp))
-    coeffs[:, :2] = grid.fit(pix[ok, 0], pix[ok, 1], logmap(d[ok] @ q.T))
-    cons = gauge_constraints(grid, n_comp, grid.size * n_comp)
-    x = coeffs.ravel()
-    x -= cons.T @ np.linalg.solve(cons @ cons.T, cons @ x)
-    rcs = [(q @ p.rotation).T for p in poses]
-    tcs = [-(q @ p.rotation).T @ (q @ p.translation) for p in poses]
-    return LMState(x.reshape(grid.size, n_comp), rcs, tcs)
+    return model, poses, {**stats, "family": family}
 
 
 def family_adequate(family_stats: dict[str, Any], spline_chi2_dof: float, n_residuals: int,
                     extra_dof: int) -> tuple[bool, dict[str, float]]:
-    """Likelihood-ratio test: does the spline's extra freedom fit better than noise would?"""
+    """Likelihood-ratio test: does the spline's extra freedom fit better than noise would?
+
+    Both fits' chi2 are per degree of freedom, so the gain (family minus spline, in chi2
+    units) is chi2(extra) - extra under the family: mean 0, std sqrt(2 extra); it must stay
+    within 3 std (the expected `extra` itself is already taken out by the dof)."""
     scale = max(spline_chi2_dof, 1e-12)
     gain = (family_stats["reduced_chi2"] - spline_chi2_dof) * n_residuals / scale
-    limit = extra_dof + 3.0 * np.sqrt(2.0 * max(extra_dof, 1))
+    limit = 3.0 * np.sqrt(2.0 * max(extra_dof, 1))
     return bool(gain <= limit), {"chi2_gain": float(gain), "chi2_gain_limit": float(limit)}
 
 
-def prior_state(obs: list[PoseObs], screen: ScreenGeometry, grid: SplineGrid, n_comp: int,
-                free_fit_chi2: float, n_residuals: int, cv_fit: tuple,
-                screen_model: ScreenModel | None = None) -> tuple[LMState, dict[str, Any]]:
-    """The state of the adequate family (rational from `cv_fit`, fisheye) with the lower chi2
-    in the mesh, with the test's verdict; if none is adequate, the verdict of the best.
+def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_comp: int,
+                  free_fit_chi2: float, n_residuals: int, cv_fit: tuple
+                  ) -> tuple[Any | None, dict[str, Any]]:
+    """The first family, simplest first (opencv5, fisheye, rational from `cv_fit`), whose
+    dense fit passes the test: (model, verdict); if none passes, the closest with
+    `verdict["adequate"]` False (model None if none could be fitted).
 
+    `screen`: the spline's screen model (sGCC's `screen: "fit"` -> mode "fit"): the families
+    fit it too, so they are judged on the same model (`verdict["screen"]`: their estimate).
     `free_fit_chi2` / `n_residuals`: the free spline fit's chi2/dof and residual count.
-    `screen_model` (mode "fit": sGCC's `screen: "fit"`): the families fit the screen too,
-    so they are judged on the same screen model as the spline; its estimate starts the state.
     """
-    scr = screen_model or ScreenModel(screen)
-    pts = _point_sets(obs, np.asarray(screen.pitch_mm, dtype=np.float64))
+    pts = _point_sets(obs, np.asarray(screen.geometry.pitch_mm, dtype=np.float64))
     n_gauge = len(gauge_constraints(grid, n_comp, grid.size * n_comp))
     best = None
-    for fit in (lambda: _rational_from_init(pts, ScreenModel(screen, scr.mode, scr.glass_index),
-                                            grid.image_size, cv_fit),
-                lambda: _fisheye(pts, scr, grid.image_size)):
-        found = fit()
+    for fit in (lambda: _dense(pts, screen, grid.image_size, "opencv5"),
+                lambda: _dense(pts, screen, grid.image_size, "fisheye"),
+                lambda: _rational_from_init(
+                    pts, ScreenModel(screen.geometry, screen.mode, screen.glass_index),
+                    grid.image_size, cv_fit)):
+        try:
+            found = fit()
+        except _NOT_DETERMINED:
+            found = None
         if found is None:
             continue
-        model, poses, stats = found
-        n_fam = sum(1 for v in stats["param_std"].values() if v > 0)
-        extra = grid.size * n_comp - n_gauge - n_fam
+        model, _, stats = found
+        sigmas = {k: v for k, v in stats["param_std"].items() if v > 0 and k in
+                  model.param_names()}
+        extra = grid.size * n_comp - n_gauge - len(sigmas)
         ok, test = family_adequate(stats, free_fit_chi2, n_residuals, extra)
         info = {"family": stats["family"], "family_chi2_dof": stats["reduced_chi2"],
                 "spline_chi2_dof": free_fit_chi2, "extra_dof": extra, **test, "adequate": ok,
-                "weight": PRIOR_WEIGHT if ok else None}
-        if best is None or test["chi2_gain"] < best[2]["chi2_gain"]:
-            best = (model, poses, info, stats["screen"])
-    assert best is not None  # the rational fit always returns
-    model, poses, info, fitted_screen = best
-    if not info["adequate"]:
-        return LMState(np.zeros((grid.size, n_comp)), [], []), info
-    state = state_from_model(model, poses, obs, grid, n_comp)
-    if scr.mode == "fit":
-        state.screen = np.array([fitted_screen[k] for k in PARAM_NAMES])
-    return state, info
+                "weight": PRIOR_WEIGHT if ok else None, "param_std": sigmas}
+        if screen.mode == "fit":
+            info["screen"] = {k: stats["screen"][k] for k in PARAM_NAMES}
+        if ok:
+            return model, info
+        if best is None or test["chi2_gain"] < best[1]["chi2_gain"]:
+            best = (model, info)
+    if best is None:  # no family could be fitted at all: the free spline stands
+        return None, {"family": None, "adequate": False, "weight": None, "param_std": {}}
+    return best

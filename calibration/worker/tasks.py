@@ -94,12 +94,13 @@ def stream_decode_task(
     while not added.all():
         ctx.check_cancelled()
         new = np.setdiff1d(store.stored(), np.flatnonzero(added), assume_unique=True)
-        if new.size == 0:
+        # stored frames of complete period groups, in one cache-blocked pass per look
+        ready = decoder.ready_frames(new.tolist())
+        if not ready:
             time.sleep(poll_s)
             continue
-        for index in new.tolist():
-            decoder.add(index, store.frame(index))
-            added[index] = True
+        decoder.add_frames(ready, store.array(), rows=ready)
+        added[ready] = True
     caught_up_at = time.time()  # wall clock: the capture side reports its last frame's
     t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
     ctx.progress(total, total, "unwrap")

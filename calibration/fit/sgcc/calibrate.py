@@ -7,8 +7,9 @@ validation points), `max_iterations` (60),
 `huber_k` (3), `cut_sigmas` (8), `smooth` (1e-10, relative weight of the
 second-difference prior that only matters where there are no data), `xp` ("numpy": threaded
 CPU, default; "cupy": residuals and normal equations on the GPU, `sgcc/device.py`),
-`family_prior` ("off", default; "auto": where a dense parametric fit is as good as the free
-spline, refit with the prior centred on it, calibration.metrology.family_prior), `screen`
+`family_prior` ("auto", the default for sgcc on a flat screen: where a dense parametric fit is
+as good as the free spline, refit with the prior centred on it, calibration.metrology.
+family_prior and calibration.fit.sgcc.prior; "off", the default otherwise), `screen`
 ("flat", default; "fit": panel bow/twist and cover-glass thickness fitted jointly,
 sgcc/screen_terms.py) and `glass_index` (1.52).
 """
@@ -34,6 +35,12 @@ from calibration.fit.sgcc.initial import initial_state, opencv_init, pose_from_m
 from calibration.fit.sgcc.lm import run_lm
 from calibration.fit.sgcc.mesh import choose_mesh
 from calibration.fit.sgcc.options import SgccOptions
+from calibration.fit.sgcc.prior import (
+    FieldProjector,
+    deviation_precision,
+    family_tangent,
+    prior_covariance,
+)
 from calibration.fit.sgcc.screen_terms import (
     ScreenTrace,
     holds_glass,
@@ -43,18 +50,17 @@ from calibration.fit.sgcc.screen_terms import (
 )
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.maps import DecodedMaps
-from calibration.metrology.family_prior import PRIOR_WEIGHT, prior_state
+from calibration.metrology.family_prior import PRIOR_WEIGHT, choose_family
 from calibration.metrology.screen import ScreenModel
 from calibration.models.bspline import SplineGrid
-from calibration.models.sgcc import (
-    SGCCBase,
-    expmap_jacobian,
-)
+from calibration.models.heap import retained_heap
+from calibration.models.sgcc import SGCCBase, expmap_jacobian_rows
 from calibration.plan import ScreenGeometry
 from calibration.progress import CancelCheck, ProgressFn
 
 _FEW_VIEWS = 0.1  # warn when more of the seen pixels than this have fewer than 3 views
 _MESH_HINT_RATIO = 1.1  # noise-floor ratio above which a finer mesh is suggested
+_BLOCK = 1 << 16  # pixels per block of the per-pixel statistics
 
 
 def _lm_options(opts: SgccOptions) -> LMOptions:
@@ -67,35 +73,35 @@ def _lm_options(opts: SgccOptions) -> LMOptions:
                      cut_sigmas=opts.cut_sigmas, smooth=opts.smooth, xp=opts.xp)
 
 
-def _screen_jacobian(model: SGCCBase, rc: np.ndarray, tc: np.ndarray, ob: PoseObs) -> np.ndarray:
-    """(N, 2, 2) derivative of the screen point (mm) w.r.t. the camera pixel at each point."""
-    comps, du, dv = model.components(ob.pixels, derivatives=True)
-    r, jr = expmap_jacobian(comps[:, :2])
-    o = np.zeros_like(r)
-    if model.n_components == 4:
-        o[:, :2] = comps[:, 2:]
-    o_s, r_s = o @ rc.T + tc, r @ rc.T
-    lam = -o_s[:, 2] / r_s[:, 2]
-    jac = np.empty((len(r), 2, 2))
-    for col, d in enumerate((du, dv)):
-        dr = rc @ np.einsum("nij,nj->ni", jr, d[:, :2]).T
-        dr = dr.T
-        do = np.zeros_like(r)
-        if model.n_components == 4:
-            do[:, :2] = d[:, 2:]
-        do = do @ rc.T
-        dlam = -(do[:, 2] + lam * dr[:, 2]) / r_s[:, 2]
-        jac[:, :, col] = do[:, :2] + lam[:, None] * dr[:, :2] + dlam[:, None] * r_s[:, :2]
-    return jac
+def _camera_px(
+    model: SGCCBase, rc: np.ndarray, tc: np.ndarray, pixels: np.ndarray, res: np.ndarray,
+    sigma: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Screen residuals and sigmas (N, 2) mm mapped to camera px through the inverse of the
+    local 2x2 Jacobian dQ/d(u, v): px residuals (N, 2) and squared expected norms (N,).
 
-
-def _inverse_2x2(m: np.ndarray) -> np.ndarray:
-    """Inverses of (N, 2, 2) matrices in closed form (ten times faster than np.linalg.inv)."""
-    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
-    out = np.empty_like(m)
-    out[:, 0, 0], out[:, 1, 1] = m[:, 1, 1] / det, m[:, 0, 0] / det
-    out[:, 0, 1], out[:, 1, 0] = -m[:, 0, 1] / det, -m[:, 1, 0] / det
-    return out
+    Feature-major closed form (no (N, 2, 2) stacks): the statistics pass over every pixel.
+    """
+    comps, du, dv = model.components(pixels, derivatives=True)
+    r, jr = expmap_jacobian_rows(comps[:, 0], comps[:, 1])
+    r_s = rc @ r
+    central = model.n_components != 4
+    o_z = tc[2] if central else rc[2, :2] @ comps[:, 2:].T + tc[2]
+    lam = -o_z / r_s[2]
+    cols = []
+    for d in (du, dv):
+        dr = rc @ (jr[:, 0] * d[:, 0] + jr[:, 1] * d[:, 1])
+        do = np.zeros((3, 1)) if central else rc[:, :2] @ d[:, 2:].T
+        dlam = -(do[2] + lam * dr[2]) / r_s[2]
+        cols.append(do[:2] + lam * dr[:2] + dlam * r_s[:2])
+    (j00, j10), (j01, j11) = cols
+    det = j00 * j11 - j01 * j10
+    px = np.empty_like(res)
+    px[:, 0] = -(j11 * res[:, 0] - j01 * res[:, 1]) / det
+    px[:, 1] = -(j00 * res[:, 1] - j10 * res[:, 0]) / det
+    s0, s1 = sigma[:, 0], sigma[:, 1]
+    expected2 = ((j11 * s0) ** 2 + (j01 * s1) ** 2 + (j10 * s0) ** 2 + (j00 * s1) ** 2) / det**2
+    return px, expected2
 
 
 def pose_statistics(
@@ -113,20 +119,26 @@ def pose_statistics(
     Screen residuals (mm) and their sigmas are mapped to camera pixels through the local
     Jacobian; `dof_shrink` (1 - parameters/residuals) scales the expected training residual.
     """
-    inv = _inverse_2x2(_screen_jacobian(model, rc, tc, ob)[inliers])
-    px = -np.einsum("nij,nj->ni", inv, res[inliers])
-    expected2 = np.sum((inv * ob.sigma_mm[inliers][:, None, :]) ** 2, axis=(1, 2)) * dof_shrink
-    n = int(inliers.sum())
-    rms = float(np.sqrt(np.mean(np.sum(px**2, axis=1))))
-    expected = float(np.sqrt(np.mean(expected2)))
+    idx = np.flatnonzero(inliers)
+    n = len(idx)
+    px = np.empty((n, 2))
+    sums = np.zeros(4)  # px^2, expected px^2, screen px^2 and its expectation
+    for a in range(0, n, _BLOCK):  # raster-order blocks: small temporaries
+        sel = idx[a : a + _BLOCK]
+        r, sig = res[sel], ob.sigma_mm[sel]
+        p, expected2 = _camera_px(model, rc, tc, ob.pixels[sel], r, sig)
+        px[a : a + len(sel)] = p
+        sums += [np.vdot(p, p), expected2.sum(), np.sum((r / pitch_mm) ** 2),
+                 np.sum((sig / pitch_mm) ** 2)]
+    rms, expected, rms_screen, expected_screen = np.sqrt(
+        sums / max(n, 1) * [1.0, dof_shrink, 1.0, dof_shrink]
+    ).tolist()
     return px, {
         "rms_px": rms,
         "expected_rms_px": expected,
-        "rms_screen_px": float(np.sqrt(np.mean(np.sum((res[inliers] / pitch_mm) ** 2, axis=1)))),
-        "expected_rms_screen_px": float(
-            np.sqrt(np.mean(np.sum((ob.sigma_mm[inliers] / pitch_mm) ** 2, axis=1)) * dof_shrink)
-        ),
-        "noise_floor_ratio": rms / expected,
+        "rms_screen_px": rms_screen,
+        "expected_rms_screen_px": expected_screen,
+        "noise_floor_ratio": rms / expected if expected > 0 else float("nan"),
         "n_points": n,
         "n_outliers": len(inliers) - n,
         "outlier_fraction": 1.0 - n / max(len(inliers), 1),
@@ -157,17 +169,33 @@ def _centred_on_family(
     progress: ProgressFn | None, cancelled: CancelCheck | None,
 ) -> tuple[SGCCBase, LMResult, dict[str, Any]]:
     """Refit with the prior centred on the best parametric family if it fits as well as the
-    free spline (calibration.metrology.family_prior); else the free fit and the verdict."""
+    free spline (calibration.metrology.family_prior, calibration.fit.sgcc.prior), with the
+    covariance of that estimate; else the free fit and the verdict."""
     fitted, out = free
     n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
     mode = "flat" if lm.screen is None else "fit"  # the families fit the same screen model
     scr = ScreenModel(screen, mode, 1.52 if lm.screen is None else lm.screen.index)
-    state, info = prior_state(obs, screen, grid, cls.n_components, out.chi2_dof, n_res, cv_fit,
-                              scr)
-    if info["adequate"]:
-        centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=state.coeffs.ravel())
-        fitted, out = _fit(cls, obs, grid, state, centred, progress, cancelled)
-    return fitted, out, info
+    family, info = choose_family(obs, scr, grid, cls.n_components, out.chi2_dof, n_res, cv_fit)
+    sigmas = info.pop("param_std")
+    if not info["adequate"]:
+        return fitted, out, info
+    project = FieldProjector(grid, cls.n_components)
+    # The family's field, with the free fit's poses and screen (converged on these data, in
+    # the same gauge; a family's screen can be wild where the poses hardly determine it).
+    st = out.state
+    start = LMState(project(family).reshape(grid.size, cls.n_components),
+                    [r.copy() for r in st.rc], [t.copy() for t in st.tc], st.screen)
+    tangent, index = family_tangent(family, project, sigmas)
+    precision = deviation_precision(grid, cls.n_components, tangent)
+    centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=start.coeffs.ravel(),
+                      prior_base=precision)
+    fitted, out = _fit(cls, obs, grid, start, centred, progress, cancelled)
+    cov = prior_covariance(out, grid, cls.n_components, precision, family, project, tangent,
+                           index, np.random.default_rng(0),
+                           hold_last=lm.screen is not None and lm.hold_glass)
+    ns = fitted.coeffs.size
+    fitted.covariance = cov[:ns, :ns]
+    return fitted, replace(out, covariance=cov), {**info, "tangent_dims": len(index)}
 
 
 def _heldout(
@@ -199,7 +227,7 @@ def uncovered_cells(grid: SplineGrid, obs: list[PoseObs]) -> list[int]:
     """Flat indices of spline cells that contain no decoded point in any pose."""
     hit = np.zeros(grid.cells[0] * grid.cells[1], dtype=bool)
     for ob in obs:
-        hit[grid.cell_of(ob.pixels[:, 0], ob.pixels[:, 1])] = True
+        hit[grid.local(ob.pixels[:, 0], ob.pixels[:, 1])[0]] = True  # no basis weights
     return np.flatnonzero(~hit).tolist()
 
 
@@ -256,12 +284,30 @@ def calibrate_generic(
     if spec.family != "sgcc":
         raise ValueError(f"model: expected an sGCC model (sgcc, sgcc-noncentral), got {model!r}")
     opts: SgccOptions = spec.parse_options(options)
+    with retained_heap():  # page faults of the large per-pixel arrays, models/heap.py
+        return _calibrate(maps, screen, model, opts, heldout, progress, cancelled)
+
+
+def _calibrate(
+    maps: Sequence[DecodedMaps],
+    screen: ScreenGeometry,
+    model: str,
+    opts: SgccOptions,
+    heldout: Sequence[int] | None,
+    progress: ProgressFn | None,
+    cancelled: CancelCheck | None,
+) -> CalibrationResult:
+    """Body of `calibrate_generic`."""
+    spec = model_spec(model)
     maps, held_maps, held = split_heldout(maps, heldout, "generic")
     t0 = time.perf_counter()
     cells, lm = opts.cells, _lm_options(opts)
     if opts.screen == "fit":
         lm = replace(lm, screen=ScreenTrace.of(screen, opts.glass_index))
-    prior_mode = opts.family_prior
+    # Default: the family prior for sgcc on a flat screen (with a fitted screen a weakly
+    # determined glass trades against the family's field: docs/generic.md).
+    prior_mode = opts.family_prior or ("auto" if model == "sgcc" and opts.screen == "flat"
+                                       else "off")
     h, w = maps[0].shape
     obs = observations(maps, screen)
     for j, ob in enumerate(obs):
@@ -286,7 +332,8 @@ def calibrate_generic(
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
     dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)
     poses, per_pose, res_px, pix_out = [], [], {}, {}
-    with ThreadPoolExecutor(min(len(obs), len(os.sched_getaffinity(0)))) as pool:  # NumPy-bound
+    # One thread per pose (up to 2 per CPU): 3 poses on 2 cores then end together.
+    with ThreadPoolExecutor(min(len(obs), 2 * len(os.sched_getaffinity(0)))) as pool:
         stats_of = pool.map(
             lambda j: pose_statistics(fitted, out.state.rc[j], out.state.tc[j], obs[j],
                                       out.residuals[j], out.inliers[j], pitch, dof_shrink),

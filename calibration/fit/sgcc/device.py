@@ -132,9 +132,10 @@ class DeviceProblem:
         return to_host(res), to_host(ok)
 
     def normal_equations(
-        self, st: LMState, wt: np.ndarray, spline: bool = True
+        self, st: LMState, wt: np.ndarray, spline: bool = True, hessian: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
-        """J^T W J and J^T W e (host) as `Problem.normal_equations`, weights wt (N,) host."""
+        """J^T W J and J^T W e (host) as `Problem.normal_equations`, weights wt (N,) host
+        (always both: `hessian=False` saves little on a device)."""
         xp, prob = self.xp, self.prob
         c, nt, n_seg, k = prob.c, len(prob.tri[0]), len(prob.segments.start), prob.k
         poly, poses = self._send(st)

@@ -78,6 +78,15 @@ def _directions(k: np.ndarray, dist: np.ndarray, pixels: np.ndarray) -> np.ndarr
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def _unique_rows(pix: np.ndarray) -> np.ndarray:
+    """np.unique(pix, axis=0) (rows sorted by column 0, then 1) by one lexsort: several
+    times faster than unique's structured-row sort."""
+    p = pix[np.lexsort((pix[:, 1], pix[:, 0]))]
+    keep = np.ones(len(p), dtype=bool)
+    keep[1:] = np.any(p[1:] != p[:-1], axis=1)
+    return p[keep]
+
+
 def gauge_rotation(center_dir: np.ndarray, du_dir: np.ndarray) -> np.ndarray:
     """Rotation Q with Q c = +z and Q (du) in the x-z plane (x > 0): the sGCC rotation gauge."""
     e3 = center_dir / np.linalg.norm(center_dir)
@@ -90,14 +99,22 @@ def initial_state(
     obs: list[PoseObs], grid: SplineGrid, n_comp: int, cv_fit: OpenCVFit | None = None
 ) -> LMState:
     """Central ray field and poses from OpenCV's rational model (`cv_fit`, computed from obs
-    when None), rotated into the sGCC gauge."""
+    when None), rotated into the sGCC gauge. Single-threaded BLAS: the solves are small."""
+    with single_thread_blas():
+        return _initial_state(obs, grid, n_comp, cv_fit)
+
+
+def _initial_state(
+    obs: list[PoseObs], grid: SplineGrid, n_comp: int, cv_fit: OpenCVFit | None
+) -> LMState:
+    """Body of `initial_state`."""
     k, dist, rvecs, tvecs = opencv_init(obs, grid.image_size) if cv_fit is None else cv_fit
     w, h = grid.image_size
     c = np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 1.0, (h - 1) / 2]])
     dc = _directions(k, dist, c)
     q = gauge_rotation(dc[0], dc[1] - dc[0])
     pix = np.concatenate([o.pixels[_subsample(len(o.pixels), _INIT_FIT_POINTS)] for o in obs])
-    pix = np.unique(pix, axis=0)  # poses overlap: fit each pixel once
+    pix = _unique_rows(pix)  # poses overlap: fit each pixel once
     pix = pix[_subsample(len(pix), _INIT_FIT_POINTS)]
     ab = logmap(_directions(k, dist, pix) @ q.T)
     coeffs = np.zeros((grid.size, n_comp))

@@ -22,16 +22,19 @@ data; where data exist it is negligible, where they do not its large covariance 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, null_space
+from scipy.linalg import cho_factor, cho_solve, lapack
 from scipy.spatial.transform import Rotation
 
 from calibration.decode.arrays import array_module
 from calibration.fit.observations import PoseObs
+from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
+from calibration.fit.sgcc.robust import outlier_cut, robust_terms, sigma_norm
 from calibration.fit.sgcc.screen_terms import N_SCREEN, ScreenTrace
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.models.blas_threads import single_thread_blas
@@ -47,14 +50,7 @@ if TYPE_CHECKING:
 
 _DAMPING_TRIES = 12  # LM damping increases per iteration before giving up
 _GAUSS_NEWTON_BELOW = 1e-6  # Jacobi-scaled damping under which the undamped step goes first
-
-
-def _robust(s: np.ndarray, k: float, cut: float) -> tuple[np.ndarray, np.ndarray]:
-    """Truncated-Huber cost per residual norm s and its IRLS weight."""
-    hub = np.where(s <= k, s * s, 2 * k * s - k * k)
-    cost = np.minimum(hub, 2 * k * cut - k * k)
-    wt = np.where(s <= k, 1.0, k / np.maximum(s, 1e-300)) * (s <= cut)
-    return cost, wt
+_CHORD_MODEL_TOL = 0.1  # relative misfit of the predicted chi^2 drop that still allows chords
 
 
 def gauge_constraints(grid: SplineGrid, n_comp: int, n_total: int) -> np.ndarray:
@@ -93,17 +89,18 @@ class _Loop:
     """LM state carried across iterations and phases."""
 
     state: LMState
-    z: np.ndarray  # free directions (gauge null space or poses only)
+    z: GaugeBasis  # free directions (gauge null space or poses only)
     prior_base: np.ndarray
-    mu: float = 1e-3
+    mu: float = _GAUSS_NEWTON_BELOW  # first try the undamped step (a good OpenCV start)
     it: int = 0
     history: list[float] = field(default_factory=list)
     converged: bool = False
     cut: float = np.inf
     lam_prior: float = 0.0
     prior_mean: np.ndarray | float = 0.0  # centre of the prior (LMOptions.prior_mean)
-    res: np.ndarray | None = None  # residuals (2,N) and ok mask of `state`
+    res: np.ndarray | None = None  # residuals (2,N), ok mask and norms (sigmas) of `state`
     ok: np.ndarray | None = None
+    s: np.ndarray | None = None
     hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
 
 
@@ -128,25 +125,21 @@ def _subset(obs: list[PoseObs], target: int) -> list[PoseObs] | None:
     return [PoseObs(o.pixels[::k], o.screen_mm[::k], o.sigma_mm[::k]) for o in obs]
 
 
-def _sigma_norm(prob: Problem | DeviceProblem, res: np.ndarray) -> np.ndarray:
-    """Residual norms in sigmas (Mahalanobis with diagonal screen sigmas)."""
-    r0, r1 = res[0] * prob.inv_sigma[0], res[1] * prob.inv_sigma[1]
-    return np.sqrt(r0 * r0 + r1 * r1)
+def _spd_inverse(a: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive-definite matrix from its Cholesky factor (half the
+    work of a general inverse); a general inverse where the factorization fails."""
+    c, info = lapack.dpotrf(a, lower=True)
+    if info == 0:
+        inv, info = lapack.dpotri(c, lower=True)
+        if info == 0:
+            return np.tril(inv) + np.tril(inv, -1).T
+    return np.linalg.inv(a)
 
 
-def _cost(
-    prob: Problem | DeviceProblem,
-    res: np.ndarray,
-    ok: np.ndarray,
-    x: np.ndarray,
-    lp: _Loop,
-    k: float,
-) -> float:
-    """Robust data cost (rays missing the plane pay the cap) plus the smoothness prior."""
-    cost, _ = _robust(_sigma_norm(prob, res), k, lp.cut)
-    cost = np.where(ok, cost, 2 * k * lp.cut)
+def _prior_cost(x: np.ndarray, lp: _Loop) -> float:
+    """The smoothness prior's cost at coefficients x."""
     dx = x - lp.prior_mean
-    return float(cost.sum() + lp.lam_prior * dx @ lp.prior_base @ dx)
+    return float(lp.lam_prior * dx @ lp.prior_base @ dx)
 
 
 def _damped_factors(hs: np.ndarray, mu: float) -> Iterator[tuple[float, tuple]]:
@@ -171,65 +164,86 @@ def _iterate(
     progress: ProgressFn | None,
     cancelled: CancelCheck | None,
 ) -> None:
-    """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place."""
+    """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place.
+
+    After an accepted undamped (Gauss-Newton) step the next iteration is a chord step: the
+    gradient alone at the new state (`normal_equations(hessian=False)`, under half a pass),
+    solved with the previous factorization. Near the optimum the normal matrix hardly
+    changes over a step, so the chord step's decrement certifies convergence without a
+    second full pass; a rejected chord step falls back to a full iteration.
+    """
     ns = prob.n_spline
     res, ok = prob.residuals(lp.state)
+    s = None
     lp.converged = False
     first = True
+    chord: tuple[tuple, np.ndarray] | None = None  # (factor, Jacobi scale) for a chord step
     while lp.it < last_it:
         lp.it += 1
         if cancelled is not None and cancelled():
             raise Cancelled("sgcc: calibration cancelled")
         st = lp.state
-        s = _sigma_norm(prob, res)
-        med = float(np.median(s[ok])) if ok.any() else 1.0
-        lp.cut = max(options.cut_sigmas, 4.0 * 1.4826 * med)
-        _, wt = _robust(s, options.huber_k, lp.cut)
-        h, grad = prob.normal_equations(st, wt * ok, spline=not options.fix_spline)
+        s = sigma_norm(prob, res) if s is None else s  # kept from the accepted candidate
+        lp.cut = outlier_cut(s, ok, options.cut_sigmas)
+        data0, wt, _ = robust_terms(s, ok, options.huber_k, lp.cut)
+        h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
+                                        hessian=chord is None)
         if first:
             diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
             lp.lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
             first = False
         x = st.coeffs.ravel()
-        h[:ns, :ns] += lp.lam_prior * lp.prior_base
         grad[:ns] += lp.lam_prior * lp.prior_base @ (x - lp.prior_mean)
-        hr = lp.hr = lp.z.T @ h @ lp.z
-        gr = lp.z.T @ grad
-        cost0 = _cost(prob, res, ok, x, lp, options.huber_k)
+        gr = lp.z.reduce_vector(grad)
+        if chord is None:
+            h[:ns, :ns] += lp.lam_prior * lp.prior_base
+            hr = lp.hr = lp.z.reduce(h)
+            jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
+            hs = hr * jac_scale[:, None] * jac_scale[None, :]
+            tries = _damped_factors(hs, lp.mu)
+        else:
+            tries, jac_scale = iter([(0.0, chord[0])]), chord[1]
+        cost0 = data0 + _prior_cost(x, lp)
         # The covariance is inflated by chi^2/dof when the model misfits; so is the tolerance.
-        chi2_scale = max(1.0, cost0 / max(2 * int(ok.sum()) - len(hr), 1))
-        accepted = False
+        chi2_scale = max(1.0, cost0 / max(2 * int(ok.sum()) - len(lp.hr), 1))
+        accepted, was_chord, chord = False, chord is not None, None
         cost1 = cost0
-        jac_scale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
-        hs = hr * jac_scale[:, None] * jac_scale[None, :]
         gs = gr * jac_scale
-        near_optimum = False
-        for mu, factor in _damped_factors(hs, lp.mu):
+        near_optimum, predicted = False, 0.0
+        for mu, factor in tries:
             ds = cho_solve(factor, -gs)
             if mu == 0.0:  # -g^T dx: the chi^2 drop a full Gauss-Newton step predicts
-                near_optimum = float(-gs @ ds) <= options.chi2_tol * chi2_scale
-            step = lp.z @ (jac_scale * ds)
+                predicted = float(-gs @ ds)
+                near_optimum = predicted <= options.chi2_tol * chi2_scale
+            step = lp.z.expand(jac_scale * ds)
             rcs, tcs = _apply_pose_step(st, step[ns:])
             scr = None if st.screen is None else st.screen + step[ns + 6 * len(rcs):]
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs, scr)
             res1, ok1 = prob.residuals(cand)
-            cost1 = _cost(prob, res1, ok1, cand.coeffs.ravel(), lp, options.huber_k)
+            s1 = sigma_norm(prob, res1)
+            cost1 = robust_terms(s1, ok1, options.huber_k, lp.cut)[0]
+            cost1 += _prior_cost(cand.coeffs.ravel(), lp)
             if cost1 <= cost0:
-                lp.state, res, ok = cand, res1, ok1
-                lp.mu = max((mu or lp.mu) / 10, 1e-15)
+                lp.state, res, ok, s = cand, res1, ok1, s1
                 accepted = True
+                if not was_chord:
+                    lp.mu = max((mu or lp.mu) / 10, 1e-15)
+                    # chord next only where the quadratic model held over this step
+                    good = abs(cost0 - cost1 - predicted) <= _CHORD_MODEL_TOL * predicted
+                    chord = (factor, jac_scale) if mu == 0.0 and good else None
                 break
         else:
-            lp.mu *= 10.0**_DAMPING_TRIES
+            if not was_chord:
+                lp.mu *= 10.0**_DAMPING_TRIES
         lp.history.append(cost1 if accepted else cost0)
         if progress is not None:
             msg = f"LM iteration {lp.it}, cost {lp.history[-1]:.6g}"
             progress(lp.it, options.max_iterations, msg)
-        small = (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300)
-        if not accepted or small or near_optimum:
+        small = accepted and (cost0 - cost1) <= options.rel_tol * max(cost0, 1e-300)
+        if (not accepted and not was_chord) or small or (near_optimum and accepted):
             lp.converged = True
             break
-    lp.res, lp.ok = res, ok
+    lp.res, lp.ok, lp.s = res, ok, s
 
 
 def run_lm(
@@ -247,9 +261,10 @@ def run_lm(
     Large problems first converge on an even subset of about `options.subset_pixels`
     points (cheap iterations, at most half of `max_iterations`); the final iterations,
     the outlier decisions and the covariance use every point. At convergence the
-    covariance reuses the last iteration's normal equations: exact when its step was
-    rejected, else evaluated one Gauss-Newton step (chi^2 change <= chi2_tol, well inside
-    the uncertainty) before the final state.
+    covariance reuses the last full normal equations: exact when their step was rejected,
+    else evaluated a Gauss-Newton step (and a chord step, `_iterate`) before the final
+    state; for large problems that is the subset's optimum, a few sigma per coefficient
+    away (standard deviations within ~0.2 %, docs/generic.md).
     BLAS runs single-threaded here: the dense solves are small and threads only contend.
     """
     with single_thread_blas():
@@ -272,52 +287,56 @@ def _run(
         screen = np.zeros(N_SCREEN) if init.screen is None else init.screen.astype(float)
     n = ns + 6 * len(obs) + (0 if screen is None else N_SCREEN)
     if options.fix_spline:  # poses only: the spline and the screen stay fixed
-        z = np.zeros((n, 6 * len(obs)))
-        z[ns : ns + 6 * len(obs), :] = np.eye(6 * len(obs))
+        z = GaugeBasis.selection(n, np.arange(ns, ns + 6 * len(obs)))
     else:
         rows = gauge_constraints(grid, n_comp, n)
         if screen is not None and options.hold_glass:  # a gauge freedom (screen_terms.py)
             rows = np.vstack([rows, np.eye(n)[-1]])
-        z = null_space(rows)
+        z = GaugeBasis.null_space_of(rows)
     dmat = second_differences(grid)
     lp = _Loop(
         LMState(init.coeffs.copy(), [r.copy() for r in init.rc], [t.copy() for t in init.tc],
                 screen),
         z,
-        np.kron(dmat.T @ dmat, np.eye(n_comp)),
+        np.kron(dmat.T @ dmat, np.eye(n_comp)) if options.prior_base is None
+        else np.asarray(options.prior_base, dtype=np.float64),
     )
     if options.prior_mean is not None:
         lp.prior_mean = np.asarray(options.prior_mean, dtype=np.float64).ravel()
     sub = _subset(obs, options.subset_pixels)
-    if sub is not None:
-        _iterate(_make_problem(grid, n_comp, sub, options.xp, options.screen), lp, options,
-                 options.max_iterations // 2, progress, cancelled)
-    prob = _make_problem(grid, n_comp, obs, options.xp, options.screen)
+    if sub is None:
+        prob = _make_problem(grid, n_comp, obs, options.xp, options.screen)
+    else:  # the full problem is sorted while the subset iterates (one core each)
+        with ThreadPoolExecutor(1) as pool:
+            full = pool.submit(_make_problem, grid, n_comp, obs, options.xp, options.screen)
+            _iterate(_make_problem(grid, n_comp, sub, options.xp, options.screen), lp, options,
+                     options.max_iterations // 2, progress, cancelled)
+            prob = full.result()
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
-    s = _sigma_norm(prob, res)
-    cost_terms, wt = _robust(s, options.huber_k, lp.cut)
-    wt = wt * ok
+    s = sigma_norm(prob, res) if lp.s is None else lp.s
+    _, wt, cost = robust_terms(s, ok, options.huber_k, lp.cut)
     hr = lp.hr
     if not lp.converged or hr is None:  # the last normal equations are not at `st`
         h, _ = prob.normal_equations(st, wt, spline=not options.fix_spline)
         h[:ns, :ns] += lp.lam_prior * lp.prior_base
-        hr = z.T @ h @ z
+        hr = z.reduce(h)
     dscale = 1.0 / np.sqrt(np.maximum(np.diag(hr), 1e-300))
     min_eig = float(np.linalg.eigvalsh(hr * dscale[:, None] * dscale[None, :])[0])
     inl = wt > 0
     dof = max(2 * int(inl.sum()) - hr.shape[0], 1)
     chi2_dof = float(np.sum(s[inl] ** 2) / dof)
-    cov = z @ np.linalg.inv(hr) @ z.T * max(1.0, chi2_dof)
+    cov = z.expand_matrix(_spd_inverse(hr)) * max(1.0, chi2_dof)
     return LMResult(
         state=st,
         iterations=lp.it,
         converged=lp.converged,
-        cost=float(cost_terms[ok].sum()),
+        cost=cost,
         covariance=cov,
         min_eig=min_eig,
         residuals=prob.unsort(res),
         inliers=prob.unsort(inl),
         chi2_dof=chi2_dof,
         history=lp.history,
+        prior_weight=lp.lam_prior,
     )

@@ -17,8 +17,9 @@ import numpy as np
 
 from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.initial import OpenCVFit, initial_state
-from calibration.fit.sgcc.lm import _sigma_norm, gauge_constraints, run_lm
+from calibration.fit.sgcc.lm import gauge_constraints, run_lm
 from calibration.fit.sgcc.problem import Problem
+from calibration.fit.sgcc.robust import sigma_norm
 from calibration.fit.sgcc.state import LMOptions
 from calibration.models.bspline import SplineGrid
 
@@ -71,7 +72,7 @@ def choose_mesh(
                      replace(lm, subset_pixels=n_train))
         prob = Problem(grid, n_comp, val, lm.screen)  # validated through the fitted screen
         res, ok = prob.residuals(out.state)
-        s = _sigma_norm(prob, res)
+        s = sigma_norm(prob, res)
         s = s[ok & (s <= _VALIDATION_CUT)]
         chi2 = float(np.mean(s * s) / 2)
         bias2 = chi2 - 1.0 - k / n_train

@@ -27,10 +27,14 @@ class SgccOptions(BaseModel):
                           description="relative weight of the second-difference prior")
     xp: Literal["numpy", "cupy"] = Field(
         default="numpy", description='"numpy": threaded CPU; "cupy": per-pixel work on a GPU')
-    family_prior: Literal["off", "auto"] = Field(
-        default="off",
-        description='"auto": where a dense parametric fit is as good as the free spline, refit '
-                    "with the smoothness prior centred on it (calibration.metrology.family_prior)")
+    family_prior: Literal["off", "auto"] | None = Field(
+        default=None,
+        description='"auto": where a dense parametric fit (opencv5, fisheye or opencv-rational) '
+                    "is as good as the free spline (likelihood-ratio test), refit with a prior "
+                    "on the deviation from that family's ray field, the family's parameters "
+                    "free, and report the covariance of that estimate (data noise plus the "
+                    'family\'s own curvature); "off": the free spline. Default (null): "auto" '
+                    'for sgcc with screen "flat", else "off" (docs/generic.md)')
 
     screen: Literal["flat", "fit"] = Field(
         default="flat",

@@ -45,6 +45,27 @@ def _segments(pose: np.ndarray, cell: np.ndarray) -> Segments:
     return Segments(start, np.r_[change, len(pose)], pose[start], cell[start])
 
 
+def _sorted(grid: SplineGrid, obs: list[PoseObs]) -> tuple[np.ndarray, ...]:
+    """Pixels of all poses sorted by (pose, cell): inverse permutation (N,), local cell
+    coordinates s, t (N,), screen mm and sigma mm (2, N), cell (N,). Sorted per pose and
+    gathered straight into feature-major rows (few full-size temporaries)."""
+    n = sum(len(o.pixels) for o in obs)
+    inverse, cells = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    s, t, screen, sigma = np.empty(n), np.empty(n), np.empty((2, n)), np.empty((2, n))
+    a = 0
+    for o in obs:
+        b = a + len(o.pixels)
+        cell, sj, tj = grid.local(o.pixels[:, 0], o.pixels[:, 1])
+        order = np.argsort(radix_keys(cell), kind="stable")
+        inverse[a + order] = np.arange(a, b)
+        for src, dst in ((sj, s), (tj, t), (cell, cells), *(
+                (o.screen_mm[:, k], screen[k]) for k in range(2)), *(
+                (o.sigma_mm[:, k], sigma[k]) for k in range(2))):
+            np.take(src, order, out=dst[a:b])
+        a = b
+    return inverse, s, t, screen, sigma, cells
+
+
 @dataclass(frozen=True)
 class _Chunk:
     """Sorted pixels [a, b) of one pose and its cell groups (start, end relative to a, cell)."""
@@ -190,18 +211,10 @@ class Problem:
         self.k = 6 + self.n_screen  # per-pixel non-spline Jacobian columns (pose, screen)
         self.n = self.n_spline + 6 * self.n_pose + self.n_screen
         self.n_cells = grid.cells[0] * grid.cells[1]
-        pix = np.concatenate([o.pixels for o in obs])
-        pose_of = np.concatenate([np.full(len(o.pixels), j) for j, o in enumerate(obs)])
-        cell, s, t = grid.local(pix[:, 0], pix[:, 1])
-        order = np.argsort(radix_keys(pose_of * self.n_cells + cell), kind="stable")
-        self.inverse = np.empty_like(order)
-        self.inverse[order] = np.arange(len(order))
-        self.s, self.t = s[order], t[order]
-        self.screen = np.ascontiguousarray(np.concatenate([o.screen_mm for o in obs])[order].T)
-        self.sigma = np.ascontiguousarray(np.concatenate([o.sigma_mm for o in obs])[order].T)
+        self.inverse, self.s, self.t, self.screen, self.sigma, cell = _sorted(grid, obs)
         self.inv_sigma = 1.0 / self.sigma
         self.counts = np.array([len(o.pixels) for o in obs])
-        self.segments = _segments(pose_of[order], cell[order])
+        self.segments = _segments(np.repeat(np.arange(self.n_pose), self.counts), cell)
         self.chunks = _chunks(self.segments)
         self.kmat = monomial_basis()
         self.controls = grid.cell_controls()
@@ -217,7 +230,13 @@ class Problem:
 
     def unsort(self, values: np.ndarray) -> list[np.ndarray]:
         """Per-pose arrays (feature-major rows in, pixel-major out) in the callers' order."""
-        return np.split(values.T[self.inverse], np.cumsum(self.counts)[:-1])
+        if values.ndim == 1:
+            out = values[self.inverse]
+        else:  # row by row: 3x faster than gathering rows of the transposed view
+            out = np.empty(values.shape[::-1], dtype=values.dtype)
+            for k, row in enumerate(values):
+                out[:, k] = row[self.inverse]
+        return np.split(out, np.cumsum(self.counts)[:-1])
 
     def _chunk(
         self, st: LMState, poly: np.ndarray, ch: _Chunk, jacobian: bool
@@ -262,10 +281,12 @@ class Problem:
         return res, ok
 
     def _moments(
-        self, st: LMState, poly: np.ndarray, wt: np.ndarray, share: Sequence[_Chunk], spline: bool
+        self, st: LMState, poly: np.ndarray, wt: np.ndarray, share: Sequence[_Chunk], spline: bool,
+        hessian: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Normal-equation sums of a share of chunks: per-cell moments, spline-pose cross
-        moments, and the per-pose blocks (see `normal_equations`)."""
+        moments, and the per-pose blocks (see `normal_equations`); without `hessian` only
+        the gradient columns of the cross moments (the rest stays zero)."""
         c, nc, npo, k = self.c, self.n_cells, self.n_pose, self.k
         mom = np.zeros((nc, 49, len(self.tri[0])))  # sum m49 * (g^T W g)[upper triangle]
         cross = np.zeros((npo, nc, 16, (k + 1) * c))  # sum m16 * xg (see `spline_terms`)
@@ -278,6 +299,12 @@ class Problem:
             gpp[ch.pose] += gpp_c
             if not spline:
                 continue
+            if not hessian:  # g^T W e per component: the last of each component's columns
+                ge = g[0] * (ws[0] * e[0]) + g[1] * (ws[1] * e[1])
+                grad = cross.reshape(npo, nc, 16, c, -1)[..., -1]
+                for a, b, cell in ch.groups:
+                    grad[ch.pose, cell] += np.dot(m16[:, a:b], ge[:, a:b].T)
+                continue
             hp, xg = spline_terms(np, e, g, jp, ws, self.tri)
             m49 = monomials(self.s[ch.a : ch.b], self.t[ch.a : ch.b], 6)
             for a, b, cell in ch.groups:  # np.dot, not @: it releases the GIL for threads
@@ -286,12 +313,14 @@ class Problem:
         return mom, cross, hpp, gpp
 
     def normal_equations(
-        self, st: LMState, wt: np.ndarray, spline: bool = True
+        self, st: LMState, wt: np.ndarray, spline: bool = True, hessian: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
-        """J^T W J and J^T W e from per-cell monomial moments (spline) and per-pose sums."""
+        """J^T W J and J^T W e from per-cell monomial moments (spline) and per-pose sums.
+        `hessian=False`: J^T W e only (the spline blocks of J^T W J are then not valid), for
+        less than half the work (LM's chord steps, sgcc/lm.py)."""
         poly = self.polynomials(st.coeffs)
         parts = _over_chunks(
-            self.chunks, lambda share: self._moments(st, poly, wt, share, spline)
+            self.chunks, lambda share: self._moments(st, poly, wt, share, spline, hessian)
         )
         mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
         return self.assemble(hpp, gpp, (mom, cross) if spline else None)

@@ -31,6 +31,9 @@ class LMOptions:
     # prior on the spline itself). calibration.metrology.family_prior centres it on a
     # parametric family's ray field where that family fits as well as the spline.
     prior_mean: np.ndarray | None = None
+    # Precision matrix of that prior (spline coefficients; None: the second differences
+    # D^T D per component). The family prior frees the family's own tangent directions.
+    prior_base: np.ndarray | None = None
     # The screen (`screen: "fit"`): panel geometry and glass index of the fitted bow/twist/glass
     # parameters (LMState.screen); None: the bare plane z = 0 of the screen frame.
     screen: ScreenTrace | None = None
@@ -61,3 +64,4 @@ class LMResult:
     inliers: list[np.ndarray]  # per pose bool (N,)
     chi2_dof: float
     history: list[float] = field(default_factory=list)
+    prior_weight: float = 0.0  # absolute weight of prior_base in the normal equations

@@ -278,18 +278,11 @@ def test_generic_array_namespace_path_matches_opencv_path(plan):
     check_honest(got, x, y)
 
 
-@pytest.mark.parametrize("noise", [None, 1.5])
-def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
-    """The numba per-pixel finish (large images, once loaded) equals the array-namespace path."""
-    import calibration.decode.decoder as decoder_module
-    import calibration.decode.kernel  # noqa: F401 - loaded: large decoders use it
-
-    stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
-    ref = decode_stack(plan, stack, noise=noise)
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
-    got = decode_stack(plan, stack, noise=noise)
+def assert_same_maps(got, ref) -> None:
+    """Equal to float32 rounding: same pixels, positions, sigmas and modulations."""
     assert got.meta["pixel_counts"] == ref.meta["pixel_counts"]
+    assert got.meta["decoder"]["photon_transfer"] == ref.meta["decoder"]["photon_transfer"]
+    assert got.meta["decoder"]["max_sample_dn"] == ref.meta["decoder"]["max_sample_dn"]
     np.testing.assert_array_equal(got.mask, ref.mask)
     for key in ("x", "y"):
         np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=1e-6,
@@ -300,7 +293,37 @@ def test_compiled_finish_matches_array_namespace_path(plan, monkeypatch, noise):
     for key in ("blur_x", "blur_y"):
         np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=5e-3,
                                    equal_nan=True)
-    check_honest(got, x, y)
+
+
+@pytest.mark.parametrize("noise", [None, 1.5, NoiseModel(read_dn=1.5, gain_e_per_dn=1e3,
+                                                          black_dn=8.0)])
+def test_compiled_decoder_matches_array_namespace_path(plan, monkeypatch, noise):
+    """The numba kernels (large images, once loaded) equal the array-namespace path: the
+    cache-blocked accumulation frame by frame, in batches (a frame store's map) and range
+    by range over a whole stack (`decode_stack`), each with the compiled finish."""
+    import calibration.decode.decoder as decoder_module
+    from calibration.decode.kernel_warm import warm_up
+
+    warm_up()
+    stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
+    stack[:, :, :6] = 0  # a black border: every step clipped (no fit)
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    ref = decode_stack(plan, stack, noise=noise)
+    assert ref.meta["pixel_counts"]["no_screen"] >= 6 * H
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    whole = decode_stack(plan, stack, noise=noise)
+    check_honest(whole, x, y)
+    # In plan order: float32 sums in another order round differently, and the residual
+    # noise line follows (test_streaming_any_order_matches_stack covers any order).
+    streamed = StreamingDecoder(plan, (H, W), noise=noise)
+    for i in range(5):
+        streamed.add(i, stack[i])
+    store = np.ascontiguousarray(stack[::-1])  # frames in other rows of a store
+    last = len(plan.frames) - 1
+    for batch in np.array_split(np.arange(5, last + 1), 3):  # frames landed since the last look
+        streamed.add_frames(batch.tolist(), store, rows=(last - batch).tolist())
+    for got in (whole, streamed.finish()):
+        assert_same_maps(got, ref)
 
 
 def test_photon_transfer_with_constant_pixels_at_the_black_level():
@@ -315,3 +338,53 @@ def test_photon_transfer_with_constant_pixels_at_the_black_level():
     rss = var * rng.chisquare(7, mean.size)
     line = fit_photon_transfer(mean, rss, np.full(mean.size, 7.0), 1.0 / 12.0)
     assert line is not None and abs(line.slope - 0.02) < 0.003, line
+
+
+def test_ready_frames_holds_back_incomplete_period_groups(plan):
+    """A live decoder adds the flats at once and a period group's frames once all of them
+    are stored (one cache-blocked pass per group); adding them so gives the stack's maps."""
+    stack, *_ = render(plan, seed=5)
+    ref = decode_stack(plan, stack, noise=1.5)
+    dec = StreamingDecoder(plan, (H, W), noise=1.5)
+    groups = [ps.frame_indices for ps in plan.period_sets()]
+    flats = [i for i in range(len(plan.frames)) if all(i not in g for g in groups)]
+    partial = list(groups[0][:-1])
+    assert dec.ready_frames(flats + partial) == sorted(flats)
+    dec.add_frames(flats, stack, rows=flats)
+    stored = partial
+    for group in groups:
+        stored = sorted(set(stored) | set(group))
+        ready = dec.ready_frames(stored)
+        assert ready == sorted(group)
+        dec.add_frames(ready, stack, rows=ready)
+        stored = []
+    assert dec.missing == []
+    got = dec.finish()
+    np.testing.assert_array_equal(got.mask, ref.mask)
+    np.testing.assert_allclose(got.x[got.mask], ref.x[ref.mask], atol=1e-4)
+
+
+def test_compiled_decoder_with_display_harmonic_matches_array_path(monkeypatch):
+    """A 6-step plan through a display gamma: the residual's harmonic N/2 is fitted and
+    subtracted (`harmonic_leak`); the compiled path does the same (float32 rounding)."""
+    import calibration.decode.decoder as decoder_module
+    from calibration.decode.kernel_warm import warm_up
+
+    warm_up()
+    plan6 = build_plan(1920, 1080, 0.2745, steps=6)
+    stack, _, _ = render(plan6, white=240.0, read=0.8, seed=3)
+    stack = np.clip(np.rint(255.0 * (stack / 255.0) ** 1.8), 0, 255).astype(np.uint8)
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    ref = decode_stack(plan6, stack)
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    got = decode_stack(plan6, stack)
+    leak = ref.meta["decoder"]["display_harmonic_r2"]
+    assert leak is not None
+    np.testing.assert_allclose(got.meta["decoder"]["display_harmonic_r2"], leak, rtol=1e-4)
+    assert got.meta["pixel_counts"] == ref.meta["pixel_counts"]
+    for key in ("x", "y"):
+        np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=1e-5,
+                                   equal_nan=True)
+    for key in ("sigma_x", "sigma_y"):
+        np.testing.assert_allclose(getattr(got, key), getattr(ref, key), rtol=1e-4,
+                                   equal_nan=True)

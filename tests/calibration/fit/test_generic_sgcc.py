@@ -100,11 +100,23 @@ def pinhole_fit():
 
 def test_sgcc_pinhole_consistent_with_predicted_uncertainty(pinhole_fit):
     cam, _, res = pinhole_fit
+    assert res.stats["family_prior"]["adequate"]  # by default centred on the opencv5 family
     _, z = _zscores(res.model, cam, central=True)
     assert 0.7 <= float(np.std(z)) <= 1.4
     assert 0.85 <= float(np.std(whitened_coefficient_errors(res.model, _truth_fn(cam)))) <= 1.15
     assert res.stats["converged"]
     assert 0.8 < res.stats["chi2_dof"] < 1.2
+
+
+def test_sgcc_free_spline_consistent_with_predicted_uncertainty(pinhole_fit):
+    """The same data without the family prior: the free spline's covariance is honest too."""
+    cam, maps, _ = pinhole_fit
+    res = calibrate_generic(maps, SCREEN, "sgcc", options={**OPTS, "family_prior": "off"},
+                            heldout=[3])
+    assert "family_prior" not in res.stats
+    _, z = _zscores(res.model, cam, central=True)
+    assert 0.7 <= float(np.std(z)) <= 1.4
+    assert 0.85 <= float(np.std(whitened_coefficient_errors(res.model, _truth_fn(cam)))) <= 1.15
 
 
 def test_sgcc_within_1p5x_of_true_parametric_family(pinhole_fit):
@@ -334,12 +346,13 @@ def test_progress_and_cancellation(pinhole_fit):
             "sgcc",
             options=OPTS,
             progress=lambda done, total, msg: seen.append((done, total)),
-            cancelled=lambda: len(seen) >= 2,
+            cancelled=lambda: len(seen) >= 1,  # this fit converges in two iterations
         )
-    assert seen[:2] == [(1, 60), (2, 60)]
+    assert seen == [(1, 60)]
 
 
 def test_monomial_form_matches_bspline_basis_and_evaluation():
+    from calibration.models import bspline
     from calibration.models.bspline import SplineGrid, monomial_basis, monomials
 
     grid = SplineGrid((W, H), (7, 5))
@@ -350,6 +363,15 @@ def test_monomial_form_matches_bspline_basis_and_evaluation():
     assert np.array_equal(grid.cell_controls()[cell], idx)
     assert np.allclose(monomials(s, t, 3).T @ monomial_basis().T, w, atol=1e-13)
     coeffs = rng.normal(size=(grid.size, 3))
+    for got, weights in zip(
+        grid.evaluate(coeffs, u, v, derivatives=True), (w, wdu, wdv), strict=True
+    ):
+        assert np.allclose(got, np.einsum("nk,nkc->nc", weights, coeffs[idx]), atol=1e-12)
+    # Integer pixels filling their bounding box (decoded maps): the separable lattice path.
+    vv, uu = np.nonzero(rng.random((H, W)) < 0.6)
+    u, v = uu[uu > 3] - 2.0, vv[uu > 3] + 1.0  # shifted box, past the sensor's edge
+    assert bspline._lattice_box(u, v) is not None and bspline._lattice_box(u + 0.5, v) is None
+    idx, w, wdu, wdv = grid.basis(u, v, derivatives=True)
     for got, weights in zip(
         grid.evaluate(coeffs, u, v, derivatives=True), (w, wdu, wdv), strict=True
     ):
@@ -404,6 +426,8 @@ def test_normal_equations_equal_dense_jacobian_products(n_comp):
     wrow = (wt[:, None] / prob.sigma.T**2).ravel()
     assert np.allclose(h, jac.T @ (wrow[:, None] * jac), rtol=1e-9, atol=1e-9 * np.abs(h).max())
     assert np.allclose(grad, jac.T @ (wrow * res), rtol=1e-9, atol=1e-9 * np.abs(grad).max())
+    _, grad_only = prob.normal_equations(st, wt, hessian=False)  # the LM's chord steps
+    assert np.allclose(grad_only, grad, rtol=1e-12, atol=1e-12 * np.abs(grad).max())
 
 
 def _pixels_of(prob, rows):
@@ -431,8 +455,12 @@ def test_subset_phase_reaches_the_full_data_optimum(pinhole_fit):
     sd = np.sqrt(np.diag(full.covariance)[: grid.size * 2])
     diff = np.abs(staged.state.coeffs.ravel() - full.state.coeffs.ravel())
     assert float(np.max(diff / sd)) < 0.05
+    # The staged covariance comes from the first full-data normal equations, at the subset's
+    # optimum (~2.5 sigma per coefficient away here; convergence is then certified by chord
+    # steps): 0.2% from the full-data one. Evaluated at any state drawn from the estimate's
+    # own 1-sigma region, the standard deviations of this fit vary by 0.2-1.1%.
     assert np.allclose(
-        np.sqrt(np.diag(staged.covariance)), np.sqrt(np.diag(full.covariance)), rtol=1e-3
+        np.sqrt(np.diag(staged.covariance)), np.sqrt(np.diag(full.covariance)), rtol=5e-3
     )
     assert [len(r) for r in staged.residuals] == [len(o.pixels) for o in obs]
 

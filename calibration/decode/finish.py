@@ -1,0 +1,168 @@
+"""The compiled finish of a pixel range: unclipped pixels straight from their sums in one
+numba pass (kernel_sums.py); pixels with clipped steps, and noise models the kernel cannot
+evaluate, through the decoder's array path on a gathered copy of their sums."""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+
+from calibration.decode.arrays import chi2_isf, to_host
+from calibration.decode.axes import MIN_PERIOD_SNR, chi2_limits
+from calibration.decode.batch import ChunkSums, layout
+from calibration.decode.noise import LinearVariance, NoiseModel, nyquist_power
+from calibration.decode.phase import fit_set
+
+
+def software_version() -> str:
+    """Installed phasecal version, or 'unknown' when running from a bare checkout."""
+    try:
+        from importlib.metadata import version
+
+        return version("phasecal")
+    except Exception:
+        return "unknown"
+
+
+def output_planes(npix: int, axes: list[str]) -> dict[str, np.ndarray]:
+    """(2, npix) output arrays (rows x, y) for the compiled kernel; absent axes stay NaN."""
+    planes = {}
+    for name, dtype in (("position", np.float64), ("sigma", np.float32),
+                        ("modulation", np.float32), ("blur", np.float32)):
+        arr = np.empty((2, npix), dtype=dtype)
+        for row, axis in enumerate(("x", "y")):
+            if axis not in axes:
+                arr[row] = np.nan
+        planes[name] = arr
+    return planes
+
+
+@functools.lru_cache(maxsize=8)
+def chi2_tail(max_dof: int) -> np.ndarray:
+    """Per-dof ratio chi2.isf(1e-6, d)/d for d = 0..max_dof (inf for d = 0)."""
+    d = np.arange(max_dof + 1, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = chi2_isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
+    ratio[0] = np.inf
+    return ratio
+
+
+def no_valid_message(counts: dict[str, int], npix: int) -> str:
+    """One line saying why no pixel could be decoded."""
+    worst = max((n, name) for name, n in counts.items() if name != "valid")[1]
+    if counts["no_screen"] == npix:
+        return (
+            "frames: no pixel sees the screen (the bright flat is nowhere brighter than "
+            "the dark flat beyond the noise): all-dark stack, display off or lens capped?"
+        )
+    return f"frames: no pixel could be decoded; most common reason: {worst} ({counts})"
+
+
+def linear_noise(noise: Any) -> tuple[float, float, float, float] | None:
+    """A given noise as (offset, slope, black, clamp) of `offset + slope * (level - black)`
+    (clamped at 0 when `clamp`), or None when the kernel cannot evaluate it."""
+    if isinstance(noise, bool):
+        return None
+    if isinstance(noise, int | float | np.floating | np.integer):
+        return float(noise) ** 2, 0.0, 0.0, 0.0
+    if isinstance(noise, NoiseModel):
+        slope = 0.0 if noise.gain_e_per_dn is None else 1.0 / noise.gain_e_per_dn
+        return noise.read_dn**2 + noise.quant_dn**2 / 12.0, slope, noise.black_dn, 1.0
+    return None
+
+
+def noise_params(dec: Any) -> np.ndarray | None:
+    """The kernel's noise parameters for this decoder, or None (array path for all)."""
+    from calibration.decode.kernel_sums import MODE_GIVEN, MODE_LINE, MODE_OWN
+
+    if dec._variance is not None:
+        line = linear_noise(dec._noise)
+        return None if line is None else np.array([MODE_GIVEN, *line, dec._floor, -np.inf])
+    ptc: LinearVariance | None = dec._ptc
+    if ptc is None:
+        return np.array([MODE_OWN, 0.0, 0.0, 0.0, 0.0, dec._floor, -np.inf])
+    return np.array([MODE_LINE, ptc.offset, ptc.slope, 0.0, 0.0, dec._floor, ptc.floor])
+
+
+def _inputs(chunk: ChunkSums, acc: Any) -> tuple[Any, ...]:
+    """(sums, bits, squares, bright, dark, first column) as the kernels take them: C
+    arrays (an empty bits block where no step clipped, empty squares where not kept)."""
+    block, bits, squares, bright, dark = chunk.full or (
+        chunk.block, chunk.bits, chunk.squares, chunk.bright, chunk.dark)
+    if bits is None:
+        bits = np.zeros((0, block.shape[1]), dtype=acc.bits_dtype)
+    if squares is None:
+        squares = np.empty(0, dtype=acc.squares_dtype)
+    return block, bits, squares, bright, dark, chunk.col0 if chunk.full else 0
+
+
+def residual_arrays(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
+    """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line, by the
+    decoder's array path."""
+    xp = dec.xp
+    fits = [fit_set(xp, s, slice(None), residuals=True, skip=dec._sees_no_screen(chunk))
+            for s in chunk.sets]
+    r, d, m = dec._residuals(fits, chunk)
+    clean = ~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits])
+    low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
+    power = xp.stack(nyquist_power(xp, fits, chunk.sets))
+    return tuple(to_host(v) for v in (m, r, d, clean, ~low, power))
+
+
+def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
+    """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line."""
+    from calibration.decode.kernel_sums import residual_stats as kernel
+
+    acc, n = dec._acc, chunk.size
+    lay = layout(acc)
+    level, rss, dof = (np.empty(n, dtype=np.float32) for _ in range(3))
+    dirty = np.empty(n, dtype=np.bool_)
+    power = np.empty((len(acc.sets), n), dtype=np.float32)
+    block, bits, squares, _, _, c0 = _inputs(chunk, acc)
+    kernel(block, bits, squares, c0, lay.row0, lay.nrows, lay.steps, level, rss, dof, dirty,
+           power)
+    clean, no_dark_clip = ~dirty, np.ones(n, dtype=bool)
+    idx = np.flatnonzero(dirty)
+    if idx.size:
+        sub = residual_arrays(dec, chunk.take(idx))
+        level[idx], rss[idx], dof[idx], clean[idx], no_dark_clip[idx], power[:, idx] = sub
+    return level, rss, dof, clean, no_dark_clip, power
+
+
+def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
+                 planes: dict[str, np.ndarray], reason: np.ndarray) -> None:
+    """Decode the pixel range `sl` (sums `chunk`) into `planes` and `reason`."""
+    from calibration.decode.kernel_sums import DIRTY, finish_sums
+
+    acc, opt, plan = dec._acc, dec.options, dec.plan
+    params = noise_params(dec)
+    sub_out = reason[sl]
+    if params is None:
+        dirty = np.arange(chunk.size)
+    else:
+        lay = layout(acc)
+        axis_of = np.array([0 if s.layout.axis == "x" else 1 for s in acc.sets], dtype=np.int64)
+        per_axis = max(int((axis_of == a).sum()) for a in (0, 1))
+        limits = chi2_limits(max(per_axis - 1, 0), opt.consistency_p)
+        limits = np.concatenate([limits, np.full(len(acc.sets) + 1 - limits.size, np.inf)])
+        kparams = np.array([opt.min_contrast_snr, opt.min_modulation_snr, opt.max_ambiguity,
+                            opt.screen_margin_sigma, opt.edge_margin_blur, opt.max_sigma_px,
+                            MIN_PERIOD_SNR])
+        extents = np.array([plan.screen.extent_px(a) for a in ("x", "y")], dtype=np.float64)
+        max_dof = int((lay.steps - lay.nrows).sum())
+        leak = np.zeros(len(acc.sets)) if dec._leak is None else np.asarray(dec._leak, float)
+        finish_sums(*_inputs(chunk, acc), lay.row0, lay.nrows, lay.steps, params, leak,
+                    np.array([acc.n_bright, acc.n_dark], dtype=np.float64), chi2_tail(max_dof),
+                    axis_of, np.array([s.layout.period_px for s in acc.sets]),
+                    np.array([s.layout.amplitude for s in acc.sets]), limits, extents, kparams,
+                    planes["position"], planes["sigma"], planes["modulation"],
+                    planes["blur"], sl.start, sub_out)
+        dirty = np.flatnonzero(sub_out == DIRTY)
+    if dirty.size == 0:
+        return
+    sub = output_planes(dirty.size, plan.axes())
+    sub_out[dirty] = dec._finish_arrays(chunk.take(dirty), slice(None), planes=sub)
+    for name, arr in sub.items():
+        planes[name][:, sl][:, dirty] = arr

@@ -1,0 +1,41 @@
+"""Load (or compile, once per machine) the decoder's numba kernels before they are needed."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+
+@functools.lru_cache(maxsize=1)
+def warm_up() -> None:
+    """Run each kernel on a few pixels with the argument types a uint8 camera's decode
+    passes (a live capture does this while frames arrive, not after the last one)."""
+    from calibration.decode.accumulate_kernel import NO_CLIP_HI, accumulate_block
+    from calibration.decode.kernel import warm_up as warm_finish
+    from calibration.decode.kernel_sums import finish_sums, residual_stats
+
+    warm_finish()
+    n = 4
+    frames = np.ones((1, n), dtype=np.uint8)
+    i64 = functools.partial(np.zeros, dtype=np.int64)
+    one = np.ones(1, dtype=np.int64)
+    weights = np.ones((1, 3, 1), dtype=np.float32)
+    sums = np.zeros((3, n), np.float32)
+    for bits_dtype in (np.uint8, np.uint16):
+        bits = np.zeros((1, n), bits_dtype)
+        for squares in (np.zeros(n, np.float32), np.zeros(0, np.float32)):
+            flats = np.zeros((2, n))
+            accumulate_block(frames, i64(1), np.full(1, 3), i64(1), i64(1), weights, i64(1),
+                             one * 3, 0.0, NO_CLIP_HI, 0, 0, n, sums, bits, squares, flats[0],
+                             flats[1], np.zeros(1), i64(1))
+            planes = [np.zeros((2, n), dtype=dt) for dt in (np.float64, np.float32,
+                                                             np.float32, np.float32)]
+            finish_sums(sums, bits, squares, flats[0], flats[1], 0, i64(1), one * 3, one * 4,
+                        np.array([0.0, 1, 0, 0, 0, 0.1, 0]), np.zeros(1), np.ones(2),
+                        np.full(2, np.inf), i64(1), np.ones(1), np.ones(1), np.full(2, np.inf),
+                        np.ones(2), np.ones(7), *planes, 0, np.zeros(n, np.uint8))
+            if squares.size:
+                out = [np.zeros(n, np.float32) for _ in range(3)]
+                residual_stats(sums, bits, squares, 0, i64(1), one * 3, one * 4, *out,
+                               np.zeros(n, np.bool_), np.zeros((1, n), np.float32))
