@@ -80,7 +80,9 @@ def test_page_capture_progress_calibrate_report(browser, tmp_path: Path) -> None
         shutil.rmtree(ARTIFACTS)
     with running_service(ServiceConfig(data_dir=tmp_path / "data", token=TOKEN)) as (url, _):
         api = PhasecalClient(url, token=TOKEN)
-        rig = api.post("/rigs", {"name": "sim-small", "config": small_rig()})
+        # wall-clock pacing: on virtual time a 38-frame capture ends in a fraction of a
+        # second, before the page could show the bar moving
+        rig = api.post("/rigs", {"name": "sim-small", "config": {**small_rig(), "clock": "real"}})
         d = browser
         d.get(url + "/")
         d.find_element(By.ID, "token").send_keys(TOKEN)
