@@ -57,17 +57,20 @@ def demo_rig_config(width: int, height: int, camera: str = "wide_fisheye",
     return cfg
 
 
-def run_demo(out_dir: Path | None = None, *, poses: int = 5, width: int = 640, height: int = 480,
+def run_demo(out_dir: Path | None = None, *, poses: int = 5, rig: dict[str, Any] | None = None,
              models: tuple[str, ...], preset: str = "default", seed: int = 7,
-             out: TextIO = sys.stdout) -> list[DemoRow]:
-    """Run the demo; returns the table rows (also printed to `out`)."""
+             options: dict[str, Any] | None = None, out: TextIO | None = None) -> list[DemoRow]:
+    """Run the demo on simulated rig config `rig` (default: the 640x480 wide-angle rig) with
+    model `options` for every calibration; returns the table rows (also printed to `out`)."""
+    rig = rig if rig is not None else demo_rig_config(640, 480)
+    out = out or sys.stdout
     root = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="phasecal-demo-"))
     root.mkdir(parents=True, exist_ok=True)
     config = ServiceConfig(data_dir=root / "data")
     with running_service(config) as (url, _app):
         client = PhasecalClient(url)
         try:
-            rows = _drive(client, root, poses, width, height, models, preset, seed, out)
+            rows = _drive(client, root, poses, rig, models, preset, seed, options, out)
             links = _reports(client, rows)
         finally:
             client.close()
@@ -108,13 +111,13 @@ def _print_links(links: list[tuple[str, str]], root: Path, out: TextIO) -> None:
     out.write("\n".join(lines) + "\n")
 
 
-def _drive(client: PhasecalClient, root: Path, n_poses: int, width: int, height: int,
-           models: tuple[str, ...], preset: str, seed: int, out: TextIO) -> list[DemoRow]:
+def _drive(client: PhasecalClient, root: Path, n_poses: int, rig_config: dict[str, Any],
+           models: tuple[str, ...], preset: str, seed: int, options: dict[str, Any] | None,
+           out: TextIO) -> list[DemoRow]:
     from hw_mocks.truth import SimulatorTruth
 
     print(f"phasecal demo: service at {client.http.base_url}, data in {root / 'data'}", file=out)
-    rig_config = demo_rig_config(width, height)
-    rig = client.create_rig("demo-wide-angle", rig_config)
+    rig = client.create_rig("demo", rig_config)
     session = client.create_session("demo", rig_id=rig["id"], preset=preset)
     print(f"session {session['id']}: {session['frame_count']} patterns per pose", file=out)
     # simulator check: the rig's twin, outside the service (hw_mocks.truth)
@@ -132,7 +135,8 @@ def _drive(client: PhasecalClient, root: Path, n_poses: int, width: int, height:
     rows = []
     for model in models:
         t0 = time.perf_counter()
-        job = client.wait(client.calibrate(session, model), timeout_s=1800, check=False)
+        job = client.wait(client.calibrate(session, model, options=options), timeout_s=1800,
+                          check=False)
         cal_id = (job["resource"] or "").rsplit("/", 1)[-1]
         cal = client.get_calibration(cal_id)
         wall = time.perf_counter() - t0
@@ -144,6 +148,13 @@ def _drive(client: PhasecalClient, root: Path, n_poses: int, width: int, height:
                             wall, cal_id))
         print(f"calibrated {model}: {wall:.1f} s; {_export_mrcal(client, cal_id, model, root)}",
               file=out)
+        screen = (cal["stats"] or {}).get("screen") or {}
+        if screen.get("mode") == "fit":
+            std = screen.get("std", {})
+            print("  screen fit: " + ", ".join(
+                f"{k} {screen[k]:.4f} +- {std.get(k, float('nan')):.4f}"
+                for k in ("bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm") if k in screen),
+                file=out)
     return rows
 
 
