@@ -6,6 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 
+from calibration.fit.screen_option import GlassIndex, ScreenMode
+
 MIN_POSES = 3
 
 
@@ -25,12 +27,11 @@ class ParametricOptions(BaseModel):
         default="all",
         description='"all": refine on every valid pixel weighted by its decoded sigma; '
                     '"sampled": OpenCV\'s fit on max_points_per_pose points only')
-    screen: Literal["flat", "fit"] = Field(
+    screen: ScreenMode = Field(
         default="flat",
         description='"flat": an ideal bare flat screen; "fit": panel bow/twist and cover-glass '
                     "thickness estimated with the camera (needs points \"all\")")
-    glass_index: float = Field(default=1.52, gt=1.0, le=2.5, strict=True,
-                               description="refractive index of the cover glass (known)")
+    glass_index: GlassIndex = 1.52
 
     @model_validator(mode="after")
     def _screen_needs_all_points(self) -> ParametricOptions:

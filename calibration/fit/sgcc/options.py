@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt, field_validator
 
+from calibration.fit.screen_option import GlassIndex, ScreenMode
 from calibration.models.sgcc import DEFAULT_CELLS
 
 MIN_POSES = 3
@@ -36,12 +37,11 @@ class SgccOptions(BaseModel):
                     'family\'s own curvature); "off": the free spline. Default (null): "auto" '
                     'for sgcc with screen "flat", else "off" (docs/generic.md)')
 
-    screen: Literal["flat", "fit"] = Field(
+    screen: ScreenMode = Field(
         default="flat",
         description='"flat": an ideal bare flat screen; "fit": panel bow/twist and cover-glass '
                     "thickness estimated jointly with the spline and the poses")
-    glass_index: float = Field(default=1.52, gt=1.0, le=2.5, strict=True,
-                               description="refractive index of the cover glass (known)")
+    glass_index: GlassIndex = 1.52
 
     @field_validator("cells", mode="before")
     @classmethod

@@ -13,7 +13,12 @@ from typing import Any
 import numpy as np
 
 from calibration.fit.observations import PoseObs
-from calibration.fit.sgcc.screen_terms import N_SCREEN, ScreenTrace, panel_ray_terms
+from calibration.fit.sgcc.screen_terms import (
+    N_SCREEN,
+    ScreenTrace,
+    panel_ray_terms,
+    rays_in_screen_frame,
+)
 from calibration.fit.sgcc.state import LMState
 from calibration.models.bspline import (
     SplineGrid,
@@ -21,7 +26,6 @@ from calibration.models.bspline import (
     monomials,
     radix_keys,
 )
-from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
 
 _JP_DENSE = [0, 1, 2, 5]  # pose-Jacobian columns that are not constant 0/1
 _CHUNK = 1 << 16  # pixels per vectorized block: bounded temporaries, few Python-level calls
@@ -130,14 +134,7 @@ def ray_terms(
     if panel is not None:
         return panel_ray_terms(xp, comps, rc, tc, screen, jacobian, panel)
     c = len(comps)
-    if jacobian:
-        r, jr = expmap_jacobian_rows(comps[0], comps[1], xp=xp)
-    else:
-        r = expmap_rows(comps[0], comps[1], xp=xp)
-    r_s = rc @ r
-    o_s = rc[:, :2] @ comps[2:4] + tc[:, None] if c == 4 else xp.broadcast_to(tc[:, None], r.shape)
-    ok = r_s[2] * o_s[2] < 0  # the ray moves towards the plane
-    rz = xp.where(ok, r_s[2], 1.0)
+    jr, r_s, o_s, ok, rz = rays_in_screen_frame(xp, comps, rc, tc, jacobian)
     lam = -o_s[2] / rz
     q = o_s[:2] + lam * r_s[:2]
     res = xp.where(ok, q - screen, 0.0)

@@ -99,6 +99,22 @@ def _cross(a: Any, b: Any) -> Any:
     return a[[1, 2, 0]] * b[[2, 0, 1]] - a[[2, 0, 1]] * b[[1, 2, 0]]
 
 
+def rays_in_screen_frame(xp: ModuleType, comps: Any, rc: Any, tc: Any, jacobian: bool
+                         ) -> tuple[Any, Any, Any, Any, Any]:
+    """The rays of spline components comps (C,n) in the screen frame of pose (rc, tc):
+    (d r/d(comps[:2]) (3,2,n) or None, directions r_s (3,n), origins o_s (3,n), ok (n,): the
+    ray moves towards the screen, r_z (n,) with 1 where not ok)."""
+    if jacobian:
+        r, jr = expmap_jacobian_rows(comps[0], comps[1], xp=xp)
+    else:
+        r, jr = expmap_rows(comps[0], comps[1], xp=xp), None
+    r_s = rc @ r
+    o_s = (rc[:, :2] @ comps[2:4] + tc[:, None] if len(comps) == 4
+           else xp.broadcast_to(tc[:, None], r.shape))
+    ok = r_s[2] * o_s[2] < 0
+    return jr, r_s, o_s, ok, xp.where(ok, r_s[2], 1.0)
+
+
 def panel_ray_terms(
     xp: ModuleType, comps: Any, rc: Any, tc: Any, screen: Any, jacobian: bool,
     panel: tuple[ScreenTrace, Any],
@@ -106,14 +122,7 @@ def panel_ray_terms(
     """`problem.ray_terms` through the fitted screen (sgcc/screen_terms.py): the ray in the screen
     frame is traced through the cover glass to the shaped panel; J has 4 screen columns."""
     c = len(comps)
-    if jacobian:
-        r, jr = expmap_jacobian_rows(comps[0], comps[1], xp=xp)
-    else:
-        r = expmap_rows(comps[0], comps[1], xp=xp)
-    r_s = rc @ r
-    o_s = rc[:, :2] @ comps[2:4] + tc[:, None] if c == 4 else xp.broadcast_to(tc[:, None], r.shape)
-    ok = r_s[2] * o_s[2] < 0  # the ray moves towards the screen
-    rz = xp.where(ok, r_s[2], 1.0)
+    jr, r_s, o_s, ok, rz = rays_in_screen_frame(xp, comps, rc, tc, jacobian)
     slope = r_s[:2] / rz
     q, jo, jq, js = panel[0].trace(xp, panel[1], o_s, xp.where(ok, slope, 0.0))
     res = xp.where(ok, q - screen, 0.0)
