@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from api.commands.calibrate import _parse_options
     from api.demo import demo_rig_config, run_demo
     from api.rigs import load_default_config
+    from calibration.fit.registry import model_spec
 
     if args.poses < 3:
         raise ValueError(f"--poses {args.poses}: a calibration needs at least 3 poses")
@@ -49,7 +50,13 @@ def run(args: argparse.Namespace) -> int:
         if rig.get("kind") != "simulated":
             raise UserError(f"--rig {args.rig}: the demo needs a simulated rig "
                             f"(kind = \"simulated\"), got {rig.get('kind')!r}")
+    options = _parse_options(args.option) or None
+    for model in args.models:  # before any capture: a typo fails now, not after the poses
+        try:
+            model_spec(model).parse_options(options)
+        except ValueError as exc:
+            raise UserError(f"--models/--option: {exc}") from None
     rows = run_demo(Path(args.out) if args.out else None, poses=args.poses, rig=rig,
                     models=tuple(args.models), preset=args.preset, seed=args.seed,
-                    options=_parse_options(args.option) or None)
+                    options=options)
     return 0 if all(r.status == "succeeded" for r in rows) else 1

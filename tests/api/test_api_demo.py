@@ -43,3 +43,6 @@ def test_demo_on_a_rig_file_with_model_options(tmp_path: Path, capsys) -> None:
     assert "screen fit: bow_x_mm" in out and "glass_mm" in out
     assert cli_main(["demo", "--rig", str(small), "--width", "100"]) == 1
     assert "camera size comes from the --rig file" in capsys.readouterr().err
+    # a bad model option fails before any capture, with the field named
+    assert cli_main(["demo", "--models", "opencv5", "--option", "foo=1"]) == 1
+    assert "unknown key(s) ['foo'] for opencv5" in capsys.readouterr().err
