@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit
 
 from calibration.decode.kernel import P_MIN_CONTRAST, P_PERIOD_SNR
+from calibration.decode.kernel_clipped import clipped_block, clipped_residuals
 from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
 from calibration.decode.vecmath import atan2, log_inplace
 
@@ -60,9 +61,11 @@ def finish_sums(
     set_axis, periods, amps, chi2_limit, extents, params,  # as kernel.finish_pixels
     pos_out, sig_out, mod_out, blur_out, o0,  # (2, N_out) outputs from column o0
     reason,  # (n,) uint8 reason codes of the range
+    tables,  # kernel_clipped.PatternTables (index, rows, basis); empty index: none
 ) -> None:
-    """Decode the pixels of a range from their sums: those with every step kept, and those
-    with every step clipped (no fit: `no_screen` or `clipped`); others get reason DIRTY.
+    """Decode the pixels of a range from their sums: those with every step kept, those
+    with every step clipped (no fit: `no_screen` or `clipped`) and, with `tables`, those
+    with some steps clipped (kernel_clipped.py); others get reason DIRTY.
 
     Per block of pixels, everything per set (fits, variances, sigmas, wrapped phases, the
     blur line sums) runs in loops over the block's pixels that LLVM vectorizes; then the
@@ -148,14 +151,21 @@ def finish_sums(
                 for ax in range(2):
                     if first[ax] >= 0:
                         mod_out[ax, o0 + b0 + j] = 0.0
+        clipped_block(m, d, dd, sums, bits, squares, bright, dark, j0, row0, nrows, steps,
+                      tables, mode, line, noise[N_FLOOR], tail, leak, flats, set_axis,
+                      periods, amps, chi2_limit, extents, params, pos_out, sig_out, mod_out,
+                      blur_out, o0 + b0, reason[b0:b0 + m])
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_out, dof_out,
-                   dirty_out, power_out) -> None:
-    """Residual-mode first pass (decoder `_residuals`) for the unclipped pixels of columns
-    c0..: dof-weighted level, residual sum of squares, residual dof; `dirty_out` marks the
-    pixels with clipped steps (left to the array path)."""
+                   dirty_out, power_out, low_out, bright, dark, clip, leak, tables) -> None:
+    """Residual-mode first pass (decoder `_residuals`) for the pixels of columns c0..:
+    dof-weighted level, residual sum of squares, residual dof, each set's Nyquist power;
+    `dirty_out` marks the pixels with clipped steps. With `tables` (non-empty index) those
+    are fitted here too (kernel_clipped.py; `clip`: floor, bright and dark flat counts,
+    min_contrast_snr) and `low_out` marks a step clipped at the dark end; without, they
+    are left to the array path (`low_out` untouched)."""
     n = level_out.shape[0]
     expl, own, lev = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK)
     dof = 0.0
@@ -187,6 +197,17 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
             rss_out[b0 + j] = max(own[j], 0.0)
             level_out[b0 + j] = lev[j] / max(dof, 1.0)
             dof_out[b0 + j] = dof
+            low_out[b0 + j] = False
+        if tables[0].shape[0] == 0:
+            continue
+        fit, p = np.empty((row0.shape[0], 12)), np.empty((row0.shape[0], tables[2].shape[2]))
+        for j in range(m):
+            if d[j]:
+                level_out[b0 + j], rss_out[b0 + j], dof_out[b0 + j], _, kept = clipped_residuals(
+                    sums, bits, squares, bright, dark, j0 + j, row0, nrows, steps, tables[0],
+                    tables[1], tables[2], clip[0], clip[1:3], clip[3], leak, fit, p, power_out,
+                    b0 + j)
+                low_out[b0 + j] = not kept  # (kept: no step clipped at the dark end)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
