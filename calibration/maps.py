@@ -116,12 +116,13 @@ class DecodedMaps:
 
 
 def save_maps(maps: DecodedMaps, path: str | Path, compress: bool = False, *,
-              timings: dict[str, float] | None = None) -> None:
+              timings: dict[str, float] | None = None, durable: bool = True) -> None:
     """Write maps as NPZ atomically and durably (temp file in the same folder, fsync, rename):
     stored members are written in parallel from the arrays' memory (`npz_store`); `timings`
-    (stored only) receives the wall seconds of "write" and "fsync"."""
+    (stored only) receives the wall seconds of "write" and "fsync"; `durable=False` (stored
+    only) skips the fsyncs, for callers that make the file durable later."""
     if not compress:
-        write_npz_stored(path, maps._arrays(), timings)
+        write_npz_stored(path, maps._arrays(), timings, durable=durable)
         return
     with atomic_file(path) as fh:
         maps.write_npz(fh, compress)

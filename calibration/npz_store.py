@@ -127,12 +127,14 @@ def _fsync_folder(folder: Path) -> None:
 
 
 def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
-                     timings: dict[str, float] | None = None) -> None:
-    """Write `arrays` to `path` as an uncompressed NPZ (np.load reads it), atomically and
-    durably; `timings` (if given) receives the wall seconds of "write" and "fsync"."""
+                     timings: dict[str, float] | None = None, *, durable: bool = True) -> None:
+    """Write `arrays` to `path` as an uncompressed NPZ (np.load reads it), atomically and (with
+    `durable`) fsynced with its folder entry; `timings` (if given) receives the wall seconds
+    of "write" and "fsync". `durable=False`: the page cache only, for callers that fsync
+    later (still renamed into place whole)."""
     t0 = time.perf_counter()
     members = _members(arrays)
-    writeback = _start_writeback()
+    writeback = _start_writeback() if durable else (lambda fd, offset, length: None)
     target = Path(path)
     with atomic_path(target) as tmp:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
@@ -152,9 +154,11 @@ def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
             end = members[-1].offset + len(_local_header(members[-1])) + members[-1].size
             _pwrite_all(fd, _central_directory(members, end), end)
             t1 = time.perf_counter()
-            os.fsync(fd)
+            if durable:
+                os.fsync(fd)
         finally:
             os.close(fd)
-    _fsync_folder(target.resolve().parent)
+    if durable:
+        _fsync_folder(target.resolve().parent)
     if timings is not None:
         timings["write"], timings["fsync"] = t1 - t0, time.perf_counter() - t1

@@ -136,3 +136,13 @@ def test_object_arrays_are_refused(tmp_path):
     with pytest.raises(ValueError, match="bad: object arrays"):
         write_npz_stored(tmp_path / "a.npz", {"bad": np.array([None, 1], dtype=object)})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_not_durable_skips_the_fsyncs_but_still_renames_whole(tmp_path, monkeypatch):
+    synced: list[int] = []
+    monkeypatch.setattr(os, "fsync", synced.append)
+    arrays = _arrays()
+    write_npz_stored(tmp_path / "a.npz", arrays, durable=False)
+    assert synced == []
+    _check(tmp_path / "a.npz", arrays)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz"]
