@@ -98,3 +98,28 @@ def test_folder_frames_read_ahead_in_plan_order(plan, tmp_path):
     cv2.imwrite(str(folder / "frame_0007.png"), stack[7][:, :32])
     with pytest.raises(ValueError, match=r"frame_0007\.png"):
         list(read_frames(folder))
+
+
+def test_folder_read_into_one_array_when_it_fits(plan, tmp_path, monkeypatch):
+    """A folder that fits in memory is read once into an (F, H, W) array (the decoder's
+    whole-stack path); iterating afterwards yields it without reading the files again; a
+    folder too large for memory streams (array() is None)."""
+    import cv2
+
+    from calibration.decode import frames_io
+
+    stack = _stack(plan)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(stack):
+        cv2.imwrite(str(folder / f"frame_{i:04d}.png"), f)
+    source = read_frames(folder)
+    whole = source.array()
+    assert whole is not None and whole.shape == stack.shape and np.array_equal(whole, stack)
+    for f in folder.iterdir():
+        f.unlink()
+    assert all(np.array_equal(a, b) for a, b in zip(source, stack, strict=True))
+    monkeypatch.setattr(frames_io, "_memory_bytes", lambda: stack.nbytes)  # 4x too small
+    for i, f in enumerate(stack):
+        cv2.imwrite(str(folder / f"frame_{i:04d}.png"), f)
+    assert read_frames(folder).array() is None
