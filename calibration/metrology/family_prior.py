@@ -138,6 +138,20 @@ def family_adequate(family_stats: dict[str, Any], spline_chi2_dof: float, n_resi
     return bool(gain <= limit), {"chi2_gain": float(gain), "chi2_gain_limit": limit}
 
 
+def screen_limit(fraction: float, n_spline: int, n_family: int, n_shared: int) -> float:
+    """The largest subset gain (`subset_gain`) of a family that would pass the full test.
+
+    With the family exact, the subset fit leaves chi2 ~ n_S - k (k = n_family + n_shared: its
+    parameters with the poses' and screen's, all fitted to the subset) and the spline,
+    fitted on every point, leaves n_S - f p on the subset (p = n_spline + n_shared, f the
+    subset's fraction of the points: its share of the spline's leverage): gain f p - k, std
+    about sqrt(2 (k + f p)). A misfit allowed by the full test adds at most f times its
+    limit. Refusing above that plus 5 std never refuses a family the full test accepts."""
+    k, p = n_family + n_shared, n_spline + n_shared
+    return (fraction * p - k + fraction * _limit(n_spline - n_family)
+            + 5.0 * float(np.sqrt(2.0 * (k + fraction * p))))
+
+
 FamilyFit = Callable[[list[PointSet], int], "DenseFit | None"]  # (points, outlier rounds)
 
 
@@ -151,20 +165,23 @@ def _attempt(fit: FamilyFit, pts: list[PointSet], rounds: int) -> DenseFit | Non
 
 def _screened(fit: FamilyFit, pts: list[PointSet], sub: list[PointSet] | None,
               spline_sq: list[np.ndarray], free: LMResult, n_spline: int
-              ) -> tuple[DenseFit | None, float | None]:
-    """(the family's dense fit, its subset gain): on every point (polished from the subset's
-    estimate) if it passes the screen on `sub`, on the subset alone if it does not (gain
-    above the limit); gain None without a subset or where the subset does not determine
+              ) -> tuple[DenseFit | None, tuple[float, float] | None]:
+    """(the family's dense fit, (its subset gain, the screen's limit)): on every point
+    (polished from the subset's estimate) if it passes the screen on `sub`, on the subset
+    alone if it does not; no gain without a subset or where the subset does not determine
     the family (then fitted on every point directly); fit None where nothing fits."""
     if sub is not None:
         found = _attempt(fit, sub, 0)  # a screening fit needs no second outlier rounds
         if found is not None:
             gain = subset_gain(found, sub, spline_sq, free.chi2_dof)
-            if gain > _limit(n_spline - int(np.count_nonzero(found.param_std > 0))):
-                return found, gain
+            fraction = sum(map(len, sub)) / sum(map(len, pts))
+            limit = screen_limit(fraction, n_spline, int(np.count_nonzero(found.param_std > 0)),
+                                 6 * len(sub) + found.screen.n_free)
+            if gain > limit:
+                return found, (gain, limit)
             return _attempt(lambda p, r: fit_dense(found.model, found.poses, p, found.screen,
                                                    found.free, outlier_rounds=r),
-                            pts, _OUTLIER_ROUNDS), gain
+                            pts, _OUTLIER_ROUNDS), (gain, limit)
     return _attempt(fit, pts, _OUTLIER_ROUNDS), None
 
 
@@ -200,24 +217,26 @@ def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_c
             ("opencv5", lambda p, r: _dense(p, screen, grid.image_size, "opencv5", r)),
             ("fisheye", lambda p, r: _dense(p, screen, grid.image_size, "fisheye", r)),
             ("opencv-rational", rational)):
-        found, sub_gain = _screened(fit, pts, sub, spline_sq, free, n_spline)
+        found, screened = _screened(fit, pts, sub, spline_sq, free, n_spline)
         if found is None:
             continue
         stats = _stats(found, family)
         sigmas = {k: v for k, v in stats["param_std"].items() if v > 0}
         extra = n_spline - len(sigmas)
-        if sub_gain is not None and sub_gain > _limit(extra):  # refused on the subset
-            info = {"family": family, "extra_dof": extra, "chi2_gain": sub_gain,
-                    "chi2_gain_limit": _limit(extra), "tested_on": "subset",
+        if screened is not None and screened[0] > screened[1]:  # refused on the subset
+            info = {"family": family, "extra_dof": extra, "chi2_gain": screened[0],
+                    "chi2_gain_limit": screened[1], "tested_on": "subset",
                     "subset_fraction": fraction, "adequate": False, "weight": None,
                     "param_std": sigmas}
-            key = sub_gain / fraction  # about the gain on every point
+            key = screened[0] / fraction  # about the gain on every point
         else:
             ok, test = family_adequate(stats, free.chi2_dof, n_res, extra)
             info = {"family": family, "family_chi2_dof": stats["reduced_chi2"],
                     "spline_chi2_dof": free.chi2_dof, "extra_dof": extra, **test,
                     "tested_on": "all", "subset_fraction": fraction,
-                    "subset_chi2_gain": sub_gain, "adequate": ok,
+                    "subset_chi2_gain": None if screened is None else screened[0],
+                    "subset_chi2_gain_limit": None if screened is None else screened[1],
+                    "adequate": ok,
                     "weight": PRIOR_WEIGHT if ok else None, "param_std": sigmas}
             if screen.mode == "fit":
                 info["screen"] = {k: stats["screen"][k] for k in PARAM_NAMES}
