@@ -28,7 +28,6 @@ import numpy as np
 
 import calibration.fit.sgcc.calibrate as sgcc_calibrate
 import calibration.metrology.family_prior as family_prior
-from api.demo import demo_rig_config
 from calibration.fit.dispatch import calibrate
 from calibration.maps import DecodedMaps, load_maps
 from calibration.plan import ScreenGeometry
@@ -46,6 +45,8 @@ STAGES = {  # label: the functions it times (module, name)
                                              (sgcc_calibrate, "deviation_precision")],
     "prior covariance": [(sgcc_calibrate, "prior_covariance")],
 }
+# api.demo.demo_rig_config(640, 480) (not imported: benchmarks/api.py shadows the package)
+DEMO_RIG = {"kind": "simulated", "camera": {"model": "wide_fisheye", "width": 640, "height": 480}}
 FIRST = "  first fits (subset; before: all)"
 POLISH = "  rest: screen test, polish on all"
 
@@ -57,7 +58,7 @@ def _demo_maps(maps_dir: str | None) -> tuple[list[DecodedMaps], ScreenGeometry]
         plan = json.loads(next(root.glob("sessions/*/plan.json")).read_text())["screen"]
         screen = ScreenGeometry(plan["width_px"], plan["height_px"], tuple(plan["pitch_mm"]))
         return [load_maps(f) for f in sorted(glob.glob(str(root / "poses/*/maps.npz")))], screen
-    truth = SimulatorTruth.from_config(demo_rig_config(640, 480))
+    truth = SimulatorTruth.from_config(DEMO_RIG)
     cam, screen = truth.camera, truth.screen
     rng = np.random.default_rng(7)
     poses = random_poses(cam, screen, 5, np.random.default_rng(7))  # the demo's screen poses
