@@ -6,14 +6,18 @@ that decoding a pose never holds the whole stack in memory.
 
 from __future__ import annotations
 
+import os
 import re
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from calibration.decode.accumulate import ACCEPTED_DTYPES, DecodeError
+from calibration.readahead import prefetch
 
 _NAME = re.compile(r"^frame_(\d{4,})\.(png|tif|tiff)$", re.IGNORECASE)
 
@@ -35,6 +39,7 @@ class FrameSource:
         """The whole `.npy` stack, memory-mapped (no copy); None for a folder of images."""
         if self.files:
             return None
+        prefetch(self.path)
         return np.load(self.path, mmap_mode="r", allow_pickle=False)
 
     def __iter__(self) -> Iterator[np.ndarray]:
@@ -43,14 +48,31 @@ class FrameSource:
             for i in range(self.count):
                 yield np.ascontiguousarray(stack[i])
             return
-        for f in self.files:
-            img = _read_image(f)
+        for f, img in zip(self.files, _read_ahead(self.files), strict=True):
             if img.shape != self.shape or img.dtype != self.dtype:
                 raise DecodeError(
                     f"{f}: {img.dtype} image of shape {img.shape} differs from the first "
                     f"frame ({self.dtype}, {self.shape})"
                 )
             yield img
+
+
+def _read_ahead(files: tuple[Path, ...]) -> Iterator[np.ndarray]:
+    """The images in order, decoded by a few threads a few frames ahead of the consumer
+    (cv2 releases the GIL while it reads and decodes; at most `2 * threads` held)."""
+    threads = max(1, min(os.cpu_count() or 1, 4))
+    with ThreadPoolExecutor(threads, thread_name_prefix="frames") as pool:
+        pending: deque[Future[np.ndarray]] = deque()
+        try:
+            for f in files:
+                pending.append(pool.submit(_read_image, f))
+                if len(pending) >= 2 * threads:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:  # consumer stopped early (error, cancel): drop the frames not yet started
+            for fut in pending:
+                fut.cancel()
 
 
 def _read_image(path: Path) -> np.ndarray:
