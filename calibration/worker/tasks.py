@@ -110,11 +110,7 @@ def stream_decode_task(
     c0 = time.process_time()
     maps = decoder.finish(dict(meta or {}))
     t1, c1 = time.perf_counter(), time.process_time()
-    if durable:
-        save_maps(maps, out_path)
-    else:  # in the page cache only: the caller makes it durable (and renames it into place)
-        with open(out_path, "wb") as fh:
-            maps.write_npz(fh)
+    save_maps(maps, out_path, durable=durable)  # durable=False: page cache, fsync by the caller
     return {**_summary(maps, t0), "caught_up_at": caught_up_at,
             "finish_s": round(t1 - t0, 3), "finish_cpu_s": round(c1 - c0, 3),
             "write_s": round(time.perf_counter() - t1, 3),
