@@ -117,6 +117,20 @@ def stream_decode_task(
             "write_cpu_s": round(time.process_time() - c1, 3)}
 
 
+def warm_decode_task(pixels: int) -> bool:
+    """Load the decoder's compiled kernels in this worker if images of `pixels` use them
+    (~1.4 CPU s once per process): a large live capture submits this next to its decode
+    task, so the worker that decodes a later pose does not load them while that pose's
+    frames arrive (under load, late enough to delay the pose). True if they were needed."""
+    from calibration.decode.decoder import _COMPILED_MIN_PIXELS
+    from calibration.decode.kernel_warm import warm_up
+
+    if pixels < _COMPILED_MIN_PIXELS:
+        return False
+    warm_up()
+    return True
+
+
 def calibrate_task(
     ctx: TaskContext,
     plan_path: str,
@@ -141,4 +155,4 @@ def calibrate_task(
     return summary
 
 
-__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_task"]
+__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_task", "warm_decode_task"]
