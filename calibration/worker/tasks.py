@@ -71,11 +71,14 @@ def stream_decode_task(
     meta: dict[str, Any] | None = None,
     options: dict[str, Any] | None = None,
     poll_s: float = 0.002,
+    durable: bool = True,
 ) -> dict[str, Any]:
     """Decode a pose while it is captured: follow its `FrameStore` and fold in each frame
     as soon as it is stored (frames stored before the task started, e.g. by an interrupted
     capture, come first). Ends with the maps once every plan frame is in; the capture side
-    cancels the job if it fails. Reports progress only for the final stage."""
+    cancels the job if it fails. Reports progress only for the final stage. `durable=False`
+    writes the maps without fsync (the caller makes them durable after the pose is ready).
+    Timings (wall, and CPU seconds of this process: all its threads) in the summary."""
     from calibration.decode import StreamingDecoder
     from calibration.decode.frame_store import FrameStore
     from calibration.maps import save_maps
@@ -104,11 +107,28 @@ def stream_decode_task(
     caught_up_at = time.time()  # wall clock: the capture side reports its last frame's
     t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
     ctx.progress(total, total, "unwrap")
+    c0 = time.process_time()
     maps = decoder.finish(dict(meta or {}))
-    t1 = time.perf_counter()
-    save_maps(maps, out_path)
+    t1, c1 = time.perf_counter(), time.process_time()
+    save_maps(maps, out_path, durable=durable)  # durable=False: page cache, fsync by the caller
     return {**_summary(maps, t0), "caught_up_at": caught_up_at,
-            "finish_s": round(t1 - t0, 3), "write_s": round(time.perf_counter() - t1, 3)}
+            "finish_s": round(t1 - t0, 3), "finish_cpu_s": round(c1 - c0, 3),
+            "write_s": round(time.perf_counter() - t1, 3),
+            "write_cpu_s": round(time.process_time() - c1, 3)}
+
+
+def warm_decode_task(pixels: int) -> bool:
+    """Load the decoder's compiled kernels in this worker if images of `pixels` use them
+    (~1.4 CPU s once per process): a large live capture submits this next to its decode
+    task, so the worker that decodes a later pose does not load them while that pose's
+    frames arrive (under load, late enough to delay the pose). True if they were needed."""
+    from calibration.decode.decoder import _COMPILED_MIN_PIXELS
+    from calibration.decode.kernel_warm import warm_up
+
+    if pixels < _COMPILED_MIN_PIXELS:
+        return False
+    warm_up()
+    return True
 
 
 def calibrate_task(
@@ -135,4 +155,4 @@ def calibrate_task(
     return summary
 
 
-__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_task"]
+__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_task", "warm_decode_task"]

@@ -22,7 +22,7 @@ data; where data exist it is negligible, where they do not its large covariance 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -34,8 +34,8 @@ from calibration.decode.arrays import array_module
 from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
-from calibration.fit.sgcc.robust import outlier_cut, robust_terms, sigma_norm
-from calibration.fit.sgcc.screen_terms import N_SCREEN, ScreenTrace
+from calibration.fit.sgcc.robust import block_weights, outlier_cut, robust_terms, sigma_norm
+from calibration.fit.sgcc.screen_terms import N_SCREEN
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import (
@@ -104,12 +104,9 @@ class _Loop:
     hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
 
 
-def _make_problem(
-    grid: SplineGrid, n_comp: int, obs: list[PoseObs], xp: str, panel: ScreenTrace | None = None
-) -> Problem | DeviceProblem:
+def _on_device(prob: Problem, xp: str) -> Problem | DeviceProblem:
     """The fit's per-pixel problem: threaded NumPy ("numpy") or `DeviceProblem` on the array
     module named by xp ("cupy"; `array_module` says clearly when it is missing)."""
-    prob = Problem(grid, n_comp, obs, panel)
     if xp == "numpy":
         return prob
     from calibration.fit.sgcc.device import DeviceProblem  # it imports this module
@@ -167,8 +164,9 @@ def _iterate(
     """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place.
 
     After an accepted undamped (Gauss-Newton) step the next iteration is a chord step: the
-    gradient alone at the new state (`normal_equations(hessian=False)`, under half a pass),
-    solved with the previous factorization. Near the optimum the normal matrix hardly
+    gradient alone at the new state (computed in the same pass as the candidate's residuals,
+    `residuals_and_gradient`; anew if the outlier cut moved), solved with the previous
+    factorization. Near the optimum the normal matrix hardly
     changes over a step, so the chord step's decrement certifies convergence without a
     second full pass; a rejected chord step falls back to a full iteration.
     """
@@ -178,6 +176,7 @@ def _iterate(
     lp.converged = False
     first = True
     chord: tuple[tuple, np.ndarray] | None = None  # (factor, Jacobi scale) for a chord step
+    chord_grad: tuple[float, np.ndarray] | None = None  # (cut, J^T W e) from the candidate pass
     while lp.it < last_it:
         lp.it += 1
         if cancelled is not None and cancelled():
@@ -186,8 +185,11 @@ def _iterate(
         s = sigma_norm(prob, res) if s is None else s  # kept from the accepted candidate
         lp.cut = outlier_cut(s, ok, options.cut_sigmas)
         data0, wt, _ = robust_terms(s, ok, options.huber_k, lp.cut)
-        h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
-                                        hessian=chord is None)
+        if chord is not None and chord_grad is not None and chord_grad[0] == lp.cut:
+            h, grad = None, chord_grad[1]  # computed with the accepted candidate's residuals
+        else:
+            h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
+                                            hessian=chord is None)
         if first:
             diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
             lp.lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
@@ -219,7 +221,12 @@ def _iterate(
             rcs, tcs = _apply_pose_step(st, step[ns:])
             scr = None if st.screen is None else st.screen + step[ns + 6 * len(rcs):]
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs, scr)
-            res1, ok1 = prob.residuals(cand)
+            grad1 = None
+            if mu == 0.0 and not was_chord:  # a chord step may follow: its gradient now
+                res1, ok1, grad1 = prob.residuals_and_gradient(
+                    cand, block_weights(options.huber_k, lp.cut), spline=not options.fix_spline)
+            else:
+                res1, ok1 = prob.residuals(cand)
             s1 = sigma_norm(prob, res1)
             cost1 = robust_terms(s1, ok1, options.huber_k, lp.cut)[0]
             cost1 += _prior_cost(cand.coeffs.ravel(), lp)
@@ -231,6 +238,7 @@ def _iterate(
                     # chord next only where the quadratic model held over this step
                     good = abs(cost0 - cost1 - predicted) <= _CHORD_MODEL_TOL * predicted
                     chord = (factor, jac_scale) if mu == 0.0 and good else None
+                    chord_grad = None if grad1 is None else (lp.cut, grad1)
                 break
         else:
             if not was_chord:
@@ -255,8 +263,12 @@ def run_lm(
     *,
     progress: ProgressFn | None = None,
     cancelled: CancelCheck | None = None,
+    problem: Problem | Future[Problem] | None = None,
 ) -> LMResult:
     """Minimize the robust, uncertainty-weighted screen-plane residual; state and covariance.
+
+    `problem`: the full data's `Problem` (grid, n_comp, obs, options.screen), or its future,
+    where the caller built it already (e.g. while it computed the start); else built here.
 
     Large problems first converge on an even subset of about `options.subset_pixels`
     points (cheap iterations, at most half of `max_iterations`); the final iterations,
@@ -268,7 +280,7 @@ def run_lm(
     BLAS runs single-threaded here: the dense solves are small and threads only contend.
     """
     with single_thread_blas():
-        return _run(grid, n_comp, obs, init, options, progress, cancelled)
+        return _run(grid, n_comp, obs, init, options, progress, cancelled, problem)
 
 
 def _run(
@@ -279,6 +291,7 @@ def _run(
     options: LMOptions,
     progress: ProgressFn | None,
     cancelled: CancelCheck | None,
+    problem: Problem | Future[Problem] | None,
 ) -> LMResult:
     """Body of `run_lm`."""
     ns = grid.size * n_comp
@@ -304,14 +317,15 @@ def _run(
     if options.prior_mean is not None:
         lp.prior_mean = np.asarray(options.prior_mean, dtype=np.float64).ravel()
     sub = _subset(obs, options.subset_pixels)
-    if sub is None:
-        prob = _make_problem(grid, n_comp, obs, options.xp, options.screen)
-    else:  # the full problem is sorted while the subset iterates (one core each)
-        with ThreadPoolExecutor(1) as pool:
-            full = pool.submit(_make_problem, grid, n_comp, obs, options.xp, options.screen)
-            _iterate(_make_problem(grid, n_comp, sub, options.xp, options.screen), lp, options,
-                     options.max_iterations // 2, progress, cancelled)
-            prob = full.result()
+    with ThreadPoolExecutor(1) as pool:
+        if problem is None:  # sorted while the subset iterates (one core each)
+            problem = Problem(grid, n_comp, obs, options.screen) if sub is None else pool.submit(
+                Problem, grid, n_comp, obs, options.screen)
+        if sub is not None:
+            _iterate(_on_device(Problem(grid, n_comp, sub, options.screen), options.xp), lp,
+                     options, options.max_iterations // 2, progress, cancelled)
+        prob = _on_device(problem.result() if isinstance(problem, Future) else problem,
+                          options.xp)
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
     s = sigma_norm(prob, res) if lp.s is None else lp.s

@@ -3,6 +3,7 @@ normal equations accumulated per (pose, cell) group from monomial moments (see `
 
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -27,8 +28,10 @@ from calibration.models.bspline import (
     radix_keys,
 )
 
+# IRLS weights (n,) of a block's residuals e (2,n) mm, ok mask (n,) and inverse sigmas (2,n)
+Weights = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 _JP_DENSE = [0, 1, 2, 5]  # pose-Jacobian columns that are not constant 0/1
-_CHUNK = 1 << 16  # pixels per vectorized block: bounded temporaries, few Python-level calls
+_CHUNK = 1 << 13  # pixels per vectorized block: temporaries stay in cache, few Python calls
 _MAX_THREADS = 4  # chunk threads: NumPy releases the GIL in its loops; more only contend
 
 
@@ -85,15 +88,18 @@ def _chunks(seg: Segments) -> list[_Chunk]:
     out: list[_Chunk] = []
     cur: list[tuple[int, int, int]] = []
     pose0 = 0
-    for a, b, pose, cell in zip(
+    for a0, b0, pose, cell in zip(
         seg.start.tolist(), seg.end.tolist(), seg.pose.tolist(), seg.cell.tolist(), strict=True
     ):
-        if cur and (pose != pose0 or b - cur[0][0] > _CHUNK):
-            out.append(_Chunk(cur[0][0], cur[-1][1], pose0, _relative(cur)))
-            cur = []
-        if not cur:
-            pose0 = pose
-        cur.append((a, b, cell))
+        pieces = -(-(b0 - a0) // _CHUNK)  # long groups in even pieces (moments add up)
+        bounds = [a0 + (b0 - a0) * i // pieces for i in range(pieces + 1)]
+        for a, b in itertools.pairwise(bounds):
+            if cur and (pose != pose0 or b - cur[0][0] > _CHUNK):
+                out.append(_Chunk(cur[0][0], cur[-1][1], pose0, _relative(cur)))
+                cur = []
+            if not cur:
+                pose0 = pose
+            cur.append((a, b, cell))
     if cur:
         out.append(_Chunk(cur[0][0], cur[-1][1], pose0, _relative(cur)))
     return out
@@ -176,14 +182,19 @@ def spline_terms(
     k = jp.shape[1]
     c, n = g.shape[1:]
     gw = g * ws[:, None, :]
-    hp = gw[0, iu] * g[0, ju] + gw[1, iu] * g[1, ju]
+    # Row by row into preallocated rows: broadcast (C, k, n) products run strided and were
+    # several times slower than these contiguous vector operations.
+    hp = xp.empty((len(iu), n))
+    for m, (i, j) in enumerate(zip(iu.tolist(), ju.tolist(), strict=True)):
+        xp.multiply(gw[0, i], g[0, j], out=hp[m])
+        hp[m] += gw[1, i] * g[1, j]
     xg = xp.empty((c, k + 1, n))
-    if k == 6:  # bare plane: jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
-        xg[:, _JP_DENSE] = gw[0, :, None] * jp[0, _JP_DENSE] + gw[1, :, None] * jp[1, _JP_DENSE]
+    # bare plane: jp[:, 3] = (1, 0), jp[:, 4] = (0, 1)
+    for q in _JP_DENSE if k == 6 else range(k):
+        xp.multiply(gw[0], jp[0, q], out=xg[:, q])
+        xg[:, q] += gw[1] * jp[1, q]
+    if k == 6:
         xg[:, 3], xg[:, 4] = gw[0], gw[1]
-    else:  # in place: two (C, k, n) products without a third temporary
-        xp.multiply(gw[0, :, None], jp[0], out=xg[:, :k])
-        xg[:, :k] += gw[1, :, None] * jp[1]
     xg[:, k] = gw[0] * e[0] + gw[1] * e[1]
     return hp, xg.reshape((k + 1) * c, n)
 
@@ -279,17 +290,22 @@ class Problem:
 
     def _moments(
         self, st: LMState, poly: np.ndarray, wt: np.ndarray, share: Sequence[_Chunk], spline: bool,
-        hessian: bool = True,
+        hessian: bool = True, out: tuple[np.ndarray, np.ndarray, Weights] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Normal-equation sums of a share of chunks: per-cell moments, spline-pose cross
         moments, and the per-pose blocks (see `normal_equations`); without `hessian` only
-        the gradient columns of the cross moments (the rest stays zero)."""
+        the gradient columns of the cross moments (the rest stays zero). `out` (res, ok,
+        weights): each block's residuals and ok mask are written there and its weights
+        wt computed from them (`residuals_and_gradient`)."""
         c, nc, npo, k = self.c, self.n_cells, self.n_pose, self.k
         mom = np.zeros((nc, 49, len(self.tri[0])))  # sum m49 * (g^T W g)[upper triangle]
         cross = np.zeros((npo, nc, 16, (k + 1) * c))  # sum m16 * xg (see `spline_terms`)
         hpp, gpp = np.zeros((npo, k, k)), np.zeros((npo, k))
         for ch in share:
-            e, _, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
+            e, ok, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
+            if out is not None:
+                out[0][:, ch.a : ch.b], out[1][ch.a : ch.b] = e, ok
+                wt[ch.a : ch.b] = out[2](e, ok, self.inv_sigma[:, ch.a : ch.b])
             ws = wt[ch.a : ch.b] * self.inv_sigma[:, ch.a : ch.b] ** 2  # (2,n)
             hpp_c, gpp_c = pose_terms(np, e, jp, ws)
             hpp[ch.pose] += hpp_c
@@ -321,6 +337,20 @@ class Problem:
         )
         mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
         return self.assemble(hpp, gpp, (mom, cross) if spline else None)
+
+    def residuals_and_gradient(
+        self, st: LMState, weights: Weights, spline: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`residuals` and, in the same pass, J^T W e with each block's weights computed from
+        its residuals by `weights(e, ok, inv_sigma)`: LM's candidate step that a chord step
+        may follow (one pass instead of a residual pass and a gradient pass, sgcc/lm.py)."""
+        n = len(self.s)
+        res, ok, wt = np.empty((2, n)), np.empty(n, dtype=bool), np.empty(n)
+        poly = self.polynomials(st.coeffs)
+        parts = _over_chunks(self.chunks, lambda share: self._moments(
+            st, poly, wt, share, spline, hessian=False, out=(res, ok, weights)))
+        mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
+        return res, ok, self.assemble(hpp, gpp, (mom, cross) if spline else None)[1]
 
     def assemble(
         self, hpp: np.ndarray, gpp: np.ndarray, moments: tuple[np.ndarray, np.ndarray] | None
