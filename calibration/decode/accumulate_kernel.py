@@ -79,9 +79,13 @@ def accumulate_block(
                         mask[j] |= bit
             if need_sq:
                 sq = squares[oc:oc + m]
-                for j in range(m):  # float64 products: uint16 squares exceed float32
-                    xd = np.float64(buf[j])
-                    sq[j] += xd * xd
+                if squares.itemsize == 4:  # float32 sums of uint8 squares: exact integers
+                    for j in range(m):
+                        sq[j] += buf[j] * buf[j]
+                else:
+                    for j in range(m):  # float64 products: uint16 squares exceed float32
+                        xd = np.float64(buf[j])
+                        sq[j] += xd * xd
             r0 = row0[k]
             for r in range(nrows[k]):
                 w = weights[k, r, fstep[f]]
