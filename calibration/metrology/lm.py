@@ -42,6 +42,7 @@ class DenseFit:
     param_std: np.ndarray  # model parameters (0 where fixed)
     screen_std: np.ndarray  # screen parameters (empty for a flat screen)
     stats: dict[str, Any] = field(default_factory=dict)
+    free: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # fitted params
 
 
 def bmm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -286,7 +287,20 @@ def _fit_dense(model: PinholeFamily, poses: list[PoseEstimate], points: list[Poi
              "pose_std": [np.sqrt(np.clip(var[ni + ns + 6 * j:ni + ns + 6 * j + 6], 0, None)
                                   ).tolist() for j in range(len(prob.poses))]}
     return DenseFit(prob.model, prob.poses, prob.screen, prob.points, std,
-                    np.sqrt(np.clip(var[ni:ni + ns], 0, None)), stats)
+                    np.sqrt(np.clip(var[ni:ni + ns], 0, None)), stats,
+                    np.asarray(free, dtype=bool).copy())
+
+
+def squared_norms(fit: DenseFit, points: list[PointSet]) -> list[np.ndarray]:
+    """Per pose of `points`: each point's whitened squared residual (N,) at the fit's state,
+    NaN where its ray misses or the fit's outlier rule (`fit_dense`) would drop it."""
+    prob = _Problem(fit.model, fit.poses, points, fit.screen, np.zeros_like(fit.free))
+    residuals = prob.evaluate(False)[1]
+    out = []
+    for r, keep in zip(residuals, _outliers(residuals), strict=True):
+        sq = r[0::2] ** 2 + r[1::2] ** 2
+        out.append(np.where(keep, sq, np.nan))
+    return out
 
 
 def flat_equivalent(fit: DenseFit, points: list[PointSet], poses: list[PoseEstimate] | None = None

@@ -103,10 +103,9 @@ def _centred_on_family(
     free spline (calibration.metrology.family_prior, calibration.fit.sgcc.prior), with the
     covariance of that estimate; else the free fit and the verdict."""
     fitted, out = free
-    n_res = 2 * sum(int(inl.sum()) for inl in out.inliers)
     mode = "flat" if lm.screen is None else "fit"  # the families fit the same screen model
     scr = ScreenModel(screen, mode, 1.52 if lm.screen is None else lm.screen.index)
-    family, info = choose_family(obs, scr, grid, cls.n_components, out.chi2_dof, n_res, cv_fit)
+    family, info = choose_family(obs, scr, grid, cls.n_components, out, cv_fit)
     sigmas = info.pop("param_std")
     if not info["adequate"]:
         return fitted, out, info

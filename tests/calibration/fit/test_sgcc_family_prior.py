@@ -7,7 +7,9 @@ import pytest
 
 from calibration.compare import ray_angle_difference
 from calibration.fit.correspondences import point_set
+from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.calibrate import calibrate_generic
+from calibration.metrology.family_prior import grid_subset, screen_stride
 from calibration.metrology.refine import fit_parametric_dense
 from calibration.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
@@ -89,6 +91,39 @@ def test_default_sgcc_within_1p5x_of_the_true_family(make_camera, family) -> Non
     res = calibrate_generic(maps, SCREEN, "sgcc")
     pts = [point_set(m, SCREEN, reject_outliers=False) for m in maps]
     dense = fit_parametric_dense(pts, (cam.width, cam.height), family, SCREEN)[0]
-    assert res.stats["family_prior"]["adequate"]
-    assert res.stats["family_prior"]["family"] == family
+    info = res.stats["family_prior"]
+    assert info["adequate"] and info["family"] == family and info["tested_on"] == "all"
+    # opencv5 is refused on the screening subset of a fisheye already, never polished
+    assert [(r["family"], r["tested_on"]) for r in info["refused"]] == (
+        [] if family == "opencv5" else [("opencv5", "subset")])
+    # The true family's paired gain on the subset (its own fit there against the spline
+    # fitted on every point, same pixels) is about f p - k +- sqrt(2 (k + f p)): k its
+    # parameters with the 6 poses', p the spline's with the poses', f the subset's fraction
+    # (screen_limit). A subset whose residuals did not pair with the spline's would be off
+    # by ~sqrt(2 n) ~ 150 (one pixel's shift already fails the screen).
+    n_family = {"opencv5": 9, "fisheye": 8}[family]
+    k, p, f = n_family + 36, info["extra_dof"] + n_family + 36, info["subset_fraction"]
+    assert 0.02 < f < 0.1
+    assert abs(info["subset_chi2_gain"] - (f * p - k)) < 5 * np.sqrt(2 * (k + f * p)), info
     assert ray_rms(res.model) <= 1.5 * ray_rms(dense), (ray_rms(res.model), ray_rms(dense))
+
+
+@pytest.mark.parametrize("lattice", [1, 8])
+def test_screening_subset_is_a_regular_grid_over_the_seen_area(lattice: int) -> None:
+    """The families are screened on every stride-th column and row of the pose's own pixel
+    lattice (every pixel, or every 8th as in the identical-pixels benchmark): about
+    1/stride^2 of the points, spread over the whole seen area, not one region."""
+    vv, uu = np.mgrid[0:480:lattice, 0:640:lattice]
+    seen = (uu - 250) ** 2 + (vv - 260) ** 2 < 300**2  # a disc cut by the image border
+    pix = np.stack([uu[seen], vv[seen]], axis=1).astype(np.float64)
+    stride = 3
+    kept = pix[grid_subset(pix, stride)]
+    assert len(kept) / len(pix) == pytest.approx(1 / stride**2, rel=0.05)
+    assert np.all(np.isin(kept[:, 0], pix[:, 0])) and len(np.unique(kept, axis=0)) == len(kept)
+    for axis, size in ((0, 640), (1, 480)):  # each quarter of each axis keeps its share
+        for q in range(4):
+            inside = (pix[:, axis] >= q * size / 4) & (pix[:, axis] < (q + 1) * size / 4)
+            share = np.count_nonzero((kept[:, axis] >= q * size / 4)
+                                     & (kept[:, axis] < (q + 1) * size / 4))
+            assert share / inside.sum() == pytest.approx(1 / stride**2, rel=0.15)
+    assert screen_stride([PoseObs(pix, pix, pix)], len(pix) // 9) == 3
