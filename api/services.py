@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from fastapi import Request
 
@@ -11,6 +11,7 @@ from api.config import ServiceConfig
 from api.db import Database
 from api.jobs.manager import JobManager
 from api.live_preview import LivePreview
+from api.maps_durability import MapsSyncer, recover_pending
 from api.rigs import RigManager
 from api.store import DataStore
 from calibration.worker.executor import Executor, make_executor
@@ -27,6 +28,8 @@ class Services:
     jobs: JobManager
     rigs: RigManager
     preview: LivePreview
+    #: makes captured poses' maps durable after they are ready (api/maps_durability.py)
+    maps_sync: MapsSyncer = field(default_factory=MapsSyncer)
 
     @classmethod
     def build(cls, config: ServiceConfig) -> Services:
@@ -55,6 +58,7 @@ class Services:
         reason = f"interrupted: the server stopped while this job was active (restart at {stamp})"
         ids = self.jobs.recover(reason)
         mark_interrupted(self.db, ids, reason, self.frames_on_disk)
+        recover_pending(self.db, self.store.root / "poses")  # maps cut off before durable
         self.store.clear_tmp()  # staging of jobs that were cut off (never committed)
 
     def frames_on_disk(self, pose_id: str) -> int:
@@ -64,8 +68,10 @@ class Services:
         return len(stored_indices(self.store.dir_for(pose_id, create=False)))
 
     def close(self) -> None:
-        """Cancel live jobs, stop the executor, close rigs and the database."""
+        """Cancel live jobs, stop the executor, make committed maps durable, close rigs and
+        the database."""
         self.jobs.shutdown()
+        self.maps_sync.drain()
         self.executor.shutdown(wait=False)
         self.rigs.close()
         self.db.close()

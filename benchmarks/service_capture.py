@@ -21,7 +21,9 @@ the time from the last stored plan frame to the job's success as the client sees
 `end` server-sent event: maps written and committed).
 Per pose the server-side stages after the last frame are printed: `tail` (controller: the
 integrity repeats and check), `lag` (decode worker catching up with the last frame),
-`finish` (decoder finish), `write` (maps NPZ, fsync), `commit` (rename into the pose);
+`finish` (decoder finish; `fin cpu` its CPU seconds, all worker threads), `write` (maps
+NPZ into the page cache; `wr cpu`), `commit` (durable mark, rename into the pose; the fsync
+of the maps runs after the pose is ready, api/maps_durability.py);
 and the CPU seconds the pose cost the server process (`api cpu`: HTTP, job, controller,
 frame store) and its worker processes (`wkr cpu`: streaming decode, maps write).
 Last line: `service capture: worst R x vsync floor; pose ready S s after the last frame`
@@ -152,6 +154,7 @@ def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -
                      "store_s": cap["store_s"], "recaptures": cap["recaptures"],
                      "tail_s": cap["controller_done_at"] - last,
                      "lag_s": dec["caught_up_at"] - last, "finish_s": dec["finish_s"],
+                     "finish_cpu": dec["finish_cpu_s"], "write_cpu": dec["write_cpu_s"],
                      "write_s": dec["write_s"], "commit_s": dec["commit_s"],
                      "server_ready_s": job["finished_at"] - last, "ready_s": seen - last,
                      "api_cpu": api1 - api0, "worker_cpu": workers1 - workers0,
@@ -165,7 +168,8 @@ COLUMNS = [  # header, row key, width, format
     ("client s", "client_cap_s", 8, ".2f"), ("R cl", "client_ratio", 5, ".2f"),
     ("x N*P", "np_ratio", 5, ".2f"), ("store s", "store_s", 7, ".3f"),
     ("recap", "recaptures", 5, "d"), ("tail s", "tail_s", 6, ".2f"), ("lag s", "lag_s", 6, ".2f"),
-    ("finish", "finish_s", 6, ".2f"), ("write", "write_s", 6, ".2f"),
+    ("finish", "finish_s", 6, ".2f"), ("fin cpu", "finish_cpu", 7, ".2f"),
+    ("write", "write_s", 6, ".2f"), ("wr cpu", "write_cpu", 6, ".2f"),
     ("commit", "commit_s", 6, ".3f"), ("S srv", "server_ready_s", 6, ".2f"),
     ("S", "ready_s", 6, ".2f"), ("api cpu", "api_cpu", 7, ".2f"),
     ("wkr cpu", "worker_cpu", 7, ".2f"), ("valid px", "valid", 9, "d"), ("load", "load", 5, ".1f")]

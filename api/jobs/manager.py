@@ -17,7 +17,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import delete, select
+from sqlalchemy import delete, event, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -107,7 +107,16 @@ class JobManager:
                           "on it at the same time") from None
         with self._lock:
             self._live[rec.id] = _Live(state)
+        # A route whose transaction fails after this point never starts the job: forget it.
+        event.listen(s, "after_rollback", lambda _s: self._forget(rec.id), once=True)
         return state.copy()
+
+    def _forget(self, job_id: str) -> None:
+        """Drop a created-but-never-started job whose transaction rolled back."""
+        with self._lock:
+            live = self._live.get(job_id)
+            if live is not None and live.record.status == JobStatus.QUEUED.value:
+                self._live.pop(job_id)
 
     def start(self, job_id: str, job: Job) -> dict[str, Any]:
         """Run `job` (created with `create`) on a driver thread; the job as the API shows it."""

@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 from api.capture import capture_frames, stored_indices
 from api.db import PoseRecord
 from api.jobs.model import STOPPED_STATES, Job, JobKind
+from api.maps_durability import mark_pending
 from calibration.plan import Plan
 from calibration.progress import TaskContext
 from calibration.worker.tasks import decode_task, stream_decode_task
@@ -108,7 +109,8 @@ class CaptureJob(PoseJob):
                 # or is estimated from the residuals (never the simulator's own model)
                 fut = svc.executor.run_task(
                     stream_decode_task, str(plan_path), str(pose_dir), str(staged / "maps.npz"),
-                    job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta)
+                    job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta,
+                    durable=False)
                 try:
                     cap = capture_frames(ctx, handle.rig, plan, pose_dir,
                                          on_frame=svc.preview.publisher(self.rig_id))
@@ -121,7 +123,11 @@ class CaptureJob(PoseJob):
             dec = fut.result()
             ctx.check_cancelled()
             decoded_at = time.time()
+            # the worker wrote the maps without fsync: ready now, durable in the background
+            # (the frames already are; api/maps_durability.py says what a crash leaves)
+            mark_pending(pose_dir)
             svc.store.commit(staged, ["maps.npz"], pose_dir)
+            svc.maps_sync.submit(pose_dir)
             dec["commit_s"] = round(time.time() - decoded_at, 4)
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 

@@ -47,20 +47,25 @@ def expmap_rows(a: Any, b: Any, xp: ModuleType = np) -> Any:
 
 def expmap_jacobian_rows(a: Any, b: Any, xp: ModuleType = np) -> tuple[Any, Any]:
     """Directions (3, N) and d r / d(a, b) (3, 2, N), feature-major (rows contiguous); `xp`
-    is the array module of a and b (NumPy or CuPy)."""
-    rho = xp.sqrt(a * a + b * b)
-    sinc = xp.sinc(rho / np.pi)
+    is the array module of a and b (NumPy or CuPy). One sine and one cosine per point: the
+    fit evaluates this on every pixel of every pass."""
+    rho2 = a * a + b * b
+    rho = xp.sqrt(rho2)
     small = rho < 1e-3
-    safe = xp.where(small, 1.0, rho)
-    ds = xp.where(small, -1.0 / 3.0 + rho**2 / 30.0, (safe * xp.cos(safe) - xp.sin(safe)) / safe**3)
-    r = xp.stack([a * sinc, b * sinc, xp.cos(rho)])
+    inv = 1.0 / xp.where(small, 1.0, rho)
+    cos = xp.cos(rho)
+    sinc = xp.where(small, 1.0 - rho2 / 6.0, xp.sin(rho) * inv)
+    # d(sinc)/d(rho) / rho = (cos - sinc) / rho^2, by its series where that cancels
+    ds = xp.where(small, -1.0 / 3.0 + rho2 / 30.0, (cos - sinc) * (inv * inv))
+    r = xp.empty((3, len(a)))
+    r[0], r[1], r[2] = a * sinc, b * sinc, cos
     jac = xp.empty((3, 2, len(a)))
     jac[0, 0] = sinc + a * a * ds
     jac[0, 1] = a * b * ds
     jac[1, 0] = jac[0, 1]
     jac[1, 1] = sinc + b * b * ds
-    jac[2, 0] = -a * sinc
-    jac[2, 1] = -b * sinc
+    jac[2, 0] = -r[0]
+    jac[2, 1] = -r[1]
     return r, jac
 
 

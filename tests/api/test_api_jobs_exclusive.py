@@ -96,6 +96,22 @@ def test_job_claims_are_exclusive_until_the_job_ends(tmp_path: Path) -> None:
     db.close()
 
 
+def test_job_created_in_a_failed_transaction_is_forgotten(tmp_path: Path) -> None:
+    """A route that fails after `create` leaves neither a row, a claim nor a live entry."""
+    db = Database(tmp_path / "x.db")
+    jm = JobManager(db, InProcessExecutor(max_workers=1))
+    claim = ("cal_0000000000000002",)
+    with pytest.raises(RuntimeError), db.claim_session() as s:
+        state = jm.create(s, FnJob(kind_="calibrate", claims=claim))
+        raise RuntimeError("route failed after creating the job")
+    assert jm.active_ids() == [] and jm.get(state.id) is None
+    with db.claim_session() as s:  # the claim went with the rolled-back transaction
+        kept = jm.create(s, FnJob(kind_="calibrate", claims=claim))
+    assert jm.active_ids() == [kept.id]
+    jm.executor.shutdown()
+    db.close()
+
+
 def test_recovery_sets_capture_progress_to_frames_on_disk(tmp_path: Path) -> None:
     db = Database(tmp_path / "x.db")
     with db.session() as s:

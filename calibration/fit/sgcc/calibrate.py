@@ -19,7 +19,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
 
@@ -41,6 +41,7 @@ from calibration.fit.sgcc.prior import (
     family_tangent,
     prior_covariance,
 )
+from calibration.fit.sgcc.problem import Problem
 from calibration.fit.sgcc.screen_terms import (
     ScreenTrace,
     holds_glass,
@@ -60,7 +61,7 @@ from calibration.progress import CancelCheck, ProgressFn
 
 _FEW_VIEWS = 0.1  # warn when more of the seen pixels than this have fewer than 3 views
 _MESH_HINT_RATIO = 1.1  # noise-floor ratio above which a finer mesh is suggested
-_BLOCK = 1 << 16  # pixels per block of the per-pixel statistics
+_BLOCK = 1 << 15  # pixels per block of the per-pixel statistics
 
 
 def _lm_options(opts: SgccOptions) -> LMOptions:
@@ -153,9 +154,12 @@ def _fit(
     lm: LMOptions,
     progress: ProgressFn | None,
     cancelled: CancelCheck | None,
+    problem: Problem | Future[Problem] | None = None,
 ) -> tuple[SGCCBase, LMResult]:
-    """Run LM and wrap the converged spline as a model with its covariance."""
-    out = run_lm(grid, cls.n_components, obs, init, lm, progress=progress, cancelled=cancelled)
+    """Run LM (on `problem`, the data's sorted `Problem`, where built already) and wrap the
+    converged spline as a model with its covariance."""
+    out = run_lm(grid, cls.n_components, obs, init, lm, progress=progress, cancelled=cancelled,
+                 problem=problem)
     model = cls(grid.image_size, grid.cells, out.state.coeffs)
     ns = grid.size * cls.n_components
     cov = out.covariance[:ns, :ns]
@@ -166,7 +170,7 @@ def _fit(
 def _centred_on_family(
     cls: type[SGCCBase], obs: list[PoseObs], screen: ScreenGeometry, grid: SplineGrid,
     lm: LMOptions, free: tuple[SGCCBase, LMResult], cv_fit: tuple,
-    progress: ProgressFn | None, cancelled: CancelCheck | None,
+    progress: ProgressFn | None, cancelled: CancelCheck | None, problem: Future[Problem],
 ) -> tuple[SGCCBase, LMResult, dict[str, Any]]:
     """Refit with the prior centred on the best parametric family if it fits as well as the
     free spline (calibration.metrology.family_prior, calibration.fit.sgcc.prior), with the
@@ -188,7 +192,7 @@ def _centred_on_family(
     precision = deviation_precision(grid, cls.n_components, tangent)
     centred = replace(lm, smooth=PRIOR_WEIGHT, prior_mean=start.coeffs.ravel(),
                       prior_base=precision)
-    fitted, out = _fit(cls, obs, grid, start, centred, progress, cancelled)
+    fitted, out = _fit(cls, obs, grid, start, centred, progress, cancelled, problem)
     cov = prior_covariance(out, grid, cls.n_components, precision, family, project, tangent,
                            index, np.random.default_rng(0),
                            hold_last=lm.screen is not None and lm.hold_glass)
@@ -313,20 +317,26 @@ def _calibrate(
         if len(ob.pixels) < 100:
             raise ValueError(f"maps[{j}]: only {len(ob.pixels)} valid pixels; need >= 100")
     cls = spec.model_class
-    cv_fit = opencv_init(obs, (w, h))
-    spread = normal_spread_deg(cv_fit[2])  # between the initial poses' screen normals
-    if lm.screen is not None:
-        lm = replace(lm, hold_glass=holds_glass(cls.n_components, spread))
-    mesh_choice = None
-    if cells == "auto":
-        cells, mesh_choice = choose_mesh(obs, (w, h), cls.n_components, lm, cv_fit)
-    grid = SplineGrid((w, h), cells)
-    init = initial_state(obs, grid, cls.n_components, cv_fit)
-    fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled)
-    prior = None
-    if prior_mode == "auto":
-        fitted, out, prior = _centred_on_family(cls, obs, screen, grid, lm, (fitted, out),
-                                                cv_fit, progress, cancelled)
+    with ThreadPoolExecutor(1) as pool:  # the data are sorted while the start is computed
+        problem = None if cells == "auto" else pool.submit(
+            Problem, SplineGrid((w, h), cells), cls.n_components, obs, lm.screen)
+        cv_fit = opencv_init(obs, (w, h))
+        spread = normal_spread_deg(cv_fit[2])  # between the initial poses' screen normals
+        if lm.screen is not None:
+            lm = replace(lm, hold_glass=holds_glass(cls.n_components, spread))
+        mesh_choice = None
+        if cells == "auto":
+            cells, mesh_choice = choose_mesh(obs, (w, h), cls.n_components, lm, cv_fit)
+            problem = pool.submit(Problem, SplineGrid((w, h), cells), cls.n_components, obs,
+                                  lm.screen)
+        grid = SplineGrid((w, h), cells)
+        init = initial_state(obs, grid, cls.n_components, cv_fit)
+        fitted, out = _fit(cls, obs, grid, init, lm, progress, cancelled, problem)
+        prior = None
+        if prior_mode == "auto":
+            fitted, out, prior = _centred_on_family(cls, obs, screen, grid, lm, (fitted, out),
+                                                    cv_fit, progress, cancelled, problem)
+        del problem  # its per-pixel arrays are not needed by the statistics
     pitch = np.asarray(screen.pitch_mm, dtype=np.float64)
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
     dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)

@@ -22,7 +22,7 @@ data; where data exist it is negligible, where they do not its large covariance 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -35,7 +35,7 @@ from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
 from calibration.fit.sgcc.robust import outlier_cut, robust_terms, sigma_norm
-from calibration.fit.sgcc.screen_terms import N_SCREEN, ScreenTrace
+from calibration.fit.sgcc.screen_terms import N_SCREEN
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import (
@@ -104,12 +104,9 @@ class _Loop:
     hr: np.ndarray | None = None  # reduced normal matrix (with prior) of the last iteration
 
 
-def _make_problem(
-    grid: SplineGrid, n_comp: int, obs: list[PoseObs], xp: str, panel: ScreenTrace | None = None
-) -> Problem | DeviceProblem:
+def _on_device(prob: Problem, xp: str) -> Problem | DeviceProblem:
     """The fit's per-pixel problem: threaded NumPy ("numpy") or `DeviceProblem` on the array
     module named by xp ("cupy"; `array_module` says clearly when it is missing)."""
-    prob = Problem(grid, n_comp, obs, panel)
     if xp == "numpy":
         return prob
     from calibration.fit.sgcc.device import DeviceProblem  # it imports this module
@@ -255,8 +252,12 @@ def run_lm(
     *,
     progress: ProgressFn | None = None,
     cancelled: CancelCheck | None = None,
+    problem: Problem | Future[Problem] | None = None,
 ) -> LMResult:
     """Minimize the robust, uncertainty-weighted screen-plane residual; state and covariance.
+
+    `problem`: the full data's `Problem` (grid, n_comp, obs, options.screen), or its future,
+    where the caller built it already (e.g. while it computed the start); else built here.
 
     Large problems first converge on an even subset of about `options.subset_pixels`
     points (cheap iterations, at most half of `max_iterations`); the final iterations,
@@ -268,7 +269,7 @@ def run_lm(
     BLAS runs single-threaded here: the dense solves are small and threads only contend.
     """
     with single_thread_blas():
-        return _run(grid, n_comp, obs, init, options, progress, cancelled)
+        return _run(grid, n_comp, obs, init, options, progress, cancelled, problem)
 
 
 def _run(
@@ -279,6 +280,7 @@ def _run(
     options: LMOptions,
     progress: ProgressFn | None,
     cancelled: CancelCheck | None,
+    problem: Problem | Future[Problem] | None,
 ) -> LMResult:
     """Body of `run_lm`."""
     ns = grid.size * n_comp
@@ -304,14 +306,15 @@ def _run(
     if options.prior_mean is not None:
         lp.prior_mean = np.asarray(options.prior_mean, dtype=np.float64).ravel()
     sub = _subset(obs, options.subset_pixels)
-    if sub is None:
-        prob = _make_problem(grid, n_comp, obs, options.xp, options.screen)
-    else:  # the full problem is sorted while the subset iterates (one core each)
-        with ThreadPoolExecutor(1) as pool:
-            full = pool.submit(_make_problem, grid, n_comp, obs, options.xp, options.screen)
-            _iterate(_make_problem(grid, n_comp, sub, options.xp, options.screen), lp, options,
-                     options.max_iterations // 2, progress, cancelled)
-            prob = full.result()
+    with ThreadPoolExecutor(1) as pool:
+        if problem is None:  # sorted while the subset iterates (one core each)
+            problem = Problem(grid, n_comp, obs, options.screen) if sub is None else pool.submit(
+                Problem, grid, n_comp, obs, options.screen)
+        if sub is not None:
+            _iterate(_on_device(Problem(grid, n_comp, sub, options.screen), options.xp), lp,
+                     options, options.max_iterations // 2, progress, cancelled)
+        prob = _on_device(problem.result() if isinstance(problem, Future) else problem,
+                          options.xp)
     _iterate(prob, lp, options, options.max_iterations, progress, cancelled)
     st, res, ok = lp.state, lp.res, lp.ok
     s = sigma_norm(prob, res) if lp.s is None else lp.s

@@ -378,10 +378,14 @@ def test_monomial_form_matches_bspline_basis_and_evaluation():
         assert np.allclose(got, np.einsum("nk,nkc->nc", weights, coeffs[idx]), atol=1e-12)
 
 
-@pytest.mark.parametrize("n_comp", [2, 4])
-def test_normal_equations_equal_dense_jacobian_products(n_comp):
+@pytest.mark.parametrize(("n_comp", "chunk"), [(2, None), (4, None), (4, 7)])
+def test_normal_equations_equal_dense_jacobian_products(n_comp, chunk, monkeypatch):
     from scipy.spatial.transform import Rotation
 
+    from calibration.fit.sgcc import problem as problem_module
+
+    if chunk is not None:  # (pose, cell) groups split into pieces across blocks
+        monkeypatch.setattr(problem_module, "_CHUNK", chunk)
     from calibration.fit.observations import PoseObs
     from calibration.fit.sgcc.problem import Problem
     from calibration.fit.sgcc.state import LMState
@@ -403,6 +407,8 @@ def test_normal_equations_equal_dense_jacobian_products(n_comp):
         [np.r_[rng.normal(size=2), -300.0] for _ in obs],
     )
     prob = Problem(grid, n_comp, obs)
+    if chunk is not None:
+        assert len(prob.chunks) > len(prob.segments.start)
     wt = rng.uniform(0.2, 1.0, len(prob.s))
     h, grad = prob.normal_equations(st, wt)
     # Dense reference: J row by row (spline: basis weight x dQ/dcomponent; pose: 6 columns).
