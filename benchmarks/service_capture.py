@@ -1,6 +1,8 @@
 """Live capture through the service: `phasecal serve` over HTTP, a simulated rig at 60 Hz.
 
 Run: .venv/bin/python benchmarks/service_capture.py [--sizes 640x480,2448x2048] [--poses N]
+[--library] (`--library`: also the library's finish on the largest size's last pose, same
+frames, this process)
 The rig runs on the real clock (60 Hz display with 2 frames of input latency,
 software-triggered 8-bit camera with a 4 ms exposure and a 6 DN black level, so dark
 pattern phases do not clip at 0 DN) and replays frames it rendered before: one untimed
@@ -20,7 +22,8 @@ controller run (`capture_s`: camera set-up, plan frames, integrity repeats and c
 the time from the last stored plan frame to the job's success as the client sees it (its
 `end` server-sent event: maps written and committed).
 Per pose the server-side stages after the last frame are printed: `tail` (controller: the
-integrity repeats and check), `lag` (decode worker catching up with the last frame),
+integrity repeats and check), `close` (the frame store's last copies and final fsync, in
+the server while the worker finishes), `lag` (decode worker catching up with the last frame),
 `finish` (decoder finish; `fin cpu` its CPU seconds, all worker threads), `write` (maps
 NPZ into the page cache; `wr cpu`), `commit` (durable mark, rename into the pose; the fsync
 of the maps runs after the pose is ready, api/maps_durability.py);
@@ -152,14 +155,43 @@ def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -
                      "ratio": cap["capture_s"] / floor, "client_ratio": (last - posted) / floor,
                      "np_ratio": (last - posted) * REFRESH_HZ / n,
                      "store_s": cap["store_s"], "recaptures": cap["recaptures"],
-                     "tail_s": cap["controller_done_at"] - last,
+                     "tail_s": cap["controller_done_at"] - last, "close_s": cap["close_s"],
                      "lag_s": dec["caught_up_at"] - last, "finish_s": dec["finish_s"],
                      "finish_cpu": dec["finish_cpu_s"], "write_cpu": dec["write_cpu_s"],
                      "write_s": dec["write_s"], "commit_s": dec["commit_s"],
                      "server_ready_s": job["finished_at"] - last, "ready_s": seen - last,
                      "api_cpu": api1 - api0, "worker_cpu": workers1 - workers0,
-                     "valid": dec["valid_pixels"], "load": load})
+                     "valid": dec["valid_pixels"], "load": load,
+                     "pose": job["resource"].rsplit("/", 1)[1], "session": sess["id"]})
     return rows
+
+
+def library_finish(data: Path, row: dict) -> dict:
+    """The same pose's stored frames decoded in this process as the live worker does (add
+    per period group, then finish, noise from residuals): the library's finish on identical
+    frames at the same load, to compare with the service's `finish` / `fin cpu`."""
+    import numpy as np
+
+    from calibration.decode import StreamingDecoder
+    from calibration.plan import read_plan
+
+    plan = read_plan(data / "sessions" / row["session"] / "plan.json")
+    frames = np.load(data / "poses" / row["pose"] / "frames.npy", mmap_mode="r")
+    best = {"finish_s": math.inf}
+    for _ in range(2):
+        dec = StreamingDecoder(plan, frames.shape[1:])
+        dec.prepare()
+        left = list(range(frames.shape[0]))
+        while left:
+            ready = dec.ready_frames(left)
+            dec.add_frames(ready, frames, rows=ready)
+            left = [i for i in left if i not in ready]
+        t0, c0 = time.perf_counter(), time.process_time()
+        dec.finish()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        if wall < best["finish_s"]:
+            best = {"finish_s": wall, "finish_cpu": cpu}
+    return best
 
 
 COLUMNS = [  # header, row key, width, format
@@ -167,7 +199,8 @@ COLUMNS = [  # header, row key, width, format
     ("cap s", "capture_s", 6, ".2f"), ("R", "ratio", 5, ".2f"),
     ("client s", "client_cap_s", 8, ".2f"), ("R cl", "client_ratio", 5, ".2f"),
     ("x N*P", "np_ratio", 5, ".2f"), ("store s", "store_s", 7, ".3f"),
-    ("recap", "recaptures", 5, "d"), ("tail s", "tail_s", 6, ".2f"), ("lag s", "lag_s", 6, ".2f"),
+    ("recap", "recaptures", 5, "d"), ("tail s", "tail_s", 6, ".2f"),
+    ("close", "close_s", 5, ".2f"), ("lag s", "lag_s", 6, ".2f"),
     ("finish", "finish_s", 6, ".2f"), ("fin cpu", "finish_cpu", 7, ".2f"),
     ("write", "write_s", 6, ".2f"), ("wr cpu", "write_cpu", 6, ".2f"),
     ("commit", "commit_s", 6, ".3f"), ("S srv", "server_ready_s", 6, ".2f"),
@@ -179,6 +212,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="640x480,2448x2048")
     ap.add_argument("--poses", type=int, default=2)
+    ap.add_argument("--library", action="store_true",
+                    help="also decode the largest size's last pose in this process (same frames)")
     args = ap.parse_args()
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     with tempfile.TemporaryDirectory(prefix="phasecal-bench-") as tmp:
@@ -190,6 +225,7 @@ def main() -> int:
         finally:
             proc.terminate()
             proc.wait(30)
+        lib = library_finish(data, rows[-1]) if args.library else None
     print(f"service capture benchmark: phasecal serve (worker processes), simulated rig at "
           f"{REFRESH_HZ:g} Hz replaying pre-rendered frames; load {os.getloadavg()[0]:.2f} "
           f"on {os.cpu_count()} CPUs (`load`: 1-min average before each pose)")
@@ -199,6 +235,12 @@ def main() -> int:
     worst = max(max(r["ratio"], r["client_ratio"]) for r in rows)
     largest = max(rows, key=lambda r: r["frames"] * int(r["size"].split("x")[0]))["size"]
     ready = max(r["ready_s"] for r in rows if r["size"] == largest)
+    if lib is not None:
+        r = rows[-1]
+        print(f"library finish on the same frames ({r['size']}, last pose, this process, best "
+              f"of 2): {lib['finish_s']:.2f} s wall, {lib['finish_cpu']:.2f} CPU s; service: "
+              f"{r['finish_s']:.2f} s wall, {r['finish_cpu']:.2f} CPU s "
+              f"({r['finish_cpu'] / lib['finish_cpu']:.2f}x the library's CPU)")
     print(f"service capture: worst {worst:.2f} x vsync floor; pose ready {ready:.2f} s after "
           "the last frame")
     return 0

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from calibration.atomic import atomic_file
+from calibration.npz_store import write_npz_stored
 
 MAPS_FORMAT = "phasecal.maps/1"
 
@@ -114,8 +115,15 @@ class DecodedMaps:
         return buf.getvalue()
 
 
-def save_maps(maps: DecodedMaps, path: str | Path, compress: bool = False) -> None:
-    """Write maps as NPZ atomically (temp file in the same folder, then rename)."""
+def save_maps(maps: DecodedMaps, path: str | Path, compress: bool = False, *,
+              timings: dict[str, float] | None = None, durable: bool = True) -> None:
+    """Write maps as NPZ atomically and durably (temp file in the same folder, fsync, rename):
+    stored members are written in parallel from the arrays' memory (`npz_store`); `timings`
+    (stored only) receives the wall seconds of "write" and "fsync"; `durable=False` (stored
+    only) skips the fsyncs, for callers that make the file durable later."""
+    if not compress:
+        write_npz_stored(path, maps._arrays(), timings, durable=durable)
+        return
     with atomic_file(path) as fh:
         maps.write_npz(fh, compress)
 

@@ -5,15 +5,16 @@ calibrate maps into a model folder (model.json, result.json, exports). The worke
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from calibration.atomic import atomic_path, write_json_atomic
 from calibration.decode import DecodeError, DecodeOptions, decode_stack, read_frames
-from calibration.fit.dispatch import calibrate
-from calibration.fit.result import CalibrationResult
 from calibration.maps import DecodedMaps, load_maps
 from calibration.plan import Plan, read_plan
 from calibration.progress import CancelCheck, ProgressFn, check_cancelled
+
+if TYPE_CHECKING:  # the fit stack (pydantic, scipy) stays out of `phasecal decode`'s imports
+    from calibration.fit.result import CalibrationResult
 
 
 def decode_frames(
@@ -42,6 +43,8 @@ def calibrate_files(
 ) -> CalibrationResult:
     """Fit `model` to maps files of several poses; poses `heldout` (indices into
     `maps_paths`) are left out of the fit and validated."""
+    from calibration.fit.dispatch import calibrate
+
     plan = read_plan(plan_path)
     maps = []
     for i, p in enumerate(maps_paths):

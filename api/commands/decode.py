@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import sys
+import time
 
 HELP = "decode captured frames (FRAMES.npy or a folder of frame_NNNN.png/.tif) into maps.npz"
 
@@ -24,9 +26,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--max-sigma-px", type=float, help="largest accepted 1-sigma in screen px (default 1)"
     )
     p.add_argument("-o", "--output", required=True, help="output maps.npz")
+    p.add_argument("--timings", action="store_true",
+                   help="print each stage's wall seconds and the CPU seconds on stderr")
+
+
+class _Stages:
+    """Wall seconds of the command's stages, printed on stderr with `--timings`."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self._t0 = self._last = time.perf_counter()
+        self._cpu0 = time.process_time()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.wall[name] = now - self._last
+        self._last = now
+
+    def report(self) -> str:
+        """One line: each stage's seconds, the total, and the process's CPU seconds."""
+        parts = " ".join(f"{k} {v:.3f}" for k, v in self.wall.items())
+        return (f"timings (wall s): {parts} total {time.perf_counter() - self._t0:.3f}; "
+                f"CPU {time.process_time() - self._cpu0:.3f} s")
 
 
 def run(args: argparse.Namespace) -> int:
+    from calibration.readahead import prefetch
+
+    stages = _Stages()
+    prefetch(args.frames)  # a cold stack streams in while NumPy and the kernels load
     from dataclasses import replace
 
     import numpy as np
@@ -38,22 +66,40 @@ def run(args: argparse.Namespace) -> int:
     from calibration.pipeline import decode_frames
     from calibration.plan import read_plan
 
+    stages.lap("imports")
     plan = read_plan(args.plan)
     if args.noise_dn is not None and not args.noise_dn > 0:
         raise UserError(f"--noise-dn: must be > 0 DN, got {args.noise_dn}")
     options = DecodeOptions()
     if args.max_sigma_px is not None:
         options = replace(options, max_sigma_px=args.max_sigma_px)
+    stages.lap("plan")
     with progress_bar("decode") as update:
+        # without a terminal there is no bar: no progress steps (each one is a barrier
+        # between the decoder's threads)
         maps = decode_frames(plan, args.frames, noise=args.noise_dn,
                              saturation_dn=args.saturation_dn, options=options,
-                             meta={"frames": str(args.frames)}, progress=update)
-    save_maps(maps, args.output)
+                             meta={"frames": str(args.frames)},
+                             progress=update if sys.stderr.isatty() else None)
+    stages.lap("read+decode")
+    written: dict[str, float] = {}
+    try:
+        save_maps(maps, args.output, timings=written)
+    except OSError as exc:  # disk full, no permission: the previous file stays as it was
+        raise UserError(f"{args.output}: cannot write the maps ({exc})") from None
+    stages.lap("save")
+    save = stages.wall.pop("save")
+    stages.wall.update(written)
+    stages.wall["rename"] = save - sum(written.values())  # and the folder's fsync
     h, w = maps.shape
     valid = maps.valid_count()
-    med = float(np.median(maps.sigma_x[maps.mask])) if valid else float("nan")
+    med = (float(np.median(maps.sigma_x[maps.mask], overwrite_input=True)) if valid
+           else float("nan"))
     print(
         f"wrote {args.output}: {valid} of {h * w} pixels valid "
         f"({100.0 * valid / (h * w):.1f} %), median sigma_x {med:.3g} px"
     )
+    stages.lap("summary")
+    if args.timings:
+        print(stages.report(), file=sys.stderr)
     return 0

@@ -17,7 +17,7 @@ from api.jobs.model import STOPPED_STATES, Job, JobKind
 from api.maps_durability import mark_pending
 from calibration.plan import Plan
 from calibration.progress import TaskContext
-from calibration.worker.tasks import decode_task, stream_decode_task
+from calibration.worker.tasks import decode_task, stream_decode_task, warm_decode_task
 
 if TYPE_CHECKING:
     from api.services import Services
@@ -111,6 +111,9 @@ class CaptureJob(PoseJob):
                     stream_decode_task, str(plan_path), str(pose_dir), str(staged / "maps.npz"),
                     job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta,
                     durable=False)
+                # another worker loads the compiled decoder now, not during a later pose
+                info = handle.rig.camera.info
+                svc.executor.submit(warm_decode_task, info.width * info.height)
                 try:
                     cap = capture_frames(ctx, handle.rig, plan, pose_dir,
                                          on_frame=svc.preview.publisher(self.rig_id))

@@ -140,9 +140,11 @@ class StreamingDecoder:
 
     def ready_frames(self, available: Any) -> list[int]:
         """Of the plan indices `available` (stored, not yet added), those worth adding now:
-        flats and the frames of period groups all of whose frames are available (one
-        cache-blocked pass per group instead of one memory-bound pass per frame)."""
-        return ready_frames(self._acc, available)
+        flats and whole period groups (one cache-blocked pass per group, not one per frame);
+        once one group is left, its frames as they come (one frame's pass after the last)."""
+        ready = ready_frames(self._acc, available)
+        last = len({self._acc._role[i][:2] for i in self._acc.missing}) == 1
+        return ready or (sorted(int(i) for i in available) if last else [])
 
     def add_frames(self, indices: list[int], stack: Any, rows: list[int] | None = None) -> None:
         """Fold several frames at once: `stack[rows[j]]` (default `stack[j]`) is plan frame

@@ -1,19 +1,25 @@
 """Read captured frames (FORMATS.md): one (F, H, W) `.npy`, or a folder frame_0000.png/.tif...
 
-Frames are yielded one at a time (the `.npy` is memory-mapped, images are read lazily) so
-that decoding a pose never holds the whole stack in memory.
+The `.npy` is memory-mapped (no copy). A folder's images are decoded by a few threads: into
+one (F, H, W) array when it fits in a quarter of the memory (the decoder's compiled
+whole-stack pass is then used), else yielded one at a time so a pose never needs the whole
+stack in memory.
 """
 
 from __future__ import annotations
 
+import os
 import re
+from collections import deque
 from collections.abc import Iterator
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from calibration.decode.accumulate import ACCEPTED_DTYPES, DecodeError
+from calibration.readahead import prefetch
 
 _NAME = re.compile(r"^frame_(\d{4,})\.(png|tif|tiff)$", re.IGNORECASE)
 
@@ -27,30 +33,78 @@ class FrameSource:
     shape: tuple[int, int]
     dtype: np.dtype
     files: tuple[Path, ...] = ()
+    _read: list[np.ndarray] = field(default_factory=list, compare=False, repr=False)
 
     def __len__(self) -> int:
         return self.count
 
     def array(self) -> np.ndarray | None:
-        """The whole `.npy` stack, memory-mapped (no copy); None for a folder of images."""
-        if self.files:
-            return None
-        return np.load(self.path, mmap_mode="r", allow_pickle=False)
+        """The whole stack: the `.npy` memory-mapped (no copy), a folder's images read into
+        one array if it fits in a quarter of the memory; else None (iterate instead)."""
+        if not self.files:
+            prefetch(self.path)
+            return np.load(self.path, mmap_mode="r", allow_pickle=False)
+        if not self._read:
+            nbytes = self.count * self.shape[0] * self.shape[1] * self.dtype.itemsize
+            if nbytes > _memory_bytes() // 4:
+                return None
+            stack = np.empty((self.count, *self.shape), dtype=self.dtype)
+            for i, img in enumerate(self._images()):
+                stack[i] = img
+            self._read.append(stack)  # iterating later yields these, not a second read
+        return self._read[0]
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        if not self.files:
-            stack = np.load(self.path, mmap_mode="r", allow_pickle=False)
+        if self._read or not self.files:
+            stack = (self._read[0] if self._read
+                     else np.load(self.path, mmap_mode="r", allow_pickle=False))
             for i in range(self.count):
                 yield np.ascontiguousarray(stack[i])
             return
-        for f in self.files:
-            img = _read_image(f)
+        yield from self._images()
+
+    def _images(self) -> Iterator[np.ndarray]:
+        """The folder's images in order (read ahead by threads), each checked against the
+        first frame's shape and dtype."""
+        for f, img in zip(self.files, _read_ahead(self.files), strict=True):
             if img.shape != self.shape or img.dtype != self.dtype:
                 raise DecodeError(
                     f"{f}: {img.dtype} image of shape {img.shape} differs from the first "
                     f"frame ({self.dtype}, {self.shape})"
                 )
             yield img
+
+
+def _memory_bytes() -> int:
+    """Physical memory in bytes, or the cgroup's limit if lower (a container); 4 GiB assumed
+    where neither can be read."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        total = 4 << 30
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+    except OSError:
+        return total
+    return min(total, int(limit)) if limit.isdigit() else total
+
+
+def _read_ahead(files: tuple[Path, ...]) -> Iterator[np.ndarray]:
+    """The images in order, decoded by a few threads a few frames ahead of the consumer
+    (cv2 releases the GIL while it reads and decodes; at most `2 * threads` held)."""
+    threads = max(1, min(os.cpu_count() or 1, 4))
+    with ThreadPoolExecutor(threads, thread_name_prefix="frames") as pool:
+        pending: deque[Future[np.ndarray]] = deque()
+        try:
+            for f in files:
+                pending.append(pool.submit(_read_image, f))
+                if len(pending) >= 2 * threads:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:  # consumer stopped early (error, cancel): drop the frames not yet started
+            for fut in pending:
+                fut.cancel()
 
 
 def _read_image(path: Path) -> np.ndarray:

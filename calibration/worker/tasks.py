@@ -110,15 +110,25 @@ def stream_decode_task(
     c0 = time.process_time()
     maps = decoder.finish(dict(meta or {}))
     t1, c1 = time.perf_counter(), time.process_time()
-    if durable:
-        save_maps(maps, out_path)
-    else:  # in the page cache only: the caller makes it durable (and renames it into place)
-        with open(out_path, "wb") as fh:
-            maps.write_npz(fh)
+    save_maps(maps, out_path, durable=durable)  # durable=False: page cache, fsync by the caller
     return {**_summary(maps, t0), "caught_up_at": caught_up_at,
             "finish_s": round(t1 - t0, 3), "finish_cpu_s": round(c1 - c0, 3),
             "write_s": round(time.perf_counter() - t1, 3),
             "write_cpu_s": round(time.process_time() - c1, 3)}
+
+
+def warm_decode_task(pixels: int) -> bool:
+    """Load the decoder's compiled kernels in this worker if images of `pixels` use them
+    (~1.4 CPU s once per process): a large live capture submits this next to its decode
+    task, so the worker that decodes a later pose does not load them while that pose's
+    frames arrive (under load, late enough to delay the pose). True if they were needed."""
+    from calibration.decode.decoder import _COMPILED_MIN_PIXELS
+    from calibration.decode.kernel_warm import warm_up
+
+    if pixels < _COMPILED_MIN_PIXELS:
+        return False
+    warm_up()
+    return True
 
 
 def calibrate_task(
@@ -145,4 +155,4 @@ def calibrate_task(
     return summary
 
 
-__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_task"]
+__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_task", "warm_decode_task"]

@@ -16,7 +16,6 @@ sgcc/screen_terms.py) and `glass_index` (1.52).
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -50,18 +49,18 @@ from calibration.fit.sgcc.screen_terms import (
     screen_warnings,
 )
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
+from calibration.fit.sgcc.statistics import fit_statistics
 from calibration.maps import DecodedMaps
 from calibration.metrology.family_prior import PRIOR_WEIGHT, choose_family
 from calibration.metrology.screen import ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.heap import retained_heap
-from calibration.models.sgcc import SGCCBase, expmap_jacobian_rows
+from calibration.models.sgcc import SGCCBase
 from calibration.plan import ScreenGeometry
 from calibration.progress import CancelCheck, ProgressFn
 
 _FEW_VIEWS = 0.1  # warn when more of the seen pixels than this have fewer than 3 views
 _MESH_HINT_RATIO = 1.1  # noise-floor ratio above which a finer mesh is suggested
-_BLOCK = 1 << 15  # pixels per block of the per-pixel statistics
 
 
 def _lm_options(opts: SgccOptions) -> LMOptions:
@@ -72,78 +71,6 @@ def _lm_options(opts: SgccOptions) -> LMOptions:
         raise ValueError(f"options.{exc}") from None
     return LMOptions(max_iterations=opts.max_iterations, huber_k=opts.huber_k,
                      cut_sigmas=opts.cut_sigmas, smooth=opts.smooth, xp=opts.xp)
-
-
-def _camera_px(
-    model: SGCCBase, rc: np.ndarray, tc: np.ndarray, pixels: np.ndarray, res: np.ndarray,
-    sigma: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Screen residuals and sigmas (N, 2) mm mapped to camera px through the inverse of the
-    local 2x2 Jacobian dQ/d(u, v): px residuals (N, 2) and squared expected norms (N,).
-
-    Feature-major closed form (no (N, 2, 2) stacks): the statistics pass over every pixel.
-    """
-    comps, du, dv = model.components(pixels, derivatives=True)
-    r, jr = expmap_jacobian_rows(comps[:, 0], comps[:, 1])
-    r_s = rc @ r
-    central = model.n_components != 4
-    o_z = tc[2] if central else rc[2, :2] @ comps[:, 2:].T + tc[2]
-    lam = -o_z / r_s[2]
-    cols = []
-    for d in (du, dv):
-        dr = rc @ (jr[:, 0] * d[:, 0] + jr[:, 1] * d[:, 1])
-        do = np.zeros((3, 1)) if central else rc[:, :2] @ d[:, 2:].T
-        dlam = -(do[2] + lam * dr[2]) / r_s[2]
-        cols.append(do[:2] + lam * dr[:2] + dlam * r_s[:2])
-    (j00, j10), (j01, j11) = cols
-    det = j00 * j11 - j01 * j10
-    px = np.empty_like(res)
-    px[:, 0] = -(j11 * res[:, 0] - j01 * res[:, 1]) / det
-    px[:, 1] = -(j00 * res[:, 1] - j10 * res[:, 0]) / det
-    s0, s1 = sigma[:, 0], sigma[:, 1]
-    expected2 = ((j11 * s0) ** 2 + (j01 * s1) ** 2 + (j10 * s0) ** 2 + (j00 * s1) ** 2) / det**2
-    return px, expected2
-
-
-def pose_statistics(
-    model: SGCCBase,
-    rc: np.ndarray,
-    tc: np.ndarray,
-    ob: PoseObs,
-    res: np.ndarray,
-    inliers: np.ndarray,
-    pitch_mm: np.ndarray,
-    dof_shrink: float = 1.0,
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Camera-px residuals of one pose and its statistics in `evaluate.per_pose_stats` layout.
-
-    Screen residuals (mm) and their sigmas are mapped to camera pixels through the local
-    Jacobian; `dof_shrink` (1 - parameters/residuals) scales the expected training residual.
-    """
-    idx = np.flatnonzero(inliers)
-    n = len(idx)
-    px = np.empty((n, 2))
-    sums = np.zeros(4)  # px^2, expected px^2, screen px^2 and its expectation
-    for a in range(0, n, _BLOCK):  # raster-order blocks: small temporaries
-        sel = idx[a : a + _BLOCK]
-        r, sig = res[sel], ob.sigma_mm[sel]
-        p, expected2 = _camera_px(model, rc, tc, ob.pixels[sel], r, sig)
-        px[a : a + len(sel)] = p
-        sums += [np.vdot(p, p), expected2.sum(), np.sum((r / pitch_mm) ** 2),
-                 np.sum((sig / pitch_mm) ** 2)]
-    rms, expected, rms_screen, expected_screen = np.sqrt(
-        sums / max(n, 1) * [1.0, dof_shrink, 1.0, dof_shrink]
-    ).tolist()
-    return px, {
-        "rms_px": rms,
-        "expected_rms_px": expected,
-        "rms_screen_px": rms_screen,
-        "expected_rms_screen_px": expected_screen,
-        "noise_floor_ratio": rms / expected if expected > 0 else float("nan"),
-        "n_points": n,
-        "n_outliers": len(inliers) - n,
-        "outlier_fraction": 1.0 - n / max(len(inliers), 1),
-    }
 
 
 def _fit(
@@ -219,9 +146,8 @@ def _heldout(
         rc, tc = pose_from_model(model.unproject, ob)
         init = LMState(model.coeffs, [rc], [tc], screen)
         out = run_lm(model.grid, model.n_components, [ob], init, fixed)
-        _, row = pose_statistics(
-            model, out.state.rc[0], out.state.tc[0], ob, out.residuals[0], out.inliers[0], pitch_mm
-        )
+        ((_, row),) = fit_statistics(model, out.state.rc, out.state.tc, [ob], out.residuals,
+                                     out.inliers, pitch_mm)
         rows.append({"pose": index, **row, "chi2_dof": out.chi2_dof})
     return {"per_pose": rows, **summarize(rows)}
 
@@ -341,19 +267,14 @@ def _calibrate(
     n_residuals = 2 * sum(int(inl.sum()) for inl in out.inliers)
     dof_shrink = max(1.0 - (fitted.coeffs.size + 6 * len(obs)) / n_residuals, 0.0)
     poses, per_pose, res_px, pix_out = [], [], {}, {}
-    # One thread per pose (up to 2 per CPU): 3 poses on 2 cores then end together.
-    with ThreadPoolExecutor(min(len(obs), 2 * len(os.sched_getaffinity(0)))) as pool:
-        stats_of = pool.map(
-            lambda j: pose_statistics(fitted, out.state.rc[j], out.state.tc[j], obs[j],
-                                      out.residuals[j], out.inliers[j], pitch, dof_shrink),
-            range(len(obs)),
-        )
-        for j, (px, row) in enumerate(stats_of):
-            rc, tc = out.state.rc[j], out.state.tc[j]
-            poses.append(PoseEstimate(rc.T, -rc.T @ tc, row["rms_px"], row["rms_screen_px"],
-                                      row["n_points"]))
-            per_pose.append({"pose": j, **row})
-            res_px[j], pix_out[j] = px, obs[j].pixels[out.inliers[j]]
+    stats_of = fit_statistics(fitted, out.state.rc, out.state.tc, obs, out.residuals,
+                              out.inliers, pitch, dof_shrink)
+    for j, (px, row) in enumerate(stats_of):
+        rc, tc = out.state.rc[j], out.state.tc[j]
+        poses.append(PoseEstimate(rc.T, -rc.T @ tc, row["rms_px"], row["rms_screen_px"],
+                                  row["n_points"]))
+        per_pose.append({"pose": j, **row})
+        res_px[j], pix_out[j] = px, obs[j].pixels[out.inliers[j]]
     sample = np.stack(
         np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 25)), -1
     ).reshape(-1, 2)

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from calibration.decode.arrays import to_host
-from calibration.fit.sgcc.problem import Problem, pose_terms, ray_terms, spline_terms
+from calibration.fit.sgcc.problem import Problem, Weights, pose_terms, ray_terms, spline_terms
 from calibration.fit.sgcc.state import LMState
 
 _CHUNK = 1 << 19  # pixels per span: about 2 KB of device temporaries each (moments)
@@ -130,6 +130,15 @@ class DeviceProblem:
             res[:, sp.a : sp.b], ok[sp.a : sp.b] = ray_terms(xp, comps, rc, tc, screen, False,
                                                              self.prob.panel_at(st))
         return to_host(res), to_host(ok)
+
+    def residuals_and_gradient(
+        self, st: LMState, weights: Weights, spline: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`Problem.residuals_and_gradient` (host arrays) as a residual pass, then a gradient
+        pass with the weights of those residuals: the same numbers."""
+        res, ok = self.residuals(st)
+        _, grad = self.normal_equations(st, weights(res, ok, self.inv_sigma), spline, False)
+        return res, ok, grad
 
     def normal_equations(
         self, st: LMState, wt: np.ndarray, spline: bool = True, hessian: bool = True

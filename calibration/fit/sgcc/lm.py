@@ -34,7 +34,7 @@ from calibration.decode.arrays import array_module
 from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
-from calibration.fit.sgcc.robust import outlier_cut, robust_terms, sigma_norm
+from calibration.fit.sgcc.robust import block_weights, outlier_cut, robust_terms, sigma_norm
 from calibration.fit.sgcc.screen_terms import N_SCREEN
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.models.blas_threads import single_thread_blas
@@ -164,8 +164,9 @@ def _iterate(
     """LM iterations on `prob` until converged or iteration `last_it`; updates `lp` in place.
 
     After an accepted undamped (Gauss-Newton) step the next iteration is a chord step: the
-    gradient alone at the new state (`normal_equations(hessian=False)`, under half a pass),
-    solved with the previous factorization. Near the optimum the normal matrix hardly
+    gradient alone at the new state (computed in the same pass as the candidate's residuals,
+    `residuals_and_gradient`; anew if the outlier cut moved), solved with the previous
+    factorization. Near the optimum the normal matrix hardly
     changes over a step, so the chord step's decrement certifies convergence without a
     second full pass; a rejected chord step falls back to a full iteration.
     """
@@ -175,6 +176,7 @@ def _iterate(
     lp.converged = False
     first = True
     chord: tuple[tuple, np.ndarray] | None = None  # (factor, Jacobi scale) for a chord step
+    chord_grad: tuple[float, np.ndarray] | None = None  # (cut, J^T W e) from the candidate pass
     while lp.it < last_it:
         lp.it += 1
         if cancelled is not None and cancelled():
@@ -183,8 +185,11 @@ def _iterate(
         s = sigma_norm(prob, res) if s is None else s  # kept from the accepted candidate
         lp.cut = outlier_cut(s, ok, options.cut_sigmas)
         data0, wt, _ = robust_terms(s, ok, options.huber_k, lp.cut)
-        h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
-                                        hessian=chord is None)
+        if chord is not None and chord_grad is not None and chord_grad[0] == lp.cut:
+            h, grad = None, chord_grad[1]  # computed with the accepted candidate's residuals
+        else:
+            h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
+                                            hessian=chord is None)
         if first:
             diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
             lp.lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
@@ -216,7 +221,12 @@ def _iterate(
             rcs, tcs = _apply_pose_step(st, step[ns:])
             scr = None if st.screen is None else st.screen + step[ns + 6 * len(rcs):]
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs, scr)
-            res1, ok1 = prob.residuals(cand)
+            grad1 = None
+            if mu == 0.0 and not was_chord:  # a chord step may follow: its gradient now
+                res1, ok1, grad1 = prob.residuals_and_gradient(
+                    cand, block_weights(options.huber_k, lp.cut), spline=not options.fix_spline)
+            else:
+                res1, ok1 = prob.residuals(cand)
             s1 = sigma_norm(prob, res1)
             cost1 = robust_terms(s1, ok1, options.huber_k, lp.cut)[0]
             cost1 += _prior_cost(cand.coeffs.ravel(), lp)
@@ -228,6 +238,7 @@ def _iterate(
                     # chord next only where the quadratic model held over this step
                     good = abs(cost0 - cost1 - predicted) <= _CHORD_MODEL_TOL * predicted
                     chord = (factor, jac_scale) if mu == 0.0 and good else None
+                    chord_grad = None if grad1 is None else (lp.cut, grad1)
                 break
         else:
             if not was_chord:

@@ -28,6 +28,8 @@ from calibration.models.bspline import (
     radix_keys,
 )
 
+# IRLS weights (n,) of a block's residuals e (2,n) mm, ok mask (n,) and inverse sigmas (2,n)
+Weights = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 _JP_DENSE = [0, 1, 2, 5]  # pose-Jacobian columns that are not constant 0/1
 _CHUNK = 1 << 13  # pixels per vectorized block: temporaries stay in cache, few Python calls
 _MAX_THREADS = 4  # chunk threads: NumPy releases the GIL in its loops; more only contend
@@ -288,17 +290,22 @@ class Problem:
 
     def _moments(
         self, st: LMState, poly: np.ndarray, wt: np.ndarray, share: Sequence[_Chunk], spline: bool,
-        hessian: bool = True,
+        hessian: bool = True, out: tuple[np.ndarray, np.ndarray, Weights] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Normal-equation sums of a share of chunks: per-cell moments, spline-pose cross
         moments, and the per-pose blocks (see `normal_equations`); without `hessian` only
-        the gradient columns of the cross moments (the rest stays zero)."""
+        the gradient columns of the cross moments (the rest stays zero). `out` (res, ok,
+        weights): each block's residuals and ok mask are written there and its weights
+        wt computed from them (`residuals_and_gradient`)."""
         c, nc, npo, k = self.c, self.n_cells, self.n_pose, self.k
         mom = np.zeros((nc, 49, len(self.tri[0])))  # sum m49 * (g^T W g)[upper triangle]
         cross = np.zeros((npo, nc, 16, (k + 1) * c))  # sum m16 * xg (see `spline_terms`)
         hpp, gpp = np.zeros((npo, k, k)), np.zeros((npo, k))
         for ch in share:
-            e, _, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
+            e, ok, m16, g, jp = self._chunk(st, poly, ch, jacobian=True)
+            if out is not None:
+                out[0][:, ch.a : ch.b], out[1][ch.a : ch.b] = e, ok
+                wt[ch.a : ch.b] = out[2](e, ok, self.inv_sigma[:, ch.a : ch.b])
             ws = wt[ch.a : ch.b] * self.inv_sigma[:, ch.a : ch.b] ** 2  # (2,n)
             hpp_c, gpp_c = pose_terms(np, e, jp, ws)
             hpp[ch.pose] += hpp_c
@@ -330,6 +337,20 @@ class Problem:
         )
         mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
         return self.assemble(hpp, gpp, (mom, cross) if spline else None)
+
+    def residuals_and_gradient(
+        self, st: LMState, weights: Weights, spline: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`residuals` and, in the same pass, J^T W e with each block's weights computed from
+        its residuals by `weights(e, ok, inv_sigma)`: LM's candidate step that a chord step
+        may follow (one pass instead of a residual pass and a gradient pass, sgcc/lm.py)."""
+        n = len(self.s)
+        res, ok, wt = np.empty((2, n)), np.empty(n, dtype=bool), np.empty(n)
+        poly = self.polynomials(st.coeffs)
+        parts = _over_chunks(self.chunks, lambda share: self._moments(
+            st, poly, wt, share, spline, hessian=False, out=(res, ok, weights)))
+        mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
+        return res, ok, self.assemble(hpp, gpp, (mom, cross) if spline else None)[1]
 
     def assemble(
         self, hpp: np.ndarray, gpp: np.ndarray, moments: tuple[np.ndarray, np.ndarray] | None

@@ -13,7 +13,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from calibration.fit.sgcc.device import DeviceProblem
-    from calibration.fit.sgcc.problem import Problem
+    from calibration.fit.sgcc.problem import Problem, Weights
 
 T = TypeVar("T")
 _BLOCK = 1 << 16  # pixels per block (small temporaries)
@@ -50,6 +50,17 @@ def sigma_norm(prob: Problem | DeviceProblem, res: np.ndarray) -> np.ndarray:
 
     _over_blocks(len(out), block)
     return out
+
+
+def block_weights(k: float, cut: float) -> Weights:
+    """IRLS weights of a block's residuals e (2,n) mm, ok mask and inverse sigmas (2,n), as
+    `robust_terms` gives them from `sigma_norm` (same operations: the same numbers)."""
+
+    def weights(e: np.ndarray, ok: np.ndarray, inv: np.ndarray) -> np.ndarray:
+        r0, r1 = e[0] * inv[0], e[1] * inv[1]
+        return robust(np.sqrt(r0 * r0 + r1 * r1), k, cut)[1] * ok
+
+    return weights
 
 
 def robust_terms(

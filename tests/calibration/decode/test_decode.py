@@ -364,6 +364,25 @@ def test_ready_frames_holds_back_incomplete_period_groups(plan):
     np.testing.assert_allclose(got.x[got.mask], ref.x[ref.mask], atol=1e-4)
 
 
+def test_ready_frames_passes_the_last_group_frame_by_frame(plan):
+    """Once one period group is left, a live decoder adds its frames as they come (so the
+    pass after a live pose's last frame reads one frame); the maps are the stack's."""
+    stack, *_ = render(plan, seed=5)
+    ref = decode_stack(plan, stack, noise=1.5)
+    dec = StreamingDecoder(plan, (H, W), noise=1.5)
+    last = list(plan.period_sets()[-1].frame_indices)
+    first = [i for i in range(len(plan.frames)) if i not in last]
+    assert dec.ready_frames([last[0]]) == []  # other groups are still missing
+    dec.add_frames(first, stack, rows=first)
+    for i in last:
+        assert dec.ready_frames([i]) == [i]
+        dec.add_frames([i], stack, rows=[i])
+    got = dec.finish()
+    np.testing.assert_array_equal(got.mask, ref.mask)
+    np.testing.assert_allclose(got.x[got.mask], ref.x[ref.mask], atol=1e-4)
+    np.testing.assert_allclose(got.y[got.mask], ref.y[ref.mask], atol=1e-4)
+
+
 def test_compiled_decoder_with_display_harmonic_matches_array_path(monkeypatch):
     """A 6-step plan through a display gamma: the residual's harmonic N/2 is fitted and
     subtracted (`harmonic_leak`); the compiled path does the same (float32 rounding)."""

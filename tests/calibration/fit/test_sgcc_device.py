@@ -15,6 +15,7 @@ from calibration.fit.sgcc.calibrate import calibrate_generic
 from calibration.fit.sgcc.device import DeviceProblem
 from calibration.fit.sgcc.initial import initial_state
 from calibration.fit.sgcc.problem import Problem
+from calibration.fit.sgcc.robust import block_weights
 from calibration.models.bspline import SplineGrid
 from calibration.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
@@ -61,6 +62,12 @@ def test_device_problem_equals_threaded_problem(maps, n_comp):
             h_d, grad_d = dev.normal_equations(st, wt, spline)
             _close(h_d, h)
             _close(grad_d, grad)
+            # LM's candidate pass: residuals and the gradient with their own robust weights
+            res_g, ok_g, grad_g = prob.residuals_and_gradient(st, block_weights(3.0, 8.0), spline)
+            res_dg, ok_dg, grad_dg = dev.residuals_and_gradient(st, block_weights(3.0, 8.0), spline)
+            np.testing.assert_array_equal(ok_dg, ok_g)
+            _close(res_dg, res_g)
+            _close(grad_dg, grad_g)
 
 
 def test_cupy_option_runs_the_device_path(maps, monkeypatch):

@@ -1,0 +1,164 @@
+"""Write an uncompressed NPZ (a stored zip of .npy members) fast and durably: the layout is
+known from the arrays' sizes, so members are written in parallel at their offsets straight
+from the arrays' memory (no copy), their disk writeback starts as each lands, and the file
+is fsynced and renamed into place (then its folder fsynced): never a partial file at `path`."""
+
+from __future__ import annotations
+
+import ctypes
+import io
+import os
+import struct
+import time
+import zipfile
+import zlib
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration.atomic import atomic_path
+
+_SYNC_FILE_RANGE_WRITE = 2  # <fcntl.h>: start writeback of the range's dirty pages, no wait
+_LIMIT = zipfile.ZIP64_LIMIT  # fields above this go in zip64 extras (as zipfile does)
+
+
+@dataclass
+class _Member:
+    """One .npy member: its name, the .npy header, the array data and where it lands."""
+
+    name: bytes
+    npy_header: bytes
+    data: memoryview
+    offset: int = 0  # of the local file header
+    crc: int = 0
+    stamp: tuple[int, int] = (0, 0x21)  # MS-DOS time and date (1980-01-01 00:00)
+
+    @property
+    def size(self) -> int:
+        return len(self.npy_header) + self.data.nbytes
+
+
+def _members(arrays: Mapping[str, np.ndarray]) -> list[_Member]:
+    """The arrays as .npy members, laid out one after another from offset 0."""
+    members, offset = [], 0
+    t = time.localtime()
+    stamp = (t.tm_hour << 11 | t.tm_min << 5 | t.tm_sec // 2,
+             max(t.tm_year - 1980, 0) << 9 | t.tm_mon << 5 | t.tm_mday)
+    for key, arr in arrays.items():
+        if arr.dtype.hasobject:
+            raise ValueError(f"{key}: object arrays cannot be stored without pickle")
+        if not arr.flags.c_contiguous:  # (np.ascontiguousarray would make 0-d arrays 1-d)
+            arr = np.ascontiguousarray(arr)
+        head = io.BytesIO()
+        np.lib.format.write_array_header_1_0(head, np.lib.format.header_data_from_array_1_0(arr))
+        m = _Member(f"{key}.npy".encode(), head.getvalue(),
+                    memoryview(arr.reshape(-1).view(np.uint8)))
+        m.offset, m.stamp = offset, stamp
+        offset += len(_local_header(m)) + m.size
+        members.append(m)
+    return members
+
+
+def _local_header(m: _Member) -> bytes:
+    """The local file header (always with a zip64 size extra, like `force_zip64`)."""
+    extra = struct.pack("<HHQQ", 1, 16, m.size, m.size)
+    return struct.pack(zipfile.structFileHeader, zipfile.stringFileHeader,
+                       zipfile.ZIP64_VERSION, 0, 0, 0, *m.stamp, m.crc,
+                       0xFFFFFFFF, 0xFFFFFFFF, len(m.name), len(extra)) + m.name + extra
+
+
+def _central_directory(members: list[_Member], start: int) -> bytes:
+    """Central directory and end records (zip64 ones where sizes or offsets need them)."""
+    out = []
+    for m in members:
+        extra = [v for v in (m.size, m.size) if m.size > _LIMIT]
+        if m.offset > _LIMIT:
+            extra.append(m.offset)
+        ext = struct.pack(f"<HH{len(extra)}Q", 1, 8 * len(extra), *extra) if extra else b""
+        size = 0xFFFFFFFF if m.size > _LIMIT else m.size
+        version = zipfile.ZIP64_VERSION if extra else zipfile.DEFAULT_VERSION
+        out.append(struct.pack(zipfile.structCentralDir, zipfile.stringCentralDir, version, 3,
+                               version, 0, 0, 0, *m.stamp, m.crc, size, size, len(m.name),
+                               len(ext), 0, 0, 0, 0o600 << 16,
+                               min(m.offset, 0xFFFFFFFF)) + m.name + ext)
+    cd = b"".join(out)
+    n, size = len(members), len(cd)
+    if n >= zipfile.ZIP_FILECOUNT_LIMIT or start > _LIMIT or size > _LIMIT:
+        cd += struct.pack(zipfile.structEndArchive64, zipfile.stringEndArchive64, 44, 45, 45,
+                          0, 0, n, n, size, start)
+        cd += struct.pack(zipfile.structEndArchive64Locator, zipfile.stringEndArchive64Locator,
+                          0, start + size, 1)
+        n, size, start = min(n, 0xFFFF), min(size, 0xFFFFFFFF), min(start, 0xFFFFFFFF)
+    return cd + struct.pack(zipfile.structEndArchive, zipfile.stringEndArchive, 0, 0, n, n,
+                            size, start, 0)
+
+
+def _start_writeback() -> Callable[[int, int, int], None]:
+    """`sync_file_range(fd, offset, length, WRITE)` where libc has it (Linux), else a no-op:
+    the disk starts on a member while the others are still being written."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).sync_file_range
+    except (AttributeError, OSError):
+        return lambda fd, offset, length: None
+    fn.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
+    return lambda fd, offset, length: fn(fd, offset, length, _SYNC_FILE_RANGE_WRITE) and None
+
+
+def _pwrite_all(fd: int, data: memoryview | bytes, offset: int) -> None:
+    """`os.pwrite` until every byte is written (a write may be short)."""
+    view = memoryview(data)
+    while view.nbytes:
+        n = os.pwrite(fd, view, offset)
+        view, offset = view[n:], offset + n
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename in `folder` durable (POSIX; folders cannot be opened on Windows)."""
+    if os.name != "posix":
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
+                     timings: dict[str, float] | None = None, *, durable: bool = True) -> None:
+    """Write `arrays` to `path` as an uncompressed NPZ (np.load reads it), atomically and (with
+    `durable`) fsynced with its folder entry; `timings` (if given) receives the wall seconds
+    of "write" and "fsync". `durable=False`: the page cache only, for callers that fsync
+    later (still renamed into place whole)."""
+    t0 = time.perf_counter()
+    members = _members(arrays)
+    writeback = _start_writeback() if durable else (lambda fd, offset, length: None)
+    target = Path(path)
+    with atomic_path(target) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            def write(m: _Member) -> None:
+                data_at = m.offset + len(_local_header(m))
+                _pwrite_all(fd, m.npy_header, data_at)
+                _pwrite_all(fd, m.data, data_at + len(m.npy_header))
+                m.crc = zlib.crc32(m.data, zlib.crc32(m.npy_header))  # releases the GIL
+                _pwrite_all(fd, _local_header(m), m.offset)
+                writeback(fd, m.offset, data_at + m.size - m.offset)
+
+            order = sorted(members, key=lambda m: -m.size)  # largest first: balanced threads
+            with ThreadPoolExecutor(min(os.cpu_count() or 1, 4),
+                                    thread_name_prefix="npz-write") as pool:
+                list(pool.map(write, order))
+            end = members[-1].offset + len(_local_header(members[-1])) + members[-1].size
+            _pwrite_all(fd, _central_directory(members, end), end)
+            t1 = time.perf_counter()
+            if durable:
+                os.fsync(fd)
+        finally:
+            os.close(fd)
+    if durable:
+        _fsync_folder(target.resolve().parent)
+    if timings is not None:
+        timings["write"], timings["fsync"] = t1 - t0, time.perf_counter() - t1
