@@ -58,9 +58,9 @@ from calibration.plan import Plan
 # The photon-transfer fit uses only pixels without clipped steps when at least this many exist.
 _MIN_CLEAN_PIXELS = 2000
 # Larger images fit the photon-transfer line on evenly spread pieces of this many pixels,
-# about _NOISE_SAMPLE in all (the fit needs ~1e5 pixels; the rest only costs time).
+# about _NOISE_SAMPLE in all (the fit needs ~1e5 pixels; more costs time, twice in finish_stack).
 _NOISE_PIECE = 1 << 14
-_NOISE_SAMPLE = 1 << 20
+_NOISE_SAMPLE = 1 << 19
 _COMPILED_MIN_PIXELS = 1 << 20
 # One-off decodes (decode_stack) of images this large load the compiled kernels (~0.7 s of
 # CPU once per process) even when no live capture has loaded them yet: they pay back.

@@ -111,6 +111,17 @@ def residual_arrays(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
     return tuple(to_host(v) for v in (m, r, d, clean, ~low, power))
 
 
+def _tables(acc: Any, bits: np.ndarray, c0: int, n: int) -> tuple[np.ndarray, ...]:
+    """(index, rows, basis) of kernel_clipped.PatternTables covering columns c0..c0+n of
+    `bits`; empty arrays when the plan has more steps than the tables take."""
+    from calibration.decode.kernel_clipped import pattern_tables
+
+    tables = pattern_tables(acc)
+    if tables is None:
+        return np.zeros((0, 1), np.int64), np.zeros((0, 1)), np.zeros((0, 1, 1))
+    return (*tables.tables(bits, c0, n), tables.basis)
+
+
 def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
     """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line."""
     from calibration.decode.kernel_sums import residual_stats as kernel
@@ -118,13 +129,16 @@ def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
     acc, n = dec._acc, chunk.size
     lay = layout(acc)
     level, rss, dof = (np.empty(n, dtype=np.float32) for _ in range(3))
-    dirty = np.empty(n, dtype=np.bool_)
+    dirty, low = np.empty(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_)
     power = np.empty((len(acc.sets), n), dtype=np.float32)
-    block, bits, squares, _, _, c0 = _inputs(chunk, acc)
+    block, bits, squares, bright, dark, c0 = _inputs(chunk, acc)
+    tables = _tables(acc, bits, c0, n)
+    clip = np.array([dec._floor, acc.n_bright, acc.n_dark, dec.options.min_contrast_snr])
+    leak = np.zeros(len(acc.sets)) if dec._leak is None else np.asarray(dec._leak, float)
     kernel(block, bits, squares, c0, lay.row0, lay.nrows, lay.steps, level, rss, dof, dirty,
-           power)
-    clean, no_dark_clip = ~dirty, np.ones(n, dtype=bool)
-    idx = np.flatnonzero(dirty)
+           power, low, bright, dark, clip, leak, tables)
+    clean, no_dark_clip = ~dirty, ~low
+    idx = np.flatnonzero(dirty) if tables[0].shape[0] == 0 else np.zeros(0, dtype=np.int64)
     if idx.size:
         sub = residual_arrays(dec, chunk.take(idx))
         level[idx], rss[idx], dof[idx], clean[idx], no_dark_clip[idx], power[:, idx] = sub
@@ -153,12 +167,14 @@ def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
         extents = np.array([plan.screen.extent_px(a) for a in ("x", "y")], dtype=np.float64)
         max_dof = int((lay.steps - lay.nrows).sum())
         leak = np.zeros(len(acc.sets)) if dec._leak is None else np.asarray(dec._leak, float)
-        finish_sums(*_inputs(chunk, acc), lay.row0, lay.nrows, lay.steps, params, leak,
+        inputs = _inputs(chunk, acc)
+        tables = _tables(acc, inputs[1], inputs[5], chunk.size)
+        finish_sums(*inputs, lay.row0, lay.nrows, lay.steps, params, leak,
                     np.array([acc.n_bright, acc.n_dark], dtype=np.float64), chi2_tail(max_dof),
                     axis_of, np.array([s.layout.period_px for s in acc.sets]),
                     np.array([s.layout.amplitude for s in acc.sets]), limits, extents, kparams,
                     planes["position"], planes["sigma"], planes["modulation"],
-                    planes["blur"], sl.start, sub_out)
+                    planes["blur"], sl.start, sub_out, tables)
         dirty = np.flatnonzero(sub_out == DIRTY)
     if dirty.size == 0:
         return

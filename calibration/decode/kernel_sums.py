@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit
 
 from calibration.decode.kernel import P_MIN_CONTRAST, P_PERIOD_SNR
+from calibration.decode.kernel_clipped import clipped_block, clipped_residuals
 from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
 from calibration.decode.vecmath import atan2, log_inplace
 
@@ -27,13 +28,21 @@ MODE_GIVEN, MODE_LINE, MODE_OWN = 0, 1, 2  # given model / photon-transfer line 
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _line(noise, level: float) -> float:
-    """Variance of the linear noise model at `level`: offset + slope * (level - black)+,
-    at least the line's floor (a photon-transfer line: quantization)."""
-    x = level - noise[N_BLACK]
-    if noise[N_CLAMP] != 0.0 and not x > 0.0:
-        x = 0.0
-    return max(noise[N_OFFSET] + noise[N_SLOPE] * x, noise[N_LINE_FLOOR])
+def _line(line, level: float) -> float:
+    """Variance of the linear noise model `line` (`_line_of`) at `level`: offset + slope *
+    (level - black)+, at least the line's floor (a photon-transfer line: quantization)."""
+    offset, slope, black, clamp, floor = line
+    x = level - black
+    x = 0.0 if clamp and not x > 0.0 else x
+    return max(offset + slope * x, floor)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _line_of(noise):
+    """The linear model of `noise` as scalars (offset, slope, black, clamp, floor): loops
+    that read them from the array reload them per pixel (possible aliasing) and stay scalar."""
+    return (noise[N_OFFSET], noise[N_SLOPE], noise[N_BLACK], noise[N_CLAMP] != 0.0,
+            noise[N_LINE_FLOOR])
 
 
 BLOCK = 128  # pixels per block: the per-set scratch rows stay in L1
@@ -52,9 +61,11 @@ def finish_sums(
     set_axis, periods, amps, chi2_limit, extents, params,  # as kernel.finish_pixels
     pos_out, sig_out, mod_out, blur_out, o0,  # (2, N_out) outputs from column o0
     reason,  # (n,) uint8 reason codes of the range
+    tables,  # kernel_clipped.PatternTables (index, rows, basis); empty index: none
 ) -> None:
-    """Decode the pixels of a range from their sums: those with every step kept, and those
-    with every step clipped (no fit: `no_screen` or `clipped`); others get reason DIRTY.
+    """Decode the pixels of a range from their sums: those with every step kept, those
+    with every step clipped (no fit: `no_screen` or `clipped`) and, with `tables`, those
+    with some steps clipped (kernel_clipped.py); others get reason DIRTY.
 
     Per block of pixels, everything per set (fits, variances, sigmas, wrapped phases, the
     blur line sums) runs in loops over the block's pixels that LLVM vectorizes; then the
@@ -67,6 +78,7 @@ def finish_sums(
     for k in range(n_sets):
         dof += steps[k] - nrows[k]
     excess_limit = tail[dof] if mode == MODE_LINE else np.inf
+    line = _line_of(noise)
     f64 = np.float64
     dirty = np.empty(BLOCK, dtype=np.bool_)
     dead = np.empty(BLOCK, dtype=np.bool_)
@@ -118,15 +130,15 @@ def finish_sums(
             s00 = sums[row0[0], j0:j0 + m]
             inv0 = np.float32(1.0 / steps[0])
             for j in range(m):
-                ex[j] = ow[j] > _line(noise, max(f64(s00[j] * inv0), 0.0)) * excess_limit
+                ex[j] = ow[j] > _line(line, max(f64(s00[j] * inv0), 0.0)) * excess_limit
         blur[:, :, :m] = 0.0
         for k in range(n_sets):
             ax = set_axis[k]
-            _set_block(sums, row0[k], nrows[k], steps[k], periods[k], amps[k], noise, params,
+            _set_block(sums, row0[k], nrows[k], steps[k], periods[k], amps[k], line, params,
                        j0, m,
                        ow, ex, wrapped[k], sig[k], use[k], blur[:, ax], snr_a[:, ax],
                        k == first[ax], lg, lg_e, lg_m, wt)
-        _contrast(bright, dark, flats, noise, mode, j0, m, ow, snr)
+        _contrast(bright, dark, flats, line, mode, j0, m, ow, snr)
         for ax in range(2):
             _blur_fit(blur[:, ax], m)
         unwrap_block(m, wrapped, sig, use, blur, snr_a, snr, d, first, set_axis, periods,
@@ -139,14 +151,21 @@ def finish_sums(
                 for ax in range(2):
                     if first[ax] >= 0:
                         mod_out[ax, o0 + b0 + j] = 0.0
+        clipped_block(m, d, dd, sums, bits, squares, bright, dark, j0, row0, nrows, steps,
+                      tables, mode, line, noise[N_FLOOR], tail, leak, flats, set_axis,
+                      periods, amps, chi2_limit, extents, params, pos_out, sig_out, mod_out,
+                      blur_out, o0 + b0, reason[b0:b0 + m])
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_out, dof_out,
-                   dirty_out, power_out) -> None:
-    """Residual-mode first pass (decoder `_residuals`) for the unclipped pixels of columns
-    c0..: dof-weighted level, residual sum of squares, residual dof; `dirty_out` marks the
-    pixels with clipped steps (left to the array path)."""
+                   dirty_out, power_out, low_out, bright, dark, clip, leak, tables) -> None:
+    """Residual-mode first pass (decoder `_residuals`) for the pixels of columns c0..:
+    dof-weighted level, residual sum of squares, residual dof, each set's Nyquist power;
+    `dirty_out` marks the pixels with clipped steps. With `tables` (non-empty index) those
+    are fitted here too (kernel_clipped.py; `clip`: floor, bright and dark flat counts,
+    min_contrast_snr) and `low_out` marks a step clipped at the dark end; without, they
+    are left to the array path (`low_out` untouched)."""
     n = level_out.shape[0]
     expl, own, lev = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK)
     dof = 0.0
@@ -178,6 +197,17 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
             rss_out[b0 + j] = max(own[j], 0.0)
             level_out[b0 + j] = lev[j] / max(dof, 1.0)
             dof_out[b0 + j] = dof
+            low_out[b0 + j] = False
+        if tables[0].shape[0] == 0:
+            continue
+        fit, p = np.empty((row0.shape[0], 12)), np.empty((row0.shape[0], tables[2].shape[2]))
+        for j in range(m):
+            if d[j]:
+                level_out[b0 + j], rss_out[b0 + j], dof_out[b0 + j], _, kept = clipped_residuals(
+                    sums, bits, squares, bright, dark, j0 + j, row0, nrows, steps, tables[0],
+                    tables[1], tables[2], clip[0], clip[1:3], clip[3], leak, fit, p, power_out,
+                    b0 + j)
+                low_out[b0 + j] = not kept  # (kept: no step clipped at the dark end)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -212,10 +242,12 @@ def _explained(sums, r0, nrow, steps, j0, m, expl) -> None:
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _set_block(sums, r0, nrow, steps, period, amp, noise, params, j0, m, own, excess, wrapped,
+def _set_block(sums, r0, nrow, steps, period, amp, line, params, j0, m, own, excess, wrapped,
                sig, use, blur, anchor, is_first, lg, lg_e, lg_m, wt) -> None:
     """One set over a block: variance, modulation, sigmas, wrapped position, blur terms.
-    Branch-free loops (error_model numpy: no division-by-zero checks) LLVM vectorizes."""
+    Branch-free loops (error_model numpy: no division-by-zero checks) LLVM vectorizes.
+    All steps kept: the (alpha, beta) covariance is c I (phase.SetFit `_isotropic`), so
+    the modulation variance is c and the phase variance c / B^2."""
     f32 = np.float32
     inv_n, scale = f32(1.0 / steps), f32(2.0 / steps)
     c = float(f32(2.0 / steps))  # covariance factor of alpha and beta, all steps kept
@@ -223,34 +255,37 @@ def _set_block(sums, r0, nrow, steps, period, amp, noise, params, j0, m, own, ex
     to_px = f32(period / (2.0 * math.pi))
     s0, sa, sb = sums[r0, j0:j0 + m], sums[r0 + 1, j0:j0 + m], sums[r0 + 2, j0:j0 + m]
     var = lg_e  # scratch: the sample variance of this set (float32 values)
-    for j in range(m):
-        level = max(s0[j] * inv_n, f32(0.0))
-        if nrow > 3:  # harmonic 2 modelled: noise.phase_level, the level at the crossings
+    if nrow > 3:  # harmonic 2 modelled: noise.phase_level, the level at the crossings
+        s2r, c2r = sums[r0 + 3, j0:j0 + m], sums[r0 + 4, j0:j0 + m]
+        for j in range(m):
             a, b = sa[j] * scale, sb[j] * scale
-            s2, c2 = sums[r0 + 3, j0 + j] * scale, sums[r0 + 4, j0 + j] * scale
+            s2, c2 = s2r[j] * scale, c2r[j] * scale
             b2 = a * a + b * b
             h2c = (c2 * (b * b - a * a) + s2 * f32(2.0) * a * b) / (b2 if b2 > 0 else f32(1.0))
             level = max(s0[j] * inv_n - f32(0.5) * h2c, f32(0.0))
-        var[j] = float(f32(own[j] if excess[j] else _line(noise, float(level))))
+            var[j] = float(f32(own[j] if excess[j] else _line(line, float(level))))
+    else:
+        for j in range(m):
+            level = max(s0[j] * inv_n, f32(0.0))
+            var[j] = float(f32(own[j] if excess[j] else _line(line, float(level))))
     snr_row, mod_row = anchor[0], anchor[1]
+    inv_amp2 = 1.0 / (amp * amp)
     for j in range(m):  # what kernel.decode_pixel computes per set, vectorized
         a, b = float(sa[j] * scale), float(sb[j] * scale)
         b2 = a * a + b * b
-        zero = b2 == 0.0
-        inv = 1.0 / (1.0 if zero else b2)
         mod = math.sqrt(b2)
-        mod_var = c if zero else (a * a * c + b * b * c) * inv
-        ph_var = 1e30 if zero else (b * b * c + a * a * c) * (inv * inv)
-        s_b = math.sqrt(var[j] * mod_var)
-        sig_c = (period / _TWO_PI) * math.sqrt(var[j] * ph_var)
+        vc = var[j] * c  # s_b^2
+        s_b = math.sqrt(vc)
+        # sigma of the wrapped position: period / 2 pi * sqrt(var c / B^2) (no phase at B 0)
+        sig_c = (period / _TWO_PI) * (s_b / (mod if b2 != 0.0 else 1e-15))
         strong = mod >= psnr * s_b
         ok = strong and sig_c < np.inf
         sig[j] = sig_c if ok else period
         use[j] = ok
         fit = strong and s_b > 0.0 and mod > 0.0
-        corr = math.sqrt(max(mod * mod - 2.0 * s_b * s_b, 0.25 * mod * mod))
-        wt[j] = corr * corr / (s_b * s_b) if fit else 0.0
-        lg[j] = corr / amp if fit else 1.0
+        corr2 = max(b2 - 2.0 * vc, 0.25 * b2)  # the bias-corrected modulation, squared
+        wt[j] = corr2 / vc if fit else 0.0
+        lg[j] = corr2 * inv_amp2 if fit else 1.0  # (corr / amp)^2: its log halved below
         if is_first:
             snr_row[j] = mod / s_b if s_b > 0 else 0.0
         mod_row[j] = mod
@@ -261,16 +296,17 @@ def _set_block(sums, r0, nrow, steps, period, amp, noise, params, j0, m, own, ex
     x = 1.0 / (period * period)
     for j in range(m):
         w = wt[j]
+        y = 0.5 * lg[j]
         blur[0, j] += w
         blur[1, j] += w * x
-        blur[2, j] += w * lg[j]
+        blur[2, j] += w * y
         blur[3, j] += w * x * x
-        blur[4, j] += w * x * lg[j]
+        blur[4, j] += w * x * y
         blur[5, j] += 1.0 if w > 0.0 else 0.0
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _contrast(bright, dark, flats, noise, mode, j0, m, own, snr) -> None:
+def _contrast(bright, dark, flats, line, mode, j0, m, own, snr) -> None:
     """snr[:m] = bright-minus-dark flat contrast over its noise (0 where not finite)."""
     for j in range(m):
         lit = bright[j0 + j] / flats[0]
@@ -278,7 +314,7 @@ def _contrast(bright, dark, flats, noise, mode, j0, m, own, snr) -> None:
         if mode == MODE_OWN:
             var_b = var_d = own[j]
         else:
-            var_b, var_d = _line(noise, lit), _line(noise, max(unlit, 0.0))
+            var_b, var_d = _line(line, lit), _line(line, max(unlit, 0.0))
         q = (lit - unlit) / math.sqrt(var_b / flats[0] + var_d / flats[1])
         snr[j] = q if abs(q) < np.inf else 0.0
 

@@ -31,11 +31,14 @@ def warm_up() -> None:
                              flats[1], np.zeros(1), i64(1))
             planes = [np.zeros((2, n), dtype=dt) for dt in (np.float64, np.float32,
                                                              np.float32, np.float32)]
+            tables = (np.full((1, 16), -1), np.zeros((0, 30)), np.zeros((1, 4, 3)))
             finish_sums(sums, bits, squares, flats[0], flats[1], 0, i64(1), one * 3, one * 4,
                         np.array([0.0, 1, 0, 0, 0, 0.1, 0]), np.zeros(1), np.ones(2),
                         np.full(2, np.inf), i64(1), np.ones(1), np.ones(1), np.full(2, np.inf),
-                        np.ones(2), np.ones(7), *planes, 0, np.zeros(n, np.uint8))
+                        np.ones(2), np.ones(7), *planes, 0, np.zeros(n, np.uint8), tables)
             if squares.size:
                 out = [np.zeros(n, np.float32) for _ in range(3)]
                 residual_stats(sums, bits, squares, 0, i64(1), one * 3, one * 4, *out,
-                               np.zeros(n, np.bool_), np.zeros((1, n), np.float32))
+                               np.zeros(n, np.bool_), np.zeros((1, n), np.float32),
+                               np.zeros(n, np.bool_), flats[0], flats[1], np.ones(4),
+                               np.zeros(1), tables)
