@@ -9,6 +9,7 @@ import ctypes
 import io
 import os
 import struct
+import threading
 import time
 import zipfile
 import zlib
@@ -23,6 +24,7 @@ from calibration.atomic import atomic_path
 
 _SYNC_FILE_RANGE_WRITE = 2  # <fcntl.h>: start writeback of the range's dirty pages, no wait
 _LIMIT = zipfile.ZIP64_LIMIT  # fields above this go in zip64 extras (as zipfile does)
+_SEEK_LOCK = threading.Lock()  # seek + write where there is no pwrite
 
 
 @dataclass
@@ -101,15 +103,22 @@ def _start_writeback() -> Callable[[int, int, int], None]:
     the disk starts on a member while the others are still being written."""
     try:
         fn = ctypes.CDLL(None, use_errno=True).sync_file_range
-    except (AttributeError, OSError):
+    except (AttributeError, OSError, TypeError):  # no such function, no libc (Windows)
         return lambda fd, offset, length: None
     fn.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
     return lambda fd, offset, length: fn(fd, offset, length, _SYNC_FILE_RANGE_WRITE) and None
 
 
 def _pwrite_all(fd: int, data: memoryview | bytes, offset: int) -> None:
-    """`os.pwrite` until every byte is written (a write may be short)."""
+    """Write every byte of `data` at `offset` (a write may be short); where the OS has no
+    `pwrite` (Windows), seek and write under a lock."""
     view = memoryview(data)
+    if not hasattr(os, "pwrite"):
+        with _SEEK_LOCK:
+            os.lseek(fd, offset, os.SEEK_SET)
+            while view.nbytes:
+                view = view[os.write(fd, view):]
+        return
     while view.nbytes:
         n = os.pwrite(fd, view, offset)
         view, offset = view[n:], offset + n

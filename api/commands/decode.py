@@ -75,12 +75,9 @@ def run(args: argparse.Namespace) -> int:
         options = replace(options, max_sigma_px=args.max_sigma_px)
     stages.lap("plan")
     with progress_bar("decode") as update:
-        # without a terminal there is no bar: no progress steps (each one is a barrier
-        # between the decoder's threads)
         maps = decode_frames(plan, args.frames, noise=args.noise_dn,
                              saturation_dn=args.saturation_dn, options=options,
-                             meta={"frames": str(args.frames)},
-                             progress=update if sys.stderr.isatty() else None)
+                             meta={"frames": str(args.frames)}, progress=update)
     stages.lap("read+decode")
     written: dict[str, float] = {}
     try:

@@ -192,8 +192,8 @@ def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_c
     `verdict["adequate"]` False (model None if none could be fitted).
 
     Each family is first fitted on a grid subset (`grid_subset`, about `SCREEN_POINTS` per
-    pose) and screened there (`subset_gain` against the same limit, docs/generic.md); only a
-    family that passes is polished on every point and judged by the exact test
+    pose) and screened there (`subset_gain` against `screen_limit`, docs/generic.md); only
+    a family that passes is polished on every point and judged by the exact test
     (`family_adequate`). `screen`: the spline's screen model (sGCC's `screen: "fit"` -> mode
     "fit"): the families fit it too, so they are judged on the same model
     (`verdict["screen"]`: their estimate). `free`: the free spline fit (chi2/dof, residuals
@@ -203,10 +203,12 @@ def choose_family(obs: list[PoseObs], screen: ScreenModel, grid: SplineGrid, n_c
     n_res = 2 * sum(int(inl.sum()) for inl in free.inliers)
     n_spline = grid.size * n_comp - len(gauge_constraints(grid, n_comp, grid.size * n_comp))
     stride = screen_stride(obs)
-    index = [grid_subset(o.pixels, stride) for o in obs]
-    sub = None if stride == 1 else [p.subset(i) for p, i in zip(pts, index, strict=True)]
-    spline_sq = _spline_squares(obs, free, index)
-    fraction = 1.0 if sub is None else sum(map(len, sub)) / sum(map(len, pts))
+    sub, spline_sq, fraction = None, [], 1.0
+    if stride > 1:
+        index = [grid_subset(o.pixels, stride) for o in obs]
+        sub = [p.subset(i) for p, i in zip(pts, index, strict=True)]
+        spline_sq = _spline_squares(obs, free, index)
+        fraction = sum(map(len, sub)) / sum(map(len, pts))
 
     def rational(p: list[PointSet], rounds: int) -> DenseFit:
         fresh = ScreenModel(screen.geometry, screen.mode, screen.glass_index)

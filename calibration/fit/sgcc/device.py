@@ -131,14 +131,14 @@ class DeviceProblem:
                                                              self.prob.panel_at(st))
         return to_host(res), to_host(ok)
 
-    def residuals_and_gradient(
-        self, st: LMState, weights: Weights, spline: bool = True
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """`Problem.residuals_and_gradient` (host arrays) as a residual pass, then a gradient
-        pass with the weights of those residuals: the same numbers."""
+    def residuals_and_normal_equations(
+        self, st: LMState, weights: Weights, spline: bool = True, hessian: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`Problem.residuals_and_normal_equations` (host arrays) as a residual pass, then the
+        normal equations with the weights of those residuals: the same numbers."""
         res, ok = self.residuals(st)
-        _, grad = self.normal_equations(st, weights(res, ok, self.inv_sigma), spline, False)
-        return res, ok, grad
+        h, grad = self.normal_equations(st, weights(res, ok, self.inv_sigma), spline, hessian)
+        return res, ok, h, grad
 
     def normal_equations(
         self, st: LMState, wt: np.ndarray, spline: bool = True, hessian: bool = True

@@ -165,18 +165,25 @@ def _iterate(
 
     After an accepted undamped (Gauss-Newton) step the next iteration is a chord step: the
     gradient alone at the new state (computed in the same pass as the candidate's residuals,
-    `residuals_and_gradient`; anew if the outlier cut moved), solved with the previous
-    factorization. Near the optimum the normal matrix hardly
-    changes over a step, so the chord step's decrement certifies convergence without a
-    second full pass; a rejected chord step falls back to a full iteration.
+    `residuals_and_normal_equations`; anew if the outlier cut moved), solved with the
+    previous factorization. Near the optimum the normal matrix hardly changes over a step, so
+    the chord step's decrement certifies convergence without a second full pass; a rejected
+    chord step falls back to a full iteration. The first iteration's normal equations come
+    with the first residuals.
     """
     ns = prob.n_spline
-    res, ok = prob.residuals(lp.state)
+    spline = not options.fix_spline
+    # Residuals and normal equations in one pass, weighted with the cut the fit has (its
+    # default at the start); computed anew below if the cut moves.
+    cut = lp.cut if np.isfinite(lp.cut) else options.cut_sigmas
+    res, ok, h, grad = prob.residuals_and_normal_equations(
+        lp.state, block_weights(options.huber_k, cut), spline, hessian=True)
+    # (cut, J^T W J or None (gradient only), J^T W e) at the current state, from its pass
+    pre: tuple[float, np.ndarray | None, np.ndarray] | None = (cut, h, grad)
     s = None
     lp.converged = False
     first = True
     chord: tuple[tuple, np.ndarray] | None = None  # (factor, Jacobi scale) for a chord step
-    chord_grad: tuple[float, np.ndarray] | None = None  # (cut, J^T W e) from the candidate pass
     while lp.it < last_it:
         lp.it += 1
         if cancelled is not None and cancelled():
@@ -185,11 +192,11 @@ def _iterate(
         s = sigma_norm(prob, res) if s is None else s  # kept from the accepted candidate
         lp.cut = outlier_cut(s, ok, options.cut_sigmas)
         data0, wt, _ = robust_terms(s, ok, options.huber_k, lp.cut)
-        if chord is not None and chord_grad is not None and chord_grad[0] == lp.cut:
-            h, grad = None, chord_grad[1]  # computed with the accepted candidate's residuals
+        if pre is not None and pre[0] == lp.cut and (pre[1] is not None or chord is not None):
+            h, grad = pre[1], pre[2]  # computed with the residuals of this state
         else:
-            h, grad = prob.normal_equations(st, wt, spline=not options.fix_spline,
-                                            hessian=chord is None)
+            h, grad = prob.normal_equations(st, wt, spline=spline, hessian=chord is None)
+        pre = None
         if first:
             diag_mean = float(np.mean(np.diag(h)[:ns])) if ns else 0.0
             lp.lam_prior = 0.0 if options.fix_spline else options.smooth * max(diag_mean, 1e-12)
@@ -223,8 +230,8 @@ def _iterate(
             cand = LMState(st.coeffs + step[:ns].reshape(st.coeffs.shape), rcs, tcs, scr)
             grad1 = None
             if mu == 0.0 and not was_chord:  # a chord step may follow: its gradient now
-                res1, ok1, grad1 = prob.residuals_and_gradient(
-                    cand, block_weights(options.huber_k, lp.cut), spline=not options.fix_spline)
+                res1, ok1, _, grad1 = prob.residuals_and_normal_equations(
+                    cand, block_weights(options.huber_k, lp.cut), spline)
             else:
                 res1, ok1 = prob.residuals(cand)
             s1 = sigma_norm(prob, res1)
@@ -238,7 +245,7 @@ def _iterate(
                     # chord next only where the quadratic model held over this step
                     good = abs(cost0 - cost1 - predicted) <= _CHORD_MODEL_TOL * predicted
                     chord = (factor, jac_scale) if mu == 0.0 and good else None
-                    chord_grad = None if grad1 is None else (lp.cut, grad1)
+                    pre = None if chord is None or grad1 is None else (lp.cut, None, grad1)
                 break
         else:
             if not was_chord:

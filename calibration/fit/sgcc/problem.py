@@ -219,8 +219,8 @@ class Problem:
         self.k = 6 + self.n_screen  # per-pixel non-spline Jacobian columns (pose, screen)
         self.n = self.n_spline + 6 * self.n_pose + self.n_screen
         self.n_cells = grid.cells[0] * grid.cells[1]
-        self.inverse, self.s, self.t, self.screen, self.sigma, cell = _sorted(grid, obs)
-        self.inv_sigma = 1.0 / self.sigma
+        self.inverse, self.s, self.t, self.screen, sigma, cell = _sorted(grid, obs)
+        self.inv_sigma = np.divide(1.0, sigma, out=sigma)  # in place: one full-size array less
         self.counts = np.array([len(o.pixels) for o in obs])
         self.segments = _segments(np.repeat(np.arange(self.n_pose), self.counts), cell)
         self.chunks = _chunks(self.segments)
@@ -296,7 +296,7 @@ class Problem:
         moments, and the per-pose blocks (see `normal_equations`); without `hessian` only
         the gradient columns of the cross moments (the rest stays zero). `out` (res, ok,
         weights): each block's residuals and ok mask are written there and its weights
-        wt computed from them (`residuals_and_gradient`)."""
+        wt computed from them (`residuals_and_normal_equations`)."""
         c, nc, npo, k = self.c, self.n_cells, self.n_pose, self.k
         mom = np.zeros((nc, 49, len(self.tri[0])))  # sum m49 * (g^T W g)[upper triangle]
         cross = np.zeros((npo, nc, 16, (k + 1) * c))  # sum m16 * xg (see `spline_terms`)
@@ -338,19 +338,19 @@ class Problem:
         mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
         return self.assemble(hpp, gpp, (mom, cross) if spline else None)
 
-    def residuals_and_gradient(
-        self, st: LMState, weights: Weights, spline: bool = True
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """`residuals` and, in the same pass, J^T W e with each block's weights computed from
-        its residuals by `weights(e, ok, inv_sigma)`: LM's candidate step that a chord step
-        may follow (one pass instead of a residual pass and a gradient pass, sgcc/lm.py)."""
+    def residuals_and_normal_equations(
+        self, st: LMState, weights: Weights, spline: bool = True, hessian: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`residuals` and, in the same pass, `normal_equations` (J^T W e alone unless
+        `hessian`) with each block's weights from its residuals, `weights(e, ok, inv_sigma)`:
+        one pass where LM needs both (sgcc/lm.py)."""
         n = len(self.s)
         res, ok, wt = np.empty((2, n)), np.empty(n, dtype=bool), np.empty(n)
         poly = self.polynomials(st.coeffs)
         parts = _over_chunks(self.chunks, lambda share: self._moments(
-            st, poly, wt, share, spline, hessian=False, out=(res, ok, weights)))
+            st, poly, wt, share, spline, hessian, out=(res, ok, weights)))
         mom, cross, hpp, gpp = (sum(p[k] for p in parts) for k in range(4))
-        return res, ok, self.assemble(hpp, gpp, (mom, cross) if spline else None)[1]
+        return res, ok, *self.assemble(hpp, gpp, (mom, cross) if spline else None)
 
     def assemble(
         self, hpp: np.ndarray, gpp: np.ndarray, moments: tuple[np.ndarray, np.ndarray] | None

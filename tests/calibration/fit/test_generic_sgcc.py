@@ -429,12 +429,12 @@ def test_normal_equations_equal_dense_jacobian_products(n_comp, chunk, monkeypat
                     jp[r, :, cell_start:cell_end].T
                 )
                 res[2 * sel + r] = e[r, cell_start:cell_end]
-    wrow = (wt[:, None] / prob.sigma.T**2).ravel()
+    wrow = (wt[:, None] * prob.inv_sigma.T**2).ravel()
     assert np.allclose(h, jac.T @ (wrow[:, None] * jac), rtol=1e-9, atol=1e-9 * np.abs(h).max())
     assert np.allclose(grad, jac.T @ (wrow * res), rtol=1e-9, atol=1e-9 * np.abs(grad).max())
     _, grad_only = prob.normal_equations(st, wt, hessian=False)  # the LM's chord steps
     assert np.allclose(grad_only, grad, rtol=1e-12, atol=1e-12 * np.abs(grad).max())
-    # The candidate pass: residuals and the gradient with weights from those residuals.
+    # The fused pass: residuals and normal equations with weights from those residuals.
     from calibration.fit.sgcc.robust import block_weights, robust_terms, sigma_norm
 
     res_r, ok_r = prob.residuals(st)
@@ -442,9 +442,11 @@ def test_normal_equations_equal_dense_jacobian_products(n_comp, chunk, monkeypat
     for k, cut in (np.quantile(norms, [0.3, 0.8]), (1e9, 1e9)):  # Huber and cut, or neither
         _, wt_r, _ = robust_terms(norms, ok_r, k, cut)
         assert k == 1e9 or (np.mean(wt_r == 0) > 0.1 and np.mean((wt_r > 0) & (wt_r < 1)) > 0.3)
-        res_g, ok_g, grad_g = prob.residuals_and_gradient(st, block_weights(k, cut))
+        res_g, ok_g, h_g, grad_g = prob.residuals_and_normal_equations(
+            st, block_weights(k, cut), hessian=True)
         assert np.array_equal(ok_g, ok_r) and np.allclose(res_g, res_r, rtol=1e-13, atol=0)
-        _, grad_r = prob.normal_equations(st, wt_r, hessian=False)
+        h_r, grad_r = prob.normal_equations(st, wt_r)
+        assert np.allclose(h_g, h_r, rtol=1e-10, atol=1e-10 * np.abs(h_r).max())
         assert np.allclose(grad_g, grad_r, rtol=1e-10, atol=1e-10 * np.abs(grad_r).max())
 
 

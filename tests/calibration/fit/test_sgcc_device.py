@@ -62,12 +62,15 @@ def test_device_problem_equals_threaded_problem(maps, n_comp):
             h_d, grad_d = dev.normal_equations(st, wt, spline)
             _close(h_d, h)
             _close(grad_d, grad)
-            # LM's candidate pass: residuals and the gradient with their own robust weights
-            res_g, ok_g, grad_g = prob.residuals_and_gradient(st, block_weights(3.0, 8.0), spline)
-            res_dg, ok_dg, grad_dg = dev.residuals_and_gradient(st, block_weights(3.0, 8.0), spline)
-            np.testing.assert_array_equal(ok_dg, ok_g)
-            _close(res_dg, res_g)
-            _close(grad_dg, grad_g)
+            # LM's fused pass: residuals, then normal equations with their own robust weights
+            for hessian in (True, False):
+                fused = prob.residuals_and_normal_equations(st, block_weights(3.0, 8.0), spline,
+                                                            hessian)
+                fused_d = dev.residuals_and_normal_equations(st, block_weights(3.0, 8.0), spline,
+                                                             hessian)
+                np.testing.assert_array_equal(fused_d[1], fused[1])
+                for k in (0, 2, 3) if hessian else (0, 3):
+                    _close(fused_d[k], fused[k])
 
 
 def test_cupy_option_runs_the_device_path(maps, monkeypatch):
