@@ -231,8 +231,22 @@ def _nyquist(sums, r0, steps, j0, m, out) -> None:
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _explained(sums, r0, nrow, steps, j0, m, expl) -> None:
-    """expl[:m] = the part of sum v^2 one set's fit explains, as fit_set computes it."""
+    """expl[:m] = the part of sum v^2 one set's fit explains, as fit_set computes it (the
+    same additions in the same order: the photon-transfer line sees the same residuals)."""
     s0 = sums[r0, j0:j0 + m]
+    two = 2.0 / steps
+    if nrow == 7:  # one pass over the rows (residual mode, >= 8 steps: harmonics 2 and 3)
+        r1, r2, r3 = sums[r0 + 1, j0:j0 + m], sums[r0 + 2, j0:j0 + m], sums[r0 + 3, j0:j0 + m]
+        r4, r5, r6 = sums[r0 + 4, j0:j0 + m], sums[r0 + 5, j0:j0 + m], sums[r0 + 6, j0:j0 + m]
+        for j in range(m):
+            e = float(s0[j]) ** 2 / steps
+            e += float(r1[j]) ** 2 * two
+            e += float(r2[j]) ** 2 * two
+            e += float(r3[j]) ** 2 * two
+            e += float(r4[j]) ** 2 * two
+            e += float(r5[j]) ** 2 * two
+            expl[j] = e + float(r6[j]) ** 2 * two
+        return
     for j in range(m):
         expl[j] = float(s0[j]) ** 2 / steps
     for r in range(1, nrow):
