@@ -36,8 +36,9 @@ class PatternTables:
         self.sets = sets
         self.width = max(s.rows for s in sets)
         self.steps = max(s.layout.steps for s in sets)
-        self.index = np.full((len(sets), 1 << self.steps), -1, dtype=np.int64)
-        self.rows = np.zeros((0, self.row_size), dtype=np.float64)
+        # (index, rows) replaced as one tuple: a thread never pairs a new index with old rows
+        self._pair = (np.full((len(sets), 1 << self.steps), -1, dtype=np.int64),
+                      np.zeros((0, self.row_size), dtype=np.float64))
         self.basis = np.zeros((len(sets), self.steps, self.width))
         for k, s in enumerate(sets):
             b = _basis(s.layout.steps, s.harmonics)
@@ -53,12 +54,12 @@ class PatternTables:
     def tables(self, bits: np.ndarray, c0: int, n: int) -> tuple[np.ndarray, np.ndarray]:
         """(index, rows) covering every pattern of columns c0..c0+n of `bits` (built as
         needed; a consistent pair that later growth does not change)."""
-        index, rows = self.index, self.rows
-        if bits.shape[0] == 0 or not unknown_patterns(bits, c0, n, index, self.set_steps):
-            return index, rows
+        pair = self._pair
+        if bits.shape[0] == 0 or not unknown_patterns(bits, c0, n, pair[0], self.set_steps):
+            return pair
         with self._lock:
-            index, rows = self.index.copy(), [self.rows]
-            count = self.rows.shape[0]
+            index, rows = self._pair[0].copy(), [self._pair[1]]
+            count = rows[0].shape[0]
             f, t = self.width, self.steps
             for k, s in enumerate(self.sets):
                 every = (1 << s.layout.steps) - 1
@@ -79,9 +80,8 @@ class PatternTables:
                     index[k, mask] = count
                     rows.append(row[None])
                     count += 1
-            self.rows = np.concatenate(rows)
-            self.index = index
-            return self.index, self.rows
+            self._pair = (index, np.concatenate(rows))
+            return self._pair
 
 
 def pattern_tables(acc) -> PatternTables | None:

@@ -326,6 +326,28 @@ def test_compiled_decoder_matches_array_namespace_path(plan, monkeypatch, noise)
         assert_same_maps(got, ref)
 
 
+@pytest.mark.parametrize("noise", [None, 1.5])
+def test_compiled_decoder_fits_partly_clipped_pixels_itself(plan, monkeypatch, noise):
+    """Pixels with some steps clipped (every pixel of this stack) are fitted by the compiled
+    kernels (kernel_clipped.py), in the finish and in the noise estimate's first pass: the
+    array path is never asked for them."""
+    import calibration.decode.decoder as decoder_module
+    import calibration.decode.finish as finish_module
+    from calibration.decode.kernel_warm import warm_up
+
+    warm_up()
+    stack, x, y = render(plan, white=320.0, blur=1.5, seed=41)
+    assert ((stack >= 250).any(axis=0) & ~(stack >= 250).all(axis=0)).all()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("array path used")
+
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module.StreamingDecoder, "_finish_arrays", refuse)
+    monkeypatch.setattr(finish_module, "residual_arrays", refuse)
+    check_honest(decode_stack(plan, stack, noise=noise), x, y)
+
+
 def test_photon_transfer_with_constant_pixels_at_the_black_level():
     """Pixels reading one constant value (residual 0: a black level under the noise floor)
     used to put an infinite weight into the line fit (LinAlgError); their bin sits at the
