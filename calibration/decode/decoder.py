@@ -27,6 +27,7 @@ from calibration.decode.batch import (
     ready_frames,
     run_parallel,
 )
+from calibration.decode.dark_chunks import finish_dark_range
 from calibration.decode.finish import (
     chi2_tail,
     finish_range,
@@ -149,8 +150,7 @@ class StreamingDecoder:
     def add_frames(self, indices: list[int], stack: Any, rows: list[int] | None = None) -> None:
         """Fold several frames at once: `stack[rows[j]]` (default `stack[j]`) is plan frame
         `indices[j]`. The compiled path reads each frame once, in cache blocks: a live
-        decoder catching up on the frames stored since its last look (a frame store's
-        memory map and the new indices) pays one pass for all of them."""
+        decoder catching up on a frame store's new frames pays one pass for all of them."""
         if self._finished:
             raise DecodeError(f"frames {list(indices)[:10]}: the decoder has already finished")
         if self._compiled:
@@ -373,10 +373,10 @@ class StreamingDecoder:
     def _finish_chunk(self, chunk: ChunkSums, sl: slice, out: dict, planes: dict | None,
                       reason: np.ndarray) -> None:
         """Decode one flattened pixel range into `out` (or `planes`) and `reason`."""
-        if planes is not None:
-            finish_range(self, chunk, sl, planes, reason)
-        else:
+        if planes is None:
             reason[sl] = self._finish_arrays(chunk, sl, out=out)
+        elif not finish_dark_range(self, chunk, sl, planes, reason):  # a dark surround
+            finish_range(self, chunk, sl, planes, reason)
 
     def _finish_arrays(self, chunk: ChunkSums, sl: slice, out: dict | None = None,
                        planes: dict | None = None) -> np.ndarray:
