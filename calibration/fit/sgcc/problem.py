@@ -219,8 +219,8 @@ class Problem:
         self.k = 6 + self.n_screen  # per-pixel non-spline Jacobian columns (pose, screen)
         self.n = self.n_spline + 6 * self.n_pose + self.n_screen
         self.n_cells = grid.cells[0] * grid.cells[1]
-        self.inverse, self.s, self.t, self.screen, self.sigma, cell = _sorted(grid, obs)
-        self.inv_sigma = 1.0 / self.sigma
+        self.inverse, self.s, self.t, self.screen, sigma, cell = _sorted(grid, obs)
+        self.inv_sigma = np.divide(1.0, sigma, out=sigma)  # in place: one full-size array less
         self.counts = np.array([len(o.pixels) for o in obs])
         self.segments = _segments(np.repeat(np.arange(self.n_pose), self.counts), cell)
         self.chunks = _chunks(self.segments)

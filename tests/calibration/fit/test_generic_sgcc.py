@@ -429,7 +429,7 @@ def test_normal_equations_equal_dense_jacobian_products(n_comp, chunk, monkeypat
                     jp[r, :, cell_start:cell_end].T
                 )
                 res[2 * sel + r] = e[r, cell_start:cell_end]
-    wrow = (wt[:, None] / prob.sigma.T**2).ravel()
+    wrow = (wt[:, None] * prob.inv_sigma.T**2).ravel()
     assert np.allclose(h, jac.T @ (wrow[:, None] * jac), rtol=1e-9, atol=1e-9 * np.abs(h).max())
     assert np.allclose(grad, jac.T @ (wrow * res), rtol=1e-9, atol=1e-9 * np.abs(grad).max())
     _, grad_only = prob.normal_equations(st, wt, hessian=False)  # the LM's chord steps

@@ -86,7 +86,7 @@ def test_normal_equations_with_screen_equal_finite_difference_jacobian(n_comp: i
         plus = prob.residuals(_shifted(prob, st, i, eps))[0]
         minus = prob.residuals(_shifted(prob, st, i, -eps))[0]
         jac[:, i] = ((plus - minus) / (2 * eps)).T.ravel()
-    wrow = (wt[:, None] / prob.sigma.T**2).ravel()
+    wrow = (wt[:, None] * prob.inv_sigma.T**2).ravel()
     h, grad = prob.normal_equations(st, wt)
     want_h = jac.T @ (wrow[:, None] * jac)
     np.testing.assert_allclose(h, want_h, rtol=1e-5, atol=1e-6 * np.abs(want_h).max())
