@@ -94,8 +94,11 @@ def stream_decode_task(
                                options=opts)
     decoder.prepare()
     added = np.zeros(total, dtype=bool)
+    looks = 0
     while not added.all():
-        ctx.check_cancelled()
+        if looks % 16 == 0:  # (a worker process's cancel flag is a round trip to a manager)
+            ctx.check_cancelled()
+        looks += 1
         new = np.setdiff1d(store.stored(), np.flatnonzero(added), assume_unique=True)
         # stored frames of complete period groups, in one cache-blocked pass per look
         ready = decoder.ready_frames(new.tolist())
