@@ -17,7 +17,7 @@ from numba import njit
 from calibration.decode.kernel import P_MIN_CONTRAST, P_PERIOD_SNR
 from calibration.decode.kernel_clipped import clipped_block, clipped_residuals
 from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
-from calibration.decode.vecmath import atan2, log_inplace
+from calibration.decode.vecmath import atan2_f32, log_inplace
 
 _TWO_PI = 2.0 * math.pi
 DIRTY = 255  # reason code of pixels this kernel leaves to the array path
@@ -304,7 +304,7 @@ def _set_block(sums, r0, nrow, steps, period, amp, line, params, j0, m, own, exc
             snr_row[j] = mod / s_b if s_b > 0 else 0.0
         mod_row[j] = mod
     for j in range(m):
-        w = f32(atan2(-float(sa[j] * scale), float(sb[j] * scale))) * to_px
+        w = atan2_f32(-(sa[j] * scale), sb[j] * scale) * to_px  # (float32 lanes, as NumPy's)
         wrapped[j] = w + f32(period) if w < 0 else w
     log_inplace(lg[:m], lg_e[:m], lg_m[:m])
     x = 1.0 / (period * period)
