@@ -13,6 +13,7 @@ def warm_up() -> None:
     passes (a live capture does this while frames arrive, not after the last one)."""
     from calibration.decode.accumulate_kernel import NO_CLIP_HI, accumulate_block
     from calibration.decode.kernel import warm_up as warm_finish
+    from calibration.decode.kernel_clipped import unknown_patterns
     from calibration.decode.kernel_sums import finish_sums, residual_stats
 
     warm_finish()
@@ -32,6 +33,7 @@ def warm_up() -> None:
             planes = [np.zeros((2, n), dtype=dt) for dt in (np.float64, np.float32,
                                                              np.float32, np.float32)]
             tables = (np.full((1, 16), -1), np.zeros((0, 30)), np.zeros((1, 4, 3)))
+            unknown_patterns(bits, 0, n, tables[0], one * 4)
             finish_sums(sums, bits, squares, flats[0], flats[1], 0, i64(1), one * 3, one * 4,
                         np.array([0.0, 1, 0, 0, 0, 0.1, 0]), np.zeros(1), np.ones(2),
                         np.full(2, np.inf), i64(1), np.ones(1), np.ones(1), np.full(2, np.inf),
