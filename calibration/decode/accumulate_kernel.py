@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from calibration.decode.kernel_cache import drop_stale_kernels
+
 BLOCK = 512  # pixels per cache block: rows x BLOCK x 4 bytes stays in L2
 
 NO_CLIP_LO, NO_CLIP_HI = -3.0e38, 3.0e38
@@ -95,3 +97,6 @@ def accumulate_block(
                 for j in range(m):
                     dst[j] += w * buf[j]
     vmax[0] = top
+
+
+drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources

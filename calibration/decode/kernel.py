@@ -14,6 +14,8 @@ import math
 import numpy as np
 from numba import njit
 
+from calibration.decode.kernel_cache import drop_stale_kernels
+
 # Gaussian-mass cut-off and merge distance of unwrap.py, duplicated as compile-time constants.
 _FAR_SIGMA = 8.5
 _MERGE_SIGMA = 2.0
@@ -219,3 +221,6 @@ def warm_up() -> None:
                   np.zeros(1, dtype=np.int64), np.ones(1), np.ones(1), np.ones(1),
                   np.full(2, np.inf), np.ones(2), np.ones(7), *planes,
                   np.zeros(1, dtype=np.uint8))
+
+
+drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources

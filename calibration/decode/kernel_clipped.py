@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from calibration.decode.kernel import P_MIN_CONTRAST, decode_pixel
+from calibration.decode.kernel_cache import drop_stale_kernels
 from calibration.decode.phase import _basis, _normal_inverse
 from calibration.decode.vecmath import atan2
 
@@ -334,3 +335,6 @@ def clipped_block(m, dirty, dead, sums, bits, squares, bright, dark, j0, row0, n
                 basis, mode, line, floor, tail, leak, flats, set_axis, periods, amps,
                 chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out, o0 + j, fit,
                 p, alpha, beta, wrapped, var, c_aa, c_bb, c_ab, ok)
+
+
+drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources

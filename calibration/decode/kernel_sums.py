@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit
 
 from calibration.decode.kernel import P_MIN_CONTRAST, P_PERIOD_SNR
+from calibration.decode.kernel_cache import drop_stale_kernels
 from calibration.decode.kernel_clipped import clipped_block, clipped_residuals
 from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
 from calibration.decode.vecmath import atan2_f32, log_inplace
@@ -342,3 +343,6 @@ def _blur_fit(blur, m) -> None:
         fitted = blur[5, j] >= 2 and det > 0
         slope = -((sw * sxy - sx * sy) / (det if fitted else 1.0)) / (2.0 * math.pi**2)
         blur[0, j] = math.sqrt(max(slope, 0.0)) if fitted else np.nan
+
+
+drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources

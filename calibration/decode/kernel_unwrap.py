@@ -22,6 +22,7 @@ from calibration.decode.kernel import (
     _coarsest,
     _fuse,
 )
+from calibration.decode.kernel_cache import drop_stale_kernels
 
 # rows of the `state` scratch: posterior mean and variance, chi-square, fused periods,
 # ambiguity, the next mean and variance, and a per-pixel flag
@@ -121,3 +122,6 @@ def _fuse_block(m, cw, sg, us, period, state) -> None:
     for j in range(m):
         mu[j] = mu2[j]
         var[j] = var2[j]
+
+
+drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources

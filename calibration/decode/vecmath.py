@@ -9,6 +9,8 @@ import math
 import numpy as np
 from numba import njit
 
+from calibration.decode.kernel_cache import drop_stale_kernels
+
 _TAN_PI_8 = math.tan(math.pi / 8)
 _LN2 = math.log(2.0)
 _SQRT2 = math.sqrt(2.0)
@@ -101,3 +103,6 @@ def atan2_f32(y, x):
     r = _PI_2_32 - r if ay > ax else r
     r = _PI_32 - r if x < _F32(0.0) else r
     return -r if y < _F32(0.0) else r
+
+
+drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources
