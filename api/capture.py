@@ -10,6 +10,7 @@ when resumed.
 
 from __future__ import annotations
 
+import json
 import queue
 import re
 import threading
@@ -20,12 +21,26 @@ from typing import Any
 import numpy as np
 
 from acquisition.rig import Rig
+from calibration.atomic import write_json_atomic
 from calibration.decode.frame_store import FrameStore
 from calibration.plan import Plan
 from calibration.progress import TaskContext
 
 FRAME_RE = re.compile(r"^frame_(\d{4,6})\.(png|tif|tiff)$")
 LEGACY_FRAMES = "frames"  # folder of PNG frames written before the frame store
+VERDICT = "integrity.json"  # a flagged capture's integrity verdict, kept with its frames
+
+
+def stored_verdict(pose_dir: Path) -> str | None:
+    """The reason a capture of this pose's frames was flagged, or None: the integrity check
+    cannot be repeated once the pose is over, so a resume that only decodes the stored frames
+    again (e.g. after maps lost in a power cut) must keep the verdict."""
+    try:
+        return str(json.loads((pose_dir / VERDICT).read_text())["flagged"])
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError) as exc:  # flagged stays flagged
+        return f"integrity verdict in {VERDICT} unreadable ({exc})"
 
 
 def _legacy_indices(folder: Path) -> set[int]:
@@ -136,7 +151,8 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
     ctx.progress(have, total, "capture")
     missing = [i for i in range(total) if i not in sink.have]
     if not missing:
-        return {"captured": 0, "resumed_from": have}
+        verdict = stored_verdict(pose_dir)
+        return {"captured": 0, "resumed_from": have, **({"flagged": verdict} if verdict else {})}
     t0 = time.perf_counter()
     try:
         result = capture_pose(rig, plan, sink, indices=missing, progress=None,
@@ -161,6 +177,9 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
     if left:
         raise RuntimeError(f"capture ended with {len(left)} plan frames missing (first {left[0]})")
     out: dict[str, Any] = {"captured": len(missing), "resumed_from": have, **timing}
-    if status == "flagged":
-        out["flagged"] = result.reason
+    if status == "flagged":  # durable before the pose is (the maps' commit fsyncs the folder)
+        write_json_atomic(pose_dir / VERDICT, {"flagged": result.reason})
+    verdict = stored_verdict(pose_dir)  # (frames of an earlier, flagged run stay flagged)
+    if verdict:
+        out["flagged"] = verdict
     return out

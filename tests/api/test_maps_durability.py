@@ -9,6 +9,7 @@ resuming it decodes its durable frames again into the same maps.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -105,3 +106,43 @@ def test_maps_lost_before_durable_are_not_trusted_and_redecoded(
     assert not (pose_dir / PENDING).exists()
     for name in ("x", "y", "sigma_x", "sigma_y", "mask"):
         np.testing.assert_array_equal(getattr(again, name), getattr(before, name))
+
+
+def test_a_flagged_pose_stays_flagged_when_its_lost_maps_are_decoded_again(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The integrity check cannot be repeated after the pose; its verdict is kept with the
+    frames, so resuming a flagged pose whose maps were lost gives a flagged pose again."""
+    import acquisition.controller as controller
+    from api.capture import VERDICT
+
+    real = controller.capture_pose
+
+    def moved(*args, **kwargs):  # the check of this capture found the screen moved
+        return dataclasses.replace(real(*args, **kwargs), status="flagged",
+                                   reason="camera or screen moved")
+
+    monkeypatch.setattr(controller, "capture_pose", moved)
+    data = tmp_path / "data"
+    with TestClient(_app(data)) as c:
+        rig = c.post("/rigs", json={"name": "small", "config": small_rig()}).json()
+        sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
+        job = c.post(f"/sessions/{sess['id']}/poses",
+                     json={"screen_pose": screen_poses(1, 3)[0]}).json()
+        final = _wait_done(c, job["id"])
+        assert final["status"] == "succeeded", final["error"]
+        assert c.get(final["resource"]).json()["status"] == "flagged"
+        maps = c.get(f"{final['resource']}/maps.npz").content
+        c.app.state.services.maps_sync.drain()
+    monkeypatch.setattr(controller, "capture_pose", real)  # a resume captures nothing anyway
+    pose_dir = _crash_state(data, final["resource"], "truncated", maps)
+    assert (pose_dir / VERDICT).is_file()
+    with TestClient(_app(data)) as c:
+        assert c.get(final["resource"]).json()["status"] == "interrupted"
+        job = c.post(f"{final['resource']}/resume").json()
+        done = _wait_done(c, job["id"])
+        assert done["status"] == "succeeded", done["error"]
+        assert done["result"]["capture"]["captured"] == 0
+        pose = c.get(final["resource"]).json()
+        assert pose["status"] == "flagged"
+        assert pose["error"] == "integrity check: camera or screen moved"
+        c.app.state.services.maps_sync.drain()
