@@ -25,20 +25,12 @@ from pathlib import Path
 from sqlalchemy import select
 
 from api.db import Database, PoseRecord
+from calibration.atomic import fsync_path
 
 PENDING = "maps.pending"
 MAPS = "maps.npz"
 _REQUIRED = ("x", "y", "sigma_x", "sigma_y", "mask", "modulation_x", "modulation_y", "meta")
 log = logging.getLogger(__name__)
-
-
-def fsync_path(path: Path) -> None:
-    """fsync a file or a folder (a folder: its entries, i.e. creations and renames)."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def mark_pending(pose_dir: Path) -> None:

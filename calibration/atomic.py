@@ -27,6 +27,19 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def fsync_path(path: str | Path) -> None:
+    """fsync a file, or a folder (its entries: creations and renames); a folder is skipped
+    where folders cannot be opened (not POSIX)."""
+    p = Path(path)
+    if os.name != "posix" and p.is_dir():
+        return
+    fd = os.open(p, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 @contextmanager
 def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
     """A binary file to write `path` through: flushed, fsynced and renamed over `path` when

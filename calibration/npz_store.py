@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.atomic import atomic_path
+from calibration.atomic import atomic_path, fsync_path
 
 _SYNC_FILE_RANGE_WRITE = 2  # <fcntl.h>: start writeback of the range's dirty pages, no wait
 _LIMIT = zipfile.ZIP64_LIMIT  # fields above this go in zip64 extras (as zipfile does)
@@ -124,17 +124,6 @@ def _pwrite_all(fd: int, data: memoryview | bytes, offset: int) -> None:
         view, offset = view[n:], offset + n
 
 
-def _fsync_folder(folder: Path) -> None:
-    """Make a rename in `folder` durable (POSIX; folders cannot be opened on Windows)."""
-    if os.name != "posix":
-        return
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
                      timings: dict[str, float] | None = None, *, durable: bool = True) -> None:
     """Write `arrays` to `path` as an uncompressed NPZ (np.load reads it), atomically and (with
@@ -168,6 +157,6 @@ def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
         finally:
             os.close(fd)
     if durable:
-        _fsync_folder(target.resolve().parent)
+        fsync_path(target.resolve().parent)  # the rename
     if timings is not None:
         timings["write"], timings["fsync"] = t1 - t0, time.perf_counter() - t1

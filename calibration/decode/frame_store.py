@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration.atomic import fsync_path
 from calibration.decode.accumulate import ACCEPTED_DTYPES, DecodeError
 
 FRAMES_NAME = "frames.npy"
@@ -143,11 +144,7 @@ class FrameStore:
                 return
             self._dirty = False
         for path in (self.frames_path, self.done_path):
-            fd = os.open(path, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            fsync_path(path)
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.flush_interval_s):
