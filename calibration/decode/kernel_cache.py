@@ -14,17 +14,17 @@ import hashlib
 from pathlib import Path
 from typing import Any
 
-# Every file whose code is compiled into a cached kernel (directly or inlined).
-KERNEL_SOURCES = ("accumulate_kernel.py", "kernel.py", "kernel_clipped.py", "kernel_sums.py",
-                  "kernel_unwrap.py", "vecmath.py")
-
 
 @functools.lru_cache(maxsize=1)
 def sources_digest(folder: Path = Path(__file__).parent) -> str:
-    """SHA-1 over the names and contents of the kernel sources."""
+    """SHA-1 over the names and contents of the package's kernel sources: every module that
+    defines a numba kernel (whatever a kernel inlines is one of them), so a new kernel file
+    needs no list kept by hand."""
     digest = hashlib.sha1()
-    for name in KERNEL_SOURCES:
-        digest.update(name.encode() + b"\0" + (folder / name).read_bytes())
+    for path in sorted(folder.glob("*.py")):
+        text = path.read_bytes()
+        if b"@njit" in text:
+            digest.update(path.name.encode() + b"\0" + text)
     return digest.hexdigest()
 
 
