@@ -3,7 +3,6 @@ that leaves the previous maps file untouched (one-line error, exit 1)."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +15,7 @@ from api.cli import main as cli_main
 from calibration.decode import read_frames
 from calibration.maps import load_maps
 from calibration.plan import Plan, write_plan
+from tests.calibration.test_npz_store import disk_full_on_write
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -66,15 +66,7 @@ def test_failed_write_keeps_previous_maps(plan, tmp_path, monkeypatch, capsys):
     np.save(tmp_path / "frames.npy", _stack(plan))
     out = tmp_path / "maps.npz"
     out.write_bytes(b"previous maps")
-    real_pwrite, count = os.pwrite, [0]
-
-    def pwrite(fd, data, offset):
-        count[0] += 1
-        if count[0] == 3:
-            raise OSError(28, "No space left on device")
-        return real_pwrite(fd, data, offset)
-
-    monkeypatch.setattr(os, "pwrite", pwrite)
+    disk_full_on_write(monkeypatch, 3)
     assert cli_main(_args(tmp_path, tmp_path / "frames.npy", out)) == 1
     err = capsys.readouterr().err.strip()
     assert "maps.npz" in err and "No space left" in err and "\n" not in err

@@ -38,17 +38,23 @@ def _app(data: Path):
     return create_app(ServiceConfig(data_dir=data, executor="threads"))
 
 
+def _capture_one(c: TestClient) -> dict:
+    """Capture one pose on a small simulated rig; its finished job."""
+    rig = c.post("/rigs", json={"name": "small", "config": small_rig()}).json()
+    sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
+    job = c.post(f"/sessions/{sess['id']}/poses",
+                 json={"screen_pose": screen_poses(1, 3)[0]}).json()
+    final = _wait_done(c, job["id"])
+    assert final["status"] == "succeeded", final["error"]
+    return final
+
+
 @pytest.fixture(scope="module")
 def captured(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, bytes]:
     """A data folder with one captured, ready pose (server stopped): (data, pose url, maps)."""
     data = tmp_path_factory.mktemp("durable") / "data"
     with TestClient(_app(data)) as c:
-        rig = c.post("/rigs", json={"name": "small", "config": small_rig()}).json()
-        sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
-        job = c.post(f"/sessions/{sess['id']}/poses",
-                     json={"screen_pose": screen_poses(1, 3)[0]}).json()
-        final = _wait_done(c, job["id"])
-        assert final["status"] == "succeeded", final["error"]
+        final = _capture_one(c)
         pose = c.get(final["resource"]).json()
         assert pose["status"] == "ready"
         maps = c.get(f"{final['resource']}/maps.npz").content  # served at once after ready
@@ -124,12 +130,7 @@ def test_a_flagged_pose_stays_flagged_when_its_lost_maps_are_decoded_again(
     monkeypatch.setattr(controller, "capture_pose", moved)
     data = tmp_path / "data"
     with TestClient(_app(data)) as c:
-        rig = c.post("/rigs", json={"name": "small", "config": small_rig()}).json()
-        sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
-        job = c.post(f"/sessions/{sess['id']}/poses",
-                     json={"screen_pose": screen_poses(1, 3)[0]}).json()
-        final = _wait_done(c, job["id"])
-        assert final["status"] == "succeeded", final["error"]
+        final = _capture_one(c)
         assert c.get(final["resource"]).json()["status"] == "flagged"
         maps = c.get(f"{final['resource']}/maps.npz").content
         c.app.state.services.maps_sync.drain()

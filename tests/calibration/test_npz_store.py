@@ -19,6 +19,19 @@ from calibration.npz_store import write_npz_stored
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def disk_full_on_write(monkeypatch: pytest.MonkeyPatch, nth: int) -> None:
+    """Make the `nth` os.pwrite of this test fail as a full disk would (ENOSPC)."""
+    real_pwrite, count = os.pwrite, [0]
+
+    def pwrite(fd, data, offset):
+        count[0] += 1
+        if count[0] == nth:
+            raise OSError(28, "No space left on device")
+        return real_pwrite(fd, data, offset)
+
+    monkeypatch.setattr(os, "pwrite", pwrite)
+
+
 def _arrays(n: int = 64) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(1)
     return {
@@ -84,15 +97,7 @@ def test_failure_mid_write_leaves_the_old_file_and_no_temp(tmp_path, monkeypatch
     content, the temporary file is removed, the error reaches the caller."""
     dest = tmp_path / "maps.npz"
     dest.write_bytes(b"old maps")
-    real_pwrite, count = os.pwrite, [0]
-
-    def pwrite(fd, data, offset):
-        count[0] += 1
-        if count[0] == 4:
-            raise OSError(28, "No space left on device")
-        return real_pwrite(fd, data, offset)
-
-    monkeypatch.setattr(os, "pwrite", pwrite)
+    disk_full_on_write(monkeypatch, 4)
     with pytest.raises(OSError, match="No space left"):
         write_npz_stored(dest, _arrays())
     assert dest.read_bytes() == b"old maps"
