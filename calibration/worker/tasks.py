@@ -121,6 +121,7 @@ def stream_decode_task(
         ctx.progress(total, total, "unwrap")
         c0 = time.process_time()
         maps = decoder.finish(dict(meta or {}), into=out.outputs())
+        decoder.release()  # its sums, zeroed again, serve this worker's next pose
         t1, c1 = time.perf_counter(), time.process_time()
         out.commit(maps, durable=durable)  # durable=False: page cache, fsync by the caller
     return {**_summary(maps, t0), "caught_up_at": caught_up_at,
