@@ -22,18 +22,20 @@ def decode_frames(
     saturation_dn: float | None = None, options: DecodeOptions | None = None,
     meta: dict[str, Any] | None = None, progress: ProgressFn | None = None,
     cancelled: CancelCheck | None = None, prepare: bool = False,
+    into: dict[str, Any] | None = None,
 ) -> DecodedMaps:
     """Decode a `.npy` stack or folder of frame images (plan order) to maps.
 
     `noise`: per-frame camera noise sigma in DN, a noise model, or None to estimate it;
-    `prepare`: load the compiled finish kernel first (worth it in long-lived workers)."""
+    `prepare`: load the compiled finish kernel first (worth it in long-lived workers);
+    `into`: the arrays to decode into (`calibration.maps_file.MapsFile.outputs`)."""
     source = read_frames(frames_path)
     if source.count != len(plan.frames):
         raise DecodeError(f"{frames_path}: {source.count} frames, but the plan has "
                           f"{len(plan.frames)} (frame i must show plan frame i)")
     return decode_stack(plan, source, noise=noise, saturation_dn=saturation_dn,
                         options=options, meta=meta, progress=progress, cancelled=cancelled,
-                        prepare=prepare)
+                        prepare=prepare, into=into)
 
 
 def calibrate_files(

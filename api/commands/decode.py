@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import Any
 
 HELP = "decode captured frames (FRAMES.npy or a folder of frame_NNNN.png/.tif) into maps.npz"
 
@@ -50,11 +51,50 @@ class _Stages:
                 f"CPU {time.process_time() - self._cpu0:.3f} s")
 
 
+def _laid_out(args: argparse.Namespace) -> Any:
+    """For one `.npy` stack: the output `MapsFile`, laid out from the stack's header and the
+    plan's axes before the decoder's imports, its pages faulted in meanwhile by a thread at
+    idle priority (on the core the single-threaded imports leave free); the decoder then
+    writes into it. None otherwise, or where the inputs are bad (the decode says why)."""
+    import numpy as np
+
+    from calibration.maps_file import MapsFile
+    from calibration.plan import read_plan
+
+    if not str(args.frames).endswith(".npy"):
+        return None
+    try:
+        shape = np.load(args.frames, mmap_mode="r").shape
+        axes = read_plan(args.plan).axes()
+    except (OSError, ValueError, EOFError):
+        return None
+    if len(shape) != 3 or min(shape) < 1:
+        return None
+    try:
+        out = MapsFile(args.output, shape[1:], axes)
+    except OSError as exc:  # disk full, no such folder: the previous file stays as it was
+        from api.cli import UserError
+
+        raise UserError(f"{args.output}: cannot write the maps ({exc})") from None
+    out.prefault_idle()
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from calibration.readahead import prefetch
 
     stages = _Stages()
     prefetch(args.frames)  # a cold stack streams in while NumPy and the kernels load
+    out = _laid_out(args)
+    try:
+        return _decode(args, stages, out)
+    finally:
+        if out is not None:
+            out.close()
+
+
+def _decode(args: argparse.Namespace, stages: _Stages, out: Any) -> int:
+    """Decode and write the maps (into `out` when laid out), then print the summary."""
     from dataclasses import replace
 
     import numpy as np
@@ -74,14 +114,23 @@ def run(args: argparse.Namespace) -> int:
     if args.max_sigma_px is not None:
         options = replace(options, max_sigma_px=args.max_sigma_px)
     stages.lap("plan")
+    written: dict[str, float] = {}
+    try:
+        if out is not None:
+            out.stop_prefault()  # what is left, the decoder's threads fault in
+    except OSError as exc:
+        raise UserError(f"{args.output}: cannot write the maps ({exc})") from None
     with progress_bar("decode") as update:
         maps = decode_frames(plan, args.frames, noise=args.noise_dn,
                              saturation_dn=args.saturation_dn, options=options,
-                             meta={"frames": str(args.frames)}, progress=update)
+                             meta={"frames": str(args.frames)}, progress=update,
+                             into=None if out is None else out.outputs())
     stages.lap("read+decode")
-    written: dict[str, float] = {}
     try:
-        save_maps(maps, args.output, timings=written)
+        if out is None:
+            save_maps(maps, args.output, timings=written)
+        else:
+            out.commit(maps, timings=written)
     except OSError as exc:  # disk full, no permission: the previous file stays as it was
         raise UserError(f"{args.output}: cannot write the maps ({exc})") from None
     stages.lap("save")

@@ -36,12 +36,14 @@ def decode_stack(
     xp: ModuleType | str | None = np,
     meta: dict[str, Any] | None = None, progress: ProgressFn | None = None,
     cancelled: CancelCheck | None = None, prepare: bool = False,
+    into: dict[str, np.ndarray] | None = None,
 ) -> DecodedMaps:
     """The one decode loop: frames in plan order (an (F, H, W) stack, a `FrameSource` or any
     sized iterable of 2-D frames) to maps; progress per frame, `Cancelled` between frames.
 
     A whole NumPy stack of >= 2 Mpixel frames (or >= 1 Mpixel with `prepare`) is decoded
-    range by range with the compiled kernels (`StreamingDecoder.finish_stack`)."""
+    range by range with the compiled kernels (`StreamingDecoder.finish_stack`). `into`: the
+    arrays to decode into (`StreamingDecoder.finish`)."""
     count = len(frames)
     if count != len(plan.frames):
         raise DecodeError(f"frames: {count} frames given, the plan has {len(plan.frames)} "
@@ -63,7 +65,7 @@ def decode_stack(
                     progress(round(fraction * count), count, "decode")
 
             step(0.0)
-            maps = dec.finish_stack(whole, meta, step)
+            maps = dec.finish_stack(whole, meta, step, into)
             if progress is not None:
                 progress(count, count, "unwrap")
             return maps
@@ -85,4 +87,4 @@ def decode_stack(
     assert dec is not None  # count == len(plan.frames) > 0
     if progress is not None:
         progress(count, count, "unwrap")
-    return dec.finish(meta)
+    return dec.finish(meta, into)

@@ -3,6 +3,7 @@ that leaves the previous maps file untouched (one-line error, exit 1)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -61,12 +62,46 @@ def test_timings_line_and_maps_written(plan, tmp_path):
     assert "pixels valid" in run.stdout
 
 
-def test_failed_write_keeps_previous_maps(plan, tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("compiled", [False, True])
+def test_npy_stack_decoded_into_the_laid_out_file(plan, tmp_path, monkeypatch, compiled):
+    """A `.npy` stack is decoded straight into the maps file laid out before the decoder's
+    imports: every member equal to the library's decode written by `save_maps`."""
+    import calibration.decode.decoder as decoder_module
+    from calibration.decode import decode_stack
+    from calibration.maps import save_maps
+    from tests.calibration.test_maps_file import _same_npz
+
+    if compiled:  # (the compiled whole-stack path of large images)
+        monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(decoder_module, "_ALWAYS_COMPILED_PIXELS", 0)
+    write_plan(plan, tmp_path / "plan.json")
+    stack = _stack(plan)
+    np.save(tmp_path / "frames.npy", stack)
+    assert cli_main(_args(tmp_path, tmp_path / "frames.npy", tmp_path / "maps.npz")) == 0
+    ref = decode_stack(plan, stack, noise=1.0, meta={"frames": str(tmp_path / "frames.npy")})
+    save_maps(ref, tmp_path / "ref.npz")
+    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.npy", "maps.npz", "plan.json",
+                                                          "ref.npz"]
+
+
+def _full_at_reserve(monkeypatch: pytest.MonkeyPatch) -> None:
+    def full(fd, offset, length):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full, raising=False)
+
+
+@pytest.mark.parametrize("full", [lambda mp: disk_full_on_write(mp, 1), _full_at_reserve],
+                         ids=["at the last write", "when the maps file is laid out"])
+def test_failed_write_keeps_previous_maps(plan, tmp_path, monkeypatch, capsys, full):
+    """A `.npy` stack's maps file is laid out before the decode (`MapsFile`): a full disk
+    when its space is reserved or when its directory is written keeps the previous maps."""
     write_plan(plan, tmp_path / "plan.json")
     np.save(tmp_path / "frames.npy", _stack(plan))
     out = tmp_path / "maps.npz"
     out.write_bytes(b"previous maps")
-    disk_full_on_write(monkeypatch, 3)
+    full(monkeypatch)
     assert cli_main(_args(tmp_path, tmp_path / "frames.npy", out)) == 1
     err = capsys.readouterr().err.strip()
     assert "maps.npz" in err and "No space left" in err and "\n" not in err
