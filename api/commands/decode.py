@@ -53,9 +53,9 @@ class _Stages:
 
 def _laid_out(args: argparse.Namespace) -> Any:
     """For one `.npy` stack: the output `MapsFile`, laid out from the stack's header and the
-    plan's axes before the decoder's imports, its pages faulted in meanwhile by a thread at
-    idle priority (on the core the single-threaded imports leave free); the decoder then
-    writes into it. None otherwise, or where the inputs are bad (the decode says why)."""
+    plan's axes before the decoder's imports (its pages are then faulted in by a thread at
+    idle priority, on the core the single-threaded imports leave free); the decoder writes
+    into it. None otherwise, or where the inputs are bad (the decode says why)."""
     import numpy as np
 
     from calibration.maps_file import MapsFile
@@ -76,7 +76,6 @@ def _laid_out(args: argparse.Namespace) -> Any:
         from api.cli import UserError
 
         raise UserError(f"{args.output}: cannot write the maps ({exc})") from None
-    out.prefault_idle()
     return out
 
 
@@ -86,15 +85,17 @@ def run(args: argparse.Namespace) -> int:
     stages = _Stages()
     prefetch(args.frames)  # a cold stack streams in while NumPy and the kernels load
     out = _laid_out(args)
-    try:
-        return _decode(args, stages, out)
-    finally:
-        if out is not None:
-            out.close()
+    if out is None:
+        return _decode(args, stages, None, None)
+    from calibration.prefault import WRITE, IdlePrefault
+
+    with out, IdlePrefault([(out.mapped, WRITE)]) as ahead:
+        return _decode(args, stages, out, ahead)
 
 
-def _decode(args: argparse.Namespace, stages: _Stages, out: Any) -> int:
-    """Decode and write the maps (into `out` when laid out), then print the summary."""
+def _decode(args: argparse.Namespace, stages: _Stages, out: Any, ahead: Any) -> int:
+    """Decode and write the maps (into `out` when laid out, its pages faulted in `ahead`),
+    then print the summary."""
     from dataclasses import replace
 
     import numpy as np
@@ -116,8 +117,8 @@ def _decode(args: argparse.Namespace, stages: _Stages, out: Any) -> int:
     stages.lap("plan")
     written: dict[str, float] = {}
     try:
-        if out is not None:
-            out.stop_prefault()  # what is left, the decoder's threads fault in
+        if ahead is not None:
+            ahead.stop()  # what is left, the decoder's threads fault in
     except OSError as exc:
         raise UserError(f"{args.output}: cannot write the maps ({exc})") from None
     with progress_bar("decode") as update:

@@ -80,12 +80,13 @@ def stream_decode_task(
     laid out before the first frame and the decoder writes into it (`MapsFile`); its pages
     are faulted in at idle priority while frames arrive. `durable=False` writes the maps without
     fsync (the caller makes them durable after the pose is ready). Timings (wall, and CPU
-    seconds of this process: all its threads) and the share of the maps file faulted in
-    before the last frame (`prefaulted`) in the summary."""
+    seconds of this process: all its threads) and the share of the frames' and the maps
+    file's pages faulted in ahead by the last frame (`prefaulted`) in the summary."""
     from calibration.decode import StreamingDecoder
     from calibration.decode.frame_store import FrameStore
     from calibration.maps_file import MapsFile
     from calibration.plan import read_plan
+    from calibration.prefault import READ, WRITE, IdlePrefault
 
     plan = read_plan(plan_path)
     opts, saturation = _decoder_setup(options)
@@ -93,15 +94,17 @@ def stream_decode_task(
     store = FrameStore(store_dir, total)
     store.wait_open(ctx.cancelled)
     ctx.check_cancelled()
-    decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
-                               options=opts)
-    decoder.prepare()
     added = np.zeros(total, dtype=bool)
     looks = 0
-    # the maps file, laid out now: the decoder writes into its pages, faulted in meanwhile
-    # by a thread at idle priority (first-touch page faults: ~0.5 CPU s for a 5 MP pose)
-    with MapsFile(out_path, store.shape, plan.axes()) as out:
-        out.prefault_idle()
+    # the maps file, laid out now: the decoder writes into its pages. First-touch page faults
+    # (~0.4 + 0.5 CPU s for a 5 MP pose on a VM) at idle priority while frames arrive: the
+    # frames' pages the capture is about to write (so the server's copies are cheap), then
+    # the maps file's.
+    with MapsFile(out_path, store.shape, plan.axes()) as out, IdlePrefault(
+            [(store.array().reshape(-1).view(np.uint8), READ), (out.mapped, WRITE)]) as ahead:
+        decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
+                                   options=opts)
+        decoder.prepare()
         while not added.all():
             if looks % 16 == 0:  # (a worker process's cancel flag is a round trip to a manager)
                 ctx.check_cancelled()
@@ -116,8 +119,8 @@ def stream_decode_task(
             added[ready] = True
         caught_up_at = time.time()  # wall clock: the capture side reports its last frame's
         t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
-        out.stop_prefault()  # the decoder faults in what is left, if anything
-        prefaulted = out.prefaulted / out.nbytes
+        ahead.stop()  # the decoder faults in what is left, if anything
+        prefaulted = ahead.done / ahead.total
         ctx.progress(total, total, "unwrap")
         c0 = time.process_time()
         maps = decoder.finish(dict(meta or {}), into=out.outputs())

@@ -19,12 +19,13 @@ import pytest
 
 import calibration.decode.decoder as decoder_module
 from acquisition.patterns import build_plan
-from calibration import maps_file
+from calibration import prefault
 from calibration.decode import DecodeError, StreamingDecoder
 from calibration.decode.frame_store import FrameStore
 from calibration.maps import load_maps, save_maps
 from calibration.maps_file import MapsFile
 from calibration.plan import write_plan
+from calibration.prefault import READ, WRITE, IdlePrefault, populate
 from calibration.progress import Cancelled, TaskContext
 from calibration.worker.tasks import stream_decode_task
 from tests.calibration.decode.test_decode import H, W, render
@@ -87,9 +88,7 @@ def test_decoder_writes_into_the_file_with_the_normal_paths_arrays(plan, stack, 
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0 if compiled else 1 << 40)
     save_maps(_decoder(plan, stack).finish(dict(META)), tmp_path / "ref.npz")
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        while out.prefault(1 << 16):
-            pass
-        assert out.prefaulted == out.nbytes
+        populate(out.mapped, 0, out.mapped.nbytes, WRITE)
         maps = _decoder(plan, stack).finish(dict(META), into=out.outputs())
         out.commit(maps)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["maps.npz", "ref.npz"]
@@ -103,13 +102,13 @@ def test_decoder_writes_into_the_file_with_the_normal_paths_arrays(plan, stack, 
 
 def test_maps_not_decoded_into_the_file_are_copied_in(plan, stack, tmp_path, monkeypatch):
     """Arrays from elsewhere (a decoder given no outputs) are copied; the pages are touched
-    one by one where MADV_POPULATE_WRITE is unknown (an older kernel)."""
-    monkeypatch.setattr(maps_file, "_POPULATE_WRITE", 12345)  # EINVAL: no such advice
+    one by one where madvise cannot (no libc, an older kernel)."""
+    monkeypatch.setattr(prefault, "_libc_madvise", lambda: None)
     maps = _decoder(plan, stack).finish(dict(META))
     save_maps(maps, tmp_path / "ref.npz")
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        while out.prefault(3 << 12):
-            pass
+        with IdlePrefault([(out.mapped, WRITE)], piece=3 << 12) as ahead:
+            _wait_for(ahead)
         out.commit(maps)
     _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
     assert maps.x.flags.writeable  # the caller's own arrays are untouched
@@ -128,7 +127,7 @@ def test_failed_decode_leaves_nothing(plan, tmp_path):
     dark = np.zeros((len(plan.frames), H, W), np.uint8)
     with pytest.raises(DecodeError, match="no pixel sees the screen"):
         with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-            out.prefault(1 << 20)
+            populate(out.mapped, 0, 1 << 20, WRITE)
             _decoder(plan, dark).finish(into=out.outputs())
     assert list(tmp_path.iterdir()) == []
 
@@ -143,35 +142,48 @@ def test_full_disk_is_a_clear_error_before_any_decoding(plan, tmp_path, monkeypa
     assert list(tmp_path.iterdir()) == []
 
 
-def test_background_prefault_covers_the_file_and_reports_its_error(plan, tmp_path,
-                                                                   monkeypatch):
-    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        out.prefault_idle(piece=1 << 14)
-        for _ in range(2000):
-            if out.prefaulted == out.nbytes:
-                break
-            threading.Event().wait(0.005)
-        out.stop_prefault()
-        assert out.prefaulted == out.nbytes
-        assert not any(t.name == "maps-prefault" for t in threading.enumerate())
+def _wait_for(ahead: IdlePrefault) -> None:
+    for _ in range(4000):
+        if ahead.done == ahead.total:
+            return
+        threading.Event().wait(0.005)
 
-    def fails(mapped, start, length, advice):
-        raise OSError(14, "cannot fault in the maps file's pages (Bad address)")
 
-    monkeypatch.setattr(maps_file, "_populate", fails)
+@pytest.mark.parametrize("madvise", [True, False])
+def test_background_prefault_covers_the_regions_and_reports_its_error(plan, tmp_path,
+                                                                      monkeypatch, madvise):
+    if not madvise:  # each page touched instead (no libc, a kernel before 5.14)
+        monkeypatch.setattr(prefault, "_libc_madvise", lambda: None)
+    frames = tmp_path / "frames.bin"
+    frames.write_bytes(b"")
+    os.truncate(frames, 3 << 20)  # sparse, like a frame store not yet written
+    readonly = np.memmap(frames, mode="r", dtype=np.uint8)
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        out.prefault_idle()
+        with IdlePrefault([(readonly, READ), (out.mapped, WRITE)], piece=1 << 14) as ahead:
+            _wait_for(ahead)
+        assert ahead.done == ahead.total == (3 << 20) + out.mapped.nbytes
+        assert not any(t.name == "prefault" for t in threading.enumerate())
+        assert not readonly.any()  # contents unchanged
+    del readonly
+
+    def fails(view, start, length, advice):
+        raise OSError(14, "cannot fault in mapped pages (Bad address)")
+
+    monkeypatch.setattr(prefault, "populate", fails)
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
+        ahead = IdlePrefault([(out.mapped, WRITE)]).start()
         with pytest.raises(OSError, match="cannot fault in"):
-            out.stop_prefault()
-    assert list(tmp_path.iterdir()) == []
+            ahead.stop()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.bin"]
 
 
 def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
     script = textwrap.dedent(f"""
         import time
         from calibration.maps_file import MapsFile
+        from calibration.prefault import WRITE, populate
         out = MapsFile({str(tmp_path / "maps.npz")!r}, (64, 80), ["x", "y"])
-        out.prefault(1 << 20)
+        populate(out.mapped, 0, out.mapped.nbytes, WRITE)
         print("laid out", flush=True)
         time.sleep(30)
     """)
