@@ -24,8 +24,10 @@ the time from the last stored plan frame to the job's success as the client sees
 Per pose the server-side stages after the last frame are printed: `tail` (controller: the
 integrity repeats and check), `close` (the frame store's last copies and final fsync, in
 the server while the worker finishes), `lag` (decode worker catching up with the last frame),
-`finish` (decoder finish; `fin cpu` its CPU seconds, all worker threads), `write` (maps
-NPZ into the page cache; `wr cpu`), `commit` (durable mark, rename into the pose; the fsync
+`finish` (decoder finish; `fin cpu` its CPU seconds, all worker threads; the decoder writes
+into the maps file laid out before the first frame, `pf` the share of its pages faulted in
+while frames arrived), `write` (CRC-32s, headers, meta, rename of the maps NPZ in the page
+cache; `wr cpu`), `commit` (durable mark, rename into the pose; the fsync
 of the maps runs after the pose is ready, api/maps_durability.py);
 and the CPU seconds the pose cost the server process (`api cpu`: HTTP, job, controller,
 frame store) and its worker processes (`wkr cpu`: streaming decode, maps write).
@@ -159,6 +161,7 @@ def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -
                      "lag_s": dec["caught_up_at"] - last, "finish_s": dec["finish_s"],
                      "finish_cpu": dec["finish_cpu_s"], "write_cpu": dec["write_cpu_s"],
                      "write_s": dec["write_s"], "commit_s": dec["commit_s"],
+                     "prefaulted": dec["prefaulted"],
                      "server_ready_s": job["finished_at"] - last, "ready_s": seen - last,
                      "api_cpu": api1 - api0, "worker_cpu": workers1 - workers0,
                      "valid": dec["valid_pixels"], "load": load,
@@ -202,7 +205,8 @@ COLUMNS = [  # header, row key, width, format
     ("recap", "recaptures", 5, "d"), ("tail s", "tail_s", 6, ".2f"),
     ("close", "close_s", 5, ".2f"), ("lag s", "lag_s", 6, ".2f"),
     ("finish", "finish_s", 6, ".2f"), ("fin cpu", "finish_cpu", 7, ".2f"),
-    ("write", "write_s", 6, ".2f"), ("wr cpu", "write_cpu", 6, ".2f"),
+    ("pf", "prefaulted", 4, ".2f"), ("write", "write_s", 6, ".2f"),
+    ("wr cpu", "write_cpu", 6, ".2f"),
     ("commit", "commit_s", 6, ".3f"), ("S srv", "server_ready_s", 6, ".2f"),
     ("S", "ready_s", 6, ".2f"), ("api cpu", "api_cpu", 7, ".2f"),
     ("wkr cpu", "worker_cpu", 7, ".2f"), ("valid px", "valid", 9, "d"), ("load", "load", 5, ".1f")]

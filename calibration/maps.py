@@ -73,7 +73,7 @@ class DecodedMaps:
                 f"{source}: meta.format: expected {MAPS_FORMAT!r}, got {self.meta.get('format')!r}"
             )
 
-    def _arrays(self) -> dict[str, np.ndarray]:
+    def npz_arrays(self) -> dict[str, np.ndarray]:
         """The NPZ members (FORMATS.md layout); arrays already of the right dtype are not copied."""
         arrays: dict[str, np.ndarray] = {
             "x": np.asarray(self.x, dtype=np.float64),
@@ -97,10 +97,10 @@ class DecodedMaps:
         Stored members are written straight from the arrays' memory (np.savez copies each
         16 MiB chunk first: twice the CPU time on the 205 MB of a 5 Mpixel pose)."""
         if compress:
-            np.savez_compressed(fh, **self._arrays())
+            np.savez_compressed(fh, **self.npz_arrays())
             return
         with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
-            for name, arr in self._arrays().items():
+            for name, arr in self.npz_arrays().items():
                 if not arr.flags.c_contiguous:
                     arr = np.ascontiguousarray(arr)
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as out:
@@ -122,7 +122,7 @@ def save_maps(maps: DecodedMaps, path: str | Path, compress: bool = False, *,
     (stored only) receives the wall seconds of "write" and "fsync"; `durable=False` (stored
     only) skips the fsyncs, for callers that make the file durable later."""
     if not compress:
-        write_npz_stored(path, maps._arrays(), timings, durable=durable)
+        write_npz_stored(path, maps.npz_arrays(), timings, durable=durable)
         return
     with atomic_file(path) as fh:
         maps.write_npz(fh, compress)

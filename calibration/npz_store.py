@@ -27,49 +27,87 @@ _LIMIT = zipfile.ZIP64_LIMIT  # fields above this go in zip64 extras (as zipfile
 _SEEK_LOCK = threading.Lock()  # seek + write where there is no pwrite
 
 
+_ALIGN_ID = 0xD935  # extra-field record that pads a local header (zipalign's convention)
+
+
 @dataclass
 class _Member:
-    """One .npy member: its name, the .npy header, the array data and where it lands."""
+    """One .npy member: its name, the .npy header, the array data (None while only laid
+    out) and where it lands."""
 
     name: bytes
     npy_header: bytes
-    data: memoryview
+    nbytes: int  # of the array data
+    data: memoryview | None = None
     offset: int = 0  # of the local file header
     crc: int = 0
     stamp: tuple[int, int] = (0, 0x21)  # MS-DOS time and date (1980-01-01 00:00)
+    pad: int = 0  # bytes of the local header's alignment record (0: none)
 
     @property
     def size(self) -> int:
-        return len(self.npy_header) + self.data.nbytes
+        return len(self.npy_header) + self.nbytes
+
+    @property
+    def data_at(self) -> int:
+        """File offset of the array data (after the local and .npy headers)."""
+        return self.offset + len(_local_header(self)) + len(self.npy_header)
+
+
+def npy_header(shape: tuple[int, ...], dtype: np.dtype) -> bytes:
+    """The .npy (1.0) header of a C-order array: a multiple of 64 bytes, as NumPy writes it."""
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": np.lib.format.dtype_to_descr(dtype),
+                                                "fortran_order": False, "shape": shape})
+    return head.getvalue()
+
+
+def _member(key: str, arr: np.ndarray) -> _Member:
+    """`arr` as a .npy member (not laid out)."""
+    if arr.dtype.hasobject:
+        raise ValueError(f"{key}: object arrays cannot be stored without pickle")
+    if not arr.flags.c_contiguous:  # (np.ascontiguousarray would make 0-d arrays 1-d)
+        arr = np.ascontiguousarray(arr)
+    return _Member(f"{key}.npy".encode(), npy_header(arr.shape, arr.dtype), arr.nbytes,
+                   memoryview(arr.reshape(-1).view(np.uint8)))
+
+
+def lay_out(members: list[_Member], start: int = 0, align: int = 1) -> int:
+    """Place `members` one after another from `start`, each member's array data at a
+    multiple of `align` (padding in its local header's extra field); returns the end."""
+    t = time.localtime()
+    stamp = (t.tm_hour << 11 | t.tm_min << 5 | t.tm_sec // 2,
+             max(t.tm_year - 1980, 0) << 9 | t.tm_mon << 5 | t.tm_mday)
+    offset = start
+    for m in members:
+        m.offset, m.stamp, m.pad = offset, stamp, 0
+        pad = -m.data_at % align
+        m.pad = pad + align * (0 < pad < 6)  # a record needs 6 bytes (id, size, alignment)
+        offset = m.data_at + m.nbytes
+    return offset
 
 
 def _members(arrays: Mapping[str, np.ndarray]) -> list[_Member]:
     """The arrays as .npy members, laid out one after another from offset 0."""
-    members, offset = [], 0
-    t = time.localtime()
-    stamp = (t.tm_hour << 11 | t.tm_min << 5 | t.tm_sec // 2,
-             max(t.tm_year - 1980, 0) << 9 | t.tm_mon << 5 | t.tm_mday)
-    for key, arr in arrays.items():
-        if arr.dtype.hasobject:
-            raise ValueError(f"{key}: object arrays cannot be stored without pickle")
-        if not arr.flags.c_contiguous:  # (np.ascontiguousarray would make 0-d arrays 1-d)
-            arr = np.ascontiguousarray(arr)
-        head = io.BytesIO()
-        np.lib.format.write_array_header_1_0(head, np.lib.format.header_data_from_array_1_0(arr))
-        m = _Member(f"{key}.npy".encode(), head.getvalue(),
-                    memoryview(arr.reshape(-1).view(np.uint8)))
-        m.offset, m.stamp = offset, stamp
-        offset += len(_local_header(m)) + m.size
-        members.append(m)
+    members = [_member(key, arr) for key, arr in arrays.items()]
+    lay_out(members)
     return members
 
 
 def _local_header(m: _Member) -> bytes:
-    """The local file header (always with a zip64 size extra, like `force_zip64`)."""
+    """The local file header (always with a zip64 size extra, like `force_zip64`; then the
+    alignment record, if any)."""
     extra = struct.pack("<HHQQ", 1, 16, m.size, m.size)
+    if m.pad:
+        extra += struct.pack("<HHH", _ALIGN_ID, m.pad - 4, 0) + bytes(m.pad - 6)
     return struct.pack(zipfile.structFileHeader, zipfile.stringFileHeader,
                        zipfile.ZIP64_VERSION, 0, 0, 0, *m.stamp, m.crc,
                        0xFFFFFFFF, 0xFFFFFFFF, len(m.name), len(extra)) + m.name + extra
+
+
+def member_crc(m: _Member, data: memoryview | np.ndarray) -> int:
+    """CRC-32 of the member: .npy header, then `data` (zlib releases the GIL for it)."""
+    return zlib.crc32(data, zlib.crc32(m.npy_header))
 
 
 def _central_directory(members: list[_Member], start: int) -> bytes:
@@ -109,7 +147,7 @@ def _start_writeback() -> Callable[[int, int, int], None]:
     return lambda fd, offset, length: fn(fd, offset, length, _SYNC_FILE_RANGE_WRITE) and None
 
 
-def _pwrite_all(fd: int, data: memoryview | bytes, offset: int) -> None:
+def pwrite_all(fd: int, data: memoryview | bytes, offset: int) -> None:
     """Write every byte of `data` at `offset` (a write may be short); where the OS has no
     `pwrite` (Windows), seek and write under a lock."""
     view = memoryview(data)
@@ -138,19 +176,18 @@ def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         try:
             def write(m: _Member) -> None:
-                data_at = m.offset + len(_local_header(m))
-                _pwrite_all(fd, m.npy_header, data_at)
-                _pwrite_all(fd, m.data, data_at + len(m.npy_header))
-                m.crc = zlib.crc32(m.data, zlib.crc32(m.npy_header))  # releases the GIL
-                _pwrite_all(fd, _local_header(m), m.offset)
-                writeback(fd, m.offset, data_at + m.size - m.offset)
+                pwrite_all(fd, m.npy_header, m.data_at - len(m.npy_header))
+                pwrite_all(fd, m.data, m.data_at)
+                m.crc = member_crc(m, m.data)
+                pwrite_all(fd, _local_header(m), m.offset)
+                writeback(fd, m.offset, m.data_at + m.nbytes - m.offset)
 
             order = sorted(members, key=lambda m: -m.size)  # largest first: balanced threads
             with ThreadPoolExecutor(min(os.cpu_count() or 1, 4),
                                     thread_name_prefix="npz-write") as pool:
                 list(pool.map(write, order))
-            end = members[-1].offset + len(_local_header(members[-1])) + members[-1].size
-            _pwrite_all(fd, _central_directory(members, end), end)
+            end = members[-1].data_at + members[-1].nbytes
+            pwrite_all(fd, _central_directory(members, end), end)
             t1 = time.perf_counter()
             if durable:
                 os.fsync(fd)

@@ -7,7 +7,6 @@ validity rules (validity.py), chunk by chunk over the pixels to bound temporary 
 
 from __future__ import annotations
 
-import functools
 import math
 import sys
 from collections.abc import Callable
@@ -161,8 +160,10 @@ class StreamingDecoder:
             self._acc.add(index, stack[j if rows is None else rows[j]])
 
     # -- finishing ---------------------------------------------------------------------
-    def finish(self, meta: dict[str, Any] | None = None) -> DecodedMaps:
-        """Decode the accumulated frames into `DecodedMaps` (raises `DecodeError` if unusable)."""
+    def finish(self, meta: dict[str, Any] | None = None,
+               into: dict[str, np.ndarray] | None = None) -> DecodedMaps:
+        """Decode the accumulated frames into `DecodedMaps` (raises `DecodeError` if unusable);
+        `into`: the arrays to decode into (`calibration.maps_file.MapsFile.outputs`)."""
         acc = self._acc
         missing = acc.missing
         if missing:
@@ -172,14 +173,16 @@ class StreamingDecoder:
             )
         self._finished = True
         acc.allocate()  # (a plan of flats only: nothing was added)
-        return self._decode(lambda sl: chunk_view(acc, sl), meta)
+        return self._decode(lambda sl: chunk_view(acc, sl), meta, into=into)
 
     def finish_stack(self, stack: np.ndarray, meta: dict[str, Any] | None = None,
-                     step: Callable[[float], None] | None = None) -> DecodedMaps:
+                     step: Callable[[float], None] | None = None,
+                     into: dict[str, np.ndarray] | None = None) -> DecodedMaps:
         """Decode a whole (F, H, W) stack in plan order (compiled path, nothing added yet):
         each pixel range's sums are accumulated right before it is finished, so no
         full-image sums exist (no page faults for them) and each frame byte is read once.
-        `step(fraction)` runs between groups of ranges (progress, cancellation)."""
+        `step(fraction)` runs between groups of ranges (progress, cancellation); `into` as
+        for `finish`."""
         from calibration.decode.batch import accumulate_range, finish_stack_state, stack_state
 
         acc = self._acc
@@ -194,32 +197,25 @@ class StreamingDecoder:
         state = stack_state(acc)  # frame counts are known from the plan
         return self._decode(lambda sl: accumulate_range(acc, flat, sl.start, sl.stop - sl.start,
                                                         state), meta, step,
-                            lambda: finish_stack_state(acc, state))
+                            lambda: finish_stack_state(acc, state), into)
 
     def _decode(self, chunk_of: Callable[[slice], ChunkSums], meta: dict[str, Any] | None,
                 step: Callable[[float], None] | None = None,
-                summed: Callable[[], None] | None = None) -> DecodedMaps:
-        """Noise estimate, then every pixel range's finish; `chunk_of` gives a range's sums."""
+                summed: Callable[[], None] | None = None,
+                into: dict[str, np.ndarray] | None = None) -> DecodedMaps:
+        """Noise estimate, then every pixel range's finish; `chunk_of` gives a range's sums,
+        `into` the output planes and mask (else new arrays)."""
         acc = self._acc
         h, w = acc.shape
         npix = h * w
         axes = self.plan.axes()
         # Chunks write every pixel of the plan's axes: no NaN pre-fill there (first-touch
-        # page faults of ~300 MB of outputs then happen in the worker threads, in parallel).
-        planes = output_planes(npix, axes) if self._compiled else None
-        if planes is not None:
-            out = {f"{kind}{axis}": planes[kind.rstrip("_") or "position"][row]
-                   for row, axis in enumerate(("x", "y"))
-                   for kind in ("", "sigma_", "modulation_", "blur_")}
-        else:
-            nan_filled = functools.partial(np.full, fill_value=np.nan)
-            out = {
-                f"{kind}{axis}": (np.empty if axis in axes else nan_filled)(
-                    npix, dtype=np.float64 if kind == "" else np.float32
-                )
-                for axis in ("x", "y")
-                for kind in ("", "sigma_", "modulation_", "blur_")
-            }
+        # page faults of new outputs then happen in the worker threads, in parallel).
+        planes = output_planes(npix, axes, into)
+        out = {f"{kind}{axis}": planes[kind.rstrip("_") or "position"][row]
+               for row, axis in enumerate(("x", "y"))
+               for kind in ("", "sigma_", "modulation_", "blur_")}
+        kernel_planes = planes if self._compiled else None
         reason = np.zeros(npix, dtype=np.uint8)
         size = self.options.chunk_pixels
         if self._variance is None:
@@ -227,7 +223,8 @@ class StreamingDecoder:
         chunks = [slice(s, min(s + size, npix)) for s in range(0, npix, size)]
         group = max(1, len(chunks) // 16) if step is not None else len(chunks)
         for g in range(0, len(chunks), group):
-            self._map(lambda sl: self._finish_chunk(chunk_of(sl), sl, out, planes, reason),
+            self._map(lambda sl: self._finish_chunk(chunk_of(sl), sl, out, kernel_planes,
+                                                    reason),
                       chunks[g:g + group])
             if step is not None:
                 step(min(g + group, len(chunks)) / len(chunks))
@@ -238,7 +235,7 @@ class StreamingDecoder:
         counts = {name: int(tally[code]) for code, name in enumerate(REASONS)}
         if counts["valid"] == 0:
             raise DecodeError(no_valid_message(counts, npix))
-        mask = reason == 0
+        mask = reason == 0 if into is None else np.equal(reason, 0, out=into["mask"])
         self._map(lambda sl: [np.copyto(out[key][sl], np.nan, where=~mask[sl]) for key in
                               ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y")], chunks)
         info = {

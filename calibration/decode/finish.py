@@ -26,12 +26,16 @@ def software_version() -> str:
         return "unknown"
 
 
-def output_planes(npix: int, axes: list[str]) -> dict[str, np.ndarray]:
-    """(2, npix) output arrays (rows x, y) for the compiled kernel; absent axes stay NaN."""
+def output_planes(npix: int, axes: list[str], into: dict[str, np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
+    """(2, npix) output arrays (rows x, y): `into`'s (e.g. views of the maps file, whose rows
+    are two members apart) or new ones, strided alike (each row padded) so the compiled
+    kernel has one specialization for both; rows of axes the plan lacks are NaN."""
     planes = {}
     for name, dtype in (("position", np.float64), ("sigma", np.float32),
                         ("modulation", np.float32), ("blur", np.float32)):
-        arr = np.empty((2, npix), dtype=dtype)
+        pad = 64 // np.dtype(dtype).itemsize
+        arr = into[name] if into is not None else np.empty((2, npix + pad), dtype)[:, :npix]
         for row, axis in enumerate(("x", "y")):
             if axis not in axes:
                 arr[row] = np.nan

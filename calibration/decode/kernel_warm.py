@@ -12,6 +12,7 @@ def warm_up() -> None:
     """Run each kernel on a few pixels with the argument types a uint8 camera's decode
     passes (a live capture does this while frames arrive, not after the last one)."""
     from calibration.decode.accumulate_kernel import NO_CLIP_HI, accumulate_block
+    from calibration.decode.finish import output_planes
     from calibration.decode.kernel import warm_up as warm_finish
     from calibration.decode.kernel_clipped import unknown_patterns
     from calibration.decode.kernel_sums import finish_sums, residual_stats
@@ -30,8 +31,8 @@ def warm_up() -> None:
             accumulate_block(frames, i64(1), np.full(1, 3), i64(1), i64(1), weights, i64(1),
                              one * 3, 0.0, NO_CLIP_HI, 0, 0, n, sums, bits, squares, flats[0],
                              flats[1], np.zeros(1), i64(1))
-            planes = [np.zeros((2, n), dtype=dt) for dt in (np.float64, np.float32,
-                                                             np.float32, np.float32)]
+            planes = [output_planes(n, ["x", "y"])[name] for name in  # (their strides)
+                      ("position", "sigma", "modulation", "blur")]
             tables = (np.full((1, 16), -1), np.zeros((0, 30)), np.zeros((1, 4, 3)))
             unknown_patterns(bits, 0, n, tables[0], one * 4)
             finish_sums(sums, bits, squares, flats[0], flats[1], 0, i64(1), one * 3, one * 4,

@@ -69,7 +69,7 @@ def test_stored_npz_matches_numpy_savez_member_for_member(tmp_path):
     m.modulation_y = np.ones((7, 6), np.float32).T  # a transposed view
     save_maps(m, tmp_path / "direct.npz")
     reference = io.BytesIO()
-    np.savez(reference, **m._arrays())
+    np.savez(reference, **m.npz_arrays())
     reference.seek(0)
     with np.load(tmp_path / "direct.npz") as got, np.load(reference) as want:
         assert got.files == want.files

@@ -1,0 +1,229 @@
+"""A pose's maps file laid out before its decode, so the decoder writes into it directly.
+
+The FORMATS.md array members of a pose's maps (x, y float64; sigma, modulation, blur
+float32; mask bool) have shapes known once the camera's shape and the plan's axes are. The
+live decode creates the stored NPZ with every array member's data at a page-aligned offset
+before the first frame (`MapsFile`), faults its pages in piece by piece while frames arrive
+(`prefault`: first-touch page faults cost ~2-3 ms per MB on a VM), and the decoder's outputs
+are views of the file's pages (`outputs`). After the decode only the CRC-32s, the local
+headers, `meta` and the central directory are written (`commit`) and the file is renamed
+into place whole: no copy of ~200 MB of maps and no page faults after the last frame.
+A failed or cancelled decode removes the temporary file (`close`); np.load reads the result
+like any NPZ (FORMATS.md).
+"""
+
+from __future__ import annotations
+
+import errno
+import mmap
+import os
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from calibration.atomic import fsync_path
+from calibration.npz_store import (
+    _central_directory,
+    _local_header,
+    _Member,
+    _member,
+    lay_out,
+    member_crc,
+    npy_header,
+    pwrite_all,
+)
+
+if TYPE_CHECKING:
+    from calibration.maps import DecodedMaps
+
+_PAGE = mmap.PAGESIZE
+# madvise(MADV_POPULATE_WRITE) (Linux >= 5.14): fault pages in, writable, without touching them
+_POPULATE_WRITE = getattr(mmap, "MADV_POPULATE_WRITE", 23 if sys.platform == "linux" else None)
+# the decoder's (2, npix) output planes and the members of their rows x, y
+PLANES = {"position": ("x", "y"), "sigma": ("sigma_x", "sigma_y"),
+          "modulation": ("modulation_x", "modulation_y"), "blur": ("blur_x", "blur_y")}
+
+
+_F64, _F32 = np.dtype(np.float64), np.dtype(np.float32)
+# the array members in `DecodedMaps.npz_arrays` order (FORMATS.md dtypes)
+_DTYPES = {"x": _F64, "y": _F64, "sigma_x": _F32, "sigma_y": _F32, "mask": np.dtype(bool),
+           "modulation_x": _F32, "modulation_y": _F32, "blur_x": _F32, "blur_y": _F32}
+
+
+def _layout(shape: tuple[int, int], axes: list[str]) -> dict[str, _Member]:
+    """The array members of a pose's maps (blur only for the plan's axes), each array's data
+    page-aligned, laid out from offset 0."""
+    npix = shape[0] * shape[1]
+    members = {key: _Member(f"{key}.npy".encode(), npy_header(shape, dt), dt.itemsize * npix)
+               for key, dt in _DTYPES.items() if not key.startswith("blur_") or key[-1] in axes}
+    lay_out(list(members.values()), align=_PAGE)
+    return members
+
+
+class MapsFile:
+    """The maps NPZ of one decode, created at `path`'s hidden temporary name and renamed to
+    `path` by `commit`; its disk space is reserved at once (a full disk fails here, before
+    any frame is decoded, never with a SIGBUS on a mapped page)."""
+
+    def __init__(self, path: str | Path, shape: tuple[int, int], axes: list[str]) -> None:
+        self.path = Path(path)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.axes = list(axes)
+        self._members = _layout(self.shape, self.axes)
+        last = list(self._members.values())[-1]
+        self._end = last.data_at + last.nbytes  # where `meta` and the directory go
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=self.path.suffix,
+                                   dir=self.path.parent)
+        self._fd, self._tmp, self._done = fd, Path(tmp), False
+        self._mm: mmap.mmap | None = None
+        try:
+            self._reserve()
+            self._mm = mmap.mmap(fd, self._end)
+            self._bytes = np.frombuffer(self._mm, np.uint8)
+            for m in self._members.values():
+                self._mm[m.data_at - len(m.npy_header):m.data_at] = m.npy_header
+        except BaseException:
+            self.close()
+            raise
+        self._faulted = 0
+        self._populate = _POPULATE_WRITE
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the array members (and headers) that the decoder writes through."""
+        return self._end
+
+    @property
+    def prefaulted(self) -> int:
+        """Bytes faulted in so far by `prefault`."""
+        return min(self._faulted, self._end)
+
+    def _reserve(self) -> None:
+        """Allocate the array members' disk blocks (`posix_fallocate`; a sparse file where the
+        OS has none): ENOSPC here is a clear error, not a SIGBUS on a mapped page later."""
+        try:
+            if hasattr(os, "posix_fallocate"):
+                os.posix_fallocate(self._fd, 0, self._end)
+            else:
+                os.ftruncate(self._fd, self._end)
+        except OSError as exc:
+            raise OSError(exc.errno, f"cannot reserve {self._end / 1e6:.0f} MB for the maps "
+                          f"({exc.strerror})", str(self.path)) from None
+
+    def prefault(self, nbytes: int) -> bool:
+        """Fault in the next `nbytes` (whole pages) of the file, writable, in this process:
+        the first touch of the maps' memory, paid while frames arrive instead of by the
+        decoder after the last one. False when every page already is."""
+        start = self._faulted
+        if start >= self._end or self._mm is None:
+            return False
+        length = min(-(-max(nbytes, 1) // _PAGE) * _PAGE, self._end - start)
+        if self._populate is not None:
+            try:
+                self._mm.madvise(self._populate, start, length)
+            except OSError as exc:  # a kernel before 5.14: touch the pages instead
+                if exc.errno not in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+                    raise
+                self._populate = None
+        if self._populate is None:
+            pages = self._bytes[start:start + length:_PAGE]
+            pages[...] = pages.copy()  # a write fault per page, contents unchanged
+        self._faulted = start + length
+        return True
+
+    def outputs(self) -> dict[str, np.ndarray] | None:
+        """The decoder's outputs as views of the file: (2, npix) planes (rows x, y; the row
+        stride is the distance between the two members) and the flat bool "mask"; None when
+        the plan lacks an axis (its blur has no member to write into)."""
+        if self._mm is None or any(a not in self.axes for a in ("x", "y")):
+            return None
+        npix = self.shape[0] * self.shape[1]
+        out = {}
+        for plane, (kx, ky) in PLANES.items():
+            mx, my, dtype = self._members[kx], self._members[ky], _DTYPES[kx]
+            out[plane] = np.ndarray((2, npix), dtype=dtype, buffer=self._mm, offset=mx.data_at,
+                                    strides=(my.data_at - mx.data_at, dtype.itemsize))
+        out["mask"] = self._view("mask").reshape(-1)
+        return out
+
+    def _view(self, key: str) -> np.ndarray:
+        """Member `key`'s array data as its (H, W) array of the file's pages."""
+        m = self._members[key]
+        return self._bytes[m.data_at:m.data_at + m.nbytes].view(_DTYPES[key]).reshape(self.shape)
+
+    def commit(self, maps: DecodedMaps, *, durable: bool = True) -> None:
+        """Complete the file with `maps` and rename it to `path`: arrays that are not already
+        the file's views (`outputs`) are copied in, the members' CRC-32s computed in threads,
+        then the local headers, `meta` and the central directory written. `durable`: fsync
+        the file before the rename and the folder after (False: the caller makes it durable
+        later). The maps' arrays that are views of the file become read-only."""
+        arrays = maps.npz_arrays()
+        meta = arrays.pop("meta")
+        if list(arrays) != list(self._members):
+            raise ValueError(f"maps members {list(arrays)} differ from the laid-out "
+                             f"{list(self._members)} (shape {self.shape}, axes {self.axes})")
+        assert self._mm is not None, "commit after close"
+        views = []
+        for key, arr in arrays.items():
+            view = self._view(key)
+            if arr.shape != view.shape or arr.dtype != view.dtype:
+                raise ValueError(f"maps {key}: {arr.dtype} {arr.shape}, the file has "
+                                 f"{view.dtype} {view.shape}")
+            if arr.ctypes.data != view.ctypes.data or not arr.flags.c_contiguous:
+                np.copyto(view, arr)
+            else:
+                views.append(arr)
+        order = sorted(self._members.values(), key=lambda m: -m.nbytes)  # balanced threads
+
+        def crc(m: _Member) -> None:
+            m.crc = member_crc(m, self._bytes[m.data_at:m.data_at + m.nbytes])
+
+        with ThreadPoolExecutor(min(os.cpu_count() or 1, 4), thread_name_prefix="maps-crc") as pool:
+            list(pool.map(crc, order))
+        for m in self._members.values():
+            header = _local_header(m)
+            self._mm[m.offset:m.offset + len(header)] = header
+        tail = _member("meta", meta)
+        lay_out([tail], start=self._end)
+        tail.crc = member_crc(tail, tail.data)
+        end = tail.data_at + tail.nbytes
+        members = [*self._members.values(), tail]
+        pwrite_all(self._fd, _local_header(tail) + tail.npy_header + bytes(tail.data)
+                   + _central_directory(members, end), tail.offset)
+        if durable:
+            self._mm.flush()
+            os.fsync(self._fd)
+        for arr in views:  # they are the committed file's pages now
+            arr.flags.writeable = False
+        os.replace(self._tmp, self.path)
+        self._done = True
+        self.close()
+        if durable:
+            fsync_path(self.path.resolve().parent)
+
+    def close(self) -> None:
+        """Release the mapping and the descriptor; remove the temporary file unless committed
+        (views still alive keep their pages mapped until they go)."""
+        if self._mm is not None:
+            self._bytes = np.empty(0, np.uint8)
+            try:
+                self._mm.close()
+            except BufferError:  # the caller still holds views: unmapped when they go
+                pass
+            self._mm = None
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+        if not self._done:
+            self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> MapsFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+

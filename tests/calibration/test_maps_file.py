@@ -1,0 +1,204 @@
+"""The maps file laid out before the decode (`MapsFile`): the decoder writes into its pages,
+the result is an NPZ np.load reads with the same arrays as the normal path's, and nothing is
+left at the destination when the decode fails, is cancelled, is killed or the disk is full."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+import textwrap
+import threading
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import calibration.decode.decoder as decoder_module
+from acquisition.patterns import build_plan
+from calibration import maps_file
+from calibration.decode import DecodeError, StreamingDecoder
+from calibration.decode.frame_store import FrameStore
+from calibration.maps import load_maps, save_maps
+from calibration.maps_file import MapsFile
+from calibration.plan import write_plan
+from calibration.progress import Cancelled, TaskContext
+from calibration.worker.tasks import stream_decode_task
+from tests.calibration.decode.test_decode import H, W, render
+
+ROOT = Path(__file__).resolve().parents[2]
+META = {"pose_id": "pose_1"}
+
+
+@pytest.fixture(scope="module")
+def plan():
+    return build_plan(1920, 1080, 0.2745)
+
+
+@pytest.fixture(scope="module")
+def stack(plan):
+    frames, _, _ = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
+    frames[:, :, :6] = 0  # a black border: every step clipped
+    return frames
+
+
+def _decoder(plan, stack):
+    dec = StreamingDecoder(plan, (H, W))
+    dec.prepare()
+    dec.add_frames(list(range(stack.shape[0])), stack)
+    return dec
+
+
+def _same_npz(got: Path, want: Path) -> None:
+    """Every member equal byte for byte (NaN where the normal path has NaN), and valid."""
+    with zipfile.ZipFile(got) as zf:
+        assert zf.testzip() is None  # every member's CRC-32 matches
+    with np.load(got, allow_pickle=False) as a, np.load(want, allow_pickle=False) as b:
+        assert a.files == b.files
+        for key in a.files:
+            assert a[key].dtype == b[key].dtype and a[key].shape == b[key].shape, key
+            if key == "meta":
+                assert json.loads(str(a[key])) == json.loads(str(b[key]))
+            else:
+                assert a[key].tobytes() == b[key].tobytes(), key
+    load_maps(got)  # FORMATS.md members, dtypes, meta format
+
+
+def _data_offsets(path: Path) -> dict[str, int]:
+    """Each member's array data offset, read from its local header and .npy header."""
+    raw = path.read_bytes()
+    out = {}
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            at = info.header_offset
+            name_len, extra_len = struct.unpack("<HH", raw[at + 26:at + 30])
+            npy = at + 30 + name_len + extra_len
+            header_len = struct.unpack("<H", raw[npy + 8:npy + 10])[0]
+            out[info.filename] = npy + 10 + header_len
+    return out
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_decoder_writes_into_the_file_with_the_normal_paths_arrays(plan, stack, compiled,
+                                                                   tmp_path, monkeypatch):
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0 if compiled else 1 << 40)
+    save_maps(_decoder(plan, stack).finish(dict(META)), tmp_path / "ref.npz")
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
+        while out.prefault(1 << 16):
+            pass
+        assert out.prefaulted == out.nbytes
+        maps = _decoder(plan, stack).finish(dict(META), into=out.outputs())
+        out.commit(maps)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["maps.npz", "ref.npz"]
+    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+    # the decoder's arrays were the file's pages (no copy): read-only now
+    for key in ("x", "y", "sigma_x", "sigma_y", "mask", "modulation_x", "blur_y"):
+        assert not getattr(maps, key).flags.writeable, key
+    offsets = _data_offsets(tmp_path / "maps.npz")
+    assert all(offsets[f"{k}.npy"] % 4096 == 0 for k in ("x", "y", "mask", "blur_y"))
+
+
+def test_maps_not_decoded_into_the_file_are_copied_in(plan, stack, tmp_path, monkeypatch):
+    """Arrays from elsewhere (a decoder given no outputs) are copied; the pages are touched
+    one by one where MADV_POPULATE_WRITE is unknown (an older kernel)."""
+    monkeypatch.setattr(maps_file, "_POPULATE_WRITE", 12345)  # EINVAL: no such advice
+    maps = _decoder(plan, stack).finish(dict(META))
+    save_maps(maps, tmp_path / "ref.npz")
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
+        while out.prefault(3 << 12):
+            pass
+        out.commit(maps)
+    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+    assert maps.x.flags.writeable  # the caller's own arrays are untouched
+
+
+def test_wrong_members_are_refused_and_nothing_is_left(plan, stack, tmp_path):
+    maps = _decoder(plan, stack).finish(dict(META))
+    maps.blur_y = None
+    with pytest.raises(ValueError, match="differ from the laid-out"):
+        with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
+            out.commit(maps)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_decode_leaves_nothing(plan, tmp_path):
+    dark = np.zeros((len(plan.frames), H, W), np.uint8)
+    with pytest.raises(DecodeError, match="no pixel sees the screen"):
+        with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
+            out.prefault(1 << 20)
+            _decoder(plan, dark).finish(into=out.outputs())
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_full_disk_is_a_clear_error_before_any_decoding(plan, tmp_path, monkeypatch):
+    def full(fd, offset, length):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full, raising=False)
+    with pytest.raises(OSError, match=r"cannot reserve 2 MB for the maps \(No space left"):
+        MapsFile(tmp_path / "maps.npz", (H, W), plan.axes())
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
+    script = textwrap.dedent(f"""
+        import time
+        from calibration.maps_file import MapsFile
+        out = MapsFile({str(tmp_path / "maps.npz")!r}, (64, 80), ["x", "y"])
+        out.prefault(1 << 20)
+        print("laid out", flush=True)
+        time.sleep(30)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().startswith("laid out")
+    finally:
+        proc.kill()
+        proc.wait()
+    leftovers = [p.name for p in tmp_path.iterdir()]
+    assert len(leftovers) == 1 and leftovers[0].startswith(".maps.")  # the job's staging
+    # folder, which holds it, is removed by the server (api/store.py `staging`)
+
+
+def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path,
+                                                           monkeypatch):
+    """The live task (frames arriving in a frame store) gives the file np.load reads, equal
+    to decoding the same frames in memory; with a cancel, nothing is left."""
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    write_plan(plan, tmp_path / "plan.json")
+    pose, staged = tmp_path / "pose", tmp_path / "staged"
+    staged.mkdir()
+    store = FrameStore(pose, len(plan.frames))
+    store.add(0, stack[0])
+    ctx = TaskContext("job_1")
+
+    def feed() -> None:  # the capture: the other frames arrive while the task waits
+        for i in range(1, len(plan.frames)):
+            store.add(i, stack[i])
+
+    feeder = threading.Timer(0.05, feed)
+    feeder.start()
+    try:
+        result = stream_decode_task(ctx, str(tmp_path / "plan.json"), str(pose),
+                                    str(staged / "maps.npz"), meta=dict(META), durable=False)
+    finally:
+        feeder.join()
+        store.close()
+    assert 0.0 < result["prefaulted"] <= 1.0
+    assert [p.name for p in staged.iterdir()] == ["maps.npz"]
+    save_maps(_decoder(plan, stack).finish(dict(META)), tmp_path / "ref.npz")
+    _same_npz(staged / "maps.npz", tmp_path / "ref.npz")
+
+    class CancelledOnceLaidOut(TaskContext):
+        def cancelled(self) -> bool:  # the job is cancelled once the maps file exists
+            return any(staged.iterdir())
+
+    (staged / "maps.npz").unlink()
+    with pytest.raises(Cancelled):
+        stream_decode_task(CancelledOnceLaidOut("job_2"), str(tmp_path / "plan.json"),
+                           str(pose), str(staged / "maps.npz"))
+    assert list(staged.iterdir()) == []
