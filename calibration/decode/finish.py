@@ -79,7 +79,7 @@ def linear_noise(noise: Any) -> tuple[float, float, float, float] | None:
 
 def noise_params(dec: Any) -> np.ndarray | None:
     """The kernel's noise parameters for this decoder, or None (array path for all)."""
-    from calibration.decode.kernel_sums import MODE_GIVEN, MODE_LINE, MODE_OWN
+    from calibration.decode.kernel_sets import MODE_GIVEN, MODE_LINE, MODE_OWN
 
     if dec._variance is not None:
         line = linear_noise(dec._noise)
@@ -152,6 +152,7 @@ def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
 def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
                  planes: dict[str, np.ndarray], reason: np.ndarray) -> None:
     """Decode the pixel range `sl` (sums `chunk`) into `planes` and `reason`."""
+    from calibration.decode.kernel_clipped import linear_line
     from calibration.decode.kernel_sums import DIRTY, finish_sums
 
     acc, opt, plan = dec._acc, dec.options, dec.plan
@@ -173,7 +174,8 @@ def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
         leak = np.zeros(len(acc.sets)) if dec._leak is None else np.asarray(dec._leak, float)
         inputs = _inputs(chunk, acc)
         tables = _tables(acc, inputs[1], inputs[5], chunk.size)
-        finish_sums(*inputs, lay.row0, lay.nrows, lay.steps, params, leak,
+        lin = linear_line(params[[1, 2, 3, 4, 6]])  # (offset, slope, black, clamp, floor)
+        finish_sums(*inputs, lay.row0, lay.nrows, lay.steps, params, lin, leak,
                     np.array([acc.n_bright, acc.n_dark], dtype=np.float64), chi2_tail(max_dof),
                     axis_of, np.array([s.layout.period_px for s in acc.sets]),
                     np.array([s.layout.amplitude for s in acc.sets]), limits, extents, kparams,

@@ -1,7 +1,7 @@
 """Keeps numba's on-disk cache of the decoder's kernels in step with all of their sources.
 
 numba keys a cached kernel on its own file's timestamp only, so a kernel that inlines code
-from another file (`finish_sums` calls `unwrap_block`, `clipped_block`, `atan2_f32`, ...)
+from another file (`finish_sums` calls `unwrap_block`, `fit_block`, `atan2_f32`, ...)
 would keep stale machine code after an update that changed only that other file. Each
 kernel module calls `drop_stale_kernels(globals())` right after defining its kernels, before
 any of them runs: when the digest of every kernel source differs from the one recorded

@@ -1,11 +1,12 @@
-"""Compiled per-pixel fits of pixels with clipped steps (numba), for kernel_sums.py.
+"""Compiled fits of pixels with clipped steps (numba), for kernel_sums.py's block loops.
 
-The same arithmetic as phase.py `fit_set` on the kept steps (the least-squares tables of
-each exclusion pattern from `_normal_inverse`, gathered into `PatternTables`), the
-decoder's residuals and noise variances (`_residuals`, `_noise_variances` with
-`use_step_levels`) and the flat contrast, one pixel at a time (such pixels have few
-patterns but no common closed form); then kernel.py's `decode_pixel`. Float32 rounding
-where the array path keeps float32 arrays.
+phase.py `fit_set` over a block of pixels: the closed form for every pixel, then, for the
+pixels with some steps clipped, the least squares over their kept steps (the tables of
+each exclusion pattern from `_normal_inverse`, gathered into `PatternTables`: one row per
+pattern, looked up per pixel); with them the decoder's residuals (`_residuals`) and the
+numerators of `SetFit.use_step_levels`. The rest of the finish (variances, sigmas, phases,
+unwrapping) then runs in the same vectorized loops as for unclipped pixels. Float32
+rounding where the array path keeps float32 arrays.
 """
 
 from __future__ import annotations
@@ -16,22 +17,20 @@ import threading
 import numpy as np
 from numba import njit
 
-from calibration.decode.kernel import P_MIN_CONTRAST, decode_pixel
 from calibration.decode.kernel_cache import drop_stale_kernels
+from calibration.decode.kernel_sets import explained, line_var, nyquist
 from calibration.decode.phase import _basis, _normal_inverse
-from calibration.decode.vecmath import atan2
 
 MAX_TABLE_STEPS = 16  # dense pattern index per set: 2^steps entries (steps above: array path)
 MODE_GIVEN, MODE_LINE, MODE_OWN = 0, 1, 2  # as kernel_sums (given / photon-transfer / own)
-# Reassociation lets LLVM split the small dot products' sums over several registers (one
-# chain of dependent additions per sum cost ~1.5 us per pixel); NaN and inf tests stay.
-_FAST = {"reassoc", "contract", "nsz", "arcp"}
+# Rows of `PatternTables.rows`, per set and pattern (F: the widest set's columns, T: its
+# steps): minv (F x F), residual weights (F), gains (2 x T), sum_i g g^T (3: aa, bb, ab),
+# sum_i x_im g g^T (3 x F), kept and used steps.
 
 
 class PatternTables:
     """Least-squares tables of the exclusion patterns met so far, per set: `index[k, mask]`
-    is the row of `rows` (-1: not built yet); each row holds minv (F x F), the residual
-    weights (F), the gains (2 x T), kept and used steps. `basis[k]`: the (T, F) design."""
+    is the row of `rows` (-1: not built yet, layout above). `basis[k]`: the (T, F) design."""
 
     def __init__(self, sets: list) -> None:
         self.sets = sets
@@ -50,7 +49,7 @@ class PatternTables:
     @property
     def row_size(self) -> int:
         """Values per table row."""
-        return self.width * self.width + self.width + 2 * self.steps + 2
+        return self.width * self.width + self.width + 2 * self.steps + 3 + 3 * self.width + 2
 
     def tables(self, bits: np.ndarray, c0: int, n: int) -> tuple[np.ndarray, np.ndarray]:
         """(index, rows) covering every pattern of columns c0..c0+n of `bits` (built as
@@ -76,13 +75,28 @@ class PatternTables:
                     gains[:, :steps] = pat.gains
                     row[:f * f] = minv.ravel()
                     row[f * f:f * f + w] = pat.weights
-                    row[f * f + f:f * f + f + 2 * t] = gains.ravel()
+                    g0 = f * f + f
+                    row[g0:g0 + 2 * t] = gains.ravel()
+                    row[g0 + 2 * t:g0 + 2 * t + 3 + 3 * f] = _covariance_terms(
+                        pat.gains, self.basis[k, :steps], f)
                     row[-2:] = pat.kept, pat.used
                     index[k, mask] = count
                     rows.append(row[None])
                     count += 1
             self._pair = (index, np.concatenate(rows))
             return self._pair
+
+
+def _covariance_terms(gains: np.ndarray, basis: np.ndarray, width: int) -> np.ndarray:
+    """sum_i g_i g_i^T and sum_i x_im g_i g_i^T (m < width) as (aa, bb, ab) triples: with
+    variance linear in the fitted step values mu_i = x_i . p, `use_step_levels`'s
+    sum_i var(mu_i) g_i g_i^T is `c0 S + slope sum_m p_m T_m`."""
+    ga, gb = gains
+    prods = np.stack([ga * ga, gb * gb, ga * gb])  # (3, T)
+    terms = np.zeros((1 + width, 3))
+    terms[0] = prods.sum(axis=1)
+    terms[1:1 + basis.shape[1]] = basis.T @ prods.T
+    return terms.ravel()
 
 
 def pattern_tables(acc) -> PatternTables | None:
@@ -105,236 +119,164 @@ def unknown_patterns(bits, c0, n, index, steps) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy", inline="always", fastmath=_FAST)
-def _nyquist(a, b, steps) -> float:
-    """noise.nyquist_power_of one pixel (float32 arithmetic as there)."""
-    f32 = np.float32
-    if steps % 2:
-        return 0.0
-    b2 = a * a + b * b
-    u = b / f32(math.sqrt(b2 if b2 > 0 else f32(1.0)))
-    prev, cheb = f32(1.0), u
-    for _ in range(steps // 2 - 1):
-        prev, cheb = cheb, f32(2.0) * u * cheb - prev
-    return float(f32(steps) * b2 * cheb * cheb)
 
 
-@njit(cache=True, error_model="numpy", nogil=True, fastmath=_FAST)
-def fit_pixel(sums, bits, j, row0, nrows, steps, index, rows, basis, skip, residual, fit, p):
-    """phase.fit_set of every set at column j. `fit` (S, 9) float64 out: mean, level,
-    alpha, beta, c_aa, c_bb, c_ab, explained, dof; then (S, 3) flags in `fit[:, 9:]`: ok,
-    clipped, low_clipped. `p` (S, F) out: the coefficients of partial fits (else 0)."""
+@njit(cache=True, error_model="numpy", inline="always")
+def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, line):
+    """phase.fit_set of one set of the pixel at column jc from its pattern's row t (kept
+    steps only): (ok, mean, level, alpha, beta, c_aa, c_bb, c_ab, explained, dof, the
+    use_step_levels numerators aa, bb, ab (with `cov`), a step clipped at the dark end
+    (with `want_low`)). `p`: (F,) scratch; `lin`: (c0, slope, threshold) of `line` as
+    c0 + slope * mu, valid where every fitted step value mu exceeds the threshold."""
     f32 = np.float32
-    width = basis.shape[2]
-    t_max = basis.shape[1]
-    for k in range(row0.shape[0]):
-        r0, nrow, n = row0[k], nrows[k], steps[k]
-        q = bits[k, j] if bits.shape[0] else 0
-        every = (1 << n) - 1
-        s0 = sums[r0, j]
-        c = float(f32(2.0 / n))
-        fit[k, 0] = fit[k, 1] = float(s0 * f32(1.0 / n))
-        fit[k, 2] = float(sums[r0 + 1, j] * f32(2.0 / n))
-        fit[k, 3] = float(sums[r0 + 2, j] * f32(2.0 / n))
-        fit[k, 4] = fit[k, 5] = c
-        fit[k, 6] = 0.0
-        fit[k, 8] = float(f32(n - nrow))
-        fit[k, 9], fit[k, 10], fit[k, 11] = 1.0, 0.0, 0.0
-        for i in range(width):  # (element loops, not slices: a view costs a refcount)
-            p[k, i] = 0.0
-        if residual:
-            e = float(s0) ** 2 / n
-            for r in range(1, nrow):
-                e += float(sums[r0 + r, j]) ** 2 * (2.0 / n)
-            fit[k, 7] = e
-        if q == 0:
-            continue
-        fit[k, 10] = 1.0
-        if q == every or skip:  # no fit: every step clipped, or no screen seen
-            for col in (0, 1, 2, 3, 7, 8, 9):
-                fit[k, col] = 0.0
-            continue
-        t = index[k, q]
-        good = True
-        for i in range(width):
-            acc = 0.0
-            for m in range(nrow):
-                acc += rows[t, i * width + m] * float(sums[r0 + m, j])
-            p[k, i] = acc
-            good = good and math.isfinite(acc)
-        if not good:
-            for i in range(width):
-                p[k, i] = 0.0
-        kept, used = rows[t, rows.shape[1] - 2], rows[t, rows.shape[1] - 1]
-        lev = 0.0
-        e = 0.0
+    width, t_max = basis.shape[1], basis.shape[0]
+    good = True
+    for i in range(nrow):
+        acc = 0.0
+        for m in range(nrow):
+            acc += rows[t, i * width + m] * float(sums[r0 + m, jc])
+        p[i] = acc
+        good = good and math.isfinite(acc)
+    if not good:
         for i in range(nrow):
-            lev += rows[t, width * width + i] * p[k, i]
-            e += p[k, i] * float(sums[r0 + i, j])
-        fit[k, 0] = float(f32(p[k, 0]))
-        fit[k, 1] = float(f32(lev / max(kept - used, 1.0)))
-        fit[k, 2] = float(f32(p[k, 1]))
-        fit[k, 3] = float(f32(p[k, 2]))
-        fit[k, 4] = float(f32(rows[t, width + 1])) if good else 0.0
-        fit[k, 5] = float(f32(rows[t, 2 * width + 2])) if good else 0.0
-        fit[k, 6] = float(f32(rows[t, width + 2])) if good else 0.0
-        fit[k, 7] = e
-        fit[k, 8] = float(f32(max(kept - used, 0.0)))
-        fit[k, 9] = 1.0 if good else 0.0
-        low = False
+            p[i] = 0.0
+    size = rows.shape[1]
+    kept, used = rows[t, size - 2], rows[t, size - 1]
+    lev = 0.0
+    e = 0.0
+    for i in range(nrow):
+        lev += rows[t, width * width + i] * p[i]
+        e += p[i] * float(sums[r0 + i, jc])
+    low = False
+    if want_low:
         for i in range(min(n, t_max)):
             if (q >> i) & 1:
                 mu = 0.0
-                for m in range(width):
-                    mu += p[k, m] * basis[k, i, m]
-                low = low or mu < p[k, 0]
-        fit[k, 11] = 1.0 if low else 0.0
-
-
-@njit(cache=True, error_model="numpy", inline="always", fastmath=_FAST)
-def _residual(fit, sums, row0, steps, squares, j, leak):
-    """decoder `_residuals` of one pixel: (rss, dof, level)."""
-    f32 = np.float32
-    rss = float(squares[j])
-    dof = 0.0
-    level = 0.0
-    for k in range(row0.shape[0]):
-        ok = fit[k, 9] != 0.0
-        rss -= fit[k, 7] if ok else 0.0
-        if leak[k] != 0.0 and fit[k, 10] == 0.0:
-            rss -= float(f32(leak[k]) * f32(_nyquist(f32(fit[k, 2]), f32(fit[k, 3]), steps[k])))
-        if ok:
-            dof += fit[k, 8]
-            level += fit[k, 8] * fit[k, 1]
-    return max(rss, 0.0), dof, level / max(dof, 1.0)
-
-
-@njit(cache=True, error_model="numpy", inline="always", fastmath=_FAST)
-def _variance(line, level: float) -> float:
-    """kernel_sums._line: offset + slope * (level - black)+, at least the floor."""
-    offset, slope, black, clamp, floor = line
-    x = level - black
-    x = 0.0 if clamp and not x > 0.0 else x
-    return max(offset + slope * x, floor)
-
-
-@njit(cache=True, error_model="numpy", nogil=True, fastmath=_FAST)
-def clipped_pixel(sums, bits, squares, bright, dark, j, row0, nrows, steps, index, rows, basis,
-                  mode, line, floor, tail, leak, flats, set_axis, periods, amps, chi2_limit,
-                  extents, params, pos_out, sig_out, mod_out, blur_out, o, fit, p, alpha, beta,
-                  wrapped, var, c_aa, c_bb, c_ab, ok) -> int:
-    """Decode the pixel at input column j (outputs at column o); its reason code. `fit`,
-    `p`: fit_pixel's scratch; alpha..c_ab (S,) float32 and `ok` (S,) bool scratch."""
-    f32 = np.float32
-    nb, nd = flats[0], flats[1]
-    lit, unlit = bright[j] / nb, dark[j] / nd
-    floor_sigma = math.sqrt(floor * (1.0 / nb + 1.0 / nd))
-    skip = not (lit - unlit) >= params[P_MIN_CONTRAST] * floor_sigma
-    fit_pixel(sums, bits, j, row0, nrows, steps, index, rows, basis, skip, mode != MODE_GIVEN,
-              fit, p)
-    own = 0.0
-    excess = False
-    if mode != MODE_GIVEN:
-        rss, dof, _ = _residual(fit, sums, row0, steps, squares, j, leak)
-        own = max(rss / max(dof, 1.0), floor) if dof > 0 else np.nan
-        if mode == MODE_LINE:
-            excess = own > _variance(line, max(float(f32(fit[0, 0])), 0.0)) * tail[int(dof)]
-    width = basis.shape[2]
-    for k in range(row0.shape[0]):
-        r0, n = row0[k], steps[k]
-        a, b = f32(fit[k, 2]), f32(fit[k, 3])
-        alpha[k], beta[k] = a, b
-        mean = f32(fit[k, 0])
-        level = max(mean, f32(0.0))
-        if nrows[k] > 3:  # noise.phase_level: raw harmonic-2 sums, the fit's alpha, beta
-            scale = f32(2.0 / n)
-            s2, c2 = sums[r0 + 3, j] * scale, sums[r0 + 4, j] * scale
-            b2 = a * a + b * b
-            h2c = (c2 * (b * b - a * a) + s2 * f32(2.0) * a * b) / (b2 if b2 > 0 else f32(1.0))
-            level = max(mean - f32(0.5) * h2c, f32(0.0))
-        v = own if mode == MODE_OWN or excess else _variance(line, float(level))
-        var[k] = v
-        c_aa[k], c_bb[k], c_ab[k] = fit[k, 4], fit[k, 5], fit[k, 6]
-        ok[k] = fit[k, 9] != 0.0
-        partial = fit[k, 10] != 0.0 and ok[k] and mode != MODE_OWN and not excess
-        if partial and var[k] > 0:  # SetFit.use_step_levels: each kept step's own variance
-            t = index[k, bits[k, j]]
-            g0 = width * width + width
-            saa = sbb = sab = 0.0
+                for m in range(nrow):
+                    mu += p[m] * basis[i, m]
+                low = low or mu < p[0]
+    naa = nbb = nab = 0.0
+    if cov and good:
+        g0 = width * width + width
+        c0, slope, threshold = lin[0], lin[1], lin[2]
+        bound = p[0]  # a lower bound of every step's fitted value
+        for h in range(1, nrow - 1, 2):
+            bound -= math.sqrt(p[h] * p[h] + p[h + 1] * p[h + 1])
+        if bound > threshold:  # the line is linear over the steps: tables' sums
+            cv = g0 + 2 * t_max
+            naa, nbb, nab = c0 * rows[t, cv], c0 * rows[t, cv + 1], c0 * rows[t, cv + 2]
+            for m in range(nrow):
+                w = slope * p[m]
+                naa += w * rows[t, cv + 3 + 3 * m]
+                nbb += w * rows[t, cv + 4 + 3 * m]
+                nab += w * rows[t, cv + 5 + 3 * m]
+        else:  # each kept step's own variance (SetFit.use_step_levels)
             for i in range(n):
                 mu = 0.0
-                for m in range(width):
-                    mu += p[k, m] * basis[k, i, m]
-                vi = _variance(line, max(mu, 0.0))
-                ga, gb = rows[t, g0 + i], rows[t, g0 + basis.shape[1] + i]
-                saa += vi * ga * ga
-                sbb += vi * gb * gb
-                sab += vi * ga * gb
-            base = float(var[k])
-            c_aa[k], c_bb[k], c_ab[k] = saa / base, sbb / base, sab / base
-        w = f32(atan2(-float(a), float(b))) * f32(periods[k] / (2.0 * math.pi))
-        wrapped[k] = w + f32(periods[k]) if w < 0 else w
-    if mode == MODE_OWN:
-        var_b = var_d = own
-    else:
-        var_b, var_d = _variance(line, lit), _variance(line, max(unlit, 0.0))
-    q = (lit - unlit) / math.sqrt(var_b / nb + var_d / nd)
-    q = q if abs(q) < np.inf else 0.0
-    return decode_pixel(alpha, beta, wrapped, var, c_aa, c_bb, c_ab, ok, q, set_axis, periods,
-                        amps, chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out, o)
+                for m in range(nrow):
+                    mu += p[m] * basis[i, m]
+                vi = line_var(line, max(mu, 0.0))
+                ga, gb = rows[t, g0 + i], rows[t, g0 + t_max + i]
+                naa += vi * ga * ga
+                nbb += vi * gb * gb
+                nab += vi * ga * gb
+    return (good, f32(p[0]), f32(lev / max(kept - used, 1.0)), f32(p[1]), f32(p[2]),
+            float(f32(rows[t, width + 1])) if good else 0.0,
+            float(f32(rows[t, 2 * width + 2])) if good else 0.0,
+            float(f32(rows[t, width + 2])) if good else 0.0,
+            e, float(f32(max(kept - used, 0.0))), naa, nbb, nab, low)
 
 
-@njit(cache=True, error_model="numpy", nogil=True, fastmath=_FAST)
-def clipped_residuals(sums, bits, squares, bright, dark, j, row0, nrows, steps, index, rows,
-                      basis, floor, flats, min_contrast, leak, fit, p, power_out, o):
-    """finish.residual_arrays of the pixel at column j: (level, rss, dof, clean,
-    no_dark_clip); `power_out[:, o]` gets each set's Nyquist power (0 where clipped)."""
-    nb, nd = flats[0], flats[1]
-    lit, unlit = bright[j] / nb, dark[j] / nd
-    skip = not (lit - unlit) >= min_contrast * math.sqrt(floor * (1.0 / nb + 1.0 / nd))
-    fit_pixel(sums, bits, j, row0, nrows, steps, index, rows, basis, skip, True, fit, p)
-    rss, dof, level = _residual(fit, sums, row0, steps, squares, j, leak)
-    clean = True
-    low = False
-    for k in range(row0.shape[0]):
-        clipped = fit[k, 10] != 0.0
-        clean = clean and not clipped
-        low = low or fit[k, 11] != 0.0
-        f32 = np.float32
-        power_out[k, o] = 0.0 if clipped else _nyquist(f32(fit[k, 2]), f32(fit[k, 3]), steps[k])
-    return level, rss, dof, clean, not low
+@njit(cache=True, error_model="numpy", inline="always")
+def _table_fit_n(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, line):
+    """`_table_fit` with the set's row count a constant for the common layouts (3 + 2
+    harmonics: 5 or 7 rows), so that LLVM unrolls the small loops."""
+    if nrow == 5:
+        return _table_fit(sums, r0, 5, n, jc, rows, t, basis, p, want_low, q, cov, lin, line)
+    if nrow == 7:
+        return _table_fit(sums, r0, 7, n, jc, rows, t, basis, p, want_low, q, cov, lin, line)
+    return _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, line)
 
 
-@njit(cache=True, error_model="numpy", nogil=True, fastmath=_FAST)
-def clipped_block(m, dirty, dead, sums, bits, squares, bright, dark, j0, row0, nrows, steps,
-                  tables, mode, line, floor, tail, leak, flats, set_axis, periods, amps,
-                  chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out, o0,
-                  reason) -> None:
-    """`clipped_pixel` for the block's pixels 0..m (input columns j0.., outputs o0..) that
-    are `dirty` but not `dead` (every step clipped); `tables`: (index, rows, basis)."""
-    index, rows, basis = tables
-    if index.shape[0] == 0:
-        return  # no tables (a plan of > 16 steps): the array path takes them
-    todo = False
-    for j in range(m):
-        todo = todo or (dirty[j] and not dead[j])
-    if not todo:
-        return
-    n_sets = row0.shape[0]
-    fit = np.empty((n_sets, 12))
-    p = np.empty((n_sets, basis.shape[2]))
+def linear_line(noise_line: tuple) -> np.ndarray:
+    """(c0, slope, threshold) of a linear noise model (offset, slope, black, clamp, floor)
+    for `_table_fit`: the model is c0 + slope * mu for every mu above the threshold."""
+    offset, slope, black, clamp, floor = (float(v) for v in noise_line)
+    if slope == 0.0:  # a constant (at least the floor) at every level
+        return np.array([max(offset, floor), 0.0, -np.inf])
+    if not slope > 0.0:
+        return np.array([0.0, 0.0, np.inf])  # never: each step's own variance
+    threshold = max(0.0, black if clamp else 0.0, black + (floor - offset) / slope)
+    return np.array([offset - slope * black, slope, threshold])
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, residual,
+              want_low, cov, lin, line, leak, fits, fitted, covs, partial, rss, dof, lev, low,
+              scratch, p):
+    """phase.fit_set of every set over a block's pixels 0..m (input columns j0..):
+    `fits[0..2, k]` alpha, beta, mean (float32), `fitted[k]`, `covs[0..2, k]` c_aa, c_bb,
+    c_ab per unit variance and, where `partial[k]` (a least-squares fit on kept steps,
+    `cov`: the noise is a line), `covs[3..5, k]` use_step_levels' numerators. With
+    `residual`: the decoder's `_residuals` (rss, dof, dof-weighted level); with
+    `want_low`, in `low` a step clipped at the dark end. `skip`: pixels seeing no screen
+    (no fit where clipped)."""
     f32 = np.float32
-    alpha, beta, wrapped, var = (np.empty(n_sets, f32), np.empty(n_sets, f32),
-                                 np.empty(n_sets, f32), np.empty(n_sets, f32))
-    c_aa, c_bb, c_ab = np.empty(n_sets, f32), np.empty(n_sets, f32), np.empty(n_sets, f32)
-    ok = np.empty(n_sets, dtype=np.bool_)
+    index, rows, basis = tables
+    expl, dofk, levk = scratch[0], scratch[1], scratch[2]
     for j in range(m):
-        if dirty[j] and not dead[j]:
-            reason[j] = clipped_pixel(
-                sums, bits, squares, bright, dark, j0 + j, row0, nrows, steps, index, rows,
-                basis, mode, line, floor, tail, leak, flats, set_axis, periods, amps,
-                chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out, o0 + j, fit,
-                p, alpha, beta, wrapped, var, c_aa, c_bb, c_ab, ok)
+        rss[j] = float(squares[j0 + j]) if residual else 0.0
+        dof[j] = 0.0
+        lev[j] = 0.0
+        low[j] = False
+    for k in range(row0.shape[0]):
+        r0, nrow, n = row0[k], nrows[k], steps[k]
+        inv_n, scale = f32(1.0 / n), f32(2.0 / n)
+        c = float(f32(2.0 / n))
+        s0, sa, sb = sums[r0, j0:j0 + m], sums[r0 + 1, j0:j0 + m], sums[r0 + 2, j0:j0 + m]
+        alpha, beta, mean, ok, part = fits[0, k], fits[1, k], fits[2, k], fitted[k], partial[k]
+        caa, cbb, cab = covs[0, k], covs[1, k], covs[2, k]
+        for j in range(m):  # every step kept: the closed form
+            mean[j] = s0[j] * inv_n
+            alpha[j] = sa[j] * scale
+            beta[j] = sb[j] * scale
+            ok[j] = True
+            part[j] = False
+            caa[j] = c
+            cbb[j] = c
+            cab[j] = 0.0
+        if residual:
+            explained(sums, r0, nrow, n, j0, m, expl)
+            for j in range(m):
+                dofk[j] = float(f32(n - nrow))
+                levk[j] = mean[j]
+        every = (1 << n) - 1
+        for j in range(m if bits.shape[0] else 0):
+            q = bits[k, j0 + j]
+            if q == 0:
+                continue
+            if q == every or skip[j]:  # every step clipped, or no screen seen: no fit
+                mean[j] = alpha[j] = beta[j] = 0.0
+                ok[j] = False
+                expl[j] = dofk[j] = levk[j] = 0.0
+                continue
+            (good, mean[j], levk[j], alpha[j], beta[j], caa[j], cbb[j], cab[j], expl[j],
+             dofk[j], covs[3, k, j], covs[4, k, j], covs[5, k, j], lw) = _table_fit_n(
+                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis[k], p, want_low, q, cov,
+                lin, line)
+            ok[j] = good
+            part[j] = good and cov
+            low[j] = low[j] or lw
+        if residual:
+            for j in range(m):
+                rss[j] -= expl[j] if ok[j] else 0.0
+                dof[j] += dofk[j] if ok[j] else 0.0
+                lev[j] += float(f32(dofk[j]) * f32(levk[j])) if ok[j] else 0.0
+            if leak[k] != 0.0:  # the display harmonic in an unclipped set's residual
+                nyquist(sums, r0, n, j0, m, expl)
+                for j in range(m):
+                    clipped = bits.shape[0] > 0 and bits[k, j0 + j] != 0
+                    rss[j] -= 0.0 if clipped else leak[k] * expl[j]
 
 
 drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources

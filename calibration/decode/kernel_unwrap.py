@@ -70,6 +70,7 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
                                                   params[P_MARGIN_SIGMA], params[P_EDGE_BLUR])
         min_mod = params[P_MIN_MOD]
         width_row, snr_row, mod_row = blur[0, ax], anchor[0, ax], anchor[1, ax]
+        ok_row = anchor[2, ax]  # the anchor period fitted (1.0) or not
         pos, sgo, mdo, blo = pos_out[ax], sig_out[ax], mod_out[ax], blur_out[ax]
         for j in range(m):  # outputs and the first failed rule (kernel._axis_rule)
             sigma = math.sqrt(var[j])
@@ -89,6 +90,7 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
             rule = rule if chi2[j] <= chi2_limit[int(dof[j])] else 5.0
             rule = rule if amb[j] <= amb_max else 4.0
             rule = rule if snr_row[j] >= min_mod else 3.0
+            rule = rule if ok_row[j] != 0.0 else 2.0  # the anchor period has no fit
             code[j] = min(code[j], rule)  # the first rule that fails on any axis names it
     for j in range(m):
         reason[j] = 255 if dirty[j] else (0 if code[j] == 99.0 else int(code[j]))

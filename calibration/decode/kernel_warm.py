@@ -36,7 +36,7 @@ def warm_up() -> None:
             tables = (np.full((1, 16), -1), np.zeros((0, 30)), np.zeros((1, 4, 3)))
             unknown_patterns(bits, 0, n, tables[0], one * 4)
             finish_sums(sums, bits, squares, flats[0], flats[1], 0, i64(1), one * 3, one * 4,
-                        np.array([0.0, 1, 0, 0, 0, 0.1, 0]), np.zeros(1), np.ones(2),
+                        np.array([0.0, 1, 0, 0, 0, 0.1, 0]), np.zeros(3), np.zeros(1), np.ones(2),
                         np.full(2, np.inf), i64(1), np.ones(1), np.ones(1), np.full(2, np.inf),
                         np.ones(2), np.ones(7), *planes, 0, np.zeros(n, np.uint8), tables)
             if squares.size:
