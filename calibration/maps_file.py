@@ -14,14 +14,17 @@ like any NPZ (FORMATS.md).
 
 from __future__ import annotations
 
+import ctypes
 import errno
+import functools
 import mmap
 import os
 import sys
 import tempfile
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +46,32 @@ if TYPE_CHECKING:
 _PAGE = mmap.PAGESIZE
 # madvise(MADV_POPULATE_WRITE) (Linux >= 5.14): fault pages in, writable, without touching them
 _POPULATE_WRITE = getattr(mmap, "MADV_POPULATE_WRITE", 23 if sys.platform == "linux" else None)
+
+
+@functools.lru_cache(maxsize=1)
+def _libc_madvise() -> Any:
+    """libc's madvise through ctypes (which releases the GIL for the call), or None."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).madvise
+    except (AttributeError, OSError, TypeError):  # no libc (Windows)
+        return None
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    return fn
+
+
+def _populate(mapped: np.ndarray, start: int, length: int, advice: int) -> bool:
+    """madvise(`advice`) over `mapped[start:start + length]` (page-aligned); False where the
+    kernel or the OS does not know the advice. Other errors (EFAULT: the file cannot back a
+    page; ENOMEM) raise."""
+    fn = _libc_madvise()
+    if fn is None:
+        return False
+    if fn(mapped.ctypes.data + start, length, advice) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, f"cannot fault in the maps file's pages ({os.strerror(err)})")
 # the decoder's (2, npix) output planes and the members of their rows x, y
 PLANES = {"position": ("x", "y"), "sigma": ("sigma_x", "sigma_y"),
           "modulation": ("modulation_x", "modulation_y"), "blur": ("blur_x", "blur_y")}
@@ -80,6 +109,10 @@ class MapsFile:
                                    dir=self.path.parent)
         self._fd, self._tmp, self._done = fd, Path(tmp), False
         self._mm: mmap.mmap | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._prefaulter: int | None = None
+        self._prefault_error: OSError | None = None
         try:
             self._reserve()
             self._mm = mmap.mmap(fd, self._end)
@@ -115,25 +148,55 @@ class MapsFile:
                           f"({exc.strerror})", str(self.path)) from None
 
     def prefault(self, nbytes: int) -> bool:
-        """Fault in the next `nbytes` (whole pages) of the file, writable, in this process:
-        the first touch of the maps' memory, paid while frames arrive instead of by the
-        decoder after the last one. False when every page already is."""
+        """Fault in the next `nbytes` (whole pages) of the file, writable, in this process
+        (without the GIL): the first touch of the maps' memory, paid while frames arrive
+        instead of by the decoder after the last one. False when every page already is."""
         start = self._faulted
         if start >= self._end or self._mm is None:
             return False
         length = min(-(-max(nbytes, 1) // _PAGE) * _PAGE, self._end - start)
-        if self._populate is not None:
-            try:
-                self._mm.madvise(self._populate, start, length)
-            except OSError as exc:  # a kernel before 5.14: touch the pages instead
-                if exc.errno not in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
-                    raise
-                self._populate = None
+        if self._populate is not None and not _populate(self._bytes, start, length,
+                                                        self._populate):
+            self._populate = None  # a kernel before 5.14: touch the pages instead
         if self._populate is None:
             pages = self._bytes[start:start + length:_PAGE]
             pages[...] = pages.copy()  # a write fault per page, contents unchanged
         self._faulted = start + length
         return True
+
+    def prefault_idle(self, piece: int = 1 << 20) -> None:
+        """Fault the whole file in from a background thread at idle CPU priority
+        (SCHED_IDLE where the OS has it): it runs only on CPU time nothing else wants, so a
+        capture never waits for it. `stop_prefault` (or `close`) ends it."""
+        def run() -> None:
+            self._prefaulter = threading.get_native_id()
+            if hasattr(os, "SCHED_IDLE"):
+                os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # this thread
+            try:
+                while not self._stop.is_set() and self.prefault(piece):
+                    pass
+            except OSError as exc:  # raised by `stop_prefault`
+                self._prefault_error = exc
+
+        self._stop.clear()
+        self._thread = threading.Thread(target=run, name="maps-prefault", daemon=True)
+        self._thread.start()
+
+    def stop_prefault(self) -> None:
+        """End the background prefault (its current piece first, at normal priority again:
+        the decoder must not wait on a page an idle thread holds); its error, if any."""
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        self._stop.set()
+        if self._prefaulter is not None and hasattr(os, "SCHED_OTHER"):
+            try:
+                os.sched_setscheduler(self._prefaulter, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:  # (the thread already ended)
+                pass
+        thread.join()
+        if self._prefault_error is not None:
+            raise self._prefault_error
 
     def outputs(self) -> dict[str, np.ndarray] | None:
         """The decoder's outputs as views of the file: (2, npix) planes (rows x, y; the row
@@ -208,6 +271,10 @@ class MapsFile:
     def close(self) -> None:
         """Release the mapping and the descriptor; remove the temporary file unless committed
         (views still alive keep their pages mapped until they go)."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
         if self._mm is not None:
             self._bytes = np.empty(0, np.uint8)
             try:

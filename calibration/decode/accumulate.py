@@ -142,6 +142,7 @@ class FrameAccumulator:
                 self._role[i] = ("bright", 0, 0)
         self.compiled = False  # accumulate with the numba kernel (set by the decoder)
         self.block: Any | None = None  # (rows, H*W) float32 sums, allocated by `allocate`
+        self.take: Any = None  # (shape, dtype) -> array to zero for the sums, None: new ones
         self.bits: Any | None = None  # (sets, H*W) bit masks of excluded steps, or None
         self.bright: Any | None = None
         self.dark: Any | None = None
@@ -169,8 +170,9 @@ class FrameAccumulator:
             self.bits = self.xp.zeros((len(self.sets), h * w), dtype=self.bits_dtype)
 
     def _zeros(self, shape: tuple[int, ...], dtype: Any) -> Any:
-        """A zeroed array, written now so page faults happen here and not during capture."""
-        arr = self.xp.empty(shape, dtype=dtype)
+        """A zeroed array, written now so page faults happen here and not during capture
+        (`take`, if set: e.g. an earlier decode's array, `sums_cache`)."""
+        arr = self.xp.empty(shape, dtype=dtype) if self.take is None else self.take(shape, dtype)
         arr.fill(0)
         return arr
 

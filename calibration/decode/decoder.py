@@ -16,16 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from calibration.decode import sums_cache
 from calibration.decode.accumulate import DecodeError, FrameAccumulator
 from calibration.decode.arrays import array_module, to_host
 from calibration.decode.axes import decode_axes_compiled, decode_axes_xp
-from calibration.decode.batch import (
-    ChunkSums,
-    add_frames,
-    chunk_view,
-    ready_frames,
-    run_parallel,
-)
+from calibration.decode.batch import ChunkSums, add_frames, chunk_view, ready_frames, run_parallel
 from calibration.decode.dark_chunks import finish_dark_range
 from calibration.decode.finish import (
     chi2_tail,
@@ -127,7 +122,15 @@ class StreamingDecoder:
 
             warm_up()
             self._acc.compiled = self._compiled
+        if self.xp is np:  # in a long-lived process: an earlier decode's sums, zeroed again
+            self._acc.take = sums_cache.take
         self._acc.allocate()
+
+    def release(self) -> None:
+        """Give the sums to the next decoder of this process (`sums_cache`); not used again."""
+        acc, self._finished = self._acc, True
+        sums_cache.keep([acc.block, acc.bright, acc.dark, acc.squares])
+        acc.block = acc.bright = acc.dark = acc.squares = None
 
     @property
     def _compiled(self) -> bool:
@@ -162,8 +165,8 @@ class StreamingDecoder:
     # -- finishing ---------------------------------------------------------------------
     def finish(self, meta: dict[str, Any] | None = None,
                into: dict[str, np.ndarray] | None = None) -> DecodedMaps:
-        """Decode the accumulated frames into `DecodedMaps` (raises `DecodeError` if unusable);
-        `into`: the arrays to decode into (`calibration.maps_file.MapsFile.outputs`)."""
+        """Decode the accumulated frames into `DecodedMaps` (`DecodeError` if unusable), into
+        the arrays `into` if given (`calibration.maps_file.MapsFile.outputs`)."""
         acc = self._acc
         missing = acc.missing
         if missing:

@@ -13,10 +13,6 @@ import numpy as np
 
 from calibration.progress import Cancelled, TaskContext
 
-# bytes of the maps file faulted in per idle look of the live decode (~2-5 ms of CPU each on
-# a VM: small enough not to delay the next frame, enough to finish well before the last one)
-PREFAULT_BYTES = 2 << 20
-
 
 def _decoder_setup(options: dict[str, Any] | None) -> tuple[Any, Any]:
     """(DecodeOptions, saturation_dn) from a JSON-able options dict (None: defaults)."""
@@ -82,7 +78,7 @@ def stream_decode_task(
     capture, come first). Ends with the maps once every plan frame is in; the capture side
     cancels the job if it fails. Reports progress only for the final stage. The maps file is
     laid out before the first frame and the decoder writes into it (`MapsFile`); its pages
-    are faulted in while the task waits for frames. `durable=False` writes the maps without
+    are faulted in at idle priority while frames arrive. `durable=False` writes the maps without
     fsync (the caller makes them durable after the pose is ready). Timings (wall, and CPU
     seconds of this process: all its threads) and the share of the maps file faulted in
     before the last frame (`prefaulted`) in the summary."""
@@ -102,8 +98,10 @@ def stream_decode_task(
     decoder.prepare()
     added = np.zeros(total, dtype=bool)
     looks = 0
-    # the maps file, laid out now: the decoder writes into its pages, faulted in while idle
+    # the maps file, laid out now: the decoder writes into its pages, faulted in meanwhile
+    # by a thread at idle priority (first-touch page faults: ~0.5 CPU s for a 5 MP pose)
     with MapsFile(out_path, store.shape, plan.axes()) as out:
+        out.prefault_idle()
         while not added.all():
             if looks % 16 == 0:  # (a worker process's cancel flag is a round trip to a manager)
                 ctx.check_cancelled()
@@ -112,17 +110,18 @@ def stream_decode_task(
             # stored frames of complete period groups, in one cache-blocked pass per look
             ready = decoder.ready_frames(new.tolist())
             if not ready:
-                out.prefault(PREFAULT_BYTES)
                 time.sleep(poll_s)
                 continue
             decoder.add_frames(ready, store.array(), rows=ready)
             added[ready] = True
         caught_up_at = time.time()  # wall clock: the capture side reports its last frame's
         t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
+        out.stop_prefault()  # the decoder faults in what is left, if anything
         prefaulted = out.prefaulted / out.nbytes
         ctx.progress(total, total, "unwrap")
         c0 = time.process_time()
         maps = decoder.finish(dict(meta or {}), into=out.outputs())
+        decoder.release()  # its sums, zeroed again, serve this worker's next pose
         t1, c1 = time.perf_counter(), time.process_time()
         out.commit(maps, durable=durable)  # durable=False: page cache, fsync by the caller
     return {**_summary(maps, t0), "caught_up_at": caught_up_at,

@@ -143,6 +143,29 @@ def test_full_disk_is_a_clear_error_before_any_decoding(plan, tmp_path, monkeypa
     assert list(tmp_path.iterdir()) == []
 
 
+def test_background_prefault_covers_the_file_and_reports_its_error(plan, tmp_path,
+                                                                   monkeypatch):
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
+        out.prefault_idle(piece=1 << 14)
+        for _ in range(2000):
+            if out.prefaulted == out.nbytes:
+                break
+            threading.Event().wait(0.005)
+        out.stop_prefault()
+        assert out.prefaulted == out.nbytes
+        assert not any(t.name == "maps-prefault" for t in threading.enumerate())
+
+    def fails(mapped, start, length, advice):
+        raise OSError(14, "cannot fault in the maps file's pages (Bad address)")
+
+    monkeypatch.setattr(maps_file, "_populate", fails)
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
+        out.prefault_idle()
+        with pytest.raises(OSError, match="cannot fault in"):
+            out.stop_prefault()
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
     script = textwrap.dedent(f"""
         import time
@@ -188,7 +211,7 @@ def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path
     finally:
         feeder.join()
         store.close()
-    assert 0.0 < result["prefaulted"] <= 1.0
+    assert 0.0 <= result["prefaulted"] <= 1.0  # (at idle priority: what the machine allowed)
     assert [p.name for p in staged.iterdir()] == ["maps.npz"]
     save_maps(_decoder(plan, stack).finish(dict(META)), tmp_path / "ref.npz")
     _same_npz(staged / "maps.npz", tmp_path / "ref.npz")
