@@ -243,9 +243,25 @@ def residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.
     return binned_line(binned, rss, dof, floor, low), [float(r2) for r2 in leak]
 
 
+def line_sample(run: Callable[[bool], None], clean: np.ndarray, no_dark_clip: np.ndarray,
+                span: np.ndarray, rss: np.ndarray, dof: np.ndarray, minimum: int,
+                dtype: np.dtype) -> np.ndarray:
+    """`line_pixels` of the noise sample, less `undithered`'s pixels: `run(lazy)` fills the
+    arrays, first lazily (pixels with clipped steps outside the low-contrast group deferred,
+    their fits the costliest), then again with every pixel fitted if the line needs them."""
+    for lazy in (True, False):
+        run(lazy)
+        spread = ~undithered(span, rss, dof, no_dark_clip, quantized=dtype.kind == "u")
+        use = line_pixels(clean, no_dark_clip, spread, dof, minimum)
+        if use is not None:
+            return use
+    raise AssertionError("line_pixels deferred pixels after a full pass")
+
+
 def line_pixels(clean: np.ndarray, no_dark_clip: np.ndarray, spread: np.ndarray,
-                dof: np.ndarray, minimum: int) -> np.ndarray:
-    """The pixels the photon-transfer line is fitted on: the first choice with `minimum`.
+                dof: np.ndarray, minimum: int) -> np.ndarray | None:
+    """The pixels the photon-transfer line is fitted on: the first choice with `minimum`;
+    None when it lacks them and some pixels' fits were deferred (dof < 0: fit them first).
 
     Pixels with clipped steps are left out when enough others exist: excluding the clipped
     samples truncates the noise of those near the clip level (censoring). When too few are
@@ -259,6 +275,8 @@ def line_pixels(clean: np.ndarray, no_dark_clip: np.ndarray, spread: np.ndarray,
     for choice in (clean & spread, no_dark_clip & spread, clean, no_dark_clip):
         if np.count_nonzero(use & choice) >= minimum:
             return use & choice
+        if (dof < 0).any():
+            return None
     return use
 
 
