@@ -67,9 +67,12 @@ def populate(view: np.ndarray, start: int, length: int, advice: int | None) -> N
 
 class IdlePrefault:
     """Fault in `regions` (uint8 views of mappings, each with READ or WRITE), in order, in
-    `piece`-sized steps from a background thread at idle priority; `stop` ends it."""
+    `piece`-sized steps from a background thread at idle priority; `stop` ends it. Pieces
+    are small (256 KB, ~0.5 ms of CPU) because madvise holds the process's mmap lock for
+    reading meanwhile: an idle thread preempted there would make the process's next
+    mmap/munmap (a large NumPy allocation) wait for idle CPU time."""
 
-    def __init__(self, regions: list[tuple[np.ndarray, int | None]], piece: int = 1 << 20) -> None:
+    def __init__(self, regions: list[tuple[np.ndarray, int | None]], piece: int = 1 << 18) -> None:
         self.regions = regions
         self.piece = -(-piece // PAGE) * PAGE
         self.done = 0  # bytes faulted in, over all regions
