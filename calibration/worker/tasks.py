@@ -81,13 +81,13 @@ def stream_decode_task(
     laid out before the first frame and the decoder writes into it (`MapsFile`); its pages
     are faulted in at idle priority while frames arrive. `durable=False` writes the maps without
     fsync (the caller makes them durable after the pose is ready). Timings (wall, and CPU
-    seconds of this process: all its threads) and the share of the frames' and the maps
-    file's pages faulted in ahead by the last frame (`prefaulted`) in the summary."""
+    seconds of this process: all its threads) and the share of the maps file's pages faulted
+    in ahead by the last frame (`prefaulted`) in the summary."""
     from calibration.decode import StreamingDecoder
     from calibration.decode.frame_store import FrameStore
     from calibration.maps_file import MapsFile
     from calibration.plan import read_plan
-    from calibration.prefault import READ, WRITE, IdlePrefault
+    from calibration.prefault import WRITE, IdlePrefault
 
     plan = read_plan(plan_path)
     opts, saturation = _decoder_setup(options)
@@ -97,12 +97,12 @@ def stream_decode_task(
     ctx.check_cancelled()
     added = np.zeros(total, dtype=bool)
     looks = 0
-    # the maps file, laid out now: the decoder writes into its pages. First-touch page faults
-    # (~0.4 + 0.5 CPU s for a 5 MP pose on a VM) at idle priority while frames arrive: the
-    # frames' pages the capture is about to write (so the server's copies are cheap), then
-    # the maps file's.
+    # the maps file, laid out now: the decoder writes into its pages, faulted in at idle
+    # priority while frames arrive (first-touch page faults: ~0.5 CPU s at 5 MP on a VM).
+    # (Not the frames' pages: an idle thread holding a page or ext4 lock of frames.npy would
+    # hold up the server's frame copies; seen as torn frames in 2 of 6 benchmark runs.)
     with MapsFile(out_path, store.shape, plan.axes()) as out, IdlePrefault(
-            [(store.array().reshape(-1).view(np.uint8), READ), (out.mapped, WRITE)]) as ahead:
+            [(out.mapped, WRITE)]) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts)
         decoder.prepare()
