@@ -119,15 +119,15 @@ def unknown_patterns(bits, c0, n, index, steps) -> bool:
     return False
 
 
-
-
 @njit(cache=True, error_model="numpy", inline="always")
-def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, line):
+def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov, lin,
+               line):
     """phase.fit_set of one set of the pixel at column jc from its pattern's row t (kept
     steps only): (ok, mean, level, alpha, beta, c_aa, c_bb, c_ab, explained, dof, the
     use_step_levels numerators aa, bb, ab (with `cov`), a step clipped at the dark end
-    (with `want_low`)). `p`: (F,) scratch; `lin`: (c0, slope, threshold) of `line` as
-    c0 + slope * mu, valid where every fitted step value mu exceeds the threshold."""
+    (with `want_low`); level and explained only with `residual`). `p`: (F,) scratch;
+    `lin`: (c0, slope, threshold) of `line` as c0 + slope * mu, valid where every fitted
+    step value mu exceeds the threshold."""
     f32 = np.float32
     width, t_max = basis.shape[1], basis.shape[0]
     good = True
@@ -144,7 +144,7 @@ def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, 
     kept, used = rows[t, size - 2], rows[t, size - 1]
     lev = 0.0
     e = 0.0
-    for i in range(nrow):
+    for i in range(nrow if residual else 0):
         lev += rows[t, width * width + i] * p[i]
         e += p[i] * float(sums[r0 + i, jc])
     low = False
@@ -188,14 +188,18 @@ def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, 
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _table_fit_n(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, line):
+def _table_fit_n(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov, lin,
+                 line):
     """`_table_fit` with the set's row count a constant for the common layouts (3 + 2
     harmonics: 5 or 7 rows), so that LLVM unrolls the small loops."""
     if nrow == 5:
-        return _table_fit(sums, r0, 5, n, jc, rows, t, basis, p, want_low, q, cov, lin, line)
+        return _table_fit(sums, r0, 5, n, jc, rows, t, basis, p, residual, want_low, q, cov,
+                          lin, line)
     if nrow == 7:
-        return _table_fit(sums, r0, 7, n, jc, rows, t, basis, p, want_low, q, cov, lin, line)
-    return _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, want_low, q, cov, lin, line)
+        return _table_fit(sums, r0, 7, n, jc, rows, t, basis, p, residual, want_low, q, cov,
+                          lin, line)
+    return _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov,
+                      lin, line)
 
 
 def linear_line(noise_line: tuple) -> np.ndarray:
@@ -262,8 +266,8 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
                 continue
             (good, mean[j], levk[j], alpha[j], beta[j], caa[j], cbb[j], cab[j], expl[j],
              dofk[j], covs[3, k, j], covs[4, k, j], covs[5, k, j], lw) = _table_fit_n(
-                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis[k], p, want_low, q, cov,
-                lin, line)
+                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis[k], p, residual, want_low,
+                q, cov, lin, line)
             ok[j] = good
             part[j] = good and cov
             low[j] = low[j] or lw

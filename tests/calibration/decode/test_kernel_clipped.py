@@ -1,0 +1,64 @@
+"""The compiled least-squares fit of a pixel with clipped steps (kernel_clipped.py) against
+phase.py's tables and `SetFit.use_step_levels`' per-step noise covariance, in NumPy."""
+
+import numpy as np
+import pytest
+
+from acquisition.patterns import build_plan
+from calibration.decode import StreamingDecoder
+from calibration.decode.kernel_clipped import _table_fit, linear_line, pattern_tables
+from calibration.decode.phase import _basis, _normal_inverse
+
+# offset, slope, black, clamp, floor: a sensor line with a black level (clamped below it)
+LINE = (0.8, 0.05, 6.0, True, 1.0 / 12.0)
+PATTERNS = (0b0000000111, 0b1100000001, 0b0000110000)  # clipped steps (bit i: step i)
+
+
+def expected(n: int, harmonics: tuple[int, ...], q: int, v: np.ndarray) -> tuple:
+    """(coefficients, use_step_levels numerators aa, bb, ab) from phase.py's tables."""
+    pat = _normal_inverse(n, q, harmonics)
+    basis = _basis(n, harmonics)
+    kept = np.array([(q >> i) & 1 == 0 for i in range(n)])
+    sums = (basis[kept].T @ v[kept]).astype(np.float32).astype(np.float64)
+    p = pat.minv @ sums
+    offset, slope, black, _, floor = LINE
+    var = np.maximum(offset + slope * np.maximum(np.maximum(basis @ p, 0.0) - black, 0.0), floor)
+    ga, gb = pat.gains
+    return sums, p, np.array([var @ (ga * ga), var @ (gb * gb), var @ (ga * gb)])
+
+
+@pytest.mark.parametrize("noise", [None, 1.5])  # residual mode (7 rows) / given (5 rows)
+def test_table_fit_matches_phase_tables_and_step_levels(noise):
+    """Coefficients and `use_step_levels`' numerators of the kernel's fit equal NumPy's on
+    phase.py's tables, both where the noise line is linear over the fitted steps (the
+    kernel's shortcut through the pattern's summed tables) and where some fitted steps lie
+    below the black level (each step's own variance); taking the shortcut there is wrong."""
+    plan = build_plan(1920, 1080, 0.2745, steps=10)
+    acc = StreamingDecoder(plan, (4, 4), noise=noise)._acc
+    tables = pattern_tables(acc)
+    k, s = 0, acc.sets[0]
+    n, nrow = s.layout.steps, s.rows
+    bits = np.zeros((len(acc.sets), len(PATTERNS)), dtype=acc.bits_dtype)
+    bits[k] = PATTERNS
+    index, rows = tables.tables(bits, 0, bits.shape[1])
+    lin = linear_line(np.array([*LINE[:3], 1.0, LINE[4]]))
+    never = np.array([lin[0], lin[1], np.inf])  # the shortcut never taken
+    always = np.array([lin[0], lin[1], -np.inf])  # the shortcut always taken
+    rng = np.random.default_rng(7)
+    psi = np.asarray(s.layout.psi)
+    p_scratch = np.empty(tables.basis.shape[2])
+    for q in PATTERNS:
+        for level, amp, linear in ((200.0, 80.0, True), (7.0, 5.0, False)):
+            v = level + amp * np.cos(psi + 0.3) + rng.normal(0.0, 1.0, n)
+            sums, p, num = expected(n, s.harmonics, q, v)
+            col = sums.astype(np.float32)[:, None]
+            fits = {name: _table_fit(col, 0, nrow, n, 0, rows, index[k, q], tables.basis[k],
+                                     p_scratch, noise is None, True, q, True, thr, LINE)
+                    for name, thr in (("auto", lin), ("never", never), ("always", always))}
+            got = fits["auto"]
+            assert got[0]
+            np.testing.assert_allclose([got[1], got[3], got[4]], p[:3], rtol=1e-6)
+            np.testing.assert_allclose(got[10:13], num, rtol=1e-9)
+            np.testing.assert_allclose(fits["never"][10:13], num, rtol=1e-9)
+            shortcut = np.allclose(fits["always"][10:13], num, rtol=1e-9)
+            assert shortcut == linear  # (the shortcut is wrong below the black level)
