@@ -90,7 +90,7 @@ class MapsFile:
     @property
     def mapped(self) -> np.ndarray:
         """The file's bytes up to `meta` (uint8, writable): to fault in ahead of the decoder
-        (`calibration.prefault.IdlePrefault` with WRITE)."""
+        (`calibration.prefault.IdlePrefault`)."""
         return self._bytes
 
     def _reserve(self) -> None:

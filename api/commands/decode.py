@@ -87,9 +87,9 @@ def run(args: argparse.Namespace) -> int:
     out = _laid_out(args)
     if out is None:
         return _decode(args, stages, None, None)
-    from calibration.prefault import WRITE, IdlePrefault
+    from calibration.prefault import IdlePrefault
 
-    with out, IdlePrefault([(out.mapped, WRITE)]) as ahead:
+    with out, IdlePrefault([out.mapped]) as ahead:
         return _decode(args, stages, out, ahead)
 
 

@@ -87,7 +87,7 @@ def stream_decode_task(
     from calibration.decode.frame_store import FrameStore
     from calibration.maps_file import MapsFile
     from calibration.plan import read_plan
-    from calibration.prefault import WRITE, IdlePrefault
+    from calibration.prefault import IdlePrefault
 
     plan = read_plan(plan_path)
     opts, saturation = _decoder_setup(options)
@@ -102,7 +102,7 @@ def stream_decode_task(
     # (Not the frames' pages: an idle thread holding a page or ext4 lock of frames.npy would
     # hold up the server's frame copies; seen as torn frames in 2 of 6 benchmark runs.)
     with MapsFile(out_path, store.shape, plan.axes()) as out, IdlePrefault(
-            [(out.mapped, WRITE)]) as ahead:
+            [out.mapped]) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts)
         decoder.prepare()
