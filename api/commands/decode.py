@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from typing import Any
@@ -61,8 +62,8 @@ def _laid_out(args: argparse.Namespace) -> Any:
     from calibration.maps_file import MapsFile
     from calibration.plan import read_plan
 
-    if not str(args.frames).endswith(".npy"):
-        return None
+    if not str(args.frames).endswith(".npy") or os.name != "posix":
+        return None  # (Windows cannot rename a file that is still mapped)
     try:
         shape = np.load(args.frames, mmap_mode="r").shape
         axes = read_plan(args.plan).axes()
