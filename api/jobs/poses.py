@@ -134,6 +134,7 @@ class CaptureJob(PoseJob):
             svc.store.commit(staged, ["maps.npz"], pose_dir)
             svc.maps_sync.submit(pose_dir)
             dec["commit_s"] = round(time.time() - decoded_at, 4)
+            dec["decoded_at"] = decoded_at  # the server has the worker's result
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 
 
