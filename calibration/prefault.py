@@ -6,7 +6,7 @@ it before the pages are written, on CPU time nothing else wants (`SCHED_IDLE` wh
 has it), with `madvise(MADV_POPULATE_WRITE)` through ctypes (no GIL held; Linux >= 5.14;
 elsewhere each page is touched). Populating never changes a page's contents. Only for
 mappings this process alone writes: an idle thread holding a page lock of a file another
-process writes would hold that process up (tried for the frame store: torn frames).
+process writes could hold that process up.
 """
 
 from __future__ import annotations

@@ -99,8 +99,8 @@ def stream_decode_task(
     looks = 0
     # the maps file, laid out now: the decoder writes into its pages, faulted in at idle
     # priority while frames arrive (first-touch page faults: ~0.5 CPU s at 5 MP on a VM).
-    # (Not the frames' pages: an idle thread holding a page or ext4 lock of frames.npy would
-    # hold up the server's frame copies; seen as torn frames in 2 of 6 benchmark runs.)
+    # (Not the frames' pages: an idle thread holding a page or ext4 lock of frames.npy could
+    # hold up the server's frame copies.)
     with MapsFile(out_path, store.shape, plan.axes()) as out, IdlePrefault(
             [out.mapped]) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
