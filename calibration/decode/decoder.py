@@ -36,12 +36,11 @@ from calibration.decode.noise import (
     NoiseModel,
     NoiseSource,
     VarianceFn,
-    line_pixels,
+    line_sample,
     nyquist_power,
     phase_level,
     residual_line,
     sample_pieces,
-    undithered,
     variance_function,
 )
 from calibration.decode.options import DecodeOptions
@@ -312,16 +311,15 @@ class StreamingDecoder:
         clean, no_dark_clip = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
         offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
 
-        def one(k: int) -> None:
+        def one(k: int, lazy: bool) -> None:
             to, chunk = slice(int(offsets[k]), int(offsets[k + 1])), chunk_of(pieces[k])
-            stats = (residual_stats if self._compiled else residual_arrays)(self, chunk)
+            stats = (residual_stats if self._compiled else residual_arrays)(self, chunk, lazy)
             mean[to], rss[to], dof[to], clean[to], no_dark_clip[to], power[:, to] = stats
             dark[to] = to_host(chunk.dark / acc.n_dark)
             span[to] = to_host(chunk.bright / acc.n_bright) - dark[to]
 
-        self._map(one, list(range(len(pieces))))
-        spread = ~undithered(span, rss, dof, no_dark_clip, quantized=acc.dtype.kind == "u")
-        use = line_pixels(clean, no_dark_clip, spread, dof, _MIN_CLEAN_PIXELS)
+        use = line_sample(lambda lazy: self._map(lambda k: one(k, lazy), list(range(len(pieces)))),
+                          clean, no_dark_clip, span, rss, dof, _MIN_CLEAN_PIXELS, acc.dtype)
         self._ptc, self._leak = residual_line(mean[use], rss[use], dof[use], power[:, use],
                                               self._floor, dark[use])
 

@@ -12,7 +12,7 @@ import numpy as np
 from calibration.decode.arrays import chi2_isf, to_host
 from calibration.decode.axes import MIN_PERIOD_SNR, chi2_limits
 from calibration.decode.batch import ChunkSums, layout
-from calibration.decode.noise import LinearVariance, NoiseModel, nyquist_power
+from calibration.decode.noise import MIN_SPAN_DN, LinearVariance, NoiseModel, nyquist_power
 from calibration.decode.phase import fit_set
 
 
@@ -102,9 +102,9 @@ def _inputs(chunk: ChunkSums, acc: Any) -> tuple[Any, ...]:
     return block, bits, squares, bright, dark, chunk.col0 if chunk.full else 0
 
 
-def residual_arrays(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
+def residual_arrays(dec: Any, chunk: ChunkSums, lazy: bool = False) -> tuple[np.ndarray, ...]:
     """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line, by the
-    decoder's array path."""
+    decoder's array path (every pixel fitted: `lazy` has no effect here)."""
     xp = dec.xp
     fits = [fit_set(xp, s, slice(None), residuals=True, skip=dec._sees_no_screen(chunk))
             for s in chunk.sets]
@@ -126,8 +126,10 @@ def _tables(acc: Any, bits: np.ndarray, c0: int, n: int) -> tuple[np.ndarray, ..
     return (*tables.tables(bits, c0, n), tables.basis)
 
 
-def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
-    """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line."""
+def residual_stats(dec: Any, chunk: ChunkSums, lazy: bool = False) -> tuple[np.ndarray, ...]:
+    """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line; `lazy`:
+    pixels with clipped steps and a flat contrast clear of `undithered`'s low group are
+    not fitted (dof -1) until `line_pixels` needs them."""
     from calibration.decode.kernel_sums import residual_stats as kernel
 
     acc, n = dec._acc, chunk.size
@@ -137,7 +139,8 @@ def residual_stats(dec: Any, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
     power = np.empty((len(acc.sets), n), dtype=np.float32)
     block, bits, squares, bright, dark, c0 = _inputs(chunk, acc)
     tables = _tables(acc, bits, c0, n)
-    clip = np.array([dec._floor, acc.n_bright, acc.n_dark, dec.options.min_contrast_snr])
+    clip = np.array([dec._floor, acc.n_bright, acc.n_dark, dec.options.min_contrast_snr,
+                     MIN_SPAN_DN + 0.5 if lazy else np.inf])  # (a margin over float32 spans)
     leak = np.zeros(len(acc.sets)) if dec._leak is None else np.asarray(dec._leak, float)
     kernel(block, bits, squares, c0, lay.row0, lay.nrows, lay.steps, level, rss, dof, dirty,
            power, low, bright, dark, clip, leak, tables)

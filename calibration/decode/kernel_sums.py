@@ -191,8 +191,9 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
     dof-weighted level, residual sum of squares, residual dof, each set's Nyquist power;
     `dirty_out` marks the pixels with clipped steps. With `tables` (non-empty index) those
     are fitted here too (kernel_clipped.py; `clip`: floor, bright and dark flat counts,
-    min_contrast_snr) and `low_out` marks a step clipped at the dark end; without, they
-    are left to the array path (`low_out` untouched)."""
+    min_contrast_snr, lazy span) and `low_out` marks a step clipped at the dark end, except
+    those whose flat contrast is at least the lazy span: deferred (dof -1, no fit); without
+    tables, they are left to the array path (`low_out` untouched)."""
     n = level_out.shape[0]
     n_sets = row0.shape[0]
     expl, own, lev = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK)
@@ -219,10 +220,13 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
             bk = bits[k, j0:j0 + m]
             for j in range(m):
                 d[j] |= bk[j] != 0
-        general = False
+        general = deferred = False
         if have_tables:
             for j in range(m):
-                general |= d[j]
+                if d[j] and bright[j0 + j] / nb - dark[j0 + j] / nd >= clip[4]:
+                    deferred = True
+                else:
+                    general |= d[j]
         if general:
             for j in range(m):
                 lit, unlit = bright[j0 + j] / nb, dark[j0 + j] / nd
@@ -256,7 +260,7 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
         for j in range(m):
             rss_out[b0 + j] = max(own[j], 0.0)
             level_out[b0 + j] = lev[j] / max(dof, 1.0)
-            dof_out[b0 + j] = dof
+            dof_out[b0 + j] = -1.0 if deferred and d[j] else dof
             low_out[b0 + j] = False
 
 

@@ -43,5 +43,5 @@ def warm_up() -> None:
                 out = [np.zeros(n, np.float32) for _ in range(3)]
                 residual_stats(sums, bits, squares, 0, i64(1), one * 3, one * 4, *out,
                                np.zeros(n, np.bool_), np.zeros((1, n), np.float32),
-                               np.zeros(n, np.bool_), flats[0], flats[1], np.ones(4),
+                               np.zeros(n, np.bool_), flats[0], flats[1], np.ones(5),
                                np.zeros(1), tables)

@@ -232,17 +232,36 @@ def residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.
     found): a first line, the harmonic fitted against it (`harmonic_leak`), subtracted, and
     the line fitted again; at or above `floor` from the median `dark` flat level up."""
     low = float(np.median(dark)) if dark.size else None
-    line = fit_photon_transfer(mean, rss, dof, floor, low=low)
+    binned = level_bins(mean, rss, dof)
+    line = binned_line(binned, rss, dof, floor, low)
     leak = harmonic_leak(rss, dof, mean, power, line)
     if leak is None:
         return line, None
     rss = np.maximum(rss - leak.astype(np.float32) @ power, 0.0)
-    return fit_photon_transfer(mean, rss, dof, floor, low=low), [float(r2) for r2 in leak]
+    if binned is None or not np.array_equal(binned.usable, _usable(mean, rss, dof)):
+        binned = level_bins(mean, rss, dof)  # (same levels: usually the same bins)
+    return binned_line(binned, rss, dof, floor, low), [float(r2) for r2 in leak]
+
+
+def line_sample(run: Callable[[bool], None], clean: np.ndarray, no_dark_clip: np.ndarray,
+                span: np.ndarray, rss: np.ndarray, dof: np.ndarray, minimum: int,
+                dtype: np.dtype) -> np.ndarray:
+    """`line_pixels` of the noise sample, less `undithered`'s pixels: `run(lazy)` fills the
+    arrays, first lazily (pixels with clipped steps outside the low-contrast group deferred,
+    their fits the costliest), then again with every pixel fitted if the line needs them."""
+    for lazy in (True, False):
+        run(lazy)
+        spread = ~undithered(span, rss, dof, no_dark_clip, quantized=dtype.kind == "u")
+        use = line_pixels(clean, no_dark_clip, spread, dof, minimum)
+        if use is not None:
+            return use
+    raise AssertionError("line_pixels deferred pixels after a full pass")
 
 
 def line_pixels(clean: np.ndarray, no_dark_clip: np.ndarray, spread: np.ndarray,
-                dof: np.ndarray, minimum: int) -> np.ndarray:
-    """The pixels the photon-transfer line is fitted on: the first choice with `minimum`.
+                dof: np.ndarray, minimum: int) -> np.ndarray | None:
+    """The pixels the photon-transfer line is fitted on: the first choice with `minimum`;
+    None when it lacks them and some pixels' fits were deferred (dof < 0: fit them first).
 
     Pixels with clipped steps are left out when enough others exist: excluding the clipped
     samples truncates the noise of those near the clip level (censoring). When too few are
@@ -256,6 +275,8 @@ def line_pixels(clean: np.ndarray, no_dark_clip: np.ndarray, spread: np.ndarray,
     for choice in (clean & spread, no_dark_clip & spread, clean, no_dark_clip):
         if np.count_nonzero(use & choice) >= minimum:
             return use & choice
+        if (dof < 0).any():
+            return None
     return use
 
 
@@ -277,24 +298,62 @@ def fit_photon_transfer(
     of residual degrees of freedom instead of its own handful; an even subsample of at most
     ~2 `max_pixels` pixels (~30000 per bin) is plenty. None when < 4 bins have data.
     """
-    # Pixels reading one constant value (rss 0: e.g. a black level under the noise, off
-    # the screen) say nothing about the line and would collapse the level quantiles.
-    good = np.flatnonzero(np.isfinite(mean) & np.isfinite(rss) & (dof >= 1) & (rss > 0))
-    if good.size < 64:
+    return binned_line(level_bins(mean, rss, dof, bins, max_pixels), rss, dof, floor, low)
+
+
+@dataclass(frozen=True)
+class LevelBins:
+    """`fit_photon_transfer`'s level bins: `usable` pixels, `good` their even subsample,
+    `order` putting each bin's pixels together, `bins` the slices of >= 16 of them, `x`
+    their median levels, `count` their sizes, `m` the levels in `order`."""
+
+    usable: np.ndarray
+    good: np.ndarray
+    order: np.ndarray
+    bins: list[slice]
+    x: np.ndarray
+    count: np.ndarray
+    m: np.ndarray
+
+
+def _usable(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """Indices of the pixels a line can use. Pixels reading one constant value (rss 0: e.g.
+    a black level under the noise) say nothing about it and would collapse the quantiles."""
+    return np.flatnonzero(np.isfinite(mean) & np.isfinite(rss) & (dof >= 1) & (rss > 0))
+
+
+def level_bins(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, bins: int = 16,
+               max_pixels: int = 1 << 19) -> LevelBins | None:
+    """`fit_photon_transfer`'s mean-level quantile bins; None when < 4 can have data (no
+    line). The residuals only choose the usable pixels, so a refit on the same pixels (the
+    display harmonic removed) reuses them."""
+    usable = _usable(mean, rss, dof)
+    if usable.size < 64:
         return None
-    good = good[:: max(1, good.size // max_pixels)]  # an even subsample bounds the work
+    good = usable[:: max(1, usable.size // max_pixels)]  # an even subsample bounds the work
     m = mean[good]
-    ratio = variance_ratio(rss[good], np.rint(dof[good]).astype(np.int64))
     # (the same order statistics from sorted levels: SIMD sort, then a cheap selection)
     edges = np.unique(np.quantile(np.sort(m), np.linspace(0.0, 1.0, bins + 1)))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
     order = np.argsort(which.astype(np.int16), kind="stable")  # (radix) bins contiguous
-    m, ratio = m[order], ratio[order]
+    m = m[order]
     bounds = np.searchsorted(which[order], np.arange(len(edges)))
     # a loop over 16 bins, not over pixels
     bins_ = [slice(int(lo), int(hi)) for lo, hi in itertools.pairwise(bounds) if hi - lo >= 16]
+    if len(bins_) < 4:
+        return None
     count = np.array([b.stop - b.start for b in bins_], dtype=np.float64)
     x = np.array([float(np.median(m[b])) for b in bins_])
+    return LevelBins(usable, good, order, bins_, x, count, m)
+
+
+def binned_line(binned: LevelBins | None, rss: np.ndarray, dof: np.ndarray, floor: float,
+                low: float | None) -> LinearVariance | None:
+    """`fit_photon_transfer`'s line through the `binned` pixels' variance ratios."""
+    if binned is None:
+        return None
+    good, bins_, x, count, m = binned.good, binned.bins, binned.x, binned.count, binned.m
+    ratio = variance_ratio(rss[good], np.rint(dof[good]).astype(np.int64))[binned.order]
     line: LinearVariance | None = None
     for _ in range(2):
         # Second pass: each ratio over the first line at its own level, so a bin whose levels
