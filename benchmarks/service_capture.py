@@ -27,8 +27,10 @@ the server while the worker finishes), `lag` (decode worker catching up with the
 `finish` (decoder finish; `fin cpu` its CPU seconds, all worker threads; the decoder writes
 into the maps file laid out before the first frame, `pf` the share of its pages faulted in
 while frames arrived), `write` (CRC-32s, headers, meta, rename of the maps NPZ in the page
-cache; `wr cpu`), `commit` (durable mark, rename into the pose; the fsync
-of the maps runs after the pose is ready, api/maps_durability.py);
+cache; `wr cpu`), `hand` (from the worker's end of the write to the server holding its
+result: the task's return, the result's trip between processes), `commit` (durable mark,
+rename into the pose; the fsync of the maps runs after the pose is ready,
+api/maps_durability.py), `job` (from the commit to the job's recorded end);
 and the CPU seconds the pose cost the server process (`api cpu`: HTTP, job, controller,
 frame store) and its worker processes (`wkr cpu`: streaming decode, maps write).
 Last line: `service capture: worst R x vsync floor; pose ready S s after the last frame`
@@ -162,6 +164,9 @@ def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -
                      "finish_cpu": dec["finish_cpu_s"], "write_cpu": dec["write_cpu_s"],
                      "write_s": dec["write_s"], "commit_s": dec["commit_s"],
                      "prefaulted": dec["prefaulted"],
+                     "handoff_s": dec["decoded_at"] - dec["caught_up_at"] - dec["finish_s"]
+                     - dec["write_s"],
+                     "job_s": job["finished_at"] - dec["decoded_at"] - dec["commit_s"],
                      "server_ready_s": job["finished_at"] - last, "ready_s": seen - last,
                      "api_cpu": api1 - api0, "worker_cpu": workers1 - workers0,
                      "valid": dec["valid_pixels"], "load": load,
@@ -207,7 +212,8 @@ COLUMNS = [  # header, row key, width, format
     ("finish", "finish_s", 6, ".2f"), ("fin cpu", "finish_cpu", 7, ".2f"),
     ("pf", "prefaulted", 4, ".2f"), ("write", "write_s", 6, ".2f"),
     ("wr cpu", "write_cpu", 6, ".2f"),
-    ("commit", "commit_s", 6, ".3f"), ("S srv", "server_ready_s", 6, ".2f"),
+    ("hand", "handoff_s", 5, ".2f"), ("commit", "commit_s", 6, ".3f"),
+    ("job", "job_s", 5, ".2f"), ("S srv", "server_ready_s", 6, ".2f"),
     ("S", "ready_s", 6, ".2f"), ("api cpu", "api_cpu", 7, ".2f"),
     ("wkr cpu", "worker_cpu", 7, ".2f"), ("valid px", "valid", 9, "d"), ("load", "load", 5, ".1f")]
 

@@ -9,7 +9,8 @@ before the first frame (`MapsFile`), its pages are faulted in while frames arriv
 directory are written (`commit`) and the file is renamed into place whole: no copy of
 ~200 MB of maps and no page faults after the last frame.
 A failed or cancelled decode removes the temporary file (`close`); np.load reads the result
-like any NPZ (FORMATS.md).
+like any NPZ (FORMATS.md). POSIX: the file is renamed while the decoder's views of it may
+still be mapped.
 """
 
 from __future__ import annotations
@@ -90,7 +91,7 @@ class MapsFile:
     @property
     def mapped(self) -> np.ndarray:
         """The file's bytes up to `meta` (uint8, writable): to fault in ahead of the decoder
-        (`calibration.prefault.IdlePrefault` with WRITE)."""
+        (`calibration.prefault.IdlePrefault`)."""
         return self._bytes
 
     def _reserve(self) -> None:

@@ -1,11 +1,12 @@
-"""Fault file-mapped pages in ahead of their use, from a thread at idle CPU priority.
+"""Fault a writable file mapping's pages in ahead of their use, at idle CPU priority.
 
 On a VM, memory touched for the first time costs ~1.5-3 ms of CPU per MB (page cache pages
-the guest allocates anew): ~0.4 CPU s for a 5 MP pose's 265 MB of frames, ~0.5 for its
-205 MB of maps. `IdlePrefault` pays it before the pages are used, on CPU time nothing else
-wants (`SCHED_IDLE` where the OS has it), with `madvise(MADV_POPULATE_READ / _WRITE)` through
-ctypes (no GIL held; Linux >= 5.14; elsewhere each page is touched). Populating never changes
-a page's contents, so it may run ahead of a writer in another process.
+the guest allocates anew): ~0.5 CPU s for a 5 MP pose's 205 MB of maps. `IdlePrefault` pays
+it before the pages are written, on CPU time nothing else wants (`SCHED_IDLE` where the OS
+has it), with `madvise(MADV_POPULATE_WRITE)` through ctypes (no GIL held; Linux >= 5.14;
+elsewhere each page is touched). Populating never changes a page's contents. Only for
+mappings this process alone writes: an idle thread holding a page lock of a file another
+process writes could hold that process up.
 """
 
 from __future__ import annotations
@@ -22,9 +23,7 @@ from typing import Any
 import numpy as np
 
 PAGE = mmap.PAGESIZE
-LINUX = sys.platform == "linux"
-READ = 22 if LINUX else None  # MADV_POPULATE_READ: page cache pages in, not dirtied
-WRITE = 23 if LINUX else None  # MADV_POPULATE_WRITE: also writable (a shared mapping)
+POPULATE_WRITE = 23 if sys.platform == "linux" else None  # MADV_POPULATE_WRITE
 
 
 @functools.lru_cache(maxsize=1)
@@ -38,14 +37,14 @@ def _libc_madvise() -> Any:
     return fn
 
 
-def _madvise(view: np.ndarray, start: int, length: int, advice: int | None) -> bool:
-    """madvise(`advice`) over `view[start:start + length]` (page-aligned); False where the
-    kernel or the OS does not know the advice. Other errors (EFAULT: the file cannot back a
-    page, e.g. a full disk; ENOMEM) raise."""
+def _madvise(view: np.ndarray, start: int, length: int) -> bool:
+    """madvise(MADV_POPULATE_WRITE) over `view[start:start + length]` (page-aligned); False
+    where the kernel or the OS does not know it. Other errors (EFAULT: the file cannot back
+    a page, e.g. a full disk; ENOMEM) raise."""
     fn = _libc_madvise()
-    if advice is None or fn is None:
+    if POPULATE_WRITE is None or fn is None:
         return False
-    if fn(view.ctypes.data + start, length, advice) == 0:
+    if fn(view.ctypes.data + start, length, POPULATE_WRITE) == 0:
         return True
     err = ctypes.get_errno()
     if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
@@ -53,27 +52,27 @@ def _madvise(view: np.ndarray, start: int, length: int, advice: int | None) -> b
     raise OSError(err, f"cannot fault in mapped pages ({os.strerror(err)})")
 
 
-def populate(view: np.ndarray, start: int, length: int, advice: int | None) -> None:
-    """Fault in `view[start:start + length]` (a uint8 view of a mapping, `start` on a page):
-    madvise where it works, else touch each page (read it, or write back what it holds)."""
-    if _madvise(view, start, length, advice):
-        return
-    pages = view[start:start + length:PAGE]
-    if advice == WRITE and view.flags.writeable:
+def populate(view: np.ndarray, start: int, length: int) -> None:
+    """Fault in `view[start:start + length]` (a writable uint8 view of a shared mapping,
+    `start` on a page), writable: madvise where it works, else write each page's first byte
+    back."""
+    if not _madvise(view, start, length):
+        pages = view[start:start + length:PAGE]
         pages[...] = pages.copy()  # a write fault per page, contents unchanged
-    else:
-        int(pages.sum())  # a read fault per page
 
 
 class IdlePrefault:
-    """Fault in `regions` (uint8 views of mappings, each with READ or WRITE), in order, in
-    `piece`-sized steps from a background thread at idle priority; `stop` ends it."""
+    """Fault in `regions` (writable uint8 views of shared mappings), in order, in
+    `piece`-sized steps from a background thread at idle priority; `stop` ends it. Pieces
+    are small (256 KB, ~0.5 ms of CPU) because madvise holds the process's mmap lock for
+    reading meanwhile: an idle thread preempted there would make the process's next
+    mmap/munmap (a large NumPy allocation) wait for idle CPU time."""
 
-    def __init__(self, regions: list[tuple[np.ndarray, int | None]], piece: int = 1 << 20) -> None:
+    def __init__(self, regions: list[np.ndarray], piece: int = 1 << 18) -> None:
         self.regions = regions
         self.piece = -(-piece // PAGE) * PAGE
         self.done = 0  # bytes faulted in, over all regions
-        self.total = sum(view.nbytes for view, _ in regions)
+        self.total = sum(view.nbytes for view in regions)
         self._stop = threading.Event()
         self._tid: int | None = None
         self._error: OSError | None = None
@@ -89,11 +88,11 @@ class IdlePrefault:
         if hasattr(os, "SCHED_IDLE"):
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # this thread only
         try:
-            for view, advice in self.regions:
+            for view in self.regions:
                 for start in range(0, view.nbytes, self.piece):
                     if self._stop.is_set():
                         return
-                    populate(view, start, min(self.piece, view.nbytes - start), advice)
+                    populate(view, start, min(self.piece, view.nbytes - start))
                     self.done += min(self.piece, view.nbytes - start)
         except OSError as exc:  # reported by `stop`
             self._error = exc

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from typing import Any
@@ -61,8 +62,8 @@ def _laid_out(args: argparse.Namespace) -> Any:
     from calibration.maps_file import MapsFile
     from calibration.plan import read_plan
 
-    if not str(args.frames).endswith(".npy"):
-        return None
+    if not str(args.frames).endswith(".npy") or os.name != "posix":
+        return None  # (Windows cannot rename a file that is still mapped)
     try:
         shape = np.load(args.frames, mmap_mode="r").shape
         axes = read_plan(args.plan).axes()
@@ -87,9 +88,9 @@ def run(args: argparse.Namespace) -> int:
     out = _laid_out(args)
     if out is None:
         return _decode(args, stages, None, None)
-    from calibration.prefault import WRITE, IdlePrefault
+    from calibration.prefault import IdlePrefault
 
-    with out, IdlePrefault([(out.mapped, WRITE)]) as ahead:
+    with out, IdlePrefault([out.mapped]) as ahead:
         return _decode(args, stages, out, ahead)
 
 

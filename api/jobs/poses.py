@@ -111,9 +111,11 @@ class CaptureJob(PoseJob):
                     stream_decode_task, str(plan_path), str(pose_dir), str(staged / "maps.npz"),
                     job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta,
                     durable=False)
-                # another worker loads the compiled decoder now, not during a later pose
+                # another worker loads the compiled decoder and this pose's sums now (idle
+                # priority), not while a later pose's frames arrive
                 info = handle.rig.camera.info
-                svc.executor.submit(warm_decode_task, info.width * info.height)
+                svc.executor.submit(warm_decode_task, info.width * info.height, str(plan_path),
+                                    (info.height, info.width), self.noise_dn)
                 try:
                     cap = capture_frames(ctx, handle.rig, plan, pose_dir,
                                          on_frame=svc.preview.publisher(self.rig_id))
@@ -132,6 +134,7 @@ class CaptureJob(PoseJob):
             svc.store.commit(staged, ["maps.npz"], pose_dir)
             svc.maps_sync.submit(pose_dir)
             dec["commit_s"] = round(time.time() - decoded_at, 4)
+            dec["decoded_at"] = decoded_at  # the server has the worker's result
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 
 

@@ -6,6 +6,7 @@ atomically to the given paths and returns a small JSON-able summary.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -80,13 +81,13 @@ def stream_decode_task(
     laid out before the first frame and the decoder writes into it (`MapsFile`); its pages
     are faulted in at idle priority while frames arrive. `durable=False` writes the maps without
     fsync (the caller makes them durable after the pose is ready). Timings (wall, and CPU
-    seconds of this process: all its threads) and the share of the frames' and the maps
-    file's pages faulted in ahead by the last frame (`prefaulted`) in the summary."""
+    seconds of this process: all its threads) and the share of the maps file's pages faulted
+    in ahead by the last frame (`prefaulted`) in the summary."""
     from calibration.decode import StreamingDecoder
     from calibration.decode.frame_store import FrameStore
     from calibration.maps_file import MapsFile
     from calibration.plan import read_plan
-    from calibration.prefault import READ, WRITE, IdlePrefault
+    from calibration.prefault import IdlePrefault
 
     plan = read_plan(plan_path)
     opts, saturation = _decoder_setup(options)
@@ -96,12 +97,12 @@ def stream_decode_task(
     ctx.check_cancelled()
     added = np.zeros(total, dtype=bool)
     looks = 0
-    # the maps file, laid out now: the decoder writes into its pages. First-touch page faults
-    # (~0.4 + 0.5 CPU s for a 5 MP pose on a VM) at idle priority while frames arrive: the
-    # frames' pages the capture is about to write (so the server's copies are cheap), then
-    # the maps file's.
+    # the maps file, laid out now: the decoder writes into its pages, faulted in at idle
+    # priority while frames arrive (first-touch page faults: ~0.5 CPU s at 5 MP on a VM).
+    # (Not the frames' pages: an idle thread holding a page or ext4 lock of frames.npy could
+    # hold up the server's frame copies.)
     with MapsFile(out_path, store.shape, plan.axes()) as out, IdlePrefault(
-            [(store.array().reshape(-1).view(np.uint8), READ), (out.mapped, WRITE)]) as ahead:
+            [out.mapped]) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts)
         decoder.prepare()
@@ -134,17 +135,35 @@ def stream_decode_task(
             "prefaulted": round(prefaulted, 3)}
 
 
-def warm_decode_task(pixels: int) -> bool:
+def warm_decode_task(pixels: int, plan_path: str | None = None,
+                     shape: tuple[int, int] | None = None, noise: Any = None) -> bool:
     """Load the decoder's compiled kernels in this worker if images of `pixels` use them
     (~1.4 CPU s once per process): a large live capture submits this next to its decode
     task, so the worker that decodes a later pose does not load them while that pose's
-    frames arrive (under load, late enough to delay the pose). True if they were needed."""
+    frames arrive (under load, late enough to delay the pose). With `plan_path` and `shape`
+    (and the capture's `noise`) it also allocates that decode's sums and keeps them
+    (`sums_cache`): ~1 GB at 5 MP, up to ~2.3 CPU s of first-touch page faults, paid here at
+    idle CPU priority rather than by this worker's first pose. True if they were needed."""
     from calibration.decode.decoder import _COMPILED_MIN_PIXELS
     from calibration.decode.kernel_warm import warm_up
 
     if pixels < _COMPILED_MIN_PIXELS:
         return False
     warm_up()
+    if plan_path is not None and shape is not None:
+        from calibration.decode import StreamingDecoder
+        from calibration.plan import read_plan
+
+        idle = hasattr(os, "SCHED_IDLE")
+        if idle:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        try:
+            decoder = StreamingDecoder(read_plan(plan_path), tuple(shape), noise=noise)
+            decoder.prepare()
+            decoder.release()
+        finally:
+            if idle:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     return True
 
 

@@ -25,7 +25,7 @@ from calibration.decode.frame_store import FrameStore
 from calibration.maps import load_maps, save_maps
 from calibration.maps_file import MapsFile
 from calibration.plan import write_plan
-from calibration.prefault import READ, WRITE, IdlePrefault, populate
+from calibration.prefault import IdlePrefault, populate
 from calibration.progress import Cancelled, TaskContext
 from calibration.worker.tasks import stream_decode_task
 from tests.calibration.decode.test_decode import H, W, render
@@ -88,7 +88,7 @@ def test_decoder_writes_into_the_file_with_the_normal_paths_arrays(plan, stack, 
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0 if compiled else 1 << 40)
     save_maps(_decoder(plan, stack).finish(dict(META)), tmp_path / "ref.npz")
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        populate(out.mapped, 0, out.mapped.nbytes, WRITE)
+        populate(out.mapped, 0, out.mapped.nbytes)
         maps = _decoder(plan, stack).finish(dict(META), into=out.outputs())
         out.commit(maps)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["maps.npz", "ref.npz"]
@@ -108,7 +108,7 @@ def test_maps_not_decoded_into_the_file_are_copied_in(plan, stack, tmp_path, mon
     maps = _decoder(plan, stack).finish(dict(META))
     save_maps(maps, tmp_path / "ref.npz")
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        with IdlePrefault([(out.mapped, WRITE)], piece=3 << 12) as ahead:
+        with IdlePrefault([out.mapped], piece=3 << 12) as ahead:
             _wait_for(ahead)
         out.commit(maps)
     _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
@@ -128,7 +128,7 @@ def test_failed_decode_leaves_nothing(plan, tmp_path):
     dark = np.zeros((len(plan.frames), H, W), np.uint8)
     with pytest.raises(DecodeError, match="no pixel sees the screen"):
         with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-            populate(out.mapped, 0, 1 << 20, WRITE)
+            populate(out.mapped, 0, 1 << 20)
             _decoder(plan, dark).finish(into=out.outputs())
     assert list(tmp_path.iterdir()) == []
 
@@ -163,27 +163,27 @@ def test_background_prefault_covers_the_regions_and_reports_its_error(plan, tmp_
                                                                       normal_priority):
     if not madvise:  # each page touched instead (no libc, a kernel before 5.14)
         monkeypatch.setattr(prefault, "_libc_madvise", lambda: None)
-    frames = tmp_path / "frames.bin"
-    frames.write_bytes(b"")
-    os.truncate(frames, 3 << 20)  # sparse, like a frame store not yet written
-    readonly = np.memmap(frames, mode="r", dtype=np.uint8)
+    other = tmp_path / "other.bin"
+    other.write_bytes(b"")
+    os.truncate(other, 3 << 20)  # sparse, not yet written
+    region = np.memmap(other, mode="r+", dtype=np.uint8)
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        with IdlePrefault([(readonly, READ), (out.mapped, WRITE)], piece=1 << 14) as ahead:
+        with IdlePrefault([region, out.mapped], piece=1 << 14) as ahead:
             _wait_for(ahead)
         assert ahead.done == ahead.total == (3 << 20) + out.mapped.nbytes
         assert not any(t.name == "prefault" for t in threading.enumerate())
-        assert not readonly.any()  # contents unchanged
-    del readonly
+        assert not region.any()  # contents unchanged
+    del region
 
-    def fails(view, start, length, advice):
+    def fails(view, start, length):
         raise OSError(14, "cannot fault in mapped pages (Bad address)")
 
     monkeypatch.setattr(prefault, "populate", fails)
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        ahead = IdlePrefault([(out.mapped, WRITE)]).start()
+        ahead = IdlePrefault([out.mapped]).start()
         with pytest.raises(OSError, match="cannot fault in"):
             ahead.stop()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.bin"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.bin"]
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="no SCHED_IDLE on this OS")
@@ -197,7 +197,7 @@ def test_prefault_thread_runs_at_idle_priority_until_stopped(plan, tmp_path, mon
 
     monkeypatch.setattr(os, "sched_setscheduler", recorded)
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
-        ahead = IdlePrefault([(out.mapped, WRITE)]).start()
+        ahead = IdlePrefault([out.mapped]).start()
         for _ in range(6000):  # until the thread has set its own priority
             if policies:
                 break
@@ -211,9 +211,9 @@ def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
     script = textwrap.dedent(f"""
         import time
         from calibration.maps_file import MapsFile
-        from calibration.prefault import WRITE, populate
+        from calibration.prefault import populate
         out = MapsFile({str(tmp_path / "maps.npz")!r}, (64, 80), ["x", "y"])
-        populate(out.mapped, 0, out.mapped.nbytes, WRITE)
+        populate(out.mapped, 0, out.mapped.nbytes)
         print("laid out", flush=True)
         time.sleep(30)
     """)

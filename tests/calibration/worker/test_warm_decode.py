@@ -12,3 +12,26 @@ def test_warm_decode_task_loads_the_kernels_only_for_large_images() -> None:
     assert warm_decode_task(2448 * 2048) is True
     assert "calibration.decode.kernel_sums" in sys.modules
     assert "calibration.decode.accumulate_kernel" in sys.modules
+
+
+def test_warm_decode_task_primes_the_sums_of_the_coming_decodes(tmp_path, monkeypatch) -> None:
+    """With the capture's plan and shape the warm task also allocates and keeps that decode's
+    sums, so this worker's first pose reuses them (no first-touch faults during its capture)."""
+    import calibration.decode.decoder as decoder_module
+    from acquisition.patterns import build_plan
+    from calibration.decode import StreamingDecoder, sums_cache
+    from calibration.plan import write_plan
+
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    plan = build_plan(1920, 1080, 0.2745)
+    write_plan(plan, tmp_path / "plan.json")
+    sums_cache.release()
+    try:
+        assert warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64)) is True
+        assert sums_cache.kept_bytes() > 0
+        kept = sums_cache._kept[0]
+        dec = StreamingDecoder(plan, (48, 64))
+        dec.prepare()
+        assert dec._acc.block is kept and not kept.any()
+    finally:
+        sums_cache.release()
