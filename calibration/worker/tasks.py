@@ -6,7 +6,6 @@ atomically to the given paths and returns a small JSON-able summary.
 
 from __future__ import annotations
 
-import os
 import time
 from typing import Any
 
@@ -142,28 +141,25 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
     task, so the worker that decodes a later pose does not load them while that pose's
     frames arrive (under load, late enough to delay the pose). With `plan_path` and `shape`
     (and the capture's `noise`) it also allocates that decode's sums and keeps them
-    (`sums_cache`): ~1 GB at 5 MP, up to ~2.3 CPU s of first-touch page faults, paid here at
-    idle CPU priority rather than by this worker's first pose. True if they were needed."""
+    (`sums_cache`) unless this worker already keeps a decode's sums: ~1 GB at 5 MP, up to
+    ~2.3 CPU s of first-touch page faults, paid once per worker while a capture runs rather
+    than by the worker's first pose after its last frame. At normal CPU priority: a task at
+    idle priority is starved by any busy process, and the decode tasks queued behind it
+    with it (seen: poses ready 20-75 s late under load). True if the kernels were needed."""
+    from calibration.decode import sums_cache
     from calibration.decode.decoder import _COMPILED_MIN_PIXELS
     from calibration.decode.kernel_warm import warm_up
 
     if pixels < _COMPILED_MIN_PIXELS:
         return False
     warm_up()
-    if plan_path is not None and shape is not None:
+    if plan_path is not None and shape is not None and not sums_cache.kept_bytes():
         from calibration.decode import StreamingDecoder
         from calibration.plan import read_plan
 
-        idle = hasattr(os, "SCHED_IDLE")
-        if idle:
-            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        try:
-            decoder = StreamingDecoder(read_plan(plan_path), tuple(shape), noise=noise)
-            decoder.prepare()
-            decoder.release()
-        finally:
-            if idle:
-                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        decoder = StreamingDecoder(read_plan(plan_path), tuple(shape), noise=noise)
+        decoder.prepare()
+        decoder.release()
     return True
 
 

@@ -35,3 +35,25 @@ def test_warm_decode_task_primes_the_sums_of_the_coming_decodes(tmp_path, monkey
         assert dec._acc.block is kept and not kept.any()
     finally:
         sums_cache.release()
+
+
+def test_warm_decode_task_keeps_the_sums_a_worker_already_holds(tmp_path, monkeypatch) -> None:
+    """Every large capture submits a warm task: in a worker that already keeps a decode's
+    sums it must not allocate or zero them again (each pose would pay ~1 GB of writes in the
+    other worker while it captures)."""
+    import numpy as np
+
+    import calibration.decode.decoder as decoder_module
+    from acquisition.patterns import build_plan
+    from calibration.decode import sums_cache
+    from calibration.plan import write_plan
+
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
+    held = np.full(16, 7.0)
+    sums_cache.keep([held])
+    try:
+        assert warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64)) is True
+        assert sums_cache._kept == [held] and (held == 7.0).all()
+    finally:
+        sums_cache.release()
