@@ -111,8 +111,8 @@ class CaptureJob(PoseJob):
                     stream_decode_task, str(plan_path), str(pose_dir), str(staged / "maps.npz"),
                     job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta,
                     durable=False)
-                # another worker loads the compiled decoder and this pose's sums now (idle
-                # priority), not while a later pose's frames arrive
+                # another worker loads the compiled decoder and, once, this camera's sums
+                # now, not while a later pose's frames arrive
                 info = handle.rig.camera.info
                 svc.executor.submit(warm_decode_task, info.width * info.height, str(plan_path),
                                     (info.height, info.width), self.noise_dn)
