@@ -312,9 +312,11 @@ class SimulatedCamera:
 
         digest = hashlib.blake2b(np.ascontiguousarray(shown[0].codes).tobytes(),
                                  digest_size=16).digest()
-        pose = self.optics.pose
+        pose = self.optics.pose  # the whole screen pose and the stray light: the same
+        # translation with another rotation, or a changed ambient, is another image
         return (digest, exposure_s, self._settings.gain_db + self.gain_drift_db,
-                self._settings.pixel_format, id(self.optics), pose.translation.tobytes())
+                self._settings.pixel_format, id(self.optics), pose.rotation.tobytes(),
+                pose.translation.tobytes(), float(self.optics.ambient))
 
     def _replay_blend(self, shown: list, weights: np.ndarray, exposure_s: float
                       ) -> np.ndarray | None:

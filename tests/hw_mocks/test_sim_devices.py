@@ -217,3 +217,37 @@ def test_replay_blends_a_torn_frame_from_replayed_frames_instead_of_rendering(mo
     torn = [t for t in r.camera.truth.values() if not t.pure]
     assert torn and renders == []
     np.testing.assert_array_equal(first.stack(len(plan.frames)), second.stack(len(plan.frames)))
+
+
+def test_replay_renders_again_after_a_rotation_or_stray_light_change():
+    """A replayed frame is the same screen content seen the same way: a screen turned about
+    its origin (same translation) or more ambient light renders a new image."""
+    import cv2
+
+    from acquisition.controller import ControllerOptions, capture_pose
+    from acquisition.patterns import build_plan
+    from acquisition.sinks import MemoryFrameStore
+    from hw_mocks.rig import SimulatedRig
+
+    screen = ScreenGeometry(320, 200, (0.5, 0.5))
+    plan = build_plan(320, 200, 0.5)
+    r = SimulatedRig(mild_pinhole(80, 60), screen, display={"history_s": 1e9},
+                     camera={"replay": True, "timestamp_jitter_s": 0.0})
+    settings = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    opts = ControllerOptions(latency_s=2 / 60)
+
+    def stack() -> np.ndarray:
+        store = MemoryFrameStore()
+        assert capture_pose(r.rig, plan, store, settings=settings,
+                            options=opts).status == "complete"
+        return store.stack(len(plan.frames))
+
+    first = stack()
+    np.testing.assert_array_equal(stack(), first)  # replayed: the same content
+    pose = r.camera.optics.pose
+    turn = cv2.Rodrigues(np.array([0.0, 0.05, 0.0]))[0]
+    r.set_pose(turn @ pose.rotation, pose.translation)
+    turned = stack()
+    assert np.abs(turned.astype(int) - first).max() > 10
+    r.set_ambient(r.camera.optics.ambient + 2e4)
+    assert (stack().astype(int) - turned).mean() > 0.5
