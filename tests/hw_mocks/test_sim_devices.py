@@ -190,12 +190,11 @@ def test_row_weights_over_a_long_history_match_the_full_computation():
         np.testing.assert_allclose(weights, want, rtol=0, atol=1e-12)
 
 
-def test_replay_blends_a_torn_frame_from_replayed_frames_instead_of_rendering(monkeypatch):
-    """With `replay`, a pose of the same screen content renders nothing, even when a late
-    trigger tears a frame: the torn frame is blended from the images it mixes."""
+def _replay_rig():
+    """A small simulated rig whose camera replays frames, its plan, and `capture(store)`:
+    one pose through the controller into `store`, returning the controller's result."""
     from acquisition.controller import ControllerOptions, capture_pose
     from acquisition.patterns import build_plan
-    from acquisition.sinks import MemoryFrameStore
     from hw_mocks.rig import SimulatedRig
 
     screen = ScreenGeometry(320, 200, (0.5, 0.5))
@@ -204,15 +203,25 @@ def test_replay_blends_a_torn_frame_from_replayed_frames_instead_of_rendering(mo
                      camera={"replay": True, "timestamp_jitter_s": 0.0})
     settings = r.with_settings(exposure_s=0.004, trigger_mode="software")
     opts = ControllerOptions(latency_s=2 / 60)
+    return r, plan, lambda store: capture_pose(r.rig, plan, store, settings=settings,
+                                               options=opts)
+
+
+def test_replay_blends_a_torn_frame_from_replayed_frames_instead_of_rendering(monkeypatch):
+    """With `replay`, a pose of the same screen content renders nothing, even when a late
+    trigger tears a frame: the torn frame is blended from the images it mixes."""
+    from acquisition.sinks import MemoryFrameStore
+
+    r, plan, capture = _replay_rig()
     first = MemoryFrameStore()
-    assert capture_pose(r.rig, plan, first, settings=settings, options=opts).status == "complete"
+    assert capture(first).status == "complete"
     renders: list[int] = []
     render = r.camera.optics.render_irradiance
     monkeypatch.setattr(r.camera.optics, "render_irradiance",
                         lambda light: renders.append(1) or render(light))
     r.camera.faults.late_triggers[r.camera._triggers + 6] = 0.02
     second = MemoryFrameStore()
-    res = capture_pose(r.rig, plan, second, settings=settings, options=opts)
+    res = capture(second)
     assert res.status == "complete" and [rc.reason[:4] for rc in res.recaptures] == ["torn"]
     torn = [t for t in r.camera.truth.values() if not t.pure]
     assert torn and renders == []
@@ -224,22 +233,13 @@ def test_replay_renders_again_after_a_rotation_or_stray_light_change():
     its origin (same translation) or more ambient light renders a new image."""
     import cv2
 
-    from acquisition.controller import ControllerOptions, capture_pose
-    from acquisition.patterns import build_plan
     from acquisition.sinks import MemoryFrameStore
-    from hw_mocks.rig import SimulatedRig
 
-    screen = ScreenGeometry(320, 200, (0.5, 0.5))
-    plan = build_plan(320, 200, 0.5)
-    r = SimulatedRig(mild_pinhole(80, 60), screen, display={"history_s": 1e9},
-                     camera={"replay": True, "timestamp_jitter_s": 0.0})
-    settings = r.with_settings(exposure_s=0.004, trigger_mode="software")
-    opts = ControllerOptions(latency_s=2 / 60)
+    r, plan, capture = _replay_rig()
 
     def stack() -> np.ndarray:
         store = MemoryFrameStore()
-        assert capture_pose(r.rig, plan, store, settings=settings,
-                            options=opts).status == "complete"
+        assert capture(store).status == "complete"
         return store.stack(len(plan.frames))
 
     first = stack()
