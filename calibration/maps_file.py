@@ -27,13 +27,13 @@ import numpy as np
 
 from calibration.atomic import fsync_path
 from calibration.npz_store import (
-    _central_directory,
-    _local_header,
-    _Member,
-    _member,
+    NpyMember,
+    central_directory,
     lay_out,
+    local_header,
     member_crc,
     npy_header,
+    npy_member,
     pwrite_all,
 )
 
@@ -52,11 +52,11 @@ _DTYPES = {"x": _F64, "y": _F64, "sigma_x": _F32, "sigma_y": _F32, "mask": np.dt
            "modulation_x": _F32, "modulation_y": _F32, "blur_x": _F32, "blur_y": _F32}
 
 
-def _layout(shape: tuple[int, int], axes: list[str]) -> dict[str, _Member]:
+def _layout(shape: tuple[int, int], axes: list[str]) -> dict[str, NpyMember]:
     """The array members of a pose's maps (blur only for the plan's axes), each array's data
     page-aligned, laid out from offset 0."""
     npix = shape[0] * shape[1]
-    members = {key: _Member(f"{key}.npy".encode(), npy_header(shape, dt), dt.itemsize * npix)
+    members = {key: NpyMember(f"{key}.npy".encode(), npy_header(shape, dt), dt.itemsize * npix)
                for key, dt in _DTYPES.items() if not key.startswith("blur_") or key[-1] in axes}
     lay_out(list(members.values()), align=_PAGE)
     return members
@@ -153,21 +153,21 @@ class MapsFile:
                 views.append(arr)
         order = sorted(self._members.values(), key=lambda m: -m.nbytes)  # balanced threads
 
-        def crc(m: _Member) -> None:
+        def crc(m: NpyMember) -> None:
             m.crc = member_crc(m, self._bytes[m.data_at:m.data_at + m.nbytes])
 
         with ThreadPoolExecutor(min(os.cpu_count() or 1, 4), thread_name_prefix="maps-crc") as pool:
             list(pool.map(crc, order))
         for m in self._members.values():
-            header = _local_header(m)
+            header = local_header(m)
             self._mm[m.offset:m.offset + len(header)] = header
-        tail = _member("meta", meta)
+        tail = npy_member("meta", meta)
         lay_out([tail], start=self._end)
         tail.crc = member_crc(tail, tail.data)
         end = tail.data_at + tail.nbytes
         members = [*self._members.values(), tail]
-        pwrite_all(self._fd, _local_header(tail) + tail.npy_header + bytes(tail.data)
-                   + _central_directory(members, end), tail.offset)
+        pwrite_all(self._fd, local_header(tail) + tail.npy_header + bytes(tail.data)
+                   + central_directory(members, end), tail.offset)
         t1 = time.perf_counter()
         if durable:
             self._mm.flush()

@@ -31,7 +31,7 @@ _ALIGN_ID = 0xD935  # extra-field record that pads a local header (zipalign's co
 
 
 @dataclass
-class _Member:
+class NpyMember:
     """One .npy member: its name, the .npy header, the array data (None while only laid
     out) and where it lands."""
 
@@ -51,7 +51,7 @@ class _Member:
     @property
     def data_at(self) -> int:
         """File offset of the array data (after the local and .npy headers)."""
-        return self.offset + len(_local_header(self)) + len(self.npy_header)
+        return self.offset + len(local_header(self)) + len(self.npy_header)
 
 
 def npy_header(shape: tuple[int, ...], dtype: np.dtype) -> bytes:
@@ -62,17 +62,17 @@ def npy_header(shape: tuple[int, ...], dtype: np.dtype) -> bytes:
     return head.getvalue()
 
 
-def _member(key: str, arr: np.ndarray) -> _Member:
+def npy_member(key: str, arr: np.ndarray) -> NpyMember:
     """`arr` as a .npy member (not laid out)."""
     if arr.dtype.hasobject:
         raise ValueError(f"{key}: object arrays cannot be stored without pickle")
     if not arr.flags.c_contiguous:  # (np.ascontiguousarray would make 0-d arrays 1-d)
         arr = np.ascontiguousarray(arr)
-    return _Member(f"{key}.npy".encode(), npy_header(arr.shape, arr.dtype), arr.nbytes,
+    return NpyMember(f"{key}.npy".encode(), npy_header(arr.shape, arr.dtype), arr.nbytes,
                    memoryview(arr.reshape(-1).view(np.uint8)))
 
 
-def lay_out(members: list[_Member], start: int = 0, align: int = 1) -> int:
+def lay_out(members: list[NpyMember], start: int = 0, align: int = 1) -> int:
     """Place `members` one after another from `start`, each member's array data at a
     multiple of `align` (padding in its local header's extra field); returns the end."""
     t = time.localtime()
@@ -87,14 +87,14 @@ def lay_out(members: list[_Member], start: int = 0, align: int = 1) -> int:
     return offset
 
 
-def _members(arrays: Mapping[str, np.ndarray]) -> list[_Member]:
+def _members(arrays: Mapping[str, np.ndarray]) -> list[NpyMember]:
     """The arrays as .npy members, laid out one after another from offset 0."""
-    members = [_member(key, arr) for key, arr in arrays.items()]
+    members = [npy_member(key, arr) for key, arr in arrays.items()]
     lay_out(members)
     return members
 
 
-def _local_header(m: _Member) -> bytes:
+def local_header(m: NpyMember) -> bytes:
     """The local file header (always with a zip64 size extra, like `force_zip64`; then the
     alignment record, if any)."""
     extra = struct.pack("<HHQQ", 1, 16, m.size, m.size)
@@ -105,12 +105,12 @@ def _local_header(m: _Member) -> bytes:
                        0xFFFFFFFF, 0xFFFFFFFF, len(m.name), len(extra)) + m.name + extra
 
 
-def member_crc(m: _Member, data: memoryview | np.ndarray) -> int:
+def member_crc(m: NpyMember, data: memoryview | np.ndarray) -> int:
     """CRC-32 of the member: .npy header, then `data` (zlib releases the GIL for it)."""
     return zlib.crc32(data, zlib.crc32(m.npy_header))
 
 
-def _central_directory(members: list[_Member], start: int) -> bytes:
+def central_directory(members: list[NpyMember], start: int) -> bytes:
     """Central directory and end records (zip64 ones where sizes or offsets need them)."""
     out = []
     for m in members:
@@ -175,11 +175,11 @@ def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
     with atomic_path(target) as tmp:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         try:
-            def write(m: _Member) -> None:
+            def write(m: NpyMember) -> None:
                 pwrite_all(fd, m.npy_header, m.data_at - len(m.npy_header))
                 pwrite_all(fd, m.data, m.data_at)
                 m.crc = member_crc(m, m.data)
-                pwrite_all(fd, _local_header(m), m.offset)
+                pwrite_all(fd, local_header(m), m.offset)
                 writeback(fd, m.offset, m.data_at + m.nbytes - m.offset)
 
             order = sorted(members, key=lambda m: -m.size)  # largest first: balanced threads
@@ -187,7 +187,7 @@ def write_npz_stored(path: str | Path, arrays: Mapping[str, np.ndarray],
                                     thread_name_prefix="npz-write") as pool:
                 list(pool.map(write, order))
             end = members[-1].data_at + members[-1].nbytes
-            pwrite_all(fd, _central_directory(members, end), end)
+            pwrite_all(fd, central_directory(members, end), end)
             t1 = time.perf_counter()
             if durable:
                 os.fsync(fd)
