@@ -3,6 +3,10 @@ captures), cached per pose set, with clear problems when it cannot be planned.""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
 import pytest
 from fastapi.testclient import TestClient
 
@@ -11,10 +15,10 @@ from api.config import ServiceConfig
 from tests.api.test_api_uploads import PLAN, good_maps
 
 
-@pytest.fixture(scope="module")
-def service(tmp_path_factory: pytest.TempPathFactory):
-    data = tmp_path_factory.mktemp("guidance") / "data"
-    app = create_app(ServiceConfig(data_dir=data, executor="threads"))
+@contextmanager
+def _service(data: Path, executor: str) -> Iterator[tuple]:
+    """A service with one session of 3 imported poses: (client, services, session id, data)."""
+    app = create_app(ServiceConfig(data_dir=data, executor=executor))
     with TestClient(app, raise_server_exceptions=False) as c:
         sess = c.post("/sessions", json={"plan": PLAN.to_dict()}).json()
         for k in range(3):
@@ -23,6 +27,19 @@ def service(tmp_path_factory: pytest.TempPathFactory):
                                        .to_npz_bytes())})
             assert r.status_code == 201, r.text
         yield c, app.state.services, sess["id"], data
+
+
+@pytest.fixture(scope="module", params=["threads", "processes"])
+def service(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory):
+    with _service(tmp_path_factory.mktemp("guidance") / "data", request.param) as svc:
+        yield svc
+
+
+@pytest.fixture(scope="module")
+def in_threads(tmp_path_factory: pytest.TempPathFactory):
+    """Threads only: a test may patch the fit in this process."""
+    with _service(tmp_path_factory.mktemp("guidance-threads") / "data", "threads") as svc:
+        yield svc
 
 
 def _submissions(monkeypatch: pytest.MonkeyPatch, svc) -> list[str]:
@@ -53,10 +70,10 @@ def test_next_pose_is_planned_by_the_executor_once(service, monkeypatch) -> None
     assert again.json() == body and names == ["guidance_task"]  # served from the cache
 
 
-def test_a_plan_that_fails_is_a_problem_and_leaves_no_scratch(service, monkeypatch) -> None:
+def test_a_plan_that_fails_is_a_problem_and_leaves_no_scratch(in_threads, monkeypatch) -> None:
     import calibration.guidance
 
-    client, _, sid, data = service
+    client, _, sid, data = in_threads
 
     def fails(*args, **kwargs):
         raise ValueError("the poses are too similar to plan from")
