@@ -230,7 +230,17 @@ def residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.
                   floor: float, dark: np.ndarray) -> tuple[LinearVariance | None, Any]:
     """The noise line of the residuals and the display harmonic's per-set r^2 (None if not
     found): a first line, the harmonic fitted against it (`harmonic_leak`), subtracted, and
-    the line fitted again; at or above `floor` from the median `dark` flat level up."""
+    the line fitted again; at or above `floor` from the median `dark` flat level up.
+    (Its least squares on one BLAS thread: `blas.one_blas_thread`.)"""
+    from calibration.decode.blas import one_blas_thread
+
+    with one_blas_thread():
+        return _residual_line(mean, rss, dof, power, floor, dark)
+
+
+def _residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.ndarray,
+                   floor: float, dark: np.ndarray) -> tuple[LinearVariance | None, Any]:
+    """`residual_line` with the BLAS threads set."""
     low = float(np.median(dark)) if dark.size else None
     binned = level_bins(mean, rss, dof)
     line = binned_line(binned, rss, dof, floor, low)
