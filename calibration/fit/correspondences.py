@@ -55,11 +55,19 @@ def _sort9(planes: np.ndarray, scratch: np.ndarray) -> None:
         planes[i] = scratch
 
 
-def _median_of_sorted(srt: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Median of the first `n` values along axis 0 of the sorted `srt` (NaN where n is 0)."""
-    lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
-    hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[None], axis=0)[0]
-    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+def _median_of_sorted(srt: np.ndarray, n: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                      out: np.ndarray) -> np.ndarray:
+    """`out` = the median of the first `n` values along axis 0 of the sorted (9, ...) `srt`,
+    NaN where n is 0 (`lo`, `hi`: int scratch shaped like n)."""
+    np.subtract(n, 1, out=lo)
+    np.floor_divide(lo, 2, out=lo)
+    np.maximum(lo, 0, out=lo)
+    np.floor_divide(n, 2, out=hi)
+    out[...] = np.take_along_axis(srt, lo[None], axis=0)[0]
+    out += np.take_along_axis(srt, hi[None], axis=0)[0]
+    out *= 0.5
+    out[n == 0] = np.nan
+    return out
 
 
 def local_outliers(values: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -69,28 +77,34 @@ def local_outliers(values: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     median predicts it (exactly where it is locally linear); a gross decoding error
     (wrong period, reflection) stands out by far more than its sigma. Medians and the
     median absolute deviation ignore NaN (missing) neighbours and pixels outside the image.
+    Row blocks reuse their buffers (no fresh pages per block).
     """
     h, w = values.shape
     padded = np.pad(values, 1, constant_values=np.nan)
     out = np.zeros((h, w), dtype=bool)
-    scratch = np.empty((min(_BLOCK_ROWS, h), w))
-    for r0 in range(0, h, _BLOCK_ROWS):
-        r1 = min(r0 + _BLOCK_ROWS, h)
-        stack = np.stack([padded[r0 + dv:r1 + dv, du:du + w] for dv in range(3)
-                          for du in range(3)])
-        finite = np.isfinite(stack)
-        n = finite.sum(axis=0)
-        stack[~finite] = np.inf
-        tmp = scratch[:r1 - r0]
-        _sort9(stack, tmp)
-        med = _median_of_sorted(stack, n)
+    rows = min(_BLOCK_ROWS, h)
+    stack, dev = np.empty((9, rows, w)), np.empty((9, rows, w))
+    finite = np.empty((9, rows, w), dtype=bool)
+    n, lo, hi = (np.empty((rows, w), dtype=np.intp) for _ in range(3))
+    med, spread, tmp = np.empty((rows, w)), np.empty((rows, w)), np.empty((rows, w))
+    for r0 in range(0, h, rows):
+        b = min(rows, h - r0)
+        st, dv_, fi, nb = stack[:, :b], dev[:, :b], finite[:, :b], n[:b]
+        for k in range(9):
+            st[k] = padded[r0 + k // 3:r0 + k // 3 + b, k % 3:k % 3 + w]
+        np.isfinite(st, out=fi)
+        fi.sum(axis=0, out=nb)
+        st[~fi] = np.inf
+        _sort9(st, tmp[:b])
+        _median_of_sorted(st, nb, lo[:b], hi[:b], med[:b])
         with np.errstate(invalid="ignore"):
-            dev = np.abs(stack - med)  # the finite ones: the same n values, unsorted
-            dev[~np.isfinite(dev)] = np.inf
-            _sort9(dev, tmp)
-            spread = _median_of_sorted(dev, n)
-            out[r0:r1] = (np.abs(values[r0:r1] - med)
-                          > _OUTLIER_SIGMAS * sigma[r0:r1] + 2.0 * spread)
+            np.subtract(st, med[:b], out=dv_)  # the finite ones: the same n values, unsorted
+            np.abs(dv_, out=dv_)
+            dv_[~np.isfinite(dv_)] = np.inf
+            _sort9(dv_, tmp[:b])
+            _median_of_sorted(dv_, nb, lo[:b], hi[:b], spread[:b])
+            out[r0:r0 + b] = (np.abs(values[r0:r0 + b] - med[:b])
+                              > _OUTLIER_SIGMAS * sigma[r0:r0 + b] + 2.0 * spread[:b])
     return out
 
 
@@ -102,12 +116,14 @@ def point_set(maps: DecodedMaps, screen: ScreenGeometry, *, reject_outliers: boo
         x = np.where(keep, maps.x, np.nan)
         y = np.where(keep, maps.y, np.nan)
         keep &= ~local_outliers(x, maps.sigma_x) & ~local_outliers(y, maps.sigma_y)
+    with np.errstate(invalid="ignore"):  # (finite, positive sigmas; NaN compares False)
+        for sig in (maps.sigma_x, maps.sigma_y):
+            keep &= (sig > 0) & (sig < np.inf)
     v, u = np.nonzero(keep)
-    pixels = np.stack([u, v], axis=1).astype(np.float64)
-    scr = np.stack([maps.x[v, u], maps.y[v, u]], axis=1)
-    sig = np.stack([maps.sigma_x[v, u], maps.sigma_y[v, u]], axis=1).astype(np.float64)
-    ok = np.all(np.isfinite(sig), axis=1) & np.all(sig > 0, axis=1)
-    return PointSet(pixels[ok], scr[ok], sig[ok], screen.pitch_mm)
+    pixels = np.column_stack([u, v]).astype(np.float64)
+    scr = np.column_stack([maps.x[keep], maps.y[keep]])
+    sig = np.column_stack([maps.sigma_x[keep], maps.sigma_y[keep]]).astype(np.float64)
+    return PointSet(pixels, scr, sig, screen.pitch_mm)
 
 
 def subsample(points: PointSet, max_points: int) -> PointSet:
