@@ -93,16 +93,25 @@ def _lit_mask(white: np.ndarray, dark: np.ndarray, what: str) -> np.ndarray:
     return lit
 
 
+# Lead in summed squared error the chosen latency needs over every other candidate: one
+# frame off by 0.3 of the white-dark step. Less means the frames cannot tell them apart.
+MIN_SEPARATION = 0.09
+
+
 def measure_latency(display: Display, camera: Camera, clock: Clock, settings: CameraSettings,
-                    *, max_periods: int = 8, trials: int = 3,
+                    *, max_periods: int = 8, trials: int = 3, rounds: int = 4,
                     trigger_box: Any = None) -> LatencyResult:
     """Latency in whole refresh periods from dark->white flips and frames sampling the switch.
 
     Each frame's brightness fraction f (lit pixels, 0 = dark, 1 = white) is compared
     with what each candidate latency L predicts for its exposure [t, t + e]: the mean
     over the exposure of a ramp from 0 at F + LP to 1 at F + (L+1)P (scan-out). The
-    candidate with the smallest squared error wins; `violations` counts frames off by
-    more than 0.2 from its prediction.
+    candidate with the smallest squared error wins, but only by `MIN_SEPARATION`: a slow
+    host (late wake-ups, slow grabs) can leave no frame inside the switch, and then several
+    latencies fit equally well. Undecided candidates get one frame each at the middle of
+    their ramp, one switch per frame, for up to `rounds` rounds; then `AcquisitionError`
+    (a wrong latency would pair every pattern with the wrong frame). `violations` counts
+    frames off by more than 0.2 from the chosen prediction.
     """
     info = display.info
     p = 1.0 / info.refresh_hz
@@ -110,6 +119,8 @@ def measure_latency(display: Display, camera: Camera, clock: Clock, settings: Ca
     applied = camera.configure(settings)
     e = applied.exposure_s
     camera.start()
+    rel: list[float] = []
+    frac: list[float] = []
     try:
         settle = (max_periods + 2) * p
         dark_img = grab_settled(display, camera, clock, applied, _codes(display, 0), settle,
@@ -118,16 +129,48 @@ def measure_latency(display: Display, camera: Camera, clock: Clock, settings: Ca
                                  trigger_box=trigger_box)
         lit = _lit_mask(white_img, dark_img, "latency measurement")
         d, w = float(dark_img[lit].mean()), float(white_img[lit].mean())
-        rel, frac = [], []
-        for trial in range(trials):
+
+        def switch(wait: float) -> float:
+            """Dark, settled (`wait` more), then white: the white flip."""
             flip = display.show(_codes(display, 0))
-            clock.sleep_until(flip + settle + trial * p / trials)
-            flip = display.show(_codes(display, top))
-            frames = _sample_switch(camera, clock, applied, flip, settle + e, trigger_box)
-            rel += [f.timestamp_s - flip for f in frames]
-            frac += [(float(f.image[lit].mean()) - d) / (w - d) for f in frames]
+            clock.sleep_until(flip + settle + wait)
+            camera.flush()
+            return display.show(_codes(display, top))
+
+        def record(frames: list[Frame], flip: float) -> None:
+            rel.extend(f.timestamp_s - flip for f in frames)
+            frac.extend((float(f.image[lit].mean()) - d) / (w - d) for f in frames)
+
+        for trial in range(trials):
+            flip = switch(trial * p / trials)
+            record(_sample_switch(camera, clock, applied, flip, settle + e, trigger_box), flip)
+        err, pred = _latency_fit(rel, frac, p, e, max_periods)
+        for _ in range(rounds):
+            undecided = _undecided(err)
+            if len(undecided) == 1:
+                break
+            for c in undecided:  # one frame mid-ramp of each: it tells c from c +- 1
+                flip = switch(0.0)
+                record(_sample_at(camera, clock, applied, flip, flip + (c + 0.5) * p - e / 2,
+                                  settle + e, trigger_box), flip)
+            err, pred = _latency_fit(rel, frac, p, e, max_periods)
     finally:
         camera.stop()
+    undecided = _undecided(err)
+    if len(undecided) > 1:
+        raise AcquisitionError(
+            f"latency measurement: {len(rel)} frames fit latencies of {sorted(undecided)} "
+            "refresh periods about equally (no frame was exposed early enough after the flips "
+            "to see the switch: an overloaded host, or a camera slow to start after a trigger);"
+            " retry on a quieter host or give the latency (ControllerOptions.latency_s)")
+    best = undecided[0]
+    violations = int((np.abs(np.asarray(frac) - pred[best]) > 0.2).sum())
+    return LatencyResult(best * p, best, len(rel), violations)
+
+
+def _latency_fit(rel: list[float], frac: list[float], p: float, e: float, max_periods: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Summed squared error of each candidate latency 0..max_periods, and its predictions."""
     t, f = np.asarray(rel)[None, :], np.asarray(frac)[None, :]
     cand = np.arange(max_periods + 1)[:, None]
 
@@ -136,10 +179,25 @@ def measure_latency(display: Display, camera: Camera, clock: Clock, settings: Ca
 
     x0, x1 = t / p - cand, (t + e) / p - cand
     pred = (ramp_integral(x1) - ramp_integral(x0)) * p / e
-    err = ((f - pred) ** 2).sum(axis=1)
+    return ((f - pred) ** 2).sum(axis=1), pred
+
+
+def _undecided(err: np.ndarray) -> list[int]:
+    """Candidates within `MIN_SEPARATION` of the best fit (the best first)."""
     best = int(np.argmin(err))
-    violations = int((np.abs(f - pred[best]) > 0.2).sum())
-    return LatencyResult(best * p, best, int(t.size), violations)
+    return [best] + [int(c) for c in np.flatnonzero(err - err[best] < MIN_SEPARATION)
+                     if c != best]
+
+
+def _sample_at(camera: Camera, clock: Clock, settings: CameraSettings, flip: float, at: float,
+               span_s: float, trigger_box: Any) -> list[Frame]:
+    """Triggered: one frame exposed from `at` (or as soon after as the host manages).
+    Free-running: the frames of the stream from `flip` to `flip + span_s`."""
+    if settings.trigger_mode == "free-running":
+        return _sample_switch(camera, clock, settings, flip, span_s, trigger_box)
+    clock.sleep_until(at)
+    _fire(camera, settings, trigger_box)
+    return [camera.grab(1.0)]
 
 
 def _sample_switch(camera: Camera, clock: Clock, settings: CameraSettings, flip: float,
