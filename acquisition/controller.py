@@ -393,7 +393,7 @@ def _latency(rig: Rig, opts: ControllerOptions, settings: CameraSettings) -> flo
     if opts.latency_s is not None:
         return opts.latency_s
     if rig.latency_s is None:
-        from acquisition.setup import measure_latency
+        from acquisition.setup import decided_latency
 
-        rig.latency_s = measure_latency(rig.display, rig.camera, rig.clock, settings).latency_s
+        rig.latency_s = decided_latency(rig.display, rig.camera, rig.clock, settings).latency_s
     return rig.latency_s

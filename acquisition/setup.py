@@ -27,6 +27,7 @@ class LatencyResult:
     periods: int
     observations: int
     violations: int  # observations inconsistent with the chosen latency (0 when clean)
+    undecided: tuple[int, ...] = ()  # other latencies (periods) the frames fit about as well
 
 
 @dataclass(frozen=True)
@@ -109,9 +110,9 @@ def measure_latency(display: Display, camera: Camera, clock: Clock, settings: Ca
     candidate with the smallest squared error wins, but only by `MIN_SEPARATION`: a slow
     host (late wake-ups, slow grabs) can leave no frame inside the switch, and then several
     latencies fit equally well. Undecided candidates get one frame each at the middle of
-    their ramp, one switch per frame, for up to `rounds` rounds; then `AcquisitionError`
-    (a wrong latency would pair every pattern with the wrong frame). `violations` counts
-    frames off by more than 0.2 from the chosen prediction.
+    their ramp, one switch per frame, for up to `rounds` rounds; those still undecided are
+    returned in `undecided` (`decided_latency` refuses them). `violations` counts frames off
+    by more than 0.2 from the chosen prediction.
     """
     info = display.info
     p = 1.0 / info.refresh_hz
@@ -157,15 +158,24 @@ def measure_latency(display: Display, camera: Camera, clock: Clock, settings: Ca
     finally:
         camera.stop()
     undecided = _undecided(err)
-    if len(undecided) > 1:
-        raise AcquisitionError(
-            f"latency measurement: {len(rel)} frames fit latencies of {sorted(undecided)} "
-            "refresh periods about equally (no frame was exposed early enough after the flips "
-            "to see the switch: an overloaded host, or a camera slow to start after a trigger);"
-            " retry on a quieter host or give the latency (ControllerOptions.latency_s)")
     best = undecided[0]
     violations = int((np.abs(np.asarray(frac) - pred[best]) > 0.2).sum())
-    return LatencyResult(best * p, best, len(rel), violations)
+    return LatencyResult(best * p, best, len(rel), violations, tuple(sorted(undecided[1:])))
+
+
+def decided_latency(display: Display, camera: Camera, clock: Clock, settings: CameraSettings,
+                    *, trigger_box: Any = None) -> LatencyResult:
+    """`measure_latency`, or `AcquisitionError` when its frames fit other latencies about as
+    well: a capture timed with a wrong latency pairs every pattern with the wrong frame."""
+    res = measure_latency(display, camera, clock, settings, trigger_box=trigger_box)
+    if res.undecided:
+        raise AcquisitionError(
+            f"latency measurement: {res.observations} frames fit latencies of "
+            f"{sorted((res.periods, *res.undecided))} refresh periods about equally (no frame "
+            "was exposed early enough after the flips to see the switch: an overloaded host, "
+            "or a camera slow to start after a trigger); retry on a quieter host or give the "
+            "latency (ControllerOptions.latency_s)")
+    return res
 
 
 def _latency_fit(rel: list[float], frac: list[float], p: float, e: float, max_periods: int

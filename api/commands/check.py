@@ -80,13 +80,15 @@ def check_rig(rig: Rig, *, target: float = 0.8, response: bool = True) -> dict[s
     found: dict[str, Any] = {"display": asdict(display.info), "camera": asdict(camera.info)}
     lat = measure_latency(display, camera, clock, rig.settings, trigger_box=trig)
     found["latency"] = asdict(lat)
-    exp = choose_exposure(display, camera, clock, rig.settings, latency_s=lat.latency_s,
+    # waits after a flip: long enough for every latency the frames could not rule out
+    latency_s = max((lat.periods, *lat.undecided)) / display.info.refresh_hz
+    exp = choose_exposure(display, camera, clock, rig.settings, latency_s=latency_s,
                           target=target, trigger_box=trig)
     settings = exp.settings
     found["exposure"] = {"exposure_s": settings.exposure_s, "gain_db": settings.gain_db,
                          "level_dn": exp.level_dn, "fraction_of_max": exp.fraction_of_max,
                          "iterations": exp.iterations}
-    settle = lat.latency_s + 2.0 / display.info.refresh_hz
+    settle = latency_s + 2.0 / display.info.refresh_hz
     top = (1 << display.info.bit_depth) - 1
     applied = camera.configure(settings)
     camera.start()
@@ -103,7 +105,7 @@ def check_rig(rig: Rig, *, target: float = 0.8, response: bool = True) -> dict[s
         try:
             # One frame per level: the mean over all lit pixels already averages the noise.
             resp = measure_display_response(display, camera, clock, settings,
-                                            latency_s=lat.latency_s, average=1,
+                                            latency_s=latency_s, average=1,
                                             trigger_box=trig)
             found["display_response"] = {
                 "levels": resp.levels.tolist(), "linear": resp.linear.tolist(),

@@ -22,6 +22,7 @@ from acquisition.display.framebuffer import FramebufferDisplay, FramebufferGeome
 from acquisition.patterns import build_plan, render_frame
 from acquisition.protocols import CameraSettings
 from acquisition.rig import Rig
+from acquisition.setup import measure_latency
 from acquisition.sinks import MemoryFrameStore
 from calibration.decode import decode_stack
 from hw_mocks.cameras import mild_pinhole
@@ -136,8 +137,15 @@ def test_aravis_fake_camera_sequence_decodes_like_the_simulation(world):
                                       trigger_mode="software")
             # Latency measured by the setup helper; integrity references re-captured. The
             # fake polls for software triggers once per frame period (40 ms at its 25 Hz),
-            # so an exposure can start that long after the trigger.
-            options = ControllerOptions(dither=None, grab_timeout_s=2.0,
+            # so an exposure can start that long after the trigger. Its frames then start
+            # 16 ms or more after a flip (2 refreshes at 120 Hz), often too late to tell
+            # a latency of 0 from 1 or 2 periods: the measurement then says so rather than
+            # guess (the truth, 0, among the candidates: the fake reads the framebuffer
+            # memory at once), and the pose runs with the truth.
+            lat = measure_latency(display, cam, RealClock(), settings)
+            assert 0 in (lat.periods, *lat.undecided), lat
+            latency = 0.0 if lat.undecided else lat.latency_s
+            options = ControllerOptions(dither=None, grab_timeout_s=2.0, latency_s=latency,
                                         trigger_overhead_s=FAKE_TRIGGER_LATENCY_S)
             stack, result = run_pose(plan, display, cam, settings, options)
         finally:
