@@ -17,7 +17,7 @@ from numba import njit
 
 from calibration.decode.kernel import P_PERIOD_SNR
 from calibration.decode.kernel_cache import drop_stale_kernels
-from calibration.decode.vecmath import atan2_f32, log_inplace, vmax
+from calibration.decode.vecmath import atan2_f32, log_inplace
 
 _TWO_PI = 2.0 * math.pi
 
@@ -33,7 +33,7 @@ def line_var(line, level: float) -> float:
     offset, slope, black, clamp, floor = line
     x = level - black
     x = 0.0 if clamp and not x > 0.0 else x
-    return vmax(offset + slope * x, floor)
+    return max(offset + slope * x, floor)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -103,11 +103,11 @@ def set_variance(sums, r0, nrow, steps, line, j0, m, mean, alpha, beta, own, exc
             s2, c2 = s2r[j] * scale, c2r[j] * scale
             b2 = a * a + b * b
             h2c = (c2 * (b * b - a * a) + s2 * f32(2.0) * a * b) / (b2 if b2 > 0 else f32(1.0))
-            level = vmax(mean[j] - f32(0.5) * h2c, f32(0.0))
+            level = max(mean[j] - f32(0.5) * h2c, f32(0.0))
             var[j] = float(f32(own[j] if excess[j] else line_var(line, float(level))))
     else:
         for j in range(m):
-            level = vmax(mean[j], f32(0.0))
+            level = max(mean[j], f32(0.0))
             var[j] = float(f32(own[j] if excess[j] else line_var(line, float(level))))
 
 
@@ -130,11 +130,11 @@ def set_block(sums, r0, nrow, steps, period, amp, line, params, j0, m, own, exce
             s2, c2 = s2r[j] * scale, c2r[j] * scale
             b2 = a * a + b * b
             h2c = (c2 * (b * b - a * a) + s2 * f32(2.0) * a * b) / (b2 if b2 > 0 else f32(1.0))
-            level = vmax(s0[j] * inv_n - f32(0.5) * h2c, f32(0.0))
+            level = max(s0[j] * inv_n - f32(0.5) * h2c, f32(0.0))
             var[j] = float(f32(own[j] if excess[j] else line_var(line, float(level))))
     else:
         for j in range(m):
-            level = vmax(s0[j] * inv_n, f32(0.0))
+            level = max(s0[j] * inv_n, f32(0.0))
             var[j] = float(f32(own[j] if excess[j] else line_var(line, float(level))))
     snr_row, mod_row, ok_row = anchor[0], anchor[1], anchor[2]
     inv_amp2 = 1.0 / (amp * amp)
@@ -151,7 +151,7 @@ def set_block(sums, r0, nrow, steps, period, amp, line, params, j0, m, own, exce
         sig[j] = sig_c if ok else period
         use[j] = ok
         fit = strong and s_b > 0.0 and mod > 0.0
-        corr2 = vmax(b2 - 2.0 * vc, 0.25 * b2)  # the bias-corrected modulation, squared
+        corr2 = max(b2 - 2.0 * vc, 0.25 * b2)  # the bias-corrected modulation, squared
         wt[j] = corr2 / vc if fit else 0.0
         lg[j] = corr2 * inv_amp2 if fit else 1.0  # (corr / amp)^2: its log halved below
         if is_first:
@@ -204,7 +204,7 @@ def general_set_block(alpha, beta, mean, fitted, cov, partial, sums, r0, nrow, s
         sig[j] = sig_c if ok else period
         use[j] = ok
         fit = strong and s_b > 0.0 and mod > 0.0
-        corr2 = vmax(b2 - 2.0 * vc, 0.25 * b2)
+        corr2 = max(b2 - 2.0 * vc, 0.25 * b2)
         wt[j] = corr2 / vc if fit else 0.0
         lg[j] = corr2 * inv_amp2 if fit else 1.0
         if is_first:
@@ -245,7 +245,7 @@ def contrast(bright, dark, flats, line, own_mode, j0, m, own, snr) -> None:
         if own_mode:
             var_b = var_d = own[j]
         else:
-            var_b, var_d = line_var(line, lit), line_var(line, vmax(unlit, 0.0))
+            var_b, var_d = line_var(line, lit), line_var(line, max(unlit, 0.0))
         q = (lit - unlit) / math.sqrt(var_b / flats[0] + var_d / flats[1])
         snr[j] = q if abs(q) < np.inf else 0.0
 
@@ -258,7 +258,7 @@ def blur_fit(blur, m) -> None:
         det = sw * sxx - sx * sx
         fitted = blur[5, j] >= 2 and det > 0
         slope = -((sw * sxy - sx * sy) / (det if fitted else 1.0)) / (2.0 * math.pi**2)
-        blur[0, j] = math.sqrt(vmax(slope, 0.0)) if fitted else np.nan
+        blur[0, j] = math.sqrt(max(slope, 0.0)) if fitted else np.nan
 
 
 drop_stale_kernels(globals())  # before any kernel runs: no machine code from older sources

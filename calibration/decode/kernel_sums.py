@@ -33,7 +33,6 @@ from calibration.decode.kernel_sets import (
     set_block,
 )
 from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
-from calibration.decode.vecmath import vmax
 
 DIRTY = 255  # reason code of pixels this kernel leaves to the array path
 
@@ -132,12 +131,12 @@ def finish_sums(
                       ow, rdof, rlev, low, scratch, p)
             if residual:
                 for j in range(m):
-                    own_j = vmax(vmax(ow[j], 0.0) / vmax(rdof[j], 1.0), floor)
+                    own_j = max(max(ow[j], 0.0) / max(rdof[j], 1.0), floor)
                     ow[j] = own_j if rdof[j] > 0 else np.nan
             if mode == MODE_LINE:
                 mean0 = fits[2, 0]
                 for j in range(m):
-                    level = vmax(f64(mean0[j]), 0.0)
+                    level = max(f64(mean0[j]), 0.0)
                     ex[j] = ow[j] > line_var(line, level) * tail[int(rdof[j])]
             for k in range(n_sets):
                 ax = set_axis[k]
@@ -159,12 +158,12 @@ def finish_sums(
                         for j in range(m):
                             ow[j] -= leak[k] * expl[j]
                 for j in range(m):
-                    ow[j] = vmax(vmax(ow[j], 0.0) / vmax(dof, 1), floor)
+                    ow[j] = max(max(ow[j], 0.0) / max(dof, 1), floor)
             if mode == MODE_LINE:
                 s00 = sums[row0[0], j0:j0 + m]
                 inv0 = np.float32(1.0 / steps[0])
                 for j in range(m):
-                    ex[j] = ow[j] > line_var(line, vmax(f64(s00[j] * inv0), 0.0)) * excess_limit
+                    ex[j] = ow[j] > line_var(line, max(f64(s00[j] * inv0), 0.0)) * excess_limit
             for k in range(n_sets):
                 ax = set_axis[k]
                 set_block(sums, row0[k], nrows[k], steps[k], periods[k], amps[k], line,
@@ -236,8 +235,8 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
                       False, lin, none, leak, fits, fitted, covs, partial, own, rdof, lev,
                       low, scratch, p)
             for j in range(m):
-                rss_out[b0 + j] = vmax(own[j], 0.0)
-                level_out[b0 + j] = lev[j] / vmax(rdof[j], 1.0)
+                rss_out[b0 + j] = max(own[j], 0.0)
+                level_out[b0 + j] = lev[j] / max(rdof[j], 1.0)
                 dof_out[b0 + j] = rdof[j]
                 low_out[b0 + j] = low[j]
             for k in range(n_sets):
@@ -259,8 +258,8 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
             nyquist(sums, row0[k], steps[k], j0, m, expl)
             power_out[k, b0:b0 + m] = expl[:m]
         for j in range(m):
-            rss_out[b0 + j] = vmax(own[j], 0.0)
-            level_out[b0 + j] = lev[j] / vmax(dof, 1.0)
+            rss_out[b0 + j] = max(own[j], 0.0)
+            level_out[b0 + j] = lev[j] / max(dof, 1.0)
             dof_out[b0 + j] = -1.0 if deferred and d[j] else dof
             low_out[b0 + j] = False
 

@@ -23,7 +23,6 @@ from calibration.decode.kernel import (
     _fuse,
 )
 from calibration.decode.kernel_cache import drop_stale_kernels
-from calibration.decode.vecmath import vmax, vmin
 
 # rows of the `state` scratch: posterior mean and variance, chi-square, fused periods,
 # ambiguity, the next mean and variance, and a per-pixel flag
@@ -49,11 +48,11 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
         cw, sg = wrapped[k0], sig[k0]
         for j in range(m):  # the coarsest period's order (kernel._coarsest's fast path)
             c = cw[j]
-            in_lo = vmin(hi - c + p0, c - p0 - lo)
-            in_0 = vmin(hi - c, c - lo)
-            in_hi = vmin(hi - c - p0, c + p0 - lo)
+            in_lo = min(hi - c + p0, c - p0 - lo)
+            in_0 = min(hi - c, c - lo)
+            in_hi = min(hi - c - p0, c + p0 - lo)
             at = c if in_0 >= in_lo else c - p0
-            mu[j] = c + p0 if in_hi > vmax(in_0, in_lo) else at
+            mu[j] = c + p0 if in_hi > max(in_0, in_lo) else at
             reach = _FAR_SIGMA * sg[j]
             near = (abs(in_lo) < reach) | (abs(in_0) < reach) | (abs(in_hi) < reach)
             flag[j] = 1.0 if near else 0.0
@@ -73,14 +72,14 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
         width_row, snr_row, mod_row = blur[0, ax], anchor[0, ax], anchor[1, ax]
         ok_row = anchor[2, ax]  # the anchor period fitted (1.0) or not
         pos, sgo, mdo, blo = pos_out[ax], sig_out[ax], mod_out[ax], blur_out[ax]
-        limit, sig_row = state[S_MU2], state[S_VAR2]  # (free after the fusing)
-        for j in range(m):  # (the gather apart: the rules loop vectorizes)
-            limit[j] = chi2_limit[int(dof[j])]
-        for j in range(m):  # the first failed rule (kernel._axis_rule)
+        for j in range(m):  # outputs and the first failed rule (kernel._axis_rule)
             sigma = math.sqrt(var[j])
-            sig_row[j] = sigma
             width = width_row[j]
             x = mu[j]
+            pos[o0 + j] = x
+            sgo[o0 + j] = sigma
+            mdo[o0 + j] = mod_row[j]
+            blo[o0 + j] = width
             reach = edge * (width if abs(width) < np.inf else 0.0)
             margin = margin_sigma * sigma
             rule = 99.0 if sigma <= sigma_max else 8.0
@@ -88,16 +87,11 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
             rule = rule if clear else 7.0
             inside = (x >= -0.5 - margin) & (x <= hi + margin)
             rule = rule if inside else 6.0
-            rule = rule if chi2[j] <= limit[j] else 5.0
+            rule = rule if chi2[j] <= chi2_limit[int(dof[j])] else 5.0
             rule = rule if amb[j] <= amb_max else 4.0
             rule = rule if snr_row[j] >= min_mod else 3.0
             rule = rule if ok_row[j] != 0.0 else 2.0  # the anchor period has no fit
-            code[j] = vmin(code[j], rule)  # the first rule that fails on any axis names it
-        for j in range(m):  # outputs (rows of the maps: strided stores, a loop apart)
-            pos[o0 + j] = mu[j]
-            sgo[o0 + j] = sig_row[j]
-            mdo[o0 + j] = mod_row[j]
-            blo[o0 + j] = width_row[j]
+            code[j] = min(code[j], rule)  # the first rule that fails on any axis names it
     for j in range(m):
         reason[j] = 255 if dirty[j] else (0 if code[j] == 99.0 else int(code[j]))
 

@@ -17,25 +17,11 @@ _SQRT2 = math.sqrt(2.0)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def vmax(a, b):
-    """max(a, b) exactly as numba's builtin computes it (b if b > a else a, after unifying
-    the types), written as a select: the builtin's comparison is still a call when LLVM's
-    vectorizer runs, and any loop using it stayed scalar."""
-    return b if b > a else a
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def vmin(a, b):
-    """min(a, b) exactly as numba's builtin computes it (b if b < a else a); see `vmax`."""
-    return b if b < a else a
-
-
-@njit(cache=True, error_model="numpy", inline="always")
 def atan2(y: float, x: float) -> float:
     """atan2 for finite arguments (0 for (0, 0)); series of atan on |u| <= tan(pi/8)."""
     ax, ay = abs(x), abs(y)
-    hi = vmax(ax, ay)
-    t = vmin(ax, ay) / (hi if hi > 0.0 else 1.0)
+    hi = max(ax, ay)
+    t = min(ax, ay) / (hi if hi > 0.0 else 1.0)
     big = t > _TAN_PI_8
     reduced = (t - 1.0) / (t + 1.0)  # computed unconditionally: a select, not a branch
     u = reduced if big else t
@@ -103,8 +89,8 @@ def atan2_f32(y, x):
     """atan2 of finite float32 arguments in float32 arithmetic (0 for (0, 0)), within ~2 ulp
     of the correctly rounded value (as NumPy's float32 arctan2): twice the SIMD lanes."""
     ax, ay = abs(x), abs(y)
-    hi = vmax(ax, ay)
-    t = vmin(ax, ay) / (hi if hi > _F32(0.0) else _F32(1.0))
+    hi = max(ax, ay)
+    t = min(ax, ay) / (hi if hi > _F32(0.0) else _F32(1.0))
     big = t > _TAN_PI_8_32
     reduced = (t - _F32(1.0)) / (t + _F32(1.0))
     u = reduced if big else t
