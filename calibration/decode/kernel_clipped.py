@@ -130,16 +130,19 @@ def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, 
     step value mu exceeds the threshold."""
     f32 = np.float32
     width, t_max = basis.shape[1], basis.shape[0]
+    # each p_i is finite exactly when every sum is (finite tables, float64 headroom)
     good = True
+    for m in range(nrow):
+        good = good and math.isfinite(sums[r0 + m, jc])
+    # alpha, beta and the mean need 3 rows of the table's inverse; the harmonics' rows
+    # only for the residuals, the dark-end test or a noise line that is not one constant
+    # over every step value (else they are left 0)
+    need = nrow if residual or want_low or (cov and (lin[1] != 0.0 or lin[2] > -math.inf)) else 3
     for i in range(nrow):
         acc = 0.0
-        for m in range(nrow):
+        for m in range(nrow if i < need else 0):
             acc += rows[t, i * width + m] * float(sums[r0 + m, jc])
-        p[i] = acc
-        good = good and math.isfinite(acc)
-    if not good:
-        for i in range(nrow):
-            p[i] = 0.0
+        p[i] = acc if good else 0.0
     size = rows.shape[1]
     kept, used = rows[t, size - 2], rows[t, size - 1]
     lev = 0.0
@@ -159,8 +162,8 @@ def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, 
     if cov and good:
         g0 = width * width + width
         c0, slope, threshold = lin[0], lin[1], lin[2]
-        bound = p[0]  # a lower bound of every step's fitted value
-        for h in range(1, nrow - 1, 2):
+        bound = p[0]  # a lower bound of every step's fitted value (none needed: -inf)
+        for h in range(1, nrow - 1 if threshold > -math.inf else 1, 2):
             bound -= math.sqrt(p[h] * p[h] + p[h + 1] * p[h + 1])
         if bound > threshold:  # the line is linear over the steps: tables' sums
             cv = g0 + 2 * t_max
@@ -255,6 +258,7 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
                 dofk[j] = float(f32(n - nrow))
                 levk[j] = mean[j]
         every = (1 << n) - 1
+        basis_k = basis[k]
         for j in range(m if bits.shape[0] else 0):
             q = bits[k, j0 + j]
             if q == 0:
@@ -266,7 +270,7 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
                 continue
             (good, mean[j], levk[j], alpha[j], beta[j], caa[j], cbb[j], cab[j], expl[j],
              dofk[j], covs[3, k, j], covs[4, k, j], covs[5, k, j], lw) = _table_fit_n(
-                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis[k], p, residual, want_low,
+                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis_k, p, residual, want_low,
                 q, cov, lin, line)
             ok[j] = good
             part[j] = good and cov
