@@ -9,6 +9,9 @@ import time
 from typing import Any
 
 HELP = "decode captured frames (FRAMES.npy or a folder of frame_NNNN.png/.tif) into maps.npz"
+# The maps are written, fsynced and renamed when `run` returns: the console script then
+# exits without the interpreter's teardown of the loaded kernels (api.cli `_exit_now`).
+EXIT_WITHOUT_TEARDOWN = True
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import threading
 from pathlib import Path
 from typing import Annotated, Any
@@ -25,11 +26,9 @@ _lock = threading.Lock()
 
 
 def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, list[str]]:
-    """Cached guidance for the session's current ready poses (computed on first request)."""
-    from calibration.guidance import plan_next_pose, session_points
-    from calibration.maps import load_maps
-    from calibration.plan import read_plan
-    from calibration.report_plots import guidance_png
+    """Cached guidance for the session's current ready poses, computed on first request by
+    the executor's worker (the fit takes seconds of CPU; the server paces live captures)."""
+    from calibration.worker.guidance_task import guidance_task
 
     with svc.db.session() as s:
         get_session(s, session_id)
@@ -44,19 +43,18 @@ def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, lis
     with _lock:
         if (final / "next-pose.json").is_file():
             return final, ids
-        plan = read_plan(svc.store.dir_for(session_id) / "plan.json")
-        maps = [load_maps(svc.store.file(p, "maps.npz")) for p in ids]
-        h, w = maps[0].shape
-        try:
-            sug, _ = plan_next_pose(session_points(maps, plan.screen), (w, h), plan.screen, model)
-        except ValueError as exc:
-            raise Problem(422, "guidance-failed", f"session {session_id}: {exc}") from None
         tmp = svc.store.temp_dir()
-        out = {"session_id": session_id, "model": model, "poses_used": ids, **sug.to_json()}
-        (tmp / "next-pose.json").write_text(json.dumps(out))
-        guidance_png(sug.map_before, sug.map_after, sug.outline_px, (w, h),
-                     f"next pose: {sug.distance_mm:.0f} mm, tilt {sug.tilt_deg:.0f} deg "
-                     f"towards {sug.tilt_azimuth_deg:.0f} deg", tmp / "next-pose.png")
+        header = {"session_id": session_id, "model": model, "poses_used": ids}
+        try:
+            svc.executor.submit(guidance_task, str(svc.store.dir_for(session_id) / "plan.json"),
+                                [str(svc.store.file(p, "maps.npz")) for p in ids], model,
+                                str(tmp), header).result()
+        except ValueError as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise Problem(422, "guidance-failed", f"session {session_id}: {exc}") from None
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         final.parent.mkdir(parents=True, exist_ok=True)
         svc.store.replace_dir(tmp, final)
     return final, ids

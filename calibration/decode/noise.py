@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from scipy.special import gammaincinv
+
+from calibration.decode.ptc_fit import (
+    LinearVariance,
+    binned_line,
+    level_bins,
+    usable_pixels,
+    variance_ratio,
+)
 
 
 @runtime_checkable
@@ -77,22 +83,6 @@ def variance_function(noise: NoiseModel | NoiseSource | float | None) -> Varianc
     )
 
 
-@dataclass(frozen=True)
-class LinearVariance:
-    """Noise variance linear in the mean level, `offset + slope * mean` (a photon-transfer
-    line), never below `floor` (quantization). `offset` is the line at 0 DN: below zero
-    for a sensor whose black level exceeds `read^2 * gain` (variance = read^2 + q^2/12 +
-    (mean - black) / gain), so the floor bounds the line, not its intercept."""
-
-    offset: float
-    slope: float
-    floor: float = 0.0
-
-    def variance(self, mean_dn: Any) -> Any:
-        """Noise variance (DN^2) at mean level `mean_dn`."""
-        return np.maximum(self.offset + self.slope * mean_dn, self.floor)
-
-
 # A pixel's samples span several codes when its flat contrast is at least this (DN).
 MIN_SPAN_DN = 4.0
 # Rounding is noise (variance q^2/12, signal-independent) under temporal noise of sigma >=
@@ -122,15 +112,6 @@ def undithered(span: np.ndarray, rss: np.ndarray, dof: np.ndarray, candidates: n
     # the median: a few pixels at the screen's edge with model errors must not decide
     typical = float(np.median(variance_ratio(rss[group], np.rint(dof[group]).astype(np.int64))))
     return low if typical < DITHERED_VARIANCE else np.zeros(span.shape, dtype=bool)
-
-
-def variance_ratio(rss: np.ndarray, dof: np.ndarray) -> np.ndarray:
-    """`rss/dof` over each pixel's chi-square median `chi2.median(dof)/dof` (integer dof >=
-    1): its median over pixels estimates the variance, also where dof differ (clipped steps
-    leave fewer), and ignores the few pixels with model errors."""
-    dofs = np.arange(1, int(dof.max()) + 1)
-    median = 2.0 * gammaincinv(dofs / 2.0, 0.5)  # chi-square medians
-    return rss / dof / (median / dofs)[dof - 1]
 
 
 def nyquist_power(xp: Any, fits: list, sets: list) -> list:
@@ -230,7 +211,17 @@ def residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.
                   floor: float, dark: np.ndarray) -> tuple[LinearVariance | None, Any]:
     """The noise line of the residuals and the display harmonic's per-set r^2 (None if not
     found): a first line, the harmonic fitted against it (`harmonic_leak`), subtracted, and
-    the line fitted again; at or above `floor` from the median `dark` flat level up."""
+    the line fitted again; at or above `floor` from the median `dark` flat level up.
+    (Its least squares on one BLAS thread: `blas.one_blas_thread`.)"""
+    from calibration.decode.blas import one_blas_thread
+
+    with one_blas_thread():
+        return _residual_line(mean, rss, dof, power, floor, dark)
+
+
+def _residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.ndarray,
+                   floor: float, dark: np.ndarray) -> tuple[LinearVariance | None, Any]:
+    """`residual_line` with the BLAS threads set."""
     low = float(np.median(dark)) if dark.size else None
     binned = level_bins(mean, rss, dof)
     line = binned_line(binned, rss, dof, floor, low)
@@ -238,7 +229,7 @@ def residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.
     if leak is None:
         return line, None
     rss = np.maximum(rss - leak.astype(np.float32) @ power, 0.0)
-    if binned is None or not np.array_equal(binned.usable, _usable(mean, rss, dof)):
+    if binned is None or not np.array_equal(binned.usable, usable_pixels(mean, rss, dof)):
         binned = level_bins(mean, rss, dof)  # (same levels: usually the same bins)
     return binned_line(binned, rss, dof, floor, low), [float(r2) for r2 in leak]
 
@@ -278,112 +269,3 @@ def line_pixels(clean: np.ndarray, no_dark_clip: np.ndarray, spread: np.ndarray,
         if (dof < 0).any():
             return None
     return use
-
-
-def fit_photon_transfer(
-    mean: np.ndarray,
-    rss: np.ndarray,
-    dof: np.ndarray,
-    floor: float,
-    bins: int = 16,
-    max_pixels: int = 1 << 19,
-    low: float | None = None,
-) -> LinearVariance | None:
-    """Fit the sensor's variance-versus-mean line to per-pixel cosine-fit residuals.
-
-    Pixels are grouped into mean-level quantile bins; each bin's variance is the median of
-    `rss/dof` over each pixel's chi-square median `chi2.median(dof)/dof` (pixels with
-    clipped steps have fewer dof), which ignores the few pixels with model errors. A straight
-    line through the bins (slope >= 0) gives every pixel a variance estimated from millions
-    of residual degrees of freedom instead of its own handful; an even subsample of at most
-    ~2 `max_pixels` pixels (~30000 per bin) is plenty. None when < 4 bins have data.
-    """
-    return binned_line(level_bins(mean, rss, dof, bins, max_pixels), rss, dof, floor, low)
-
-
-@dataclass(frozen=True)
-class LevelBins:
-    """`fit_photon_transfer`'s level bins: `usable` pixels, `good` their even subsample,
-    `order` putting each bin's pixels together, `bins` the slices of >= 16 of them, `x`
-    their median levels, `count` their sizes, `m` the levels in `order`."""
-
-    usable: np.ndarray
-    good: np.ndarray
-    order: np.ndarray
-    bins: list[slice]
-    x: np.ndarray
-    count: np.ndarray
-    m: np.ndarray
-
-
-def _usable(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray) -> np.ndarray:
-    """Indices of the pixels a line can use. Pixels reading one constant value (rss 0: e.g.
-    a black level under the noise) say nothing about it and would collapse the quantiles."""
-    return np.flatnonzero(np.isfinite(mean) & np.isfinite(rss) & (dof >= 1) & (rss > 0))
-
-
-def level_bins(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, bins: int = 16,
-               max_pixels: int = 1 << 19) -> LevelBins | None:
-    """`fit_photon_transfer`'s mean-level quantile bins; None when < 4 can have data (no
-    line). The residuals only choose the usable pixels, so a refit on the same pixels (the
-    display harmonic removed) reuses them."""
-    usable = _usable(mean, rss, dof)
-    if usable.size < 64:
-        return None
-    good = usable[:: max(1, usable.size // max_pixels)]  # an even subsample bounds the work
-    m = mean[good]
-    # (the same order statistics from sorted levels: SIMD sort, then a cheap selection)
-    edges = np.unique(np.quantile(np.sort(m), np.linspace(0.0, 1.0, bins + 1)))
-    which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, len(edges) - 2)
-    order = np.argsort(which.astype(np.int16), kind="stable")  # (radix) bins contiguous
-    m = m[order]
-    bounds = np.searchsorted(which[order], np.arange(len(edges)))
-    # a loop over 16 bins, not over pixels
-    bins_ = [slice(int(lo), int(hi)) for lo, hi in itertools.pairwise(bounds) if hi - lo >= 16]
-    if len(bins_) < 4:
-        return None
-    count = np.array([b.stop - b.start for b in bins_], dtype=np.float64)
-    x = np.array([float(np.median(m[b])) for b in bins_])
-    return LevelBins(usable, good, order, bins_, x, count, m)
-
-
-def binned_line(binned: LevelBins | None, rss: np.ndarray, dof: np.ndarray, floor: float,
-                low: float | None) -> LinearVariance | None:
-    """`fit_photon_transfer`'s line through the `binned` pixels' variance ratios."""
-    if binned is None:
-        return None
-    good, bins_, x, count, m = binned.good, binned.bins, binned.x, binned.count, binned.m
-    ratio = variance_ratio(rss[good], np.rint(dof[good]).astype(np.int64))[binned.order]
-    line: LinearVariance | None = None
-    for _ in range(2):
-        # Second pass: each ratio over the first line at its own level, so a bin whose levels
-        # (hence variances) span a factor of several still gives the line at its median level
-        # (the plain median of such a mixture sat 6 % low in the darkest bin).
-        rel = ratio if line is None else ratio / line.variance(m)
-        at = np.ones(x.shape) if line is None else line.variance(x)
-        y = np.array([float(np.median(rel[b])) for b in bins_]) * at
-        ok = y > 0  # mostly constant readings (a black level under the noise) say nothing
-        if ok.sum() < 4:  # about the line, and 1/y weights would be infinite
-            return line
-        line = _weighted_line(x[ok], y[ok], count[ok], floor, low)
-    return line
-
-
-def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray, floor: float,
-                   low: float | None) -> LinearVariance:
-    """Line through bin variances `y` at levels `x` (`w` pixels each, relative errors), slope
-    >= 0 and at or above `floor` from level `low` (default: the lowest bin) up."""
-    wt = w / y**2  # the polyfit weights squared: relative errors of the bin medians
-    slope, offset = np.polyfit(x, y, 1, w=np.sqrt(wt))
-    low = float(x.min()) if low is None else min(float(low), float(x.min()))
-    if slope < 0:
-        slope, offset = 0.0, max(float(np.average(y, weights=w)), floor)
-    elif offset + slope * low < floor:
-        # Constrained least squares: the line at its floor at the lowest level seen, the slope
-        # refitted. (Clamping the offset alone would lift the whole line where the levels span
-        # a narrow range; pinning it at 0 DN instead of the lowest level would bend it where
-        # a black level makes the true intercept negative.)
-        dx = x - low
-        slope = max(float(np.sum(wt * dx * (y - floor)) / max(np.sum(wt * dx * dx), 1e-300)), 0.0)
-        offset = floor - slope * low
-    return LinearVariance(offset=float(offset), slope=float(slope), floor=floor)

@@ -32,6 +32,18 @@ def _summary(maps: Any, t0: float) -> dict[str, Any]:
             "wall_s": round(time.perf_counter() - t0, 3)}
 
 
+def _keep_heap(pixels: int) -> None:
+    """A worker keeps the heap memory its decodes free (`calibration.decode.heap`): no
+    first-touch page faults of the finish's temporaries after the last frame; for images
+    the compiled kernels decode, also faulted in now (once per worker)."""
+    from calibration.decode import heap
+    from calibration.decode.decoder import _COMPILED_MIN_PIXELS
+
+    heap.retain_freed_memory()
+    if pixels >= _COMPILED_MIN_PIXELS:
+        heap.warm_heap()
+
+
 def decode_task(
     ctx: TaskContext,
     plan_path: str,
@@ -105,6 +117,7 @@ def stream_decode_task(
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts)
         decoder.prepare()
+        _keep_heap(store.shape[0] * store.shape[1])
         while not added.all():
             if looks % 16 == 0:  # (a worker process's cancel flag is a round trip to a manager)
                 ctx.check_cancelled()
@@ -153,6 +166,7 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
     if pixels < _COMPILED_MIN_PIXELS:
         return False
     warm_up()
+    _keep_heap(pixels)
     if plan_path is not None and shape is not None and not sums_cache.kept_bytes():
         from calibration.decode import StreamingDecoder
         from calibration.plan import read_plan

@@ -1,5 +1,6 @@
 """`phasecal decode`: stage timings, a folder read ahead in order, and a failed maps write
-that leaves the previous maps file untouched (one-line error, exit 1)."""
+that leaves the previous maps file untouched (one-line error, exit 1), and the console
+script's exit without teardown after a decode."""
 
 from __future__ import annotations
 
@@ -150,3 +151,21 @@ def test_folder_read_into_one_array_when_it_fits(plan, tmp_path, monkeypatch):
     for i, f in enumerate(stack):
         cv2.imwrite(str(folder / f"frame_{i:04d}.png"), f)
     assert read_frames(folder).array() is None
+
+
+@pytest.mark.parametrize("failing", [False, True])
+def test_console_exits_without_teardown_only_after_a_decode(plan, tmp_path, monkeypatch,
+                                                            failing):
+    """The console script skips the interpreter's teardown after `decode` returns (maps
+    durable by then) with the command's status; not after an error, nor for other commands."""
+    import api.cli
+
+    exits: list[int] = []
+    monkeypatch.setattr(api.cli, "_exit_now", exits.append)
+    write_plan(plan, tmp_path / "plan.json")
+    frames = tmp_path / "frames.npy"
+    np.save(frames, _stack(plan)[:-1] if failing else _stack(plan))
+    code = cli_main(_args(tmp_path, frames, tmp_path / "maps.npz"), exit_now=True)
+    assert (code, exits) == ((1, []) if failing else (0, [0]))
+    assert cli_main(["plan", "-o", str(tmp_path / "p.json")], exit_now=True) == 0
+    assert exits == ([] if failing else [0])

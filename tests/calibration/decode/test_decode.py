@@ -352,7 +352,7 @@ def test_photon_transfer_with_constant_pixels_at_the_black_level():
     """Pixels reading one constant value (residual 0: a black level under the noise floor)
     used to put an infinite weight into the line fit (LinAlgError); their bin sits at the
     quantization floor and the line follows the others."""
-    from calibration.decode.noise import fit_photon_transfer
+    from calibration.decode.ptc_fit import fit_photon_transfer
 
     rng = np.random.default_rng(3)
     mean = np.concatenate([np.full(8000, 6.0), rng.uniform(20.0, 200.0, 30000)])

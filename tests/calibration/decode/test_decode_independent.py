@@ -12,7 +12,8 @@ import pytest
 
 from acquisition.patterns import build_plan
 from calibration.decode import decode_stack
-from calibration.decode.noise import fit_photon_transfer, undithered
+from calibration.decode.noise import undithered
+from calibration.decode.ptc_fit import fit_photon_transfer
 from tests.calibration.decode.independent_render import (
     Camera,
     Monitor,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -119,6 +121,44 @@ def test_local_outlier_filter_finds_injected_outliers() -> None:
     u, v = kept.pixels[:, 0].astype(int), kept.pixels[:, 1].astype(int)
     assert truth["outliers"][v, u].mean() < 0.005
     assert len(kept) > 0.7 * maps.valid_count()
+
+
+def test_sorting_network_sorts_every_binary_input() -> None:
+    """0-1 principle: a comparator network that sorts all 2^9 binary inputs sorts any."""
+    from calibration.fit.correspondences import _sort9
+
+    bits = ((np.arange(512)[:, None] >> np.arange(9)) & 1).T.astype(np.float64)
+    planes = bits.copy()
+    _sort9(planes, np.empty(512))
+    np.testing.assert_array_equal(planes, np.sort(bits, axis=0))
+
+
+@pytest.mark.parametrize("rows", [1, 3, 16, 40])
+def test_local_outliers_match_nanmedian_of_each_neighbourhood(rows, monkeypatch) -> None:
+    """Median and median absolute deviation over each pixel's finite 3x3 neighbours, as
+    np.nanmedian gives them, whatever the block height (image and block edges, NaN holes)."""
+    import calibration.fit.correspondences as corr
+
+    monkeypatch.setattr(corr, "_BLOCK_ROWS", rows)
+    rng = np.random.default_rng(8)
+    v, u = np.mgrid[0:37, 0:29]
+    values = 0.7 * u + 0.2 * v + rng.normal(0, 0.02, u.shape)
+    values[rng.random(u.shape) < 0.25] = np.nan
+    bad = rng.random(u.shape) < 0.06
+    values[bad] += rng.choice([-1, 1], bad.sum()) * rng.uniform(0.1, 5, bad.sum())
+    values[0, :3] = values[:2, -1] = np.nan  # a pixel whose neighbours are nearly all missing
+    sigma = rng.uniform(0.005, 0.03, u.shape)
+    stack = np.stack([np.pad(values, 1, constant_values=np.nan)[dv:dv + 37, du:du + 29]
+                      for dv in range(3) for du in range(3)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (all-NaN neighbourhoods)
+        med = np.nanmedian(stack, axis=0)
+        spread = np.nanmedian(np.abs(stack - med), axis=0)
+    with np.errstate(invalid="ignore"):
+        expected = np.abs(values - med) > corr._OUTLIER_SIGMAS * sigma + 2.0 * spread
+    found = corr.local_outliers(values, sigma)
+    np.testing.assert_array_equal(found, expected)
+    assert 20 <= found.sum() <= bad.sum()  # (some injected ones fall in NaN holes)
 
 
 def test_vanishing_point_intrinsics_six_views() -> None:

@@ -1,0 +1,29 @@
+"""Executor task: the next-pose suggestion of a session (fit, prediction, image), written
+by a worker so that the server process that paces captures never runs the fit."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+
+def guidance_task(plan_path: str, maps_paths: list[str], model: str, out_dir: str,
+                  header: dict[str, Any]) -> None:
+    """Fit `model` to the poses' maps, plan the next pose and write `next-pose.json`
+    (`header` plus the suggestion) and `next-pose.png` into `out_dir`; ValueError when the
+    poses do not support a fit."""
+    from calibration.guidance import plan_next_pose, session_points
+    from calibration.maps import load_maps
+    from calibration.plan import read_plan
+    from calibration.report_plots import guidance_png
+
+    plan = read_plan(plan_path)
+    maps = [load_maps(p) for p in maps_paths]
+    h, w = maps[0].shape
+    sug, _ = plan_next_pose(session_points(maps, plan.screen), (w, h), plan.screen, model)
+    out = Path(out_dir)
+    (out / "next-pose.json").write_text(json.dumps({**header, **sug.to_json()}))
+    guidance_png(sug.map_before, sug.map_after, sug.outline_px, (w, h),
+                 f"next pose: {sug.distance_mm:.0f} mm, tilt {sug.tilt_deg:.0f} deg "
+                 f"towards {sug.tilt_azimuth_deg:.0f} deg", out / "next-pose.png")
