@@ -105,3 +105,39 @@ def test_table_fit_skips_harmonic_rows_only_where_unused(cov):
         bad[nrow - 1] = np.inf  # only a harmonic row's sum: still no fit
         assert not _table_fit(bad, 0, nrow, n, 0, rows, t, basis, p_scratch, False, False, q,
                               cov, lin, constant)[0]
+
+
+def test_pattern_tables_cover_every_partial_pattern_and_agree_across_decoders():
+    """`tables` gives a row to every partial pattern of the columns asked (none to 0 or
+    every step), the rows of the same pattern are the same in two decoders' tables (rows
+    kept for the process), and a second call finds nothing new to build."""
+    from calibration.decode.kernel_clipped import unknown_patterns
+
+    plan = build_plan(1920, 1080, 0.2745, steps=10)
+    first, second = (pattern_tables(StreamingDecoder(plan, (4, 4), noise=None)._acc)
+                     for _ in range(2))
+    sets = len(first.sets)
+    rng = np.random.default_rng(11)
+    bits = rng.choice(np.array([0, 1023, *PATTERNS, 0b0110000000], dtype=np.uint16),
+                      size=(sets, 300))
+    index, rows = first.tables(bits, 0, 300)
+    for k in range(sets):
+        for q in np.unique(bits[k]).tolist():
+            assert (index[k, q] >= 0) == (q not in (0, 1023)), (k, q)
+    assert unknown_patterns(bits, 0, 300, index, first.set_steps).shape == (0, 2)
+    assert first.tables(bits, 0, 300)[1] is rows  # nothing new: the same pair
+    index2, rows2 = second.tables(bits[:, ::-1].copy(), 0, 300)  # other order of meeting
+    for k in range(sets):
+        for q in np.unique(bits[k]).tolist():
+            if q not in (0, 1023):
+                np.testing.assert_array_equal(rows2[index2[k, q]], rows[index[k, q]])
+    fresh = np.zeros_like(rows[0])  # the row as PatternTables computed it before the cache
+    k, q = 0, PATTERNS[0]
+    pat = _normal_inverse(10, q, first.sets[k].harmonics)
+    f, w = first.width, pat.minv.shape[0]
+    minv = np.zeros((f, f))
+    minv[:w, :w] = pat.minv
+    fresh[:f * f] = minv.ravel()
+    fresh[f * f:f * f + w] = pat.weights
+    assert np.array_equal(rows[index[k, q]][:f * f + f], fresh[:f * f + f])
+    assert rows[index[k, q]][-2:].tolist() == [pat.kept, pat.used]
