@@ -9,6 +9,10 @@ theta_d(theta; k) = |(a, b)|, differentiated likewise in closed form.
 
 from __future__ import annotations
 
+import copy
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from calibration.models.parametric import FisheyeModel, PinholeFamily
@@ -16,6 +20,8 @@ from calibration.models.parametric import FisheyeModel, PinholeFamily
 _NEWTON_ITERS = 30
 _NEWTON_TOL = 1e-13
 _CSTEP = 1e-30
+_CHUNK = 1 << 15  # pixels per chunk of `directions`
+_MAX_THREADS = 4  # NumPy releases the GIL in its loops; more threads only contend
 
 
 def _distort_complex(model: PinholeFamily, x: np.ndarray, y: np.ndarray,
@@ -140,8 +146,48 @@ def fisheye_directions(model: FisheyeModel, pixels: np.ndarray, start: np.ndarra
 
 
 def directions(model: PinholeFamily, pixels: np.ndarray, start: np.ndarray | None = None,
-               jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    """Directions, their intrinsic Jacobian and a warm start for the next call, any family."""
-    if isinstance(model, FisheyeModel):
-        return fisheye_directions(model, pixels, start, jacobian)
-    return pinhole_directions(model, pixels, start, jacobian)
+               jacobian: bool = True, out: tuple | None = None
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Directions, their intrinsic Jacobian and a warm start for the next call, any family:
+    computed in chunks of pixels (their temporaries stay in cache) over threads (NumPy
+    releases the GIL in its loops; a multi-megapixel fit spends most of its time here).
+    `out`: a previous call's result for as many pixels, whose arrays are filled again (no
+    fresh pages for the ~400 bytes per pixel of a Jacobian; `start` may be one of them)."""
+    family = fisheye_directions if isinstance(model, FisheyeModel) else pinhole_directions
+    n = len(pixels)
+    if n <= _CHUNK:
+        return family(model, pixels, start, jacobian)
+    parts = [slice(a, min(a + _CHUNK, n)) for a in range(0, n, _CHUNK)]
+    first = family(copy.copy(model), pixels[parts[0]],
+                   None if start is None else start[parts[0]], jacobian)
+    arrays = [_filled(prev, new, n) for prev, new in zip(out or (None,) * 3, first, strict=True)]
+
+    def one(sl: slice) -> None:
+        # a copy per chunk: the complex step sets the coefficients on the model it is given
+        done = family(copy.copy(model), pixels[sl], None if start is None else start[sl],
+                      jacobian)
+        for arr, part in zip(arrays, done, strict=True):
+            if arr is not None:
+                arr[sl] = part
+
+    for arr, part in zip(arrays, first, strict=True):
+        if arr is not None:
+            arr[parts[0]] = part
+    threads = max(1, min(len(parts) - 1, len(os.sched_getaffinity(0)), _MAX_THREADS))
+    if threads == 1:
+        for sl in parts[1:]:
+            one(sl)
+    else:
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(one, parts[1:]))
+    dirs, jac, warm = arrays
+    return dirs, jac, warm
+
+
+def _filled(prev: np.ndarray | None, part: np.ndarray | None, n: int) -> np.ndarray | None:
+    """`prev` if it holds n rows shaped like `part`'s, else a new array (None for None)."""
+    if part is None:
+        return None
+    if prev is not None and prev.shape == (n, *part.shape[1:]) and prev.dtype == part.dtype:
+        return prev
+    return np.empty((n, *part.shape[1:]), dtype=part.dtype)

@@ -12,7 +12,9 @@ scaled by the reduced chi-square.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +30,7 @@ from calibration.models.parametric import PinholeFamily
 
 OUTLIER_SIGMAS = 5.0
 _CHUNK = 8192  # points per batch: the per-point temporaries stay in cache
+_MAX_THREADS = 4  # chunk threads: NumPy releases the GIL in its loops; more only contend
 _CHI_MEDIAN_2DOF = float(np.sqrt(2 * np.log(2)))  # median of |r| for a whitened 2D Gaussian
 
 
@@ -89,6 +92,7 @@ class _Problem:
         splits = np.cumsum([len(p) for p in points])[:-1]
         self.index = np.split(inverse, splits)
         self.start: np.ndarray | None = None
+        self._buffers: tuple | None = None  # `directions` outputs to fill again
 
     @property
     def sizes(self) -> tuple[int, int, int]:
@@ -134,31 +138,51 @@ class _Problem:
         return res.ravel(), blk.reshape(2 * n, -1)
 
     def evaluate(self, want_jac: bool):
-        """Total cost, per-pose residuals, and (if asked) the normal matrix and gradient."""
-        dirs, jdir, start = directions(self.model, self.pixels, self.start, want_jac)
+        """Total cost, per-pose residuals, and (if asked) the normal matrix and gradient;
+        chunks of points over threads, their sums added in one fixed order."""
+        dirs, jdir, start = directions(self.model, self.pixels, self.start, want_jac,
+                                       out=self._buffers)
         self.start = start
+        if want_jac:  # the next evaluation fills the same arrays
+            self._buffers = (dirs, jdir, start)
         ni, ns, ntot = self.sizes
+        tasks = [(j, slice(a, a + _CHUNK)) for j in range(len(self.poses))
+                 for a in range(0, len(self.index[j]), _CHUNK)]
+        threads = max(1, min(len(tasks), len(os.sched_getaffinity(0)), _MAX_THREADS))
+
+        def terms(task: tuple[int, slice]) -> tuple[np.ndarray, float, Any, Any]:
+            return self._chunk_terms(*task, dirs, jdir, want_jac)
+
+        if threads == 1:
+            done = [terms(t) for t in tasks]
+        else:
+            with ThreadPoolExecutor(threads) as pool:
+                done = list(pool.map(terms, tasks))
         hmat, grad = np.zeros((ntot, ntot)), np.zeros(ntot)
-        residuals, cost = [], 0.0
-        for j in range(len(self.poses)):
-            parts = []
-            cols = np.r_[np.arange(ni + ns), ni + ns + 6 * j + np.arange(6)]
-            for start in range(0, len(self.index[j]), _CHUNK):
-                res, blk = self._pose_terms(j, slice(start, start + _CHUNK), dirs, jdir,
-                                            want_jac)
-                parts.append(res)
-                ok = np.isfinite(res)
-                cost += float(res[ok] @ res[ok])
-                if blk is None:
-                    continue
-                ok &= np.isfinite(blk.sum(axis=1))
-                if not ok.all():
-                    blk[~ok] = 0.0
-                r = np.where(ok, res, 0.0)
-                hmat[np.ix_(cols, cols)] += blk.T @ blk
-                grad[cols] += blk.T @ r
-            residuals.append(np.concatenate(parts) if parts else np.zeros(0))
+        parts: list[list[np.ndarray]] = [[] for _ in self.poses]
+        cost = 0.0
+        for (j, _), (res, chunk_cost, h, g) in zip(tasks, done, strict=True):
+            parts[j].append(res)
+            cost += chunk_cost
+            if h is not None:
+                cols = np.r_[np.arange(ni + ns), ni + ns + 6 * j + np.arange(6)]
+                hmat[np.ix_(cols, cols)] += h
+                grad[cols] += g
+        residuals = [np.concatenate(p) if p else np.zeros(0) for p in parts]
         return cost, residuals, hmat, grad
+
+    def _chunk_terms(self, j: int, sl: slice, dirs: np.ndarray, jdir: np.ndarray | None,
+                     want_jac: bool) -> tuple[np.ndarray, float, Any, Any]:
+        """One chunk's residuals, cost and (if asked) normal-matrix and gradient terms."""
+        res, blk = self._pose_terms(j, sl, dirs, jdir, want_jac)
+        ok = np.isfinite(res)
+        cost = float(res[ok] @ res[ok])
+        if blk is None:
+            return res, cost, None, None
+        ok &= np.isfinite(blk.sum(axis=1))
+        if not ok.all():
+            blk[~ok] = 0.0
+        return res, cost, blk.T @ blk, blk.T @ np.where(ok, res, 0.0)
 
     def params(self) -> tuple[np.ndarray, np.ndarray, list[PoseEstimate]]:
         """A snapshot of the state (model params, screen params, poses)."""
