@@ -9,6 +9,8 @@ wrong one (systematic residuals). Residuals are also mapped back to the screen p
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -21,6 +23,8 @@ from calibration.models.base import CameraModel
 ADEQUATE_RATIO = 1.5
 # Points beyond this many robust sigmas (and expected sigmas) count as decoding outliers.
 OUTLIER_SIGMAS = 5.0
+_CHUNK = 1 << 15  # points per chunk of the per-point terms (temporaries stay in cache)
+_MAX_THREADS = 4  # NumPy releases the GIL in its loops; more threads only contend
 
 
 def project_pose(model: CameraModel, rotation: np.ndarray, translation: np.ndarray,
@@ -43,15 +47,37 @@ def screen_jacobian(model: CameraModel, rotation: np.ndarray, translation: np.nd
     return jac
 
 
-def pose_residuals(model: CameraModel, pose: PoseEstimate, points: PointSet) -> dict[str, Any]:
-    """Residuals of one pose and their statistics (RMS in camera px and screen px, noise floor)."""
+def _point_terms(model: CameraModel, pose: PoseEstimate, points: PointSet
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point: camera-px residual (N, 2), its expected squared size from the decoded
+    sigma, and the residual mapped back to the screen (N, 2, screen px)."""
     pred = project_pose(model, pose.rotation, pose.translation, points.screen_mm)
     res = pred - points.pixels
     jac = screen_jacobian(model, pose.rotation, pose.translation, points)
     cov = np.einsum("nij,nj,nkj->nik", jac, points.sigma_px**2, jac)
-    expected2 = np.trace(cov, axis1=1, axis2=2)
     with np.errstate(invalid="ignore"):
         res_screen = np.linalg.solve(jac, res[:, :, None])[:, :, 0]
+    return res, np.trace(cov, axis1=1, axis2=2), res_screen
+
+
+def _chunked_terms(model: CameraModel, pose: PoseEstimate, points: PointSet
+                   ) -> tuple[np.ndarray, ...]:
+    """`_point_terms` in cache-sized chunks over threads (NumPy releases the GIL in its
+    loops); the first chunk alone first, so a model's lazily built lookup is built once."""
+    n = len(points)
+    parts = [slice(a, min(a + _CHUNK, n)) for a in range(0, n, _CHUNK)]
+    if len(parts) <= 1:
+        return _point_terms(model, pose, points)
+    done = [_point_terms(model, pose, points.subset(parts[0]))]
+    threads = max(1, min(len(parts) - 1, len(os.sched_getaffinity(0)), _MAX_THREADS))
+    with ThreadPoolExecutor(threads) as pool:
+        done += pool.map(lambda sl: _point_terms(model, pose, points.subset(sl)), parts[1:])
+    return tuple(np.concatenate(arrays) for arrays in zip(*done, strict=True))
+
+
+def pose_residuals(model: CameraModel, pose: PoseEstimate, points: PointSet) -> dict[str, Any]:
+    """Residuals of one pose and their statistics (RMS in camera px and screen px, noise floor)."""
+    res, expected2, res_screen = _chunked_terms(model, pose, points)
     mag = np.linalg.norm(res, axis=1)
     finite = np.isfinite(mag) & np.isfinite(expected2)
     robust = 1.4826 * float(np.median(mag[finite])) if finite.any() else np.nan

@@ -11,6 +11,7 @@ rounding where the array path keeps float32 arrays.
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 
@@ -55,36 +56,49 @@ class PatternTables:
         """(index, rows) covering every pattern of columns c0..c0+n of `bits` (built as
         needed; a consistent pair that later growth does not change)."""
         pair = self._pair
-        if bits.shape[0] == 0 or not unknown_patterns(bits, c0, n, pair[0], self.set_steps):
+        if bits.shape[0] == 0:
+            return pair
+        unknown = unknown_patterns(bits, c0, n, pair[0], self.set_steps)
+        if unknown.shape[0] == 0:
             return pair
         with self._lock:
             index, rows = self._pair[0].copy(), [self._pair[1]]
             count = rows[0].shape[0]
-            f, t = self.width, self.steps
-            for k, s in enumerate(self.sets):
-                every = (1 << s.layout.steps) - 1
-                for mask in np.unique(bits[k, c0:c0 + n]).tolist():
-                    if mask in (0, every) or index[k, mask] >= 0:
-                        continue
-                    pat = _normal_inverse(s.layout.steps, int(mask), s.harmonics)
-                    row = np.zeros(self.row_size)
-                    w, steps = pat.minv.shape[0], s.layout.steps
-                    minv = np.zeros((f, f))
-                    minv[:w, :w] = pat.minv
-                    gains = np.zeros((2, t))
-                    gains[:, :steps] = pat.gains
-                    row[:f * f] = minv.ravel()
-                    row[f * f:f * f + w] = pat.weights
-                    g0 = f * f + f
-                    row[g0:g0 + 2 * t] = gains.ravel()
-                    row[g0 + 2 * t:g0 + 2 * t + 3 + 3 * f] = _covariance_terms(
-                        pat.gains, self.basis[k, :steps], f)
-                    row[-2:] = pat.kept, pat.used
-                    index[k, mask] = count
-                    rows.append(row[None])
-                    count += 1
+            for k, mask in unknown.tolist():
+                if index[k, mask] >= 0:
+                    continue  # built meanwhile by another thread
+                s = self.sets[k]
+                rows.append(_pattern_row(s.layout.steps, mask, s.harmonics, self.width,
+                                         self.steps)[None])
+                index[k, mask] = count
+                count += 1
             self._pair = (index, np.concatenate(rows))
             return self._pair
+
+
+@functools.lru_cache(maxsize=8192)
+def _pattern_row(steps: int, mask: int, harmonics: tuple[int, ...], width: int,
+                 t_max: int) -> np.ndarray:
+    """One row of `PatternTables.rows` (layout above; read-only), kept for the process: a
+    service decodes pose after pose with one plan and meets the same patterns again."""
+    pat = _normal_inverse(steps, mask, harmonics)
+    b = _basis(steps, harmonics)
+    basis = np.zeros((steps, width))
+    basis[:, :b.shape[1]] = b
+    f, t, w = width, t_max, pat.minv.shape[0]
+    row = np.zeros(f * f + f + 2 * t + 3 + 3 * f + 2)
+    minv = np.zeros((f, f))
+    minv[:w, :w] = pat.minv
+    gains = np.zeros((2, t))
+    gains[:, :steps] = pat.gains
+    row[:f * f] = minv.ravel()
+    row[f * f:f * f + w] = pat.weights
+    g0 = f * f + f
+    row[g0:g0 + 2 * t] = gains.ravel()
+    row[g0 + 2 * t:g0 + 2 * t + 3 + 3 * f] = _covariance_terms(pat.gains, basis, f)
+    row[-2:] = pat.kept, pat.used
+    row.flags.writeable = False
+    return row
 
 
 def _covariance_terms(gains: np.ndarray, basis: np.ndarray, width: int) -> np.ndarray:
@@ -108,15 +122,22 @@ def pattern_tables(acc) -> PatternTables | None:
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def unknown_patterns(bits, c0, n, index, steps) -> bool:
-    """True when columns c0..c0+n of `bits` hold a partial pattern without a table row."""
+def unknown_patterns(bits, c0, n, index, steps):
+    """The distinct partial patterns of columns c0..c0+n of `bits` without a table row:
+    (count, 2) int64 rows (set, mask), in order of appearance (one pass, no sort)."""
+    seen = np.zeros(index.shape, dtype=np.bool_)
+    out = np.empty((index.shape[0] * index.shape[1], 2), dtype=np.int64)
+    count = 0
     for k in range(bits.shape[0]):
         row, known, every = bits[k], index[k], (1 << steps[k]) - 1
         for j in range(c0, c0 + n):
             q = row[j]
-            if q != 0 and q != every and known[q] < 0:
-                return True
-    return False
+            if q != 0 and q != every and known[q] < 0 and not seen[k, q]:
+                seen[k, q] = True
+                out[count, 0] = k
+                out[count, 1] = q
+                count += 1
+    return out[:count]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -130,16 +151,19 @@ def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, 
     step value mu exceeds the threshold."""
     f32 = np.float32
     width, t_max = basis.shape[1], basis.shape[0]
+    # each p_i is finite exactly when every sum is (finite tables, float64 headroom)
     good = True
+    for m in range(nrow):
+        good = good and math.isfinite(sums[r0 + m, jc])
+    # alpha, beta and the mean need 3 rows of the table's inverse; the harmonics' rows
+    # only for the residuals, the dark-end test or a noise line that is not one constant
+    # over every step value (else they are left 0)
+    need = nrow if residual or want_low or (cov and (lin[1] != 0.0 or lin[2] > -math.inf)) else 3
     for i in range(nrow):
         acc = 0.0
-        for m in range(nrow):
+        for m in range(nrow if i < need else 0):
             acc += rows[t, i * width + m] * float(sums[r0 + m, jc])
-        p[i] = acc
-        good = good and math.isfinite(acc)
-    if not good:
-        for i in range(nrow):
-            p[i] = 0.0
+        p[i] = acc if good else 0.0
     size = rows.shape[1]
     kept, used = rows[t, size - 2], rows[t, size - 1]
     lev = 0.0
@@ -159,8 +183,8 @@ def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, 
     if cov and good:
         g0 = width * width + width
         c0, slope, threshold = lin[0], lin[1], lin[2]
-        bound = p[0]  # a lower bound of every step's fitted value
-        for h in range(1, nrow - 1, 2):
+        bound = p[0]  # a lower bound of every step's fitted value (none needed: -inf)
+        for h in range(1, nrow - 1 if threshold > -math.inf else 1, 2):
             bound -= math.sqrt(p[h] * p[h] + p[h + 1] * p[h + 1])
         if bound > threshold:  # the line is linear over the steps: tables' sums
             cv = g0 + 2 * t_max
@@ -255,6 +279,7 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
                 dofk[j] = float(f32(n - nrow))
                 levk[j] = mean[j]
         every = (1 << n) - 1
+        basis_k = basis[k]
         for j in range(m if bits.shape[0] else 0):
             q = bits[k, j0 + j]
             if q == 0:
@@ -266,7 +291,7 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
                 continue
             (good, mean[j], levk[j], alpha[j], beta[j], caa[j], cbb[j], cab[j], expl[j],
              dofk[j], covs[3, k, j], covs[4, k, j], covs[5, k, j], lw) = _table_fit_n(
-                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis[k], p, residual, want_low,
+                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis_k, p, residual, want_low,
                 q, cov, lin, line)
             ok[j] = good
             part[j] = good and cov

@@ -65,7 +65,10 @@ def decode_stack(
                     progress(round(fraction * count), count, "decode")
 
             step(0.0)
-            maps = dec.finish_stack(whole, meta, step, into)
+            # unobserved (no progress, no cancellation): every range in one parallel pass,
+            # without a wait for the slowest range of each sixteenth
+            watched = progress is not None or cancelled is not None
+            maps = dec.finish_stack(whole, meta, step if watched else None, into)
             if progress is not None:
                 progress(count, count, "unwrap")
             return maps

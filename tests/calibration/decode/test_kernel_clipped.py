@@ -62,3 +62,82 @@ def test_table_fit_matches_phase_tables_and_step_levels(noise):
             np.testing.assert_allclose(fits["never"][10:13], num, rtol=1e-9)
             shortcut = np.allclose(fits["always"][10:13], num, rtol=1e-9)
             assert shortcut == linear  # (the shortcut is wrong below the black level)
+
+
+@pytest.mark.parametrize("cov", [True, False])
+def test_table_fit_skips_harmonic_rows_only_where_unused(cov):
+    """With a given constant noise (no residuals, no dark-end test) the kernel computes only
+    alpha, beta and the mean: they and the numerators equal the full fit's; the harmonic
+    coefficients are then unused. A sum that is not finite still fails the fit."""
+    plan = build_plan(1920, 1080, 0.2745, steps=10)
+    acc = StreamingDecoder(plan, (4, 4), noise=1.5)._acc
+    tables = pattern_tables(acc)
+    k, s = 0, acc.sets[0]
+    n, nrow = s.layout.steps, s.rows
+    bits = np.zeros((len(acc.sets), len(PATTERNS)), dtype=acc.bits_dtype)
+    bits[k] = PATTERNS
+    index, rows = tables.tables(bits, 0, bits.shape[1])
+    constant = (2.25, 0.0, 0.0, False, 1.0 / 12.0)
+    lin = linear_line(np.array([2.25, 0.0, 0.0, 0.0, 1.0 / 12.0]))
+    assert lin[1] == 0.0 and lin[2] == -np.inf
+    psi = np.asarray(s.layout.psi)
+    p_scratch = np.empty(tables.basis.shape[2])
+    for q in PATTERNS:
+        v = 150.0 + 60.0 * np.cos(psi + 0.7) + 25.0 * np.cos(2 * psi + 0.2)  # a harmonic
+        sums, p, _ = expected(n, s.harmonics, q, v)
+        col = sums.astype(np.float32)[:, None]
+        t, basis = index[k, q], tables.basis[k]
+        fast = _table_fit(col, 0, nrow, n, 0, rows, t, basis, p_scratch, False, False, q, cov,
+                          lin, constant)
+        assert np.all(p_scratch[3:nrow] == 0.0)  # (not computed)
+        full = _table_fit(col, 0, nrow, n, 0, rows, t, basis, p_scratch, False, True, q, cov,
+                          lin, constant)  # the dark-end test needs every coefficient
+        np.testing.assert_allclose(p_scratch[:nrow], p, rtol=1e-6)
+        assert abs(p[3]) > 1.0  # the harmonic is there: zeroing it would show
+        assert fast[:13] == full[:13]
+        np.testing.assert_allclose([fast[1], fast[3], fast[4]], p[:3], rtol=1e-6)
+        if cov:  # a finite threshold: each step's own variance from every coefficient
+            never = np.array([lin[0], 0.0, np.inf])
+            exact = [_table_fit(col, 0, nrow, n, 0, rows, t, basis, p_scratch, False, low, q,
+                                True, never, LINE)[10:13] for low in (False, True)]
+            assert exact[0] == exact[1]
+        bad = col.copy()
+        bad[nrow - 1] = np.inf  # only a harmonic row's sum: still no fit
+        assert not _table_fit(bad, 0, nrow, n, 0, rows, t, basis, p_scratch, False, False, q,
+                              cov, lin, constant)[0]
+
+
+def test_pattern_tables_cover_every_partial_pattern_and_agree_across_decoders():
+    """`tables` gives a row to every partial pattern of the columns asked (none to 0 or
+    every step), the rows of the same pattern are the same in two decoders' tables (rows
+    kept for the process), and a second call finds nothing new to build."""
+    from calibration.decode.kernel_clipped import unknown_patterns
+
+    plan = build_plan(1920, 1080, 0.2745, steps=10)
+    first, second = (pattern_tables(StreamingDecoder(plan, (4, 4), noise=None)._acc)
+                     for _ in range(2))
+    sets = len(first.sets)
+    rng = np.random.default_rng(11)
+    bits = rng.choice(np.array([0, 1023, *PATTERNS, 0b0110000000], dtype=np.uint16),
+                      size=(sets, 300))
+    index, rows = first.tables(bits, 0, 300)
+    for k in range(sets):
+        for q in np.unique(bits[k]).tolist():
+            assert (index[k, q] >= 0) == (q not in (0, 1023)), (k, q)
+    assert unknown_patterns(bits, 0, 300, index, first.set_steps).shape == (0, 2)
+    assert first.tables(bits, 0, 300)[1] is rows  # nothing new: the same pair
+    index2, rows2 = second.tables(bits[:, ::-1].copy(), 0, 300)  # other order of meeting
+    for k in range(sets):
+        for q in np.unique(bits[k]).tolist():
+            if q not in (0, 1023):
+                np.testing.assert_array_equal(rows2[index2[k, q]], rows[index[k, q]])
+    fresh = np.zeros_like(rows[0])  # the row as PatternTables computed it before the cache
+    k, q = 0, PATTERNS[0]
+    pat = _normal_inverse(10, q, first.sets[k].harmonics)
+    f, w = first.width, pat.minv.shape[0]
+    minv = np.zeros((f, f))
+    minv[:w, :w] = pat.minv
+    fresh[:f * f] = minv.ravel()
+    fresh[f * f:f * f + w] = pat.weights
+    assert np.array_equal(rows[index[k, q]][:f * f + f], fresh[:f * f + f])
+    assert rows[index[k, q]][-2:].tolist() == [pat.kept, pat.used]
