@@ -53,6 +53,13 @@ def release() -> None:
         _kept.clear()
 
 
+def holds_pixels(pixels: int) -> bool:
+    """True when the kept arrays are a decode's of images of `pixels` pixels (those of
+    another camera would be dropped by the next `take`, not reused)."""
+    with _lock:
+        return any(a.shape[-1] == pixels for a in _kept)
+
+
 def kept_bytes() -> int:
     """Bytes held for the next decode."""
     with _lock:

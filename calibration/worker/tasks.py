@@ -154,7 +154,8 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
     task, so the worker that decodes a later pose does not load them while that pose's
     frames arrive (under load, late enough to delay the pose). With `plan_path` and `shape`
     (and the capture's `noise`) it also allocates that decode's sums and keeps them
-    (`sums_cache`) unless this worker already keeps a decode's sums: ~1 GB at 5 MP, up to
+    (`sums_cache`) unless this worker already keeps a decode's sums of images this size
+    (another camera's, e.g. a preview camera's small ones, are replaced): ~1 GB at 5 MP, up to
     ~2.3 CPU s of first-touch page faults, paid once per worker while a capture runs rather
     than by the worker's first pose after its last frame. At normal CPU priority: a task at
     idle priority is starved by any busy process, and the decode tasks queued behind it
@@ -167,7 +168,8 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
         return False
     warm_up()
     _keep_heap(pixels)
-    if plan_path is not None and shape is not None and not sums_cache.kept_bytes():
+    if (plan_path is not None and shape is not None
+            and not sums_cache.holds_pixels(int(shape[0]) * int(shape[1]))):
         from calibration.decode import StreamingDecoder
         from calibration.plan import read_plan
 

@@ -50,10 +50,31 @@ def test_warm_decode_task_keeps_the_sums_a_worker_already_holds(tmp_path, monkey
 
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
     write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
-    held = np.full(16, 7.0)
+    held = np.full((3, 48 * 64), 7.0)
     sums_cache.keep([held])
     try:
         assert warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64)) is True
         assert sums_cache._kept == [held] and (held == 7.0).all()
+    finally:
+        sums_cache.release()
+
+
+def test_warm_decode_task_replaces_another_cameras_sums(tmp_path, monkeypatch) -> None:
+    """A worker that last decoded a smaller camera (a session's earlier rig, a preview
+    camera) keeps its small sums: the warm task must still prime the large camera's, else
+    the worker's first large pose pays ~2 CPU s of page faults while its frames arrive."""
+    import numpy as np
+
+    import calibration.decode.decoder as decoder_module
+    from acquisition.patterns import build_plan
+    from calibration.decode import sums_cache
+    from calibration.plan import write_plan
+
+    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
+    sums_cache.keep([np.full((3, 16 * 12), 7.0)])
+    try:
+        assert warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64)) is True
+        assert sums_cache.holds_pixels(48 * 64) and not sums_cache.holds_pixels(16 * 12)
     finally:
         sums_cache.release()
