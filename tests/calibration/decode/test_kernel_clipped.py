@@ -27,20 +27,26 @@ def expected(n: int, harmonics: tuple[int, ...], q: int, v: np.ndarray) -> tuple
     return sums, p, np.array([var @ (ga * ga), var @ (gb * gb), var @ (ga * gb)])
 
 
+def _first_set_tables(noise):
+    """A 10-step plan's accumulator, its pattern tables and their (index, rows) once
+    PATTERNS were met in the first set."""
+    plan = build_plan(1920, 1080, 0.2745, steps=10)
+    acc = StreamingDecoder(plan, (4, 4), noise=noise)._acc
+    tables = pattern_tables(acc)
+    bits = np.zeros((len(acc.sets), len(PATTERNS)), dtype=acc.bits_dtype)
+    bits[0] = PATTERNS
+    return (acc, tables, *tables.tables(bits, 0, bits.shape[1]))
+
+
 @pytest.mark.parametrize("noise", [None, 1.5])  # residual mode (7 rows) / given (5 rows)
 def test_table_fit_matches_phase_tables_and_step_levels(noise):
     """Coefficients and `use_step_levels`' numerators of the kernel's fit equal NumPy's on
     phase.py's tables, both where the noise line is linear over the fitted steps (the
     kernel's shortcut through the pattern's summed tables) and where some fitted steps lie
     below the black level (each step's own variance); taking the shortcut there is wrong."""
-    plan = build_plan(1920, 1080, 0.2745, steps=10)
-    acc = StreamingDecoder(plan, (4, 4), noise=noise)._acc
-    tables = pattern_tables(acc)
+    acc, tables, index, rows = _first_set_tables(noise)
     k, s = 0, acc.sets[0]
     n, nrow = s.layout.steps, s.rows
-    bits = np.zeros((len(acc.sets), len(PATTERNS)), dtype=acc.bits_dtype)
-    bits[k] = PATTERNS
-    index, rows = tables.tables(bits, 0, bits.shape[1])
     lin = linear_line(np.array([*LINE[:3], 1.0, LINE[4]]))
     never = np.array([lin[0], lin[1], np.inf])  # the shortcut never taken
     always = np.array([lin[0], lin[1], -np.inf])  # the shortcut always taken
@@ -69,14 +75,9 @@ def test_table_fit_skips_harmonic_rows_only_where_unused(cov):
     """With a given constant noise (no residuals, no dark-end test) the kernel computes only
     alpha, beta and the mean: they and the numerators equal the full fit's; the harmonic
     coefficients are then unused. A sum that is not finite still fails the fit."""
-    plan = build_plan(1920, 1080, 0.2745, steps=10)
-    acc = StreamingDecoder(plan, (4, 4), noise=1.5)._acc
-    tables = pattern_tables(acc)
+    acc, tables, index, rows = _first_set_tables(1.5)
     k, s = 0, acc.sets[0]
     n, nrow = s.layout.steps, s.rows
-    bits = np.zeros((len(acc.sets), len(PATTERNS)), dtype=acc.bits_dtype)
-    bits[k] = PATTERNS
-    index, rows = tables.tables(bits, 0, bits.shape[1])
     constant = (2.25, 0.0, 0.0, False, 1.0 / 12.0)
     lin = linear_line(np.array([2.25, 0.0, 0.0, 0.0, 1.0 / 12.0]))
     assert lin[1] == 0.0 and lin[2] == -np.inf
