@@ -212,10 +212,10 @@ def residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np.
     """The noise line of the residuals and the display harmonic's per-set r^2 (None if not
     found): a first line, the harmonic fitted against it (`harmonic_leak`), subtracted, and
     the line fitted again; at or above `floor` from the median `dark` flat level up.
-    (Its least squares on one BLAS thread: `blas.one_blas_thread`.)"""
-    from calibration.decode.blas import one_blas_thread
+    (Its least squares on one BLAS thread: NumPy's second one only spins.)"""
+    from calibration.models.blas_threads import single_thread_blas
 
-    with one_blas_thread():
+    with single_thread_blas(scipy=False):
         return _residual_line(mean, rss, dof, power, floor, dark)
 
 

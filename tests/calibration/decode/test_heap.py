@@ -1,6 +1,6 @@
 """A decoding worker keeps the heap memory it frees (`heap`), so a finish's temporaries
 reuse warm pages instead of faulting in new ones; the noise line's least squares run on one
-BLAS thread (`blas`)."""
+BLAS thread (`models.blas_threads`)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import threadpoolctl
 
-from calibration.decode.blas import one_blas_thread
 from calibration.decode.noise import residual_line
+from calibration.models.blas_threads import single_thread_blas
 
 # Allocate, write and free blocks of a size glibc maps afresh by default (1.5 MB, under
 # NumPy's 4 MB huge-page threshold, so every 4 KB page is a fault), many times over: page
@@ -69,7 +69,7 @@ def test_noise_line_runs_on_one_blas_thread(monkeypatch):
     assert line is not None and abs(line.slope - 0.02) < 0.002 and leak is None
     assert seen and all(threads == [1] * len(threads) for threads in seen)
     assert _blas_threads() == before  # restored after the block
-    with one_blas_thread():
+    with single_thread_blas(scipy=False):
         assert _blas_threads() == [1] * len(before)
 
 
