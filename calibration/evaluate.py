@@ -9,8 +9,6 @@ wrong one (systematic residuals). Residuals are also mapped back to the screen p
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -18,13 +16,13 @@ import numpy as np
 from calibration.fit.correspondences import PointSet
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.models.base import CameraModel
+from calibration.threads import map_in_threads
 
 # A fit whose RMS exceeds the expected noise-floor RMS by more than this is flagged.
 ADEQUATE_RATIO = 1.5
 # Points beyond this many robust sigmas (and expected sigmas) count as decoding outliers.
 OUTLIER_SIGMAS = 5.0
 _CHUNK = 1 << 15  # points per chunk of the per-point terms (temporaries stay in cache)
-_MAX_THREADS = 4  # NumPy releases the GIL in its loops; more threads only contend
 
 
 def project_pose(model: CameraModel, rotation: np.ndarray, translation: np.ndarray,
@@ -69,9 +67,7 @@ def _chunked_terms(model: CameraModel, pose: PoseEstimate, points: PointSet
     if len(parts) <= 1:
         return _point_terms(model, pose, points)
     done = [_point_terms(model, pose, points.subset(parts[0]))]
-    threads = max(1, min(len(parts) - 1, len(os.sched_getaffinity(0)), _MAX_THREADS))
-    with ThreadPoolExecutor(threads) as pool:
-        done += pool.map(lambda sl: _point_terms(model, pose, points.subset(sl)), parts[1:])
+    done += map_in_threads(lambda sl: _point_terms(model, pose, points.subset(sl)), parts[1:])
     return tuple(np.concatenate(arrays) for arrays in zip(*done, strict=True))
 
 

@@ -10,18 +10,16 @@ theta_d(theta; k) = |(a, b)|, differentiated likewise in closed form.
 from __future__ import annotations
 
 import copy
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from calibration.models.parametric import FisheyeModel, PinholeFamily
+from calibration.threads import map_in_threads
 
 _NEWTON_ITERS = 30
 _NEWTON_TOL = 1e-13
 _CSTEP = 1e-30
 _CHUNK = 1 << 15  # pixels per chunk of `directions`
-_MAX_THREADS = 4  # NumPy releases the GIL in its loops; more threads only contend
 
 
 def _distort_complex(model: PinholeFamily, x: np.ndarray, y: np.ndarray,
@@ -173,13 +171,7 @@ def directions(model: PinholeFamily, pixels: np.ndarray, start: np.ndarray | Non
     for arr, part in zip(arrays, first, strict=True):
         if arr is not None:
             arr[parts[0]] = part
-    threads = max(1, min(len(parts) - 1, len(os.sched_getaffinity(0)), _MAX_THREADS))
-    if threads == 1:
-        for sl in parts[1:]:
-            one(sl)
-    else:
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(one, parts[1:]))
+    map_in_threads(one, parts[1:])
     dirs, jac, warm = arrays
     return dirs, jac, warm
 

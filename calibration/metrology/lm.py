@@ -12,9 +12,7 @@ scaled by the reduced chi-square.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,10 +25,10 @@ from calibration.metrology.directions import directions
 from calibration.metrology.screen import ScreenModel
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.parametric import PinholeFamily
+from calibration.threads import map_in_threads
 
 OUTLIER_SIGMAS = 5.0
 _CHUNK = 8192  # points per batch: the per-point temporaries stay in cache
-_MAX_THREADS = 4  # chunk threads: NumPy releases the GIL in its loops; more only contend
 _CHI_MEDIAN_2DOF = float(np.sqrt(2 * np.log(2)))  # median of |r| for a whitened 2D Gaussian
 
 
@@ -148,16 +146,11 @@ class _Problem:
         ni, ns, ntot = self.sizes
         tasks = [(j, slice(a, a + _CHUNK)) for j in range(len(self.poses))
                  for a in range(0, len(self.index[j]), _CHUNK)]
-        threads = max(1, min(len(tasks), len(os.sched_getaffinity(0)), _MAX_THREADS))
 
         def terms(task: tuple[int, slice]) -> tuple[np.ndarray, float, Any, Any]:
             return self._chunk_terms(*task, dirs, jdir, want_jac)
 
-        if threads == 1:
-            done = [terms(t) for t in tasks]
-        else:
-            with ThreadPoolExecutor(threads) as pool:
-                done = list(pool.map(terms, tasks))
+        done = map_in_threads(terms, tasks)
         hmat, grad = np.zeros((ntot, ntot)), np.zeros(ntot)
         parts: list[list[np.ndarray]] = [[] for _ in self.poses]
         cost = 0.0

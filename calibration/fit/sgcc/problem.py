@@ -4,7 +4,6 @@ normal equations accumulated per (pose, cell) group from monomial moments (see `
 from __future__ import annotations
 
 import itertools
-import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -27,12 +26,12 @@ from calibration.models.bspline import (
     monomials,
     radix_keys,
 )
+from calibration.threads import thread_count
 
 # IRLS weights (n,) of a block's residuals e (2,n) mm, ok mask (n,) and inverse sigmas (2,n)
 Weights = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 _JP_DENSE = [0, 1, 2, 5]  # pose-Jacobian columns that are not constant 0/1
 _CHUNK = 1 << 13  # pixels per vectorized block: temporaries stay in cache, few Python calls
-_MAX_THREADS = 4  # chunk threads: NumPy releases the GIL in its loops; more only contend
 
 
 @dataclass(frozen=True)
@@ -111,18 +110,13 @@ def _relative(groups: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
     return [(a - a0, b - a0, c) for a, b, c in groups]
 
 
-def _thread_count(n_chunks: int) -> int:
-    """Threads for the chunk loops: the CPUs this process may use, at most one per chunk."""
-    return max(1, min(n_chunks, len(os.sched_getaffinity(0)), _MAX_THREADS))
-
-
 def _over_chunks(chunks: list[_Chunk], work: Callable[[Sequence[_Chunk]], object]) -> list:
     """`work` on the chunks dealt round-robin to one share per thread; the shares' results.
 
     The chunk loops are NumPy vector operations that release the GIL, so threads use
     every core (the fit's dominant cost on multi-million-point problems).
     """
-    n = _thread_count(len(chunks))
+    n = thread_count(len(chunks))
     shares = [chunks[k::n] for k in range(n)]
     if n == 1:
         return [work(shares[0])]

@@ -8,18 +8,16 @@ blocks shared by all poses (threads over blocks), and each pose gathers its pixe
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
 from calibration.fit.observations import PoseObs
 from calibration.models.sgcc import SGCCBase, expmap_jacobian_rows
+from calibration.threads import map_in_threads
 
 _BLOCK = 1 << 15  # union pixels per block: small temporaries
-_MAX_THREADS = 4  # NumPy releases the GIL in its loops; more only contend
 
 
 def _frame(model: SGCCBase, pixels: np.ndarray) -> np.ndarray:
@@ -154,6 +152,4 @@ def _shared_blocks(
                                            frame if same else frame[:, where[f[lo:hi]] - a])))
         return parts
 
-    threads = max(1, min(len(blocks), len(os.sched_getaffinity(0)), _MAX_THREADS))
-    with ThreadPoolExecutor(threads) as pool:
-        return [part for parts in pool.map(block, blocks) for part in parts]
+    return [part for parts in map_in_threads(block, blocks) for part in parts]
