@@ -7,9 +7,10 @@ and the pose being ready. The sample is generated here: levels 0..250 DN (means 
 steps), 30-44 residual degrees of freedom, a photon-transfer variance (read 0.6 DN, 4 e/DN),
 a display harmonic on 6 fringe sets (gamma without LUT) and a few model errors. Prints ms
 per call (best and median wall, CPU) for the product code with its compiled passes (numba
-loaded, as in a decoding process), for its NumPy path (a process without numba), and for
-the code before issue 15g (tests/calibration/decode/ptc_reference.py, when the tests are
-present), with the ratio to it and whether all three give the same line and harmonic.
+loaded and freed memory kept, as in a decode worker), for its NumPy path (a process
+without numba), and for the code before issue 15g (tests/calibration/decode/
+ptc_reference.py, when the tests are present), with the ratio to it and whether all three
+give the same line and harmonic.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration.decode import noise, ptc_select
+from calibration.decode.heap import retain_freed_memory
 from calibration.decode.noise import residual_line
 
 
@@ -68,6 +70,7 @@ def main() -> None:
     from calibration.decode import ptc_kernels
 
     ptc_kernels.warm_up()  # numba loaded, its cached kernels in memory: a decoding process
+    retain_freed_memory()  # (as a decode worker: temporaries without fresh page faults)
     rows = [("product, compiled passes", residual_line)]
 
     def numpy_path(*a):

@@ -61,7 +61,8 @@ def fit_photon_transfer(
 class LevelBins:
     """`fit_photon_transfer`'s level bins: `usable` pixels, `good` their even subsample,
     `order` putting each bin's pixels together, `bins` the slices of >= 16 of them, `x`
-    their median levels, `count` their sizes, `m` the levels in `order`, `ordered` sorted."""
+    their median levels, `count` their sizes, `m` the levels in `order`, `ordered` sorted,
+    `edges` the bins' edges and `bounds` every bin's first position (and the end)."""
 
     usable: np.ndarray
     good: np.ndarray
@@ -71,6 +72,8 @@ class LevelBins:
     count: np.ndarray
     m: np.ndarray
     ordered: np.ndarray
+    edges: np.ndarray
+    bounds: np.ndarray
 
 
 def usable_pixels(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray) -> np.ndarray:
@@ -82,19 +85,30 @@ def usable_pixels(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray) -> np.ndar
 def level_bins(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, bins: int = 16,
                max_pixels: int = 1 << 19, previous: LevelBins | None = None) -> LevelBins | None:
     """`fit_photon_transfer`'s mean-level quantile bins; None when < 4 can have data (no
-    line). The residuals only choose the usable pixels: `previous` bins of the same levels
-    whose usable pixels include these (the display harmonic removed) give the sorted levels
-    without a new sort."""
+    line). The residuals only choose the usable pixels: from `previous` bins of the same
+    levels whose usable pixels include these (the display harmonic removed), the sorted
+    levels are theirs less the pixels dropped (no sort), and where the edges stay, so does
+    each pixel's bin (no grouping)."""
     usable = usable_pixels(mean, rss, dof)
     if usable.size < 64:
         return None
     if previous is not None and np.array_equal(previous.usable, usable):
         return previous
     good = usable[:: max(1, usable.size // max_pixels)]  # an even subsample bounds the work
-    m = mean[good]
-    ordered = _sorted_levels(m, mean, usable, good, previous)
+    kept = _kept(previous, mean.size, usable, good)
+    ordered = None if kept is None else sorted_without(
+        previous.ordered, mean[previous.good[~kept]])
+    if ordered is None:
+        kept, ordered = None, np.sort(mean[good])  # (the order statistics: SIMD sort)
     edges = np.unique(sorted_quantiles(ordered, np.linspace(0.0, 1.0, bins + 1)))
-    order, bounds, m = group_by_level(m, edges[1:-1])
+    if kept is not None and np.array_equal(edges[1:-1], previous.edges[1:-1]):
+        in_order = kept[previous.order]  # the same bins, less the pixels dropped
+        order = (np.cumsum(kept) - 1)[previous.order[in_order]]
+        bounds = np.concatenate([[0], np.cumsum(in_order)])[previous.bounds]
+        m = previous.m[in_order]
+    else:
+        order, bounds, m = group_by_level(mean[good], edges[1:-1], float(ordered[0]),
+                                          float(ordered[-1]))
     # a loop over 16 bins, not over pixels
     bins_ = [slice(int(lo), int(hi)) for lo, hi in itertools.pairwise(bounds) if hi - lo >= 16]
     if len(bins_) < 4:
@@ -102,24 +116,20 @@ def level_bins(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, bins: int = 1
     count = np.array([b.stop - b.start for b in bins_], dtype=np.float64)
     # each bin's levels are `ordered[b]`, sorted: np.median's own middle pair, its own mean
     x = np.array([float(np.mean(ordered[_middle(b)])) for b in bins_])
-    return LevelBins(usable, good, order, bins_, x, count, m, ordered)
+    return LevelBins(usable, good, order, bins_, x, count, m, ordered, edges, bounds)
 
 
-def _sorted_levels(m: np.ndarray, mean: np.ndarray, usable: np.ndarray, good: np.ndarray,
-                   previous: LevelBins | None) -> np.ndarray:
-    """`np.sort(m)` (the levels `mean[good]`): from `previous` bins' sorted levels less the
-    pixels no longer usable, where both took every usable pixel and these are a subset (no
-    sort: ~5 ms)."""
-    if previous is not None and good.size == usable.size and \
-            previous.good.size == previous.usable.size:
-        still = np.zeros(mean.size, dtype=bool)
-        still[usable] = True
-        kept = still[previous.usable]
-        if np.count_nonzero(kept) == usable.size:  # a subset
-            ordered = sorted_without(previous.ordered, mean[previous.usable[~kept]])
-            if ordered is not None:
-                return ordered
-    return np.sort(m)  # (the same order statistics from sorted levels: SIMD sort)
+def _kept(previous: LevelBins | None, size: int, usable: np.ndarray,
+          good: np.ndarray) -> np.ndarray | None:
+    """Which of `previous` bins' pixels are still `usable`, where both took every usable
+    pixel and these are a subset of theirs; else None."""
+    if previous is None or good.size != usable.size or \
+            previous.good.size != previous.usable.size:
+        return None
+    still = np.zeros(size, dtype=bool)
+    still[usable] = True
+    kept = still[previous.usable]
+    return kept if np.count_nonzero(kept) == usable.size else None
 
 
 def _middle(b: slice) -> slice:

@@ -14,31 +14,21 @@ import numpy as np
 from numba import njit
 
 _kernel = njit(cache=True, error_model="numpy", nogil=True)
+_BUCKETS = 4096  # level buckets of group_by_level's bin table
 _SAMPLE = 512  # levels sampled per bin to bracket its middle pair
 _MARGIN = 32  # sample ranks either side of the middle (~3 standard errors of its rank)
 
 
 @_kernel
-def group_by_level(m, inner):
+def group_by_level(m, inner, lo, hi):
     """NumPy's `argsort(which, kind="stable")` of each level's bin `which` (the number of
     `inner` edges at or below it, compared in float64), the first position of each bin and
-    the levels in that order: a branch-free binary search, one count and one scatter."""
+    the levels in that order: the bins (`_bins`), one count and one scatter."""
     n, nb = m.size, inner.size + 1
-    width = 1
-    while width <= inner.size:
-        width *= 2
-    edges = np.full(width - 1, np.inf)
-    edges[:inner.size] = inner
-    which = np.empty(n, np.int32)
+    which = _bins(m, inner, lo, hi)
     bounds = np.zeros(nb + 1, np.int64)
     for i in range(n):
-        v, w, step = np.float64(m[i]), 0, width // 2
-        while step > 0:
-            w += step * (edges[w + step - 1] <= v)
-            step //= 2
-        w = min(w, inner.size)
-        which[i] = w
-        bounds[w + 1] += 1
+        bounds[which[i] + 1] += 1
     for b in range(nb):
         bounds[b + 1] += bounds[b]
     at = bounds[:nb].copy()
@@ -48,6 +38,40 @@ def group_by_level(m, inner):
         order[p], ordered[p] = i, m[i]
         at[which[i]] = p + 1
     return order, bounds, ordered
+
+
+@_kernel
+def _bins(m, inner, lo, hi):
+    """Each level's bin from a table over `_BUCKETS` even buckets of [lo, hi]: the bucket
+    `floor((v - lo) * scale)` never decreases with v, so a bucket's levels are all at or
+    above the edges of lower buckets and below those of higher ones; only the edges in
+    their own bucket need comparing."""
+    scale = _BUCKETS / (hi - lo) if hi > lo else 0.0
+    below = np.zeros(_BUCKETS + 1, np.int32)  # edges in lower buckets
+    start, stop = np.zeros(_BUCKETS + 1, np.int32), np.zeros(_BUCKETS + 1, np.int32)
+    for e in range(inner.size):  # (ascending)
+        x = (inner[e] - lo) * scale
+        if not x <= _BUCKETS:
+            continue  # (above every bucket)
+        first = int(np.floor(x)) if x >= 0 else -1
+        if first >= 0:
+            start[first] = e if stop[first] == 0 else start[first]
+            stop[first] = e + 1
+        for b in range(first + 1, _BUCKETS + 1):
+            below[b] += 1
+    which = np.empty(m.size, np.int32)
+    for i in range(m.size):
+        v = np.float64(m[i])
+        x = (v - lo) * scale
+        if x >= 0 and x <= _BUCKETS:
+            b = int(x)
+            w, e0, e1 = below[b], start[b], stop[b]
+        else:
+            w, e0, e1 = 0, 0, inner.size
+        for e in range(e0, e1):
+            w += v >= inner[e]
+        which[i] = w
+    return which
 
 
 @_kernel
@@ -186,7 +210,7 @@ def warm_up() -> None:
     n = 64
     level = np.linspace(0.0, 200.0, n).astype(np.float32)
     ones = np.ones(n, np.float32)
-    order, _, _ = group_by_level(level, np.array([50.0, 100.0]))
+    order, _, _ = group_by_level(level, np.array([50.0, 100.0]), 0.0, 200.0)
     middle_pairs(np.linspace(1.0, 2.0, n), np.array([0, 32]), np.array([32, 64]))
     table = np.ones(2)
     table.flags.writeable = False  # (as ptc_select's cached table)

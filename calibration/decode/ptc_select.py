@@ -71,12 +71,14 @@ def sorted_without(ordered: np.ndarray, removed: np.ndarray) -> np.ndarray | Non
     return np.delete(ordered, first + nth)
 
 
-def group_by_level(m: np.ndarray, inner: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Levels `m` grouped by bin (inner edges `inner`, a level at an edge above it): the stable
-    order, each bin's first position (and the end), the levels in that order."""
+def group_by_level(m: np.ndarray, inner: np.ndarray, lo: float,
+                   hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levels `m` (from `lo` to `hi`) grouped by bin (inner edges `inner`, a level at an edge
+    above it): the stable order, each bin's first position (and the end), the levels in that
+    order."""
     kernels = compiled()
     if kernels is not None:
-        return kernels.group_by_level(m, inner)
+        return kernels.group_by_level(m, inner, lo, hi)
     # each level's bin, as clip(searchsorted(edges, m, "right") - 1, 0, len(edges) - 2): the
     # inner edges at or below it (a few vectorized passes instead of a branchy search)
     which = np.zeros(m.shape, dtype=np.int16)

@@ -39,7 +39,7 @@ def level_bins(mean, rss, dof, bins=16, max_pixels=1 << 19):
         return None
     count = np.array([b.stop - b.start for b in bins_], dtype=np.float64)
     x = np.array([float(np.mean(ordered[_middle(b)])) for b in bins_])
-    return LevelBins(usable, good, order, bins_, x, count, m, ordered)
+    return LevelBins(usable, good, order, bins_, x, count, m, ordered, edges, bounds)
 
 
 def _middle(b):

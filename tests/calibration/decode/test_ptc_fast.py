@@ -167,7 +167,7 @@ def test_bin_ratios_and_group_by_level_are_numpys(path):
     m = level[good]
     inner = np.unique(np.quantile(m, np.linspace(0, 1, 17)))[1:-1]
     which = np.clip(np.searchsorted(np.r_[-np.inf, inner], m, side="right") - 1, 0, None)
-    got_order, bounds, ordered = ptc_select.group_by_level(m, inner)
+    got_order, bounds, ordered = ptc_select.group_by_level(m, inner, m.min(), m.max())
     assert np.array_equal(got_order, np.argsort(which, kind="stable"))
     assert np.array_equal(bounds, np.searchsorted(np.sort(which), np.arange(inner.size + 2)))
     assert np.array_equal(ordered, m[got_order])
@@ -186,3 +186,23 @@ def test_harmonic_leak_matches_the_plain_code(path):
         got = harmonic_leak(rss, dof, level, power, line)
         want = ref.harmonic_leak(rss, dof, level, power, line)
         assert (got is None and want is None) or np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("levels", ["tied", "continuous"])
+def test_bins_after_the_harmonic_match_a_fresh_start(path, levels):
+    """Bins rebuilt from the previous ones (fewer usable pixels): the same edges keep each
+    pixel's bin (tied levels), other edges regroup; both as a fresh start would."""
+    rng = np.random.default_rng(8)
+    n = 50000
+    level = (rng.integers(10, 30, n) * 0.5 if levels == "tied" else rng.uniform(0, 250, n))
+    level, rss, dof = (a.astype(np.float32) for a in (level, rng.uniform(0.1, 9, n),
+                                                      rng.choice([6.0, 14.0], n)))
+    first = level_bins(level, rss, dof)
+    less = np.where(rng.random(n) < 0.003, 0, rss).astype(np.float32)
+    got, want = level_bins(level, less, dof, previous=first), ref.level_bins(level, less, dof)
+    assert np.array_equal(got.edges[1:-1], first.edges[1:-1]) == (levels == "tied")
+    for name in ("usable", "good", "order", "x", "count", "m", "ordered", "edges", "bounds"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    assert got.bins == want.bins
+    assert binned_line(got, less, dof, 1 / 12, None) == ref.binned_line(want, less, dof,
+                                                                        1 / 12, None)
