@@ -173,13 +173,15 @@ def harmonic_leak(rss: np.ndarray, dof: np.ndarray, level: np.ndarray, power: np
     without an even-N set, or when the harmonic is under 1 % of the residual variance
     (gamma 2.2's harmonic 4 in an 8-step plan: ~0.1 %).
     """
-    if first is None or not power.any() or rss.size < 1000:
+    step = max(1, rss.size // max_rows)
+    # (power 0 at every row the fit sees: r^2 0, None)
+    if first is None or rss.size < 1000 or not power[:, ::step].any():
         return None
-    design, rhs, dv, kept_power, used = _leak_rows(rss, dof, level, power,
-                                                   max(1, rss.size // max_rows), first)
+    design, rhs, dv, kept_power, used = _leak_rows(rss, dof, level, power, step, first)
     used = np.flatnonzero(used)  # sets with even steps and pixels
     coef = np.zeros(design.shape[1])
-    coef[used] = np.linalg.lstsq(design[:, used], rhs, rcond=None)[0]
+    every = used.size == design.shape[1]  # (no copy: lstsq copies it anyway)
+    coef[used] = np.linalg.lstsq(design if every else design[:, used], rhs, rcond=None)[0]
     scatter = np.sum((design @ coef - rhs) ** 2) / max(design.shape[0] - used.size, 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         err = np.sqrt(scatter / np.einsum("ij,ij->j", design, design))  # uncorrelated approx

@@ -151,9 +151,8 @@ def binned_line(binned: LevelBins | None, rss: np.ndarray, dof: np.ndarray, floo
         # Second pass: each ratio over the first line at its own level, so a bin whose levels
         # (hence variances) span a factor of several still gives the line at its median level
         # (the plain median of such a mixture sat 6 % low in the darkest bin).
-        rel = ratio if line is None else ratio / line.variance(m)
         at = np.ones(x.shape) if line is None else line.variance(x)
-        y = bin_medians(rel, bins_) * at
+        y = bin_medians(ratio, bins_, line, m) * at
         ok = y > 0  # mostly constant readings (a black level under the noise) say nothing
         if ok.sum() < 4:  # about the line, and 1/y weights would be infinite
             return line

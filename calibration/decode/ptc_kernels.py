@@ -116,26 +116,40 @@ def _pair(x, n, k1):
 
 
 @_kernel
-def middle_pairs(values, starts, stops):
-    """Per bin `values[starts[j]:stops[j]]`, the elements of rank `(n - 1) // 2` and `n // 2`
-    (np.median's middle pair); NaN where the bin holds a NaN. A strided sample brackets the
-    middle; one branch-free pass counts the values below the bracket and keeps those in it,
-    and a quickselect of those finds the pair (the whole bin where the bracket missed)."""
+def _relative(values, i, m, line):
+    """`values[i]`, over the `line` (offset, slope, floor in `m`'s type, as NumPy's weak
+    scalars) at level `m[i]` where `line` is given: `ratio / LinearVariance.variance(m)`."""
+    if line.size == 0:
+        return values[i]
+    var = line[0] + line[1] * m[i]
+    return values[i] / np.float64(var if (var >= line[2] or var != var) else line[2])
+
+
+@_kernel
+def middle_pairs(values, starts, stops, m, line):
+    """Per bin `values[starts[j]:stops[j]]` (each over the `line` at its level `m` where
+    `line` is not empty), the elements of rank `(n - 1) // 2` and `n // 2` (np.median's
+    middle pair); NaN where the bin holds a NaN. A strided sample brackets the middle; one
+    branch-free pass counts the values below the bracket and keeps those in it, and a
+    quickselect of those finds the pair (the whole bin where the bracket missed)."""
     nb = starts.size
-    lo, hi = np.empty(nb, values.dtype), np.empty(nb, values.dtype)
-    buf = np.empty(np.max(stops - starts) + 1, values.dtype)
+    lo, hi = np.empty(nb), np.empty(nb)
+    buf = np.empty(np.max(stops - starts) + 1)
+    sample = np.empty(_SAMPLE)
     for j in range(nb):
         a, n = starts[j], stops[j] - starts[j]
         k1, odd = (n - 1) // 2, n % 2 == 1
         below, kept, nan = 0, 0, False
         if n > 8 * _SAMPLE:
             stride = n // _SAMPLE
-            sample = np.sort(values[a:a + stride * _SAMPLE:stride])
+            for t in range(_SAMPLE):
+                sample[t] = _relative(values, a + t * stride, m, line)
+            sample.sort()
             at = (k1 * _SAMPLE) // n
             low = sample[max(at - _MARGIN, 0)]
             high = sample[min(at + _MARGIN, _SAMPLE - 1)]
             for i in range(a, a + n):
-                v = values[i]
+                v = _relative(values, i, m, line)
                 below += v < low
                 buf[kept] = v
                 kept += (v >= low) & (v <= high)
@@ -144,7 +158,7 @@ def middle_pairs(values, starts, stops):
                 below, kept = 0, 0
         if kept == 0:
             for i in range(n):
-                buf[i] = values[a + i]
+                buf[i] = _relative(values, a + i, m, line)
                 nan |= buf[i] != buf[i]
             kept = n
         if nan:
@@ -211,7 +225,9 @@ def warm_up() -> None:
     level = np.linspace(0.0, 200.0, n).astype(np.float32)
     ones = np.ones(n, np.float32)
     order, _, _ = group_by_level(level, np.array([50.0, 100.0]), 0.0, 200.0)
-    middle_pairs(np.linspace(1.0, 2.0, n), np.array([0, 32]), np.array([32, 64]))
+    ratio = np.linspace(1.0, 2.0, n)
+    for m, line in ((ratio, np.zeros(0)), (level, np.ones(3, np.float32))):  # passes 1, 2
+        middle_pairs(ratio, np.array([0, 32]), np.array([32, 64]), m, line)
     table = np.ones(2)
     table.flags.writeable = False  # (as ptc_select's cached table)
     binned_ratios(ones, ones, np.arange(n), order, table)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import sys
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 from scipy.special import gammaincinv
@@ -99,14 +100,22 @@ def bin_ratios(rss: np.ndarray, dof: np.ndarray, good: np.ndarray, order: np.nda
     return variance_ratio(rss[good], np.rint(dof[good]).astype(np.int64))[order]
 
 
-def bin_medians(values: np.ndarray, bins: list[slice]) -> np.ndarray:
-    """`np.median(values[b])` for each bin `b`, as float64: np.median's middle element (odd
-    size) or the mean of its middle pair (even), NaN for a bin holding a NaN."""
+def bin_medians(values: np.ndarray, bins: list[slice], line: Any = None,
+                m: np.ndarray | None = None) -> np.ndarray:
+    """`np.median(values[b])` for each bin `b` (of `values / line.variance(m)` where a
+    LinearVariance `line` is given), as float64: np.median's middle element (odd size) or
+    the mean of its middle pair (even), NaN for a bin holding a NaN."""
     kernels = compiled()
-    if kernels is None:
+    if line is not None and (kernels is None or not line.floor > 0):
+        values, line = values / line.variance(m), None  # (NumPy's maximum: zeros' signs)
+    if kernels is None or values.dtype != np.float64:
         return np.array([float(np.median(values[b])) for b in bins])
     starts = np.array([b.start for b in bins], dtype=np.int64)
     stops = np.array([b.stop for b in bins], dtype=np.int64)
-    lo, hi = kernels.middle_pairs(values, starts, stops)
-    # np.mean of the pair: their sum in the array's type, halved
-    return np.where((stops - starts) % 2 == 1, lo, (lo + hi) / 2).astype(np.float64)
+    if line is None:
+        m, params = values, np.zeros(0, values.dtype)
+    else:
+        params = np.array([line.offset, line.slope, line.floor], dtype=m.dtype)
+    lo, hi = kernels.middle_pairs(values, starts, stops, m, params)
+    # np.mean of the pair: their sum, halved
+    return np.where((stops - starts) % 2 == 1, lo, (lo + hi) / 2)

@@ -156,6 +156,13 @@ def test_bin_medians_are_numpys(path):
         got = ptc_select.bin_medians(values, bins)
         want = np.array([float(np.median(values[b])) for b in bins])
         assert np.array_equal(got, want, equal_nan=True)
+        m = rng.uniform(0, 250, n).astype(np.float32)  # over a line at each level
+        for line in (LinearVariance(0.3, 0.02, 1 / 12), LinearVariance(-1.0, 0.01, 0.0)):
+            with np.errstate(divide="ignore", invalid="ignore"):  # (a line at 0: inf, NaN)
+                got = ptc_select.bin_medians(values, bins, line, m)
+                rel = values / line.variance(m)
+            want = np.array([float(np.median(rel[b])) for b in bins])
+            assert np.array_equal(got, want, equal_nan=True)
 
 
 def test_bin_ratios_and_group_by_level_are_numpys(path):
@@ -181,6 +188,9 @@ def test_harmonic_leak_matches_the_plain_code(path):
         got = harmonic_leak(rss, dof, level, power, first, max_rows=rows)
         assert got is not None
         assert np.array_equal(got, ref.harmonic_leak(rss, dof, level, power, first, rows))
+    sparse = np.where(np.arange(power.shape[1]) % 10 == 3, power, 0).astype(np.float32)
+    assert harmonic_leak(rss, dof, level, sparse, first, 5000) is None  # (rows seen: no power)
+    assert ref.harmonic_leak(rss, dof, level, sparse, first, 5000) is None
     power[2, 100] = np.nan  # a NaN column is not used
     for line in (first, LinearVariance(-0.5, 0.0, 0.0), LinearVariance(1e6, 0.0, 1.0)):
         got = harmonic_leak(rss, dof, level, power, line)
