@@ -286,3 +286,28 @@ def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path
         stream_decode_task(CancelledOnceLaidOut("job_2"), str(tmp_path / "plan.json"),
                            str(pose), str(staged / "maps.npz"))
     assert list(staged.iterdir()) == []
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_live_decode_task_takes_the_kernels_below_a_megapixel_only_when_asked(
+        plan, stack, compiled, tmp_path, monkeypatch):
+    """The service's long-lived workers ask for the compiled kernels at every image size
+    (`compiled`); a one-off process (the CLI's capture) keeps the array path below 1 Mpixel.
+    Either way the maps equal an in-memory decode that takes the same path."""
+    ranges = []
+    finish_range = decoder_module.finish_range
+    monkeypatch.setattr(decoder_module, "finish_range",
+                        lambda *a: ranges.append(1) or finish_range(*a))
+    write_plan(plan, tmp_path / "plan.json")
+    store = FrameStore(tmp_path / "pose", len(plan.frames))
+    for i in range(len(plan.frames)):
+        store.add(i, stack[i])
+    store.close()
+    stream_decode_task(TaskContext("job_1"), str(tmp_path / "plan.json"), str(tmp_path / "pose"),
+                       str(tmp_path / "maps.npz"), meta=dict(META), compiled=compiled)
+    assert bool(ranges) == compiled and H * W < decoder_module._COMPILED_MIN_PIXELS
+    ref = StreamingDecoder(plan, (H, W), compiled=compiled)
+    ref.prepare()
+    ref.add_frames(list(range(stack.shape[0])), stack)
+    save_maps(ref.finish(dict(META)), tmp_path / "ref.npz")
+    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
