@@ -44,32 +44,32 @@ def group_by_level(m, inner, lo, hi):
 def _bins(m, inner, lo, hi):
     """Each level's bin from a table over `_BUCKETS` even buckets of [lo, hi]: the bucket
     `floor((v - lo) * scale)` never decreases with v, so a bucket's levels are all at or
-    above the edges of lower buckets and below those of higher ones; only the edges in
-    their own bucket need comparing."""
+    above the edges of lower buckets and below those of higher ones; the one edge inside
+    its own bucket, if any, is compared branch-free (several: each counted)."""
     scale = _BUCKETS / (hi - lo) if hi > lo else 0.0
     below = np.zeros(_BUCKETS + 1, np.int32)  # edges in lower buckets
-    start, stop = np.zeros(_BUCKETS + 1, np.int32), np.zeros(_BUCKETS + 1, np.int32)
+    inside = np.full(_BUCKETS + 1, np.inf)  # the edge in the bucket
+    several = np.zeros(_BUCKETS + 1, np.bool_)
     for e in range(inner.size):  # (ascending)
         x = (inner[e] - lo) * scale
         if not x <= _BUCKETS:
             continue  # (above every bucket)
         first = int(np.floor(x)) if x >= 0 else -1
         if first >= 0:
-            start[first] = e if stop[first] == 0 else start[first]
-            stop[first] = e + 1
+            several[first] = inside[first] != np.inf
+            inside[first] = inner[e]
         for b in range(first + 1, _BUCKETS + 1):
             below[b] += 1
     which = np.empty(m.size, np.int32)
     for i in range(m.size):
         v = np.float64(m[i])
         x = (v - lo) * scale
-        if x >= 0 and x <= _BUCKETS:
-            b = int(x)
-            w, e0, e1 = below[b], start[b], stop[b]
-        else:
-            w, e0, e1 = 0, 0, inner.size
-        for e in range(e0, e1):
-            w += v >= inner[e]
+        b = min(max(int(x), 0), _BUCKETS) if x == x else 0
+        w = below[b] + (v >= inside[b])
+        if several[b] or not (x >= 0 and x <= _BUCKETS):  # (rare: count every edge)
+            w = 0
+            for e in range(inner.size):
+                w += v >= inner[e]
         which[i] = w
     return which
 

@@ -216,3 +216,20 @@ def test_bins_after_the_harmonic_match_a_fresh_start(path, levels):
     assert got.bins == want.bins
     assert binned_line(got, less, dof, 1 / 12, None) == ref.binned_line(want, less, dof,
                                                                         1 / 12, None)
+
+
+def test_group_by_level_with_close_edges_and_levels_outside(path):
+    """Several edges in one table bucket, levels outside the given range, NaN, inf: each
+    level still counts exactly the edges at or below it."""
+    rng = np.random.default_rng(12)
+    m = np.round(rng.uniform(0, 100, 20000), 1).astype(np.float32)
+    m[:4] = [np.nan, np.inf, -5.0, 1e30]
+    inner = np.array([-1.0, 10.0, 10.0 + 1e-9, 10.05, 10.1, 50.0, 50.0 + 1e-12, 99.9, 200.0])
+    which = np.zeros(m.shape, np.int16)
+    for edge in inner:
+        which += m >= edge
+    for lo, hi in ((0.0, 100.0), (20.0, 60.0), (7.0, 7.0)):
+        order, bounds, ordered = ptc_select.group_by_level(m, inner, lo, hi)
+        assert np.array_equal(order, np.argsort(which, kind="stable"))
+        assert np.array_equal(bounds, np.searchsorted(np.sort(which), np.arange(inner.size + 2)))
+        assert np.array_equal(ordered, m[order], equal_nan=True)
