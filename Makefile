@@ -16,7 +16,11 @@ $(STAMP): pyproject.toml constraints.txt scripts/install-system-deps.sh
 	$(PY) -m pip install -q -c constraints.txt -e '.[all,dev]'
 	touch $(STAMP)
 
+# The decoder's numba kernels, compiled into their cache once per checkout (~2 CPU min; a
+# second or so when cached, recompiled when a kernel's source changed): neither the first live
+# capture of `phasecal serve` nor the tests' servers compile them while a pose waits.
 setup: $(STAMP)
+	$(PY) -m calibration.decode.kernel_warm
 
 demo: setup
 	$(VENV)/bin/phasecal demo

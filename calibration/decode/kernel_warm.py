@@ -47,3 +47,7 @@ def warm_up() -> None:
                                np.zeros(n, np.bool_), np.zeros((1, n), np.float32),
                                np.zeros(n, np.bool_), flats[0], flats[1], np.ones(5),
                                np.zeros(1), tables)
+
+
+if __name__ == "__main__":  # `make setup`: compile once per checkout, not in the first capture
+    warm_up()
