@@ -38,7 +38,7 @@ from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
 
 DIRTY = 255  # reason code of pixels this kernel leaves to the array path
 
-BLOCK = 256  # pixels per block: the per-set scratch rows stay in L1
+BLOCK = 128  # pixels per block: the per-set scratch rows stay in L1
 
 
 # no fastmath: NaN and infinity tests matter here
