@@ -162,14 +162,17 @@ def same_maps(old: tuple, new: tuple) -> bool:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--against", default="main", help="git revision of the base kernel")
+    ap.add_argument("--new", help="git revision of the new kernel (default: the worktree)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--configs", default="clean,partly", help="clean, partly, border")
     ap.add_argument("--frames", help="a (F, H, W) uint8 .npy pose instead (with --plan)")
     ap.add_argument("--plan")
     args = ap.parse_args()
     base, sha = base_kernel(args.against)
-    kernels = [base, kernel_sums.finish_sums]
-    print(f"finish_sums A/B: base {args.against} (kernel files {sha}) vs worktree; "
+    new = base_kernel(args.new)[0] if args.new else kernel_sums.finish_sums
+    kernels = [base, new]
+    print(f"finish_sums A/B: base {args.against} (kernel files {sha}) vs "
+          f"{args.new or 'worktree'}; "
           f"{'file ' + args.frames if args.frames else f'{W}x{H} generated'}; "
           f"load {os.getloadavg()[0]:.2f}; best of {args.repeats}, one thread")
     print(f"{'pose':>8} {'noise':>9} {'ranges':>6} {'Mpix':>5} {'base ns/px':>10} "
