@@ -7,14 +7,15 @@ import io
 import numpy as np
 from matplotlib.colors import ListedColormap, LogNorm, Normalize
 
+from calibration.figures import one_at_a_time, subplots
 from calibration.maps import DecodedMaps
-from calibration.report_plots import subplots
 
 PREVIEW_KINDS = ("x", "y", "sigma", "mask")
 _LABELS = {"x": "decoded screen x (screen px)", "y": "decoded screen y (screen px)",
            "sigma": "decoded 1-sigma |(sx, sy)| (screen px, log scale)"}
 
 
+@one_at_a_time
 def preview_png(maps: DecodedMaps, kind: str) -> bytes:
     """Colour-mapped PNG of one map with its colour bar; invalid pixels are grey."""
     if kind not in PREVIEW_KINDS:

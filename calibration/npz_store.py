@@ -12,13 +12,13 @@ import struct
 import threading
 import time
 import zipfile
-import zlib
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from isal.isal_zlib import crc32
 
 from calibration.atomic import atomic_path, fsync_path
 
@@ -106,8 +106,9 @@ def local_header(m: NpyMember) -> bytes:
 
 
 def member_crc(m: NpyMember, data: memoryview | np.ndarray) -> int:
-    """CRC-32 of the member: .npy header, then `data` (zlib releases the GIL for it)."""
-    return zlib.crc32(data, zlib.crc32(m.npy_header))
+    """CRC-32 of the member: .npy header, then `data` (ISA-L's: zlib's CRC-32, ~10x faster
+    with carry-less multiplies; it releases the GIL for large buffers)."""
+    return crc32(data, crc32(m.npy_header))
 
 
 def central_directory(members: list[NpyMember], start: int) -> bytes:

@@ -8,12 +8,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
+from calibration.figures import one_at_a_time, subplots
 from calibration.fit.result import CalibrationResult
 from calibration.models.parametric import PinholeFamily
 
@@ -35,6 +32,7 @@ def _binned_rms(pix: np.ndarray, mag: np.ndarray, w: int, h: int) -> np.ndarray:
         return np.sqrt(total / count).reshape(ny, nx)  # 0/0 -> NaN: drawn blank
 
 
+@one_at_a_time
 def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     """Save a 3-panel PNG of all training-pose residuals (camera px)."""
     if not result.residuals:
@@ -50,7 +48,7 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     mag = np.linalg.norm(res, axis=1)
     w, h = result.model.image_size
     stats = result.stats
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.8))
+    fig, axes = subplots(3, (16, 4.8))
     step = max(1, pix.shape[0] // _QUIVER_POINTS)
     ax = axes[0]
     ax.quiver(pix[::step, 0], pix[::step, 1], res[::step, 0], -res[::step, 1], mag[::step],
@@ -89,4 +87,3 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
                  f"ratio {stats.get('noise_floor_ratio', float('nan')):.3g} -> {flag}")
     fig.tight_layout()
     fig.savefig(str(path), dpi=90)
-    plt.close(fig)

@@ -7,12 +7,12 @@ the expected distribution on histograms, each point's expected noise on the radi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
+from calibration.figures import one_at_a_time, subplots
 from calibration.report import _binned_rms
 from calibration.report_data import PoseView, ReportData, whitened
 
@@ -38,18 +38,12 @@ def _log_norm(finite: np.ndarray) -> LogNorm:
     return LogNorm(lo, max(hi, lo * 1.01))
 
 
-def subplots(ncols: int, figsize: tuple[float, float]) -> tuple[Figure, Any]:
-    """A figure not registered with pyplot (safe to draw in several threads at once)."""
-    fig = Figure(figsize=figsize)
-    axes = fig.subplots(1, ncols)
-    return fig, axes
-
-
 def _save(fig: Figure, path: Path) -> None:
     fig.tight_layout(rect=(0, 0, 1, 0.94) if fig.get_suptitle() else (0, 0, 1, 1))
     fig.savefig(str(path), dpi=_DPI, bbox_inches="tight")
 
 
+@one_at_a_time
 def pose_png(view: PoseView, image_size: tuple[int, int], path: Path) -> None:
     """Residual vectors (with a reference arrow) and binned magnitude map of one pose."""
     w, h = image_size
@@ -83,6 +77,7 @@ def pose_png(view: PoseView, image_size: tuple[int, int], path: Path) -> None:
     _save(fig, path)
 
 
+@one_at_a_time
 def histogram_png(views: list[PoseView], path: Path) -> None:
     """Whitened residual components against N(0,1), and |residual| against its expectation."""
     train = [v for v in views if not v.heldout]
@@ -116,6 +111,7 @@ def histogram_png(views: list[PoseView], path: Path) -> None:
     _save(fig, path)
 
 
+@one_at_a_time
 def radial_png(data: ReportData, path: Path) -> None:
     """RMS residual against radius, with the RMS of each point's own expected noise."""
     w, h = data.model.image_size
@@ -144,6 +140,7 @@ def radial_png(data: ReportData, path: Path) -> None:
     _save(fig, path)
 
 
+@one_at_a_time
 def uncertainty_png(data: ReportData, path: Path) -> None:
     """Per-pixel 1-sigma ray direction uncertainty over the sensor, in microradians."""
     w, h = data.model.image_size
@@ -166,6 +163,7 @@ def uncertainty_png(data: ReportData, path: Path) -> None:
     _save(fig, path)
 
 
+@one_at_a_time
 def coverage_png(data: ReportData, path: Path) -> None:
     """Valid points per cell (sGCC: its spline cells; else a 16x12 grid), and poses per pixel."""
     w, h = data.model.image_size
@@ -194,6 +192,7 @@ def coverage_png(data: ReportData, path: Path) -> None:
     _save(fig, path)
 
 
+@one_at_a_time
 def diff_png(pixels: np.ndarray, angle_rad: np.ndarray, image_size: tuple[int, int],
              step: float, title: str, path: Path) -> None:
     """Angle between two models' rays after the best aligning rotation, in microradians."""
@@ -212,6 +211,7 @@ def diff_png(pixels: np.ndarray, angle_rad: np.ndarray, image_size: tuple[int, i
     _save(fig, path)
 
 
+@one_at_a_time
 def guidance_png(before: np.ndarray, after: np.ndarray, outline: np.ndarray,
                  image_size: tuple[int, int], title: str, path: Path) -> None:
     """Predicted ray-sigma maps now and after the suggested pose, with its screen outline."""
@@ -233,6 +233,7 @@ def guidance_png(before: np.ndarray, after: np.ndarray, outline: np.ndarray,
     _save(fig, path)
 
 
+@one_at_a_time
 def count_png(counts: np.ndarray, title: str) -> bytes:
     """PNG bytes of a per-pixel count image (poses seeing each pixel) with an integer key."""
     import io

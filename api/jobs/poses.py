@@ -110,7 +110,7 @@ class CaptureJob(PoseJob):
                 fut = svc.executor.run_task(
                     stream_decode_task, str(plan_path), str(pose_dir), str(staged / "maps.npz"),
                     job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta,
-                    durable=False)
+                    durable=False, compiled=True)  # (long-lived workers: kernels at any size)
                 # another worker loads the compiled decoder and, once, this camera's sums
                 # now, not while a later pose's frames arrive
                 info = handle.rig.camera.info

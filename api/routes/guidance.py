@@ -22,7 +22,14 @@ router = APIRouter(tags=["guidance"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
 Model = Annotated[str, Query(description="parametric model the prediction uses",
                              pattern="^(opencv5|opencv-rational|fisheye)$")]
-_lock = threading.Lock()
+_locks: dict[str, threading.Lock] = {}  # one per cached plan: a plan is computed once, while
+_locks_guard = threading.Lock()  # other sessions' (and models') plans go on at the same time
+
+
+def _plan_lock(final: Path) -> threading.Lock:
+    """The lock of one cached plan's folder."""
+    with _locks_guard:
+        return _locks.setdefault(str(final), threading.Lock())
 
 
 def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, list[str]]:
@@ -40,7 +47,7 @@ def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, lis
                       f"poses to fit a model (has {len(ids)}); capture varied, tilted poses first")
     key = hashlib.sha1(json.dumps([model, *ids]).encode()).hexdigest()[:16]
     final = svc.store.dir_for(session_id) / "guidance" / key
-    with _lock:
+    with _plan_lock(final):
         if (final / "next-pose.json").is_file():
             return final, ids
         tmp = svc.store.temp_dir()

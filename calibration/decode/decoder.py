@@ -45,7 +45,7 @@ from calibration.decode.noise import (
 )
 from calibration.decode.options import DecodeOptions
 from calibration.decode.phase import SetFit, fit_set
-from calibration.decode.validity import REASONS, mark_screen_edges
+from calibration.decode.validity import hide_invalid, hide_screen_edges
 from calibration.maps import MAPS_FORMAT, DecodedMaps
 from calibration.plan import Plan
 
@@ -70,6 +70,8 @@ class StreamingDecoder:
     sigma in DN, or None to estimate it per pixel from the cosine-fit residuals.
     `saturation_dn` is the clipping level (default: the dtype maximum for integer frames);
     samples within `options.saturation_margin` of it are excluded as clipped.
+    `compiled`: use the compiled kernels (loaded by `prepare`) also below 1 Mpixel, where a
+    one-off process would spend more loading them than they save: for long-lived workers.
     """
 
     def __init__(
@@ -81,6 +83,7 @@ class StreamingDecoder:
         saturation_dn: float | None = None,
         options: DecodeOptions | None = None,
         xp: ModuleType | str | None = np,
+        compiled: bool = False,
     ) -> None:
         self.plan = plan
         self.options = options or DecodeOptions()
@@ -100,9 +103,10 @@ class StreamingDecoder:
         self._finished = False
         self._ptc: LinearVariance | None = None
         self._leak: Any = None  # per set r^2 of the display harmonic in the residuals
-        # Large NumPy images may take the compiled per-pixel kernel; other namespaces (CuPy)
-        # the array-namespace path.
-        self._large = self.xp is np and int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS
+        # Large NumPy images (any size with `compiled`: a long-lived live worker) may take the
+        # compiled per-pixel kernel; other namespaces (CuPy) the array-namespace path.
+        self._use_kernels = self.xp is np and (
+            compiled or int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS)
         self._acc.compiled = self._compiled
 
     @property
@@ -111,12 +115,10 @@ class StreamingDecoder:
         return self._acc.missing
 
     def prepare(self) -> None:
-        """Load the compiled kernels now, for images of >= 1 Mpixel, and allocate the sums
-        (a live capture calls this before frames arrive). Loading costs ~0.7 s of CPU
-        (numba's import and its cached machine code), so a decoder uses the kernels only
-        once they are loaded in the process (long-lived workers, live captures, large
-        one-off decodes)."""
-        if self._large:
+        """Load the compiled kernels now (>= 1 Mpixel, or `compiled`; ~0.7 s of CPU: a decoder
+        uses them only once loaded in the process) and allocate the sums (a live capture
+        calls this before frames arrive)."""
+        if self._use_kernels:
             from calibration.decode.kernel_warm import warm_up
 
             warm_up()
@@ -134,7 +136,7 @@ class StreamingDecoder:
     @property
     def _compiled(self) -> bool:
         """Accumulate and finish with the compiled kernels: a large NumPy image, loaded."""
-        return self._large and all(name in sys.modules for name in _KERNELS)
+        return self._use_kernels and all(name in sys.modules for name in _KERNELS)
 
     def add(self, index: int, image: np.ndarray) -> None:
         """Fold plan frame `index` into the running sums (any order, each index once)."""
@@ -219,27 +221,23 @@ class StreamingDecoder:
                for kind in ("", "sigma_", "modulation_", "blur_")}
         kernel_planes = planes if self._compiled else None
         reason = np.zeros(npix, dtype=np.uint8)
+        mask = np.empty(npix, dtype=bool) if into is None else into["mask"]
         size = self.options.chunk_pixels
         if self._variance is None:
             self._estimate_noise(npix, chunk_of)
         chunks = [slice(s, min(s + size, npix)) for s in range(0, npix, size)]
         group = max(1, len(chunks) // 16) if step is not None else len(chunks)
+        tallies: list[np.ndarray] = []  # (list.append: atomic across the pool's threads)
         for g in range(0, len(chunks), group):
-            self._map(lambda sl: self._finish_chunk(chunk_of(sl), sl, out, kernel_planes,
-                                                    reason),
-                      chunks[g:g + group])
+            self._map(lambda sl: tallies.append(self._finish_chunk(
+                chunk_of(sl), sl, out, kernel_planes, reason, mask)), chunks[g:g + group])
             if step is not None:
                 step(min(g + group, len(chunks)) / len(chunks))
         if summed is not None:
             summed()
-        mark_screen_edges(reason.reshape(h, w))
-        tally = np.bincount(reason, minlength=len(REASONS))
-        counts = {name: int(tally[code]) for code, name in enumerate(REASONS)}
+        counts = hide_screen_edges(reason.reshape(h, w), mask, out, tallies)
         if counts["valid"] == 0:
             raise DecodeError(no_valid_message(counts, npix))
-        mask = reason == 0 if into is None else np.equal(reason, 0, out=into["mask"])
-        self._map(lambda sl: [np.copyto(out[key][sl], np.nan, where=~mask[sl]) for key in
-                              ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y")], chunks)
         info = {
             "format": MAPS_FORMAT,
             "plan_digest": self.plan.digest(),
@@ -369,12 +367,14 @@ class StreamingDecoder:
         return per_set, ptc  # the flats are not subject to the cosine-fit model error
 
     def _finish_chunk(self, chunk: ChunkSums, sl: slice, out: dict, planes: dict | None,
-                      reason: np.ndarray) -> None:
-        """Decode one flattened pixel range into `out` (or `planes`) and `reason`."""
+                      reason: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Decode one flattened pixel range into `out` (or `planes`), `reason` and `mask`;
+        returns its tally of reason codes (`hide_invalid`)."""
         if planes is None:
             reason[sl] = self._finish_arrays(chunk, sl, out=out)
         elif not finish_dark_range(self, chunk, sl, planes, reason):  # a dark surround
             finish_range(self, chunk, sl, planes, reason)
+        return hide_invalid(out, mask, reason, sl)
 
     def _finish_arrays(self, chunk: ChunkSums, sl: slice, out: dict | None = None,
                        planes: dict | None = None) -> np.ndarray:

@@ -16,8 +16,10 @@ def warm_up() -> None:
     from calibration.decode.kernel import warm_up as warm_finish
     from calibration.decode.kernel_clipped import unknown_patterns
     from calibration.decode.kernel_sums import finish_sums, residual_stats
+    from calibration.decode.ptc_kernels import warm_up as warm_noise_line
 
     warm_finish()
+    warm_noise_line()  # (the noise line's passes after the last frame)
     n = 4
     frames = np.ones((1, n), dtype=np.uint8)
     i64 = functools.partial(np.zeros, dtype=np.int64)

@@ -8,13 +8,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from calibration.decode.ptc_fit import (
-    LinearVariance,
-    binned_line,
-    level_bins,
-    usable_pixels,
-    variance_ratio,
-)
+from calibration.decode.ptc_fit import LinearVariance, binned_line, level_bins
+from calibration.decode.ptc_select import compiled, variance_ratio
 
 
 @runtime_checkable
@@ -178,24 +173,43 @@ def harmonic_leak(rss: np.ndarray, dof: np.ndarray, level: np.ndarray, power: np
     without an even-N set, or when the harmonic is under 1 % of the residual variance
     (gamma 2.2's harmonic 4 in an 8-step plan: ~0.1 %).
     """
-    if first is None or not power.any() or rss.size < 1000:
-        return None
     step = max(1, rss.size // max_rows)
+    # (power 0 at every row the fit sees: r^2 0, None)
+    if first is None or rss.size < 1000 or not power[:, ::step].any():
+        return None
+    design, rhs, dv, kept_power, used = _leak_rows(rss, dof, level, power, step, first)
+    used = np.flatnonzero(used)  # sets with even steps and pixels
+    coef = np.zeros(design.shape[1])
+    every = used.size == design.shape[1]  # (no copy: lstsq copies it anyway)
+    coef[used] = np.linalg.lstsq(design if every else design[:, used], rhs, rcond=None)[0]
+    scatter = np.sum((design @ coef - rhs) ** 2) / max(design.shape[0] - used.size, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.sqrt(scatter / np.einsum("ij,ij->j", design, design))  # uncorrelated approx
+    r2 = np.where(coef[2:] > 5.0 * err[2:], coef[2:], 0.0)
+    # Under 1 % of the residual variance (an 8-step plan's harmonic 4): not worth its cost.
+    share = float(np.sum(r2 * kept_power.mean(axis=1)) / np.mean(dv))
+    return r2 if share >= 0.01 else None
+
+
+def _leak_rows(rss: np.ndarray, dof: np.ndarray, level: np.ndarray, power: np.ndarray,
+               step: int, first: LinearVariance) -> tuple[np.ndarray, ...]:
+    """`harmonic_leak`'s rows (every `step`-th pixel, those under 10x the `first` line): the
+    weighted design, its right-hand side, `dof * var`, the harmonic powers, the columns
+    used (nonzero, no NaN). One compiled pass where numba is loaded (float32 inputs, a
+    positive floor: NumPy's maximum may order zeros of both signs otherwise)."""
+    kernels = compiled()
+    if kernels is not None and first.floor > 0 and \
+            all(a.dtype == np.float32 for a in (rss, dof, level, power)):
+        line = np.array([first.offset, first.slope, first.floor], dtype=np.float32)
+        design, rhs, dv, kept, used, k = kernels.leak_rows(
+            *(np.ascontiguousarray(a) for a in (rss, dof, level)), power, step, line)
+        return design[:k], rhs[:k], dv[:k], kept[:, :k], used
     rss, dof, level, power = rss[::step], dof[::step], level[::step], power[:, ::step]
     var = np.asarray(first.variance(level), dtype=np.float64)
     ok = rss < 10.0 * dof * var
     w = 1.0 / (dof * var)[ok]
     design = np.column_stack([dof[ok] * w, dof[ok] * level[ok] * w, *(p[ok] * w for p in power)])
-    used = np.flatnonzero(np.abs(design).sum(axis=0) > 0)  # sets with even steps and pixels
-    coef = np.zeros(design.shape[1])
-    coef[used] = np.linalg.lstsq(design[:, used], rss[ok] * w, rcond=None)[0]
-    scatter = np.sum((design @ coef - rss[ok] * w) ** 2) / max(design.shape[0] - used.size, 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.sqrt(scatter / np.einsum("ij,ij->j", design, design))  # uncorrelated approx
-    r2 = np.where(coef[2:] > 5.0 * err[2:], coef[2:], 0.0)
-    # Under 1 % of the residual variance (an 8-step plan's harmonic 4): not worth its cost.
-    share = float(np.sum(r2 * power[:, ok].mean(axis=1)) / np.mean(dof[ok] * var[ok]))
-    return r2 if share >= 0.01 else None
+    return design, rss[ok] * w, dof[ok] * var[ok], power[:, ok], np.abs(design).sum(axis=0) > 0
 
 
 def sample_pieces(npix: int, chunk: int, piece: int, total: int) -> list[slice]:
@@ -229,8 +243,7 @@ def _residual_line(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, power: np
     if leak is None:
         return line, None
     rss = np.maximum(rss - leak.astype(np.float32) @ power, 0.0)
-    if binned is None or not np.array_equal(binned.usable, usable_pixels(mean, rss, dof)):
-        binned = level_bins(mean, rss, dof)  # (same levels: usually the same bins)
+    binned = level_bins(mean, rss, dof, previous=binned)  # (the same levels: little to redo)
     return binned_line(binned, rss, dof, floor, low), [float(r2) for r2 in leak]
 
 

@@ -10,7 +10,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.special import gammaincinv
+
+from calibration.decode.ptc_select import (
+    bin_medians,
+    bin_ratios,
+    group_by_level,
+    sorted_quantiles,
+    sorted_without,
+)
 
 
 @dataclass(frozen=True)
@@ -27,15 +34,6 @@ class LinearVariance:
     def variance(self, mean_dn: Any) -> Any:
         """Noise variance (DN^2) at mean level `mean_dn`."""
         return np.maximum(self.offset + self.slope * mean_dn, self.floor)
-
-
-def variance_ratio(rss: np.ndarray, dof: np.ndarray) -> np.ndarray:
-    """`rss/dof` over each pixel's chi-square median `chi2.median(dof)/dof` (integer dof >=
-    1): its median over pixels estimates the variance, also where dof differ (clipped steps
-    leave fewer), and ignores the few pixels with model errors."""
-    dofs = np.arange(1, int(dof.max()) + 1)
-    median = 2.0 * gammaincinv(dofs / 2.0, 0.5)  # chi-square medians
-    return rss / dof / (median / dofs)[dof - 1]
 
 
 def fit_photon_transfer(
@@ -63,7 +61,8 @@ def fit_photon_transfer(
 class LevelBins:
     """`fit_photon_transfer`'s level bins: `usable` pixels, `good` their even subsample,
     `order` putting each bin's pixels together, `bins` the slices of >= 16 of them, `x`
-    their median levels, `count` their sizes, `m` the levels in `order`."""
+    their median levels, `count` their sizes, `m` the levels in `order`, `ordered` sorted,
+    `edges` the bins' edges and `bounds` every bin's first position (and the end)."""
 
     usable: np.ndarray
     good: np.ndarray
@@ -72,6 +71,9 @@ class LevelBins:
     x: np.ndarray
     count: np.ndarray
     m: np.ndarray
+    ordered: np.ndarray
+    edges: np.ndarray
+    bounds: np.ndarray
 
 
 def usable_pixels(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray) -> np.ndarray:
@@ -81,25 +83,32 @@ def usable_pixels(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray) -> np.ndar
 
 
 def level_bins(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, bins: int = 16,
-               max_pixels: int = 1 << 19) -> LevelBins | None:
+               max_pixels: int = 1 << 19, previous: LevelBins | None = None) -> LevelBins | None:
     """`fit_photon_transfer`'s mean-level quantile bins; None when < 4 can have data (no
-    line). The residuals only choose the usable pixels, so a refit on the same pixels (the
-    display harmonic removed) reuses them."""
+    line). The residuals only choose the usable pixels: from `previous` bins of the same
+    levels whose usable pixels include these (the display harmonic removed), the sorted
+    levels are theirs less the pixels dropped (no sort), and where the edges stay, so does
+    each pixel's bin (no grouping)."""
     usable = usable_pixels(mean, rss, dof)
     if usable.size < 64:
         return None
+    if previous is not None and np.array_equal(previous.usable, usable):
+        return previous
     good = usable[:: max(1, usable.size // max_pixels)]  # an even subsample bounds the work
-    m = mean[good]
-    ordered = np.sort(m)  # (the same order statistics from sorted levels: SIMD sort)
-    edges = np.unique(np.quantile(ordered, np.linspace(0.0, 1.0, bins + 1)))
-    # each level's bin, as clip(searchsorted(edges, m, "right") - 1, 0, len(edges) - 2): the
-    # inner edges at or below it (a few vectorized passes instead of a branchy search)
-    which = np.zeros(m.shape, dtype=np.int16)
-    for edge in edges[1:-1]:
-        which += m >= edge
-    order = np.argsort(which, kind="stable")  # (radix) bins contiguous
-    m = m[order]
-    bounds = np.searchsorted(which[order], np.arange(len(edges)))
+    kept = _kept(previous, mean.size, usable, good)
+    ordered = None if kept is None else sorted_without(
+        previous.ordered, mean[previous.good[~kept]])
+    if ordered is None:
+        kept, ordered = None, np.sort(mean[good])  # (the order statistics: SIMD sort)
+    edges = np.unique(sorted_quantiles(ordered, np.linspace(0.0, 1.0, bins + 1)))
+    if kept is not None and np.array_equal(edges[1:-1], previous.edges[1:-1]):
+        in_order = kept[previous.order]  # the same bins, less the pixels dropped
+        order = (np.cumsum(kept) - 1)[previous.order[in_order]]
+        bounds = np.concatenate([[0], np.cumsum(in_order)])[previous.bounds]
+        m = previous.m[in_order]
+    else:
+        order, bounds, m = group_by_level(mean[good], edges[1:-1], float(ordered[0]),
+                                          float(ordered[-1]))
     # a loop over 16 bins, not over pixels
     bins_ = [slice(int(lo), int(hi)) for lo, hi in itertools.pairwise(bounds) if hi - lo >= 16]
     if len(bins_) < 4:
@@ -107,7 +116,20 @@ def level_bins(mean: np.ndarray, rss: np.ndarray, dof: np.ndarray, bins: int = 1
     count = np.array([b.stop - b.start for b in bins_], dtype=np.float64)
     # each bin's levels are `ordered[b]`, sorted: np.median's own middle pair, its own mean
     x = np.array([float(np.mean(ordered[_middle(b)])) for b in bins_])
-    return LevelBins(usable, good, order, bins_, x, count, m)
+    return LevelBins(usable, good, order, bins_, x, count, m, ordered, edges, bounds)
+
+
+def _kept(previous: LevelBins | None, size: int, usable: np.ndarray,
+          good: np.ndarray) -> np.ndarray | None:
+    """Which of `previous` bins' pixels are still `usable`, where both took every usable
+    pixel and these are a subset of theirs; else None."""
+    if previous is None or good.size != usable.size or \
+            previous.good.size != previous.usable.size:
+        return None
+    still = np.zeros(size, dtype=bool)
+    still[usable] = True
+    kept = still[previous.usable]
+    return kept if np.count_nonzero(kept) == usable.size else None
 
 
 def _middle(b: slice) -> slice:
@@ -123,15 +145,14 @@ def binned_line(binned: LevelBins | None, rss: np.ndarray, dof: np.ndarray, floo
     if binned is None:
         return None
     good, bins_, x, count, m = binned.good, binned.bins, binned.x, binned.count, binned.m
-    ratio = variance_ratio(rss[good], np.rint(dof[good]).astype(np.int64))[binned.order]
+    ratio = bin_ratios(rss, dof, good, binned.order)
     line: LinearVariance | None = None
     for _ in range(2):
         # Second pass: each ratio over the first line at its own level, so a bin whose levels
         # (hence variances) span a factor of several still gives the line at its median level
         # (the plain median of such a mixture sat 6 % low in the darkest bin).
-        rel = ratio if line is None else ratio / line.variance(m)
         at = np.ones(x.shape) if line is None else line.variance(x)
-        y = np.array([float(np.median(rel[b])) for b in bins_]) * at
+        y = bin_medians(ratio, bins_, line, m) * at
         ok = y > 0  # mostly constant readings (a black level under the noise) say nothing
         if ok.sum() < 4:  # about the line, and 1/y weights would be infinite
             return line

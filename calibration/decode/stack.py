@@ -41,8 +41,9 @@ def decode_stack(
     """The one decode loop: frames in plan order (an (F, H, W) stack, a `FrameSource` or any
     sized iterable of 2-D frames) to maps; progress per frame, `Cancelled` between frames.
 
-    A whole NumPy stack of >= 2 Mpixel frames (or >= 1 Mpixel with `prepare`) is decoded
-    range by range with the compiled kernels (`StreamingDecoder.finish_stack`). `into`: the
+    A whole NumPy stack of >= 2 Mpixel frames (any size with `prepare`: a long-lived process
+    loads the kernels once) is decoded range by range with the compiled kernels
+    (`StreamingDecoder.finish_stack`). `into`: the
     arrays to decode into (`StreamingDecoder.finish`)."""
     count = len(frames)
     if count != len(plan.frames):
@@ -51,8 +52,10 @@ def decode_stack(
     whole = _whole(frames)
     if whole is not None and whole.shape[0] == count:
         dec = StreamingDecoder(plan, tuple(whole.shape[1:]), noise=noise,
-                               saturation_dn=saturation_dn, options=options, xp=xp)
-        if dec._large and (prepare or whole.shape[1] * whole.shape[2] >= _ALWAYS_COMPILED_PIXELS):
+                               saturation_dn=saturation_dn, options=options, xp=xp,
+                               compiled=prepare)
+        npix = whole.shape[1] * whole.shape[2]
+        if dec._use_kernels and (prepare or npix >= _ALWAYS_COMPILED_PIXELS):
             # the kernels' modules; numba loads the machine code of the argument types
             # this stack needs at their first call (cheaper than warming every variant)
             import calibration.decode.accumulate_kernel
@@ -81,7 +84,8 @@ def decode_stack(
                 raise DecodeError("frames: expected a (F, H, W) stack of single-channel frames, "
                                   f"got frame shape {getattr(frame, 'shape', None)}")
             dec = StreamingDecoder(plan, tuple(frame.shape), noise=noise,
-                                   saturation_dn=saturation_dn, options=options, xp=xp)
+                                   saturation_dn=saturation_dn, options=options, xp=xp,
+                                   compiled=prepare)
             if prepare:
                 dec.prepare()
         dec.add(i, frame)

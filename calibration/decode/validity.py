@@ -78,8 +78,9 @@ def classify(
     return reason
 
 
-def mark_screen_edges(reason: np.ndarray) -> None:
-    """Pixels next to one that sees no screen straddle the screen's edge: mark them (in place).
+def mark_screen_edges(reason: np.ndarray) -> np.ndarray:
+    """Pixels next to one that sees no screen straddle the screen's edge: mark them (in place)
+    and return their flat indices (they were valid).
 
     `reason` is the (H, W) host array of codes; the footprint of such a pixel covers both
     the screen and its dark surround, so its decoded point is biased.
@@ -91,4 +92,35 @@ def mark_screen_edges(reason: np.ndarray) -> None:
     for dv in range(3):  # 3x3 erosion: 9 shifted views, not a loop over pixels
         for du in range(3):
             interior &= padded[dv : dv + h, du : du + w]
-    reason[(reason == 0) & ~interior] = REASONS.index("screen_edge")
+    marked = np.flatnonzero((reason == 0) & ~interior)
+    reason.reshape(-1)[marked] = REASONS.index("screen_edge")
+    return marked
+
+
+# the maps hidden (NaN) where a pixel is not valid; modulation stays (a diagnostic)
+HIDDEN = ("x", "y", "sigma_x", "sigma_y", "blur_x", "blur_y")
+
+
+def hide_invalid(out: dict[str, np.ndarray], mask: np.ndarray, reason: np.ndarray,
+                 sl: slice) -> np.ndarray:
+    """For the flat pixel range `sl`, just decoded (its outputs still in cache): its `mask`
+    (reason 0), NaN in the `HIDDEN` maps of `out` where not valid; returns the range's tally
+    of reason codes."""
+    ok = np.equal(reason[sl], 0, out=mask[sl])
+    for key in HIDDEN:
+        np.copyto(out[key][sl], np.nan, where=~ok)
+    return np.bincount(reason[sl], minlength=len(REASONS))
+
+
+def hide_screen_edges(reason: np.ndarray, mask: np.ndarray, out: dict[str, np.ndarray],
+                      tallies: list[np.ndarray]) -> dict[str, int]:
+    """After every range's `hide_invalid`: the screen-edge pass over the (H, W) `reason`, its
+    pixels (valid until now) hidden too; the image's pixel counts by reason."""
+    edge = mark_screen_edges(reason)
+    mask[edge] = False
+    for key in HIDDEN:
+        out[key][edge] = np.nan
+    tally = np.sum(tallies, axis=0)
+    tally[0] -= edge.size
+    tally[REASONS.index("screen_edge")] += edge.size
+    return {name: int(tally[code]) for code, name in enumerate(REASONS)}

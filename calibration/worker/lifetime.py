@@ -38,7 +38,10 @@ def _watch(parent_pid: int) -> None:
 
 
 def die_with_parent(parent_pid: int, use_pdeathsig: bool = True) -> None:
-    """Process initializer: exit as soon as `parent_pid` is no longer this process's parent."""
+    """Process initializer: exit as soon as `parent_pid` is no longer this process's parent.
+    A terminal's Ctrl-C reaches the whole process group: the worker ignores it and lets the
+    server stop it in order (else each idle worker printed a KeyboardInterrupt traceback)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if use_pdeathsig:
         _set_pdeathsig()
     if os.getppid() != parent_pid:  # the parent died before the guards were in place

@@ -6,6 +6,7 @@ atomically to the given paths and returns a small JSON-able summary.
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -30,6 +31,23 @@ def _summary(maps: Any, t0: float) -> dict[str, Any]:
     h, w = maps.shape
     return {"valid_pixels": maps.valid_count(), "width": w, "height": h,
             "wall_s": round(time.perf_counter() - t0, 3)}
+
+
+DROP_DELAY_S = 0.25  # how long after a live decode returns its maps are unmapped
+
+
+def _drop_later(obj: Any) -> None:
+    """Drop `obj` in a daemon thread `DROP_DELAY_S` from now, once the caller (which drops its
+    own references) has returned: a 5 MP pose's maps are views of a 205 MB file mapping whose
+    unmapping takes ~0.03 s, which the pose's ready time need not include."""
+    box, delay_s = [obj], DROP_DELAY_S
+    del obj
+
+    def drop() -> None:
+        time.sleep(delay_s)
+        box.clear()
+
+    threading.Thread(target=drop, name="drop-maps", daemon=True).start()
 
 
 def _keep_heap(pixels: int) -> None:
@@ -84,6 +102,7 @@ def stream_decode_task(
     options: dict[str, Any] | None = None,
     poll_s: float = 0.002,
     durable: bool = True,
+    compiled: bool = False,
 ) -> dict[str, Any]:
     """Decode a pose while it is captured: follow its `FrameStore` and fold in each frame
     as soon as it is stored (frames stored before the task started, e.g. by an interrupted
@@ -91,7 +110,9 @@ def stream_decode_task(
     cancels the job if it fails. Reports progress only for the final stage. The maps file is
     laid out before the first frame and the decoder writes into it (`MapsFile`); its pages
     are faulted in at idle priority while frames arrive. `durable=False` writes the maps without
-    fsync (the caller makes them durable after the pose is ready). Timings (wall, and CPU
+    fsync (the caller makes them durable after the pose is ready). `compiled`: the compiled
+    kernels at every image size (a long-lived worker loads them once: a 640x480 pose's finish
+    ~3x faster; a one-off process would load them during the capture). Timings (wall, and CPU
     seconds of this process: all its threads) and the share of the maps file's pages faulted
     in ahead by the last frame (`prefaulted`) in the summary."""
     from calibration.decode import StreamingDecoder
@@ -115,7 +136,7 @@ def stream_decode_task(
     with MapsFile(out_path, store.shape, plan.axes()) as out, IdlePrefault(
             [out.mapped]) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
-                                   options=opts)
+                                   options=opts, compiled=compiled)
         decoder.prepare()
         _keep_heap(store.shape[0] * store.shape[1])
         while not added.all():
@@ -140,17 +161,20 @@ def stream_decode_task(
         decoder.release()  # its sums, zeroed again, serve this worker's next pose
         t1, c1 = time.perf_counter(), time.process_time()
         out.commit(maps, durable=durable)  # durable=False: page cache, fsync by the caller
-    return {**_summary(maps, t0), "caught_up_at": caught_up_at,
-            "finish_s": round(t1 - t0, 3), "finish_cpu_s": round(c1 - c0, 3),
-            "write_s": round(time.perf_counter() - t1, 3),
-            "write_cpu_s": round(time.process_time() - c1, 3),
-            "prefaulted": round(prefaulted, 3)}
+    summary = {**_summary(maps, t0), "caught_up_at": caught_up_at,
+               "finish_s": round(t1 - t0, 3), "finish_cpu_s": round(c1 - c0, 3),
+               "write_s": round(time.perf_counter() - t1, 3),
+               "write_cpu_s": round(time.process_time() - c1, 3),
+               "prefaulted": round(prefaulted, 3)}
+    _drop_later(maps)  # (unmapped after the summary is on its way)
+    del maps
+    return summary
 
 
 def warm_decode_task(pixels: int, plan_path: str | None = None,
-                     shape: tuple[int, int] | None = None, noise: Any = None) -> bool:
-    """Load the decoder's compiled kernels in this worker if images of `pixels` use them
-    (~1.4 CPU s once per process): a large live capture submits this next to its decode
+                     shape: tuple[int, int] | None = None, noise: Any = None) -> None:
+    """Load the decoder's compiled kernels in this worker (~1.4 CPU s once per process; live
+    decodes use them at every image size): a live capture submits this next to its decode
     task, so the worker that decodes a later pose does not load them while that pose's
     frames arrive (under load, late enough to delay the pose). With `plan_path` and `shape`
     (and the capture's `noise`) it also allocates that decode's sums and keeps them
@@ -159,13 +183,10 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
     ~2.3 CPU s of first-touch page faults, paid once per worker while a capture runs rather
     than by the worker's first pose after its last frame. At normal CPU priority: a task at
     idle priority is starved by any busy process, and the decode tasks queued behind it
-    with it (seen: poses ready 20-75 s late under load). True if the kernels were needed."""
+    with it (seen: poses ready 20-75 s late under load)."""
     from calibration.decode import sums_cache
-    from calibration.decode.decoder import _COMPILED_MIN_PIXELS
     from calibration.decode.kernel_warm import warm_up
 
-    if pixels < _COMPILED_MIN_PIXELS:
-        return False
     warm_up()
     _keep_heap(pixels)
     if (plan_path is not None and shape is not None
@@ -173,10 +194,10 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
         from calibration.decode import StreamingDecoder
         from calibration.plan import read_plan
 
-        decoder = StreamingDecoder(read_plan(plan_path), tuple(shape), noise=noise)
+        decoder = StreamingDecoder(read_plan(plan_path), tuple(shape), noise=noise,
+                                   compiled=True)
         decoder.prepare()
         decoder.release()
-    return True
 
 
 def calibrate_task(

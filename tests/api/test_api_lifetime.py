@@ -140,3 +140,37 @@ def test_serve_with_a_bad_rigs_dir_exits_1(tmp_path: Path) -> None:
     assert done.returncode == 1
     assert done.stderr.strip().splitlines() == [
         f"phasecal serve: error: --rigs-dir {tmp_path / 'missing'}: no such folder"]
+
+
+def test_ctrl_c_stops_the_server_and_its_workers_without_tracebacks(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C sends SIGINT to the whole process group: the server shuts down in
+    order, its worker processes exit with it, and nothing prints a traceback."""
+    from api.inprocess import free_port
+
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k != "PHASECAL_DASK"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--executor",
+         "processes", "--data-dir", str(tmp_path / "data")],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True)
+    children: set[int] = set()
+    try:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                time.sleep(0.1)
+        children = descendants(proc.pid)
+        assert len(children) >= 2, "expected worker processes"
+        os.killpg(proc.pid, signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
+    assert not wait_gone(children), "Ctrl-C left processes running"

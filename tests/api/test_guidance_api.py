@@ -92,3 +92,39 @@ def test_fewer_than_three_poses_is_a_conflict(service) -> None:
     sess = client.post("/sessions", json={"plan": PLAN.to_dict()}).json()
     r = client.get(f"/sessions/{sess['id']}/next-pose")
     assert r.status_code == 409 and "3 ready" in r.json()["detail"]
+
+
+def test_plans_of_different_sessions_are_computed_at_the_same_time(tmp_path, monkeypatch) -> None:
+    """Each cached plan has its own lock: a session's plan does not wait for another's (both
+    plans here wait for each other inside the fit: one global lock would deadlock them until
+    the barrier's timeout)."""
+    import threading
+
+    import calibration.guidance
+
+    barrier = threading.Barrier(2, timeout=60)
+    plan = calibration.guidance.plan_next_pose
+
+    def together(*args, **kwargs):
+        barrier.wait()
+        return plan(*args, **kwargs)
+
+    monkeypatch.setattr(calibration.guidance, "plan_next_pose", together)
+    with _service(tmp_path / "data", "threads") as (client, _svc, sid, _):
+        other = client.post("/sessions", json={"plan": PLAN.to_dict()}).json()["id"]
+        for k in range(3):
+            client.post(f"/sessions/{other}/poses/import-maps",
+                        files={"file": ("m.npz", good_maps(30 + k, size=(160, 120))
+                                        .to_npz_bytes())}).raise_for_status()
+        results: dict[str, int] = {}
+
+        def get(session: str) -> None:
+            r = client.get(f"/sessions/{session}/next-pose", params={"model": "opencv5"})
+            results[session] = r.status_code
+
+        threads = [threading.Thread(target=get, args=(s,)) for s in (sid, other)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert results == {sid: 200, other: 200} and not barrier.broken

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 import zipfile
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from calibration.maps_file import MapsFile
 from calibration.plan import write_plan
 from calibration.prefault import IdlePrefault, populate
 from calibration.progress import Cancelled, TaskContext
+from calibration.worker import tasks
 from calibration.worker.tasks import stream_decode_task
 from tests.calibration.decode.test_decode import H, W, render
 
@@ -51,6 +53,13 @@ def _decoder(plan, stack):
     dec.prepare()
     dec.add_frames(list(range(stack.shape[0])), stack)
     return dec
+
+
+def _mapped(path: Path) -> bool:
+    """True while this process maps the file at `path` (its inode in /proc/self/maps)."""
+    ino = str(os.stat(path).st_ino)
+    with open("/proc/self/maps") as maps:
+        return any(len(f) > 4 and f[4] == ino for f in (line.split() for line in maps))
 
 
 def _same_npz(got: Path, want: Path) -> None:
@@ -137,7 +146,7 @@ def test_full_disk_is_a_clear_error_before_any_decoding(plan, tmp_path, monkeypa
     def full(fd, offset, length):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(os, "posix_fallocate", full, raising=False)
+    monkeypatch.setattr(os, "posix_fallocate", full)
     with pytest.raises(OSError, match=r"cannot reserve 2 MB for the maps \(No space left"):
         MapsFile(tmp_path / "maps.npz", (H, W), plan.axes())
     assert list(tmp_path.iterdir()) == []
@@ -147,7 +156,7 @@ def test_full_disk_is_a_clear_error_before_any_decoding(plan, tmp_path, monkeypa
 def normal_priority(monkeypatch):
     """The prefault thread at normal priority: at idle priority it may starve on a loaded
     machine, and a test must not depend on the load."""
-    monkeypatch.delattr(os, "SCHED_IDLE", raising=False)
+    monkeypatch.delattr(os, "SCHED_IDLE")
 
 
 def _wait_for(ahead: IdlePrefault) -> None:
@@ -232,7 +241,8 @@ def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
 def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path,
                                                            monkeypatch):
     """The live task (frames arriving in a frame store) gives the file np.load reads, equal
-    to decoding the same frames in memory; with a cancel, nothing is left."""
+    to decoding the same frames in memory, unmapped only after the task returned (its ~0.03 s
+    at 5 MP is not in the pose's ready time); with a cancel, nothing is left."""
     monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
     write_plan(plan, tmp_path / "plan.json")
     pose, staged = tmp_path / "pose", tmp_path / "staged"
@@ -247,12 +257,19 @@ def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path
 
     feeder = threading.Timer(0.05, feed)
     feeder.start()
+    monkeypatch.setattr(tasks, "DROP_DELAY_S", 5.0)
     try:
         result = stream_decode_task(ctx, str(tmp_path / "plan.json"), str(pose),
                                     str(staged / "maps.npz"), meta=dict(META), durable=False)
     finally:
         feeder.join()
         store.close()
+    # the maps file stays mapped until after the task returned, then is unmapped (no leak)
+    assert _mapped(staged / "maps.npz")
+    deadline = time.monotonic() + 60.0
+    while _mapped(staged / "maps.npz") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _mapped(staged / "maps.npz")
     # (the share prefaulted depends on the load: idle priority; the prefault's own test is
     # test_background_prefault_covers_the_regions_and_reports_its_error)
     assert 0.0 <= result["prefaulted"] <= 1.0
@@ -269,3 +286,28 @@ def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path
         stream_decode_task(CancelledOnceLaidOut("job_2"), str(tmp_path / "plan.json"),
                            str(pose), str(staged / "maps.npz"))
     assert list(staged.iterdir()) == []
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_live_decode_task_takes_the_kernels_below_a_megapixel_only_when_asked(
+        plan, stack, compiled, tmp_path, monkeypatch):
+    """The service's long-lived workers ask for the compiled kernels at every image size
+    (`compiled`); a one-off process (the CLI's capture) keeps the array path below 1 Mpixel.
+    Either way the maps equal an in-memory decode that takes the same path."""
+    ranges = []
+    finish_range = decoder_module.finish_range
+    monkeypatch.setattr(decoder_module, "finish_range",
+                        lambda *a: ranges.append(1) or finish_range(*a))
+    write_plan(plan, tmp_path / "plan.json")
+    store = FrameStore(tmp_path / "pose", len(plan.frames))
+    for i in range(len(plan.frames)):
+        store.add(i, stack[i])
+    store.close()
+    stream_decode_task(TaskContext("job_1"), str(tmp_path / "plan.json"), str(tmp_path / "pose"),
+                       str(tmp_path / "maps.npz"), meta=dict(META), compiled=compiled)
+    assert bool(ranges) == compiled and H * W < decoder_module._COMPILED_MIN_PIXELS
+    ref = StreamingDecoder(plan, (H, W), compiled=compiled)
+    ref.prepare()
+    ref.add_frames(list(range(stack.shape[0])), stack)
+    save_maps(ref.finish(dict(META)), tmp_path / "ref.npz")
+    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")

@@ -1,4 +1,4 @@
-"""A large live capture warms another worker's compiled decoder (`warm_decode_task`)."""
+"""A live capture warms another worker's compiled decoder (`warm_decode_task`)."""
 
 from __future__ import annotations
 
@@ -7,74 +7,67 @@ import sys
 from calibration.worker.tasks import warm_decode_task
 
 
-def test_warm_decode_task_loads_the_kernels_only_for_large_images() -> None:
-    assert warm_decode_task(640 * 480) is False  # small images never use the kernels
-    assert warm_decode_task(2448 * 2048) is True
+def test_warm_decode_task_loads_the_kernels_for_any_image_size() -> None:
+    warm_decode_task(640 * 480)  # live decodes use the kernels at every size
     assert "calibration.decode.kernel_sums" in sys.modules
     assert "calibration.decode.accumulate_kernel" in sys.modules
 
 
-def test_warm_decode_task_primes_the_sums_of_the_coming_decodes(tmp_path, monkeypatch) -> None:
+def test_warm_decode_task_primes_the_sums_of_the_coming_decodes(tmp_path) -> None:
     """With the capture's plan and shape the warm task also allocates and keeps that decode's
     sums, so this worker's first pose reuses them (no first-touch faults during its capture)."""
-    import calibration.decode.decoder as decoder_module
     from acquisition.patterns import build_plan
     from calibration.decode import StreamingDecoder, sums_cache
     from calibration.plan import write_plan
 
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
     plan = build_plan(1920, 1080, 0.2745)
     write_plan(plan, tmp_path / "plan.json")
     sums_cache.release()
     try:
-        assert warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64)) is True
+        warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64))
         assert sums_cache.kept_bytes() > 0
         kept = sums_cache._kept[0]
-        dec = StreamingDecoder(plan, (48, 64))
+        dec = StreamingDecoder(plan, (48, 64), compiled=True)  # as the live decode task
         dec.prepare()
         assert dec._acc.block is kept and not kept.any()
     finally:
         sums_cache.release()
 
 
-def test_warm_decode_task_keeps_the_sums_a_worker_already_holds(tmp_path, monkeypatch) -> None:
+def test_warm_decode_task_keeps_the_sums_a_worker_already_holds(tmp_path) -> None:
     """Every large capture submits a warm task: in a worker that already keeps a decode's
     sums it must not allocate or zero them again (each pose would pay ~1 GB of writes in the
     other worker while it captures)."""
     import numpy as np
 
-    import calibration.decode.decoder as decoder_module
     from acquisition.patterns import build_plan
     from calibration.decode import sums_cache
     from calibration.plan import write_plan
 
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
     write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
     held = np.full((3, 48 * 64), 7.0)
     sums_cache.keep([held])
     try:
-        assert warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64)) is True
+        warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64))
         assert sums_cache._kept == [held] and (held == 7.0).all()
     finally:
         sums_cache.release()
 
 
-def test_warm_decode_task_replaces_another_cameras_sums(tmp_path, monkeypatch) -> None:
+def test_warm_decode_task_replaces_another_cameras_sums(tmp_path) -> None:
     """A worker that last decoded a smaller camera (a session's earlier rig, a preview
     camera) keeps its small sums: the warm task must still prime the large camera's, else
     the worker's first large pose pays ~2 CPU s of page faults while its frames arrive."""
     import numpy as np
 
-    import calibration.decode.decoder as decoder_module
     from acquisition.patterns import build_plan
     from calibration.decode import sums_cache
     from calibration.plan import write_plan
 
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
     write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
     sums_cache.keep([np.full((3, 16 * 12), 7.0)])
     try:
-        assert warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64)) is True
+        warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64))
         assert sums_cache.holds_pixels(48 * 64) and not sums_cache.holds_pixels(16 * 12)
     finally:
         sums_cache.release()
