@@ -11,6 +11,8 @@ pixels with some steps clipped are left to the array path: `reason` 255 marks th
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -97,10 +99,11 @@ def finish_sums(
     rdof, rlev, low = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK, dtype=np.bool_)
     scratch = np.empty((3, BLOCK))
     p = np.empty(tables[2].shape[2])
-    first = np.full(2, -1)
+    first, last = np.full(2, -1), np.full(2, -1)
     for k in range(n_sets):
         if first[set_axis[k]] < 0:
             first[set_axis[k]] = k
+        last[set_axis[k]] = k
     nb, nd = flats[0], flats[1]
     floor_sigma = np.sqrt(floor * (1.0 / nb + 1.0 / nd))
     for b0 in range(0, n, BLOCK):
@@ -114,7 +117,10 @@ def finish_sums(
             for j in range(m):
                 d[j] |= bk[j] != 0
                 dd[j] &= bk[j] == every
-        general = False
+        general = clean = False
+        for j in range(m):
+            clean |= d[j]
+        clean = not clean  # (no clipped step: the dark-block shortcut may apply)
         if have_tables:
             for j in range(m):
                 general |= d[j] and not dd[j]
@@ -146,6 +152,12 @@ def finish_sums(
                                   use[k], blur[:, ax], snr_a[:, ax], k == first[ax], lg, lg_e,
                                   lg_m, wt)
         else:
+            if mode != MODE_OWN:  # (the flats' noise is the line's: no residuals needed)
+                contrast(bright, dark, flats, line, False, j0, m, ow, snr)
+                if clean and _unlit(snr, m, params[P_MIN_CONTRAST]):
+                    _dark_block(sums, row0, steps, last, j0, m, pos_out, sig_out, mod_out,
+                                blur_out, o0 + b0, reason, b0)
+                    continue
             if residual:  # residual variance per pixel (decoder `_residuals`)
                 for j in range(m):
                     ow[j] = f64(squares[j0 + j])
@@ -159,6 +171,12 @@ def finish_sums(
                             ow[j] -= leak[k] * expl[j]
                 for j in range(m):
                     ow[j] = max(max(ow[j], 0.0) / max(dof, 1), floor)
+            if mode == MODE_OWN:  # the flats' noise: each pixel's own residual variance
+                contrast(bright, dark, flats, line, True, j0, m, ow, snr)
+                if clean and _unlit(snr, m, params[P_MIN_CONTRAST]):
+                    _dark_block(sums, row0, steps, last, j0, m, pos_out, sig_out, mod_out,
+                                blur_out, o0 + b0, reason, b0)
+                    continue
             if mode == MODE_LINE:
                 s00 = sums[row0[0], j0:j0 + m]
                 inv0 = np.float32(1.0 / steps[0])
@@ -169,7 +187,8 @@ def finish_sums(
                 set_block(sums, row0[k], nrows[k], steps[k], periods[k], amps[k], line,
                           params, j0, m, ow, ex, wrapped[k], sig[k], use[k], blur[:, ax],
                           snr_a[:, ax], k == first[ax], lg, lg_e, lg_m, wt)
-        contrast(bright, dark, flats, line, mode == MODE_OWN, j0, m, ow, snr)
+        if general:
+            contrast(bright, dark, flats, line, mode == MODE_OWN, j0, m, ow, snr)
         for ax in range(2):
             blur_fit(blur[:, ax], m)
         unwrap_block(m, wrapped, sig, use, blur, snr_a, snr, d, first, set_axis, periods,
@@ -182,6 +201,38 @@ def finish_sums(
                 for ax in range(2):
                     if first[ax] >= 0:
                         mod_out[ax, o0 + b0 + j] = 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _unlit(snr, m, min_contrast) -> bool:
+    """Whether no pixel of the block passes the flat-contrast test (all `no_screen`)."""
+    lit = False
+    for j in range(m):
+        lit |= snr[j] >= min_contrast
+    return not lit
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _dark_block(sums, row0, steps, last, j0, m, pos_out, sig_out, mod_out, blur_out, o0,
+                reason, b0) -> None:
+    """A block of unclipped pixels that all see no screen (code 1 is final whatever the
+    other rules say): what the full pass writes into the maps (as dark_chunks.py for a whole
+    range): reason 1, each axis's modulation of its last set (`set_block`'s arithmetic),
+    NaN positions, sigmas and blur (the decoder's mask hides them anyway)."""
+    f32 = np.float32
+    for ax in range(2):
+        k = last[ax]
+        if k < 0:
+            continue  # the plan has no frames on this axis
+        r0, scale = row0[k], f32(2.0 / steps[k])
+        for j in range(m):
+            a, b = float(sums[r0 + 1, j0 + j] * scale), float(sums[r0 + 2, j0 + j] * scale)
+            mod_out[ax, o0 + j] = math.sqrt(a * a + b * b)
+            pos_out[ax, o0 + j] = np.nan
+            sig_out[ax, o0 + j] = np.nan
+            blur_out[ax, o0 + j] = np.nan
+    for j in range(m):
+        reason[b0 + j] = 1
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
