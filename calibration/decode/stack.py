@@ -43,8 +43,8 @@ def decode_stack(
 
     A whole NumPy stack of >= 2 Mpixel frames (any size with `prepare`: a long-lived process
     loads the kernels once) is decoded range by range with the compiled kernels
-    (`StreamingDecoder.finish_stack`). `into`: the
-    arrays to decode into (`StreamingDecoder.finish`)."""
+    (`StreamingDecoder.finish_stack`). `into`: the arrays to decode into
+    (`StreamingDecoder.finish`)."""
     count = len(frames)
     if count != len(plan.frames):
         raise DecodeError(f"frames: {count} frames given, the plan has {len(plan.frames)} "
