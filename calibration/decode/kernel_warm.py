@@ -20,6 +20,12 @@ def warm_up() -> None:
 
     warm_finish()
     warm_noise_line()  # (the noise line's passes after the last frame)
+    # and its least squares on one BLAS thread: threadpoolctl's import and first library
+    # scan (~13 ms), otherwise paid by a worker's first pose after its last frame
+    from calibration.models.blas_threads import single_thread_blas
+
+    with single_thread_blas(scipy=False):
+        np.linalg.lstsq(np.ones((4, 2)), np.ones(4), rcond=None)
     n = 4
     frames = np.ones((1, n), dtype=np.uint8)
     i64 = functools.partial(np.zeros, dtype=np.int64)
