@@ -2,7 +2,7 @@
 
 `frames.npy` is the FORMATS.md `.npy` stack (np.load and `phasecal decode` read it);
 `frames.done` holds one byte per plan frame, set to 1 after that frame's pixels were
-copied in. Storing a frame is a memory copy into the page cache (no encoding, no fsync
+written in. Storing a frame is a `pwrite` into the page cache (no encoding, no fsync
 on the capture loop): the data survive a killed process at once, and a background
 flusher makes them durable on disk at a bounded interval and when the store is closed
 (pixels first, then the markers, so a durable marker implies durable pixels). A reader
@@ -34,8 +34,9 @@ class FrameStore:
         self.folder = Path(folder)
         self.count = count  # plan frames; None: read from an existing store
         self.flush_interval_s = flush_interval_s
-        self._frames: np.memmap | None = None
+        self._frames: np.memmap | None = None  # read-only map: frames are written by `_write`
         self._writable = False
+        self._fd: int | None = None  # frames.npy opened for writing
         self._done: np.memmap | None = None
         self._dirty = False
         self._lock = threading.Lock()
@@ -63,7 +64,7 @@ class FrameStore:
         if not self.exists():
             return False
         mode = "r+" if writable else "r"
-        frames = np.load(self.frames_path, mmap_mode=mode, allow_pickle=False)
+        frames = np.load(self.frames_path, mmap_mode="r", allow_pickle=False)
         if self.count is None and frames.ndim == 3:
             self.count = int(frames.shape[0])
         if frames.ndim != 3 or frames.shape[0] != self.count:
@@ -124,7 +125,7 @@ class FrameStore:
                 raise DecodeError(f"frame {index}: {img.dtype} {img.shape} differs from the "
                                   f"stored frames ({self._frames.dtype} "
                                   f"{self._frames.shape[1:]})")
-            self._frames[index] = img
+            self._write(index, img)
             self._done[index] = 1
             self._dirty = True
             self.last_index = int(index)
@@ -132,6 +133,20 @@ class FrameStore:
                 self._flusher = threading.Thread(target=self._flush_loop, daemon=True,
                                                  name="frame-store-flush")
                 self._flusher.start()
+
+    def _write(self, index: int, img: np.ndarray) -> None:
+        """Write frame `index`'s pixels into frames.npy with `pwrite`: into the page cache
+        as a store through the map would, but a write fault on a new page of the map first
+        reads ahead and zeroes a whole (large) folio that the copy then overwrites: ~25 %
+        more CPU per 5 MB frame (8 against 11 ms on the 2-vCPU VM)."""
+        assert self._frames is not None
+        if self._fd is None:
+            self._fd = os.open(self.frames_path, os.O_WRONLY)
+        data = memoryview(np.ascontiguousarray(img)).cast("B")
+        at = self._frames.offset + int(index) * data.nbytes
+        while data:  # (a regular file takes it all at once; a short write continues)
+            n = os.pwrite(self._fd, data, at)
+            data, at = data[n:], at + n
 
     def flush(self) -> None:
         """Make the stored frames durable: pixels first, then the markers.
@@ -157,6 +172,10 @@ class FrameStore:
             self._flusher.join()
             self._flusher = None
         self.flush()
+        with self._lock:
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
 
     def wait_open(self, cancelled: Any, poll_s: float = 0.005) -> None:
         """Block until the writer created the files (polling `cancelled()`)."""
