@@ -32,11 +32,7 @@ import numpy as np
 from acquisition.clock import Clock
 from acquisition.controller_phase import rephase
 from acquisition.errors import AcquisitionError, CameraDisconnected, CameraTimeout
-from acquisition.integrity import (
-    IntegrityReport,
-    compare_references,
-    reference_indices,
-)
+from acquisition.integrity import IntegrityReport, compare_references, reference_indices
 from acquisition.pattern_cache import cache_for
 from acquisition.pose_types import (
     AcceptedFrame,
@@ -80,6 +76,7 @@ class _Runner:
         self.recaptures: list[Recapture] = []
         self.stale = 0
         self.reconnects = 0
+        self.late_s = 0.0  # the latest trigger after its planned time (a stall: torn frames)
         self.last_seq = -1
         self.fr_ref: tuple[float, int] | None = None  # (timestamp, sequence) of a recent frame
         self.delivery_s = 0.0  # learned delay from an exposure's end to its frame's arrival
@@ -167,6 +164,7 @@ class _Runner:
             if flush:
                 self.camera.flush()
         if self.triggered:
+            self.late_s = max(self.late_s, self.clock.now() - start)
             for _ in range(self.opts.average):
                 self.fire()
 
@@ -362,7 +360,8 @@ def capture_pose(
 
     def result(status: Status, reason: str, report: IntegrityReport | None = None) -> PoseCapture:
         return PoseCapture(status, reason, len(order), accepted, frames, runner.recaptures,
-                           runner.stale, runner.reconnects, latency, started, clock.now(), report)
+                           runner.stale, runner.reconnects, latency, started, clock.now(), report,
+                           runner.late_s)
 
     camera.start()
     try:  # one pipelined run: the repeats follow the last plan frame without a restart

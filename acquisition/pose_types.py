@@ -64,6 +64,9 @@ class PoseCapture:
     started_s: float
     finished_s: float
     integrity: IntegrityReport | None = None
+    # the latest any trigger fired after its planned time (triggered modes): a stall of the
+    # capture machine longer than the pattern's exposure window tears that pattern's frame
+    trigger_late_s: float = 0.0
 
     @property
     def accepted_count(self) -> int:

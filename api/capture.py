@@ -167,7 +167,8 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
               "captured_at": sink.last_stored_at,  # the last frame, not the controller's end
               "controller_done_at": returned_at,  # after the integrity repeats and check
               "close_s": round(time.time() - returned_at, 4),
-              "recaptures": len(result.recaptures)}
+              "recaptures": len(result.recaptures),
+              "trigger_late_s": round(result.trigger_late_s, 4)}
     ctx.check_cancelled()
     status = result.status
     if status not in ("complete", "flagged"):

@@ -21,6 +21,9 @@ controller run (`capture_s`: camera set-up, plan frames, integrity repeats and c
 `client` is from the POST to the last stored plan frame (same clock, same machine). S is
 the time from the last stored plan frame to the job's success as the client sees it (its
 `end` server-sent event: maps written and committed).
+`recap` counts the patterns shown again (torn frames), `late ms` is the latest any trigger
+fired after its planned time (a stall of the machine: beyond the exposure window's slack,
+~9 ms here, it tears that pattern; docs/acquisition.md).
 Per pose the server-side stages after the last frame are printed: `tail` (controller: the
 integrity repeats and check), `close` (the frame store's last copies and final fsync, in
 the server while the worker finishes), `lag` (decode worker catching up with the last frame),
@@ -159,6 +162,7 @@ def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -
                      "ratio": cap["capture_s"] / floor, "client_ratio": (last - posted) / floor,
                      "np_ratio": (last - posted) * REFRESH_HZ / n,
                      "store_s": cap["store_s"], "recaptures": cap["recaptures"],
+                     "late_ms": 1e3 * cap["trigger_late_s"],
                      "tail_s": cap["controller_done_at"] - last, "close_s": cap["close_s"],
                      "lag_s": dec["caught_up_at"] - last, "finish_s": dec["finish_s"],
                      "finish_cpu": dec["finish_cpu_s"], "write_cpu": dec["write_cpu_s"],
@@ -207,7 +211,8 @@ COLUMNS = [  # header, row key, width, format
     ("cap s", "capture_s", 6, ".2f"), ("R", "ratio", 5, ".2f"),
     ("client s", "client_cap_s", 8, ".2f"), ("R cl", "client_ratio", 5, ".2f"),
     ("x N*P", "np_ratio", 5, ".2f"), ("store s", "store_s", 7, ".3f"),
-    ("recap", "recaptures", 5, "d"), ("tail s", "tail_s", 6, ".2f"),
+    ("recap", "recaptures", 5, "d"), ("late ms", "late_ms", 7, ".1f"),
+    ("tail s", "tail_s", 6, ".2f"),
     ("close", "close_s", 5, ".2f"), ("lag s", "lag_s", 6, ".2f"),
     ("finish", "finish_s", 6, ".2f"), ("fin cpu", "finish_cpu", 7, ".2f"),
     ("pf", "prefaulted", 4, ".2f"), ("write", "write_s", 6, ".2f"),

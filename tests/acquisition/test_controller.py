@@ -276,3 +276,35 @@ def test_a_torn_pattern_is_shown_again_later_without_discarding_the_pipeline():
     assert sorted(store.frames) == list(range(len(PLAN.frames))) and mis_synced(r, res) == []
     assert shown_codes_match(r, res)
     assert [res.accepted.index(i) for i in torn] == [len(PLAN.frames) - 2, len(PLAN.frames) - 1]
+
+
+@pytest.mark.parametrize("stall_s, torn", [(0.0, 0), (0.003, 0), (0.02, 1)])
+def test_a_stalled_trigger_is_reported_and_tears_beyond_the_window_slack(
+        stall_s: float, torn: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The machine stalls once, right when a trigger's sleep ends (the tenth): the pose
+    reports how late that trigger fired (`trigger_late_s`; 0 on an exact clock). Within the
+    exposure window's slack (~9.6 ms here: 16.7 ms refresh, 3 margins of 1 ms, 4 ms
+    exposure, 0.1 ms trigger latency) nothing tears; a 20 ms stall tears that pattern, which
+    is shown again."""
+    import sys
+
+    r = make_rig(2, timestamp_jitter_s=0.0)
+    clock, real = r.rig.clock, r.rig.clock.sleep_until
+    trigger_sleeps = []
+
+    def sleep_until(t: float) -> None:
+        real(t)
+        if sys._getframe(1).f_code.co_name == "begin_exposures":
+            trigger_sleeps.append(t)
+            if len(trigger_sleeps) == 10:
+                clock.advance(stall_s)
+
+    monkeypatch.setattr(clock, "sleep_until", sleep_until)
+    store = MemoryFrameStore()
+    s = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    res = capture_pose(r.rig, PLAN, store, settings=s, options=ControllerOptions(latency_s=2 / 60))
+    assert len(trigger_sleeps) > 10
+    assert res.status == "complete" and res.trigger_late_s == pytest.approx(stall_s, abs=1e-9)
+    assert len(res.recaptures) == torn and all(rc.reason.startswith("torn")
+                                               for rc in res.recaptures)
+    assert sorted(store.frames) == list(range(len(PLAN.frames))) and mis_synced(r, res) == []

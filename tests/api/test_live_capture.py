@@ -95,6 +95,7 @@ def test_preview_idle_and_during_capture_and_stored_pose_tools(service) -> None:
     final = _wait(c, job["id"], _done)
     assert final["status"] == "succeeded", final["error"]  # the preview did not disturb it
     assert final["result"]["capture"]["captured"] == sess["frame_count"]
+    assert final["result"]["capture"]["trigger_late_s"] >= 0.0  # (real clock: some lateness)
     pose = c.get(final["resource"]).json()
     assert pose["status"] == "ready"
     pose_dir = data / "poses" / pose["id"]
