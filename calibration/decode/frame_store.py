@@ -136,9 +136,9 @@ class FrameStore:
 
     def _write(self, index: int, img: np.ndarray) -> None:
         """Write frame `index`'s pixels into frames.npy with `pwrite`: into the page cache
-        as a store through the map would, but a write fault on a new page of the map first
-        reads ahead and zeroes a whole (large) folio that the copy then overwrites: ~25 %
-        more CPU per 5 MB frame (8 against 11 ms on the 2-vCPU VM)."""
+        as a store through the map would, but there a write fault on a new page first reads
+        ahead and zeroes a whole (large) folio that the copy then overwrites (11 against
+        8 CPU ms per 5 MB frame on a 2-vCPU VM)."""
         assert self._frames is not None
         if self._fd is None:
             self._fd = os.open(self.frames_path, os.O_WRONLY)
