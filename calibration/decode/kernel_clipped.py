@@ -141,89 +141,112 @@ def unknown_patterns(bits, c0, n, index, steps):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov, lin,
-               line):
-    """phase.fit_set of one set of the pixel at column jc from its pattern's row t (kept
-    steps only): (ok, mean, level, alpha, beta, c_aa, c_bb, c_ab, explained, dof, the
-    use_step_levels numerators aa, bb, ab (with `cov`), a step clipped at the dark end
-    (with `want_low`); level and explained only with `residual`). `p`: (F,) scratch;
-    `lin`: (c0, slope, threshold) of `line` as c0 + slope * mu, valid where every fitted
-    step value mu exceeds the threshold."""
+def _table_fits(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, residual, want_low,
+                cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk, levk, low):
+    """phase.fit_set of set k for the block pixels 0..m (columns j0..) with some steps
+    clipped, each from its pattern's row of the tables (kept steps only), written over
+    `fit_block`'s closed form: mean, alpha, beta, fitted, c_aa, c_bb, c_ab; the
+    use_step_levels numerators (with `cov`, in `covs[3..5, k]`; `partial` where fitted);
+    with `residual` the explained sum, dof and level (`expl`, `dofk`, `levk`); with
+    `want_low` a step clipped at the dark end (or-ed into `low`). Pixels with every step
+    clipped, or `skip`, get no fit. `p`: (F,) scratch; `lin`: (c0, slope, threshold) of
+    `line` as c0 + slope * mu, valid where every fitted step value mu exceeds the
+    threshold. One loop over the pixels, not a call per pixel: the arrays a per-pixel call
+    binds cost reference counting (numba) that was ~3x the fit's arithmetic."""
     f32 = np.float32
     width, t_max = basis.shape[1], basis.shape[0]
-    # each p_i is finite exactly when every sum is (finite tables, float64 headroom)
-    good = True
-    for m in range(nrow):
-        good = good and math.isfinite(sums[r0 + m, jc])
+    size = rows.shape[1]
+    every = (1 << n) - 1
+    alpha, beta, mean = fits[0, k], fits[1, k], fits[2, k]
     # alpha, beta and the mean need 3 rows of the table's inverse; the harmonics' rows
     # only for the residuals, the dark-end test or a noise line that is not one constant
     # over every step value (else they are left 0)
     need = nrow if residual or want_low or (cov and (lin[1] != 0.0 or lin[2] > -math.inf)) else 3
-    for i in range(nrow):
-        acc = 0.0
-        for m in range(nrow if i < need else 0):
-            acc += rows[t, i * width + m] * float(sums[r0 + m, jc])
-        p[i] = acc if good else 0.0
-    size = rows.shape[1]
-    kept, used = rows[t, size - 2], rows[t, size - 1]
-    lev = 0.0
-    e = 0.0
-    for i in range(nrow if residual else 0):
-        lev += rows[t, width * width + i] * p[i]
-        e += p[i] * float(sums[r0 + i, jc])
-    low = False
-    if want_low:
-        for i in range(min(n, t_max)):
-            if (q >> i) & 1:
-                mu = 0.0
-                for m in range(nrow):
-                    mu += p[m] * basis[i, m]
-                low = low or mu < p[0]
-    naa = nbb = nab = 0.0
-    if cov and good:
-        g0 = width * width + width
-        c0, slope, threshold = lin[0], lin[1], lin[2]
-        bound = p[0]  # a lower bound of every step's fitted value (none needed: -inf)
-        for h in range(1, nrow - 1 if threshold > -math.inf else 1, 2):
-            bound -= math.sqrt(p[h] * p[h] + p[h + 1] * p[h + 1])
-        if bound > threshold:  # the line is linear over the steps: tables' sums
-            cv = g0 + 2 * t_max
-            naa, nbb, nab = c0 * rows[t, cv], c0 * rows[t, cv + 1], c0 * rows[t, cv + 2]
-            for m in range(nrow):
-                w = slope * p[m]
-                naa += w * rows[t, cv + 3 + 3 * m]
-                nbb += w * rows[t, cv + 4 + 3 * m]
-                nab += w * rows[t, cv + 5 + 3 * m]
-        else:  # each kept step's own variance (SetFit.use_step_levels)
-            for i in range(n):
-                mu = 0.0
-                for m in range(nrow):
-                    mu += p[m] * basis[i, m]
-                vi = line_var(line, max(mu, 0.0))
-                ga, gb = rows[t, g0 + i], rows[t, g0 + t_max + i]
-                naa += vi * ga * ga
-                nbb += vi * gb * gb
-                nab += vi * ga * gb
-    return (good, f32(p[0]), f32(lev / max(kept - used, 1.0)), f32(p[1]), f32(p[2]),
-            float(f32(rows[t, width + 1])) if good else 0.0,
-            float(f32(rows[t, 2 * width + 2])) if good else 0.0,
-            float(f32(rows[t, width + 2])) if good else 0.0,
-            e, float(f32(max(kept - used, 0.0))), naa, nbb, nab, low)
+    for j in range(m):
+        q = bits[k, j0 + j]
+        if q == 0:
+            continue
+        if q == every or skip[j]:  # every step clipped, or no screen seen: no fit
+            mean[j] = alpha[j] = beta[j] = 0.0
+            fitted[k, j] = False
+            expl[j] = dofk[j] = levk[j] = 0.0
+            continue
+        t, jc = index[k, q], j0 + j
+        # each p_i is finite exactly when every sum is (finite tables, float64 headroom)
+        good = True
+        for mm in range(nrow):
+            good = good and math.isfinite(sums[r0 + mm, jc])
+        for i in range(nrow):
+            acc = 0.0
+            for mm in range(nrow if i < need else 0):
+                acc += rows[t, i * width + mm] * float(sums[r0 + mm, jc])
+            p[i] = acc if good else 0.0
+        kept, used = rows[t, size - 2], rows[t, size - 1]
+        lev = 0.0
+        e = 0.0
+        for i in range(nrow if residual else 0):
+            lev += rows[t, width * width + i] * p[i]
+            e += p[i] * float(sums[r0 + i, jc])
+        lw = False
+        if want_low:
+            for i in range(min(n, t_max)):
+                if (q >> i) & 1:
+                    mu = 0.0
+                    for mm in range(nrow):
+                        mu += p[mm] * basis[i, mm]
+                    lw = lw or mu < p[0]
+        naa = nbb = nab = 0.0
+        if cov and good:
+            g0 = width * width + width
+            c0, slope, threshold = lin[0], lin[1], lin[2]
+            bound = p[0]  # a lower bound of every step's fitted value (none needed: -inf)
+            for h in range(1, nrow - 1 if threshold > -math.inf else 1, 2):
+                bound -= math.sqrt(p[h] * p[h] + p[h + 1] * p[h + 1])
+            if bound > threshold:  # the line is linear over the steps: tables' sums
+                cv = g0 + 2 * t_max
+                naa, nbb, nab = c0 * rows[t, cv], c0 * rows[t, cv + 1], c0 * rows[t, cv + 2]
+                for mm in range(nrow):
+                    w = slope * p[mm]
+                    naa += w * rows[t, cv + 3 + 3 * mm]
+                    nbb += w * rows[t, cv + 4 + 3 * mm]
+                    nab += w * rows[t, cv + 5 + 3 * mm]
+            else:  # each kept step's own variance (SetFit.use_step_levels)
+                for i in range(n):
+                    mu = 0.0
+                    for mm in range(nrow):
+                        mu += p[mm] * basis[i, mm]
+                    vi = line_var(line, max(mu, 0.0))
+                    ga, gb = rows[t, g0 + i], rows[t, g0 + t_max + i]
+                    naa += vi * ga * ga
+                    nbb += vi * gb * gb
+                    nab += vi * ga * gb
+        mean[j], alpha[j], beta[j] = f32(p[0]), f32(p[1]), f32(p[2])
+        levk[j] = f32(lev / max(kept - used, 1.0))
+        covs[0, k, j] = float(f32(rows[t, width + 1])) if good else 0.0
+        covs[1, k, j] = float(f32(rows[t, 2 * width + 2])) if good else 0.0
+        covs[2, k, j] = float(f32(rows[t, width + 2])) if good else 0.0
+        expl[j], dofk[j] = e, float(f32(max(kept - used, 0.0)))
+        covs[3, k, j], covs[4, k, j], covs[5, k, j] = naa, nbb, nab
+        fitted[k, j] = good
+        partial[k, j] = good and cov
+        low[j] = low[j] or lw
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _table_fit_n(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov, lin,
-                 line):
-    """`_table_fit` with the set's row count a constant for the common layouts (3 + 2
+def _table_fits_n(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, residual, want_low,
+                  cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk, levk, low):
+    """`_table_fits` with the set's row count a constant for the common layouts (3 + 2
     harmonics: 5 or 7 rows), so that LLVM unrolls the small loops."""
     if nrow == 5:
-        return _table_fit(sums, r0, 5, n, jc, rows, t, basis, p, residual, want_low, q, cov,
-                          lin, line)
-    if nrow == 7:
-        return _table_fit(sums, r0, 7, n, jc, rows, t, basis, p, residual, want_low, q, cov,
-                          lin, line)
-    return _table_fit(sums, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov,
-                      lin, line)
+        _table_fits(sums, bits, k, j0, m, r0, 5, n, rows, index, basis, p, residual, want_low,
+                    cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk, levk, low)
+    elif nrow == 7:
+        _table_fits(sums, bits, k, j0, m, r0, 7, n, rows, index, basis, p, residual, want_low,
+                    cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk, levk, low)
+    else:
+        _table_fits(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, residual,
+                    want_low, cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk,
+                    levk, low)
 
 
 def linear_line(noise_line: tuple) -> np.ndarray:
@@ -278,24 +301,10 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
             for j in range(m):
                 dofk[j] = float(f32(n - nrow))
                 levk[j] = mean[j]
-        every = (1 << n) - 1
-        basis_k = basis[k]
-        for j in range(m if bits.shape[0] else 0):
-            q = bits[k, j0 + j]
-            if q == 0:
-                continue
-            if q == every or skip[j]:  # every step clipped, or no screen seen: no fit
-                mean[j] = alpha[j] = beta[j] = 0.0
-                ok[j] = False
-                expl[j] = dofk[j] = levk[j] = 0.0
-                continue
-            (good, mean[j], levk[j], alpha[j], beta[j], caa[j], cbb[j], cab[j], expl[j],
-             dofk[j], covs[3, k, j], covs[4, k, j], covs[5, k, j], lw) = _table_fit_n(
-                sums, r0, nrow, n, j0 + j, rows, index[k, q], basis_k, p, residual, want_low,
-                q, cov, lin, line)
-            ok[j] = good
-            part[j] = good and cov
-            low[j] = low[j] or lw
+        if bits.shape[0]:  # the pixels with clipped steps: least squares on the kept ones
+            _table_fits_n(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis[k], p,
+                          residual, want_low, cov, lin, line, skip, fits, fitted, partial,
+                          covs, expl, dofk, levk, low)
         if residual:
             for j in range(m):
                 rss[j] -= expl[j] if ok[j] else 0.0

@@ -6,12 +6,31 @@ import pytest
 
 from acquisition.patterns import build_plan
 from calibration.decode import StreamingDecoder
-from calibration.decode.kernel_clipped import _table_fit, linear_line, pattern_tables
+from calibration.decode.kernel_clipped import _table_fits, linear_line, pattern_tables
 from calibration.decode.phase import _basis, _normal_inverse
 
 # offset, slope, black, clamp, floor: a sensor line with a black level (clamped below it)
 LINE = (0.8, 0.05, 6.0, True, 1.0 / 12.0)
 PATTERNS = (0b0000000111, 0b1100000001, 0b0000110000)  # clipped steps (bit i: step i)
+
+
+def _table_fit(col, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov, lin, line):
+    """The kernel's fit of one pixel (column jc of `col`) whose set has clipped pattern q and
+    table row t: (ok, mean, level, alpha, beta, c_aa, c_bb, c_ab, explained, dof, the
+    use_step_levels numerators aa, bb, ab, a step clipped at the dark end)."""
+    bits = np.zeros((1, col.shape[1]), dtype=np.uint16)
+    bits[0, jc] = q
+    index = np.full((1, 1 << n), -1, dtype=np.int64)
+    index[0, q] = t
+    fits = np.zeros((3, 1, 1), np.float32)
+    fitted, partial = np.zeros((1, 1), bool), np.zeros((1, 1), bool)
+    covs, expl, dofk, levk = np.zeros((6, 1, 1)), np.zeros(1), np.zeros(1), np.zeros(1)
+    low = np.zeros(1, bool)
+    _table_fits(col, bits, 0, jc, 1, r0, nrow, n, rows, index, basis, p, residual, want_low,
+                cov, np.asarray(lin, dtype=np.float64), line, np.zeros(1, bool), fits, fitted,
+                partial, covs, expl, dofk, levk, low)
+    return (bool(fitted[0, 0]), fits[2, 0, 0], levk[0], fits[0, 0, 0], fits[1, 0, 0],
+            *covs[:3, 0, 0], expl[0], dofk[0], *covs[3:, 0, 0], bool(low[0]))
 
 
 def expected(n: int, harmonics: tuple[int, ...], q: int, v: np.ndarray) -> tuple:
