@@ -251,7 +251,7 @@ def _table_fits_n(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, resi
 
 def linear_line(noise_line: tuple) -> np.ndarray:
     """(c0, slope, threshold) of a linear noise model (offset, slope, black, clamp, floor)
-    for `_table_fit`: the model is c0 + slope * mu for every mu above the threshold."""
+    for `_table_fits`: the model is c0 + slope * mu for every mu above the threshold."""
     offset, slope, black, clamp, floor = (float(v) for v in noise_line)
     if slope == 0.0:  # a constant (at least the floor) at every level
         return np.array([max(offset, floor), 0.0, -np.inf])
