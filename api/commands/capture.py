@@ -90,8 +90,11 @@ def run(args: argparse.Namespace) -> int:
         rig.close()
     res = decoded["result"]
     total = res["width"] * res["height"]
+    timing = (f"; {cap['recaptures']} torn frames shown again, latest trigger "
+              f"{1e3 * cap['trigger_late_s']:.1f} ms late") if "recaptures" in cap else ""
     print(f"wrote {pose_dir}: {len(plan.frames)} frames (captured {cap['captured']}, "
           f"resumed from {cap['resumed_from']}), maps.npz {res['valid_pixels']} of {total} "
           f"pixels valid ({100.0 * res['valid_pixels'] / total:.1f} %), ready {ready:.2f} s "
-          "after the last frame" + (f"; FLAGGED: {cap['flagged']}" if cap.get("flagged") else ""))
+          "after the last frame" + timing
+          + (f"; FLAGGED: {cap['flagged']}" if cap.get("flagged") else ""))
     return 0

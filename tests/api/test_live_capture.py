@@ -5,6 +5,7 @@ and honest sigma of a simulated capture decoded without the simulator's noise mo
 from __future__ import annotations
 
 import io
+import re
 import subprocess
 import sys
 import time
@@ -155,6 +156,7 @@ def test_cli_capture_on_the_simulated_rig_and_resume(tmp_path: Path, capsys) -> 
     assert cli_main(["capture", "--rig", "simulated", "--plan", str(plan), "-o", str(pose)]) == 0
     out = capsys.readouterr().out
     assert "captured 38, resumed from 0" in out and "pixels valid" in out
+    assert re.search(r"; \d+ torn frames shown again, latest trigger [\d.]+ ms late", out), out
     maps = load_maps(pose / "maps.npz")
     assert maps.valid_count() > 1000 and maps.meta["decoder"]["noise"] == "residual"
     # an interrupted capture (frames 20.. never stored) resumes from the stored frames
