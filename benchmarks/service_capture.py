@@ -23,7 +23,10 @@ the time from the last stored plan frame to the job's success as the client sees
 `end` server-sent event: maps written and committed).
 `recap` counts the patterns shown again (torn frames), `late ms` is the latest any trigger
 fired after its planned time (a stall of the machine: beyond the exposure window's slack,
-~9 ms here, it tears that pattern; docs/acquisition.md).
+~9 ms here, it tears that pattern; docs/acquisition.md). `stall ms` is the longest
+oversleep of a separate plain process sleeping 2 ms in a loop during the same capture
+(benchmarks/stall_probe.py): a `late ms` about that size is the machine's stall, not the
+service's; `steal ms` is the hypervisor's steal time over the pose (all CPUs, Linux guests).
 Per pose the server-side stages after the last frame are printed: `tail` (controller: the
 integrity repeats and check), `close` (the frame store's last copies and final fsync, in
 the server while the worker finishes), `lag` (decode worker catching up with the last frame),
@@ -53,6 +56,7 @@ import time
 from pathlib import Path
 
 import httpx
+from stall_probe import StallProbe, steal_ms
 
 ROOT = Path(__file__).resolve().parents[1]
 REFRESH_HZ = 60.0
@@ -143,7 +147,8 @@ def cpu_seconds(pid: int) -> tuple[float, float]:
     return used(server), workers
 
 
-def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -> list[dict]:
+def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int,
+               probe: StallProbe) -> list[dict]:
     rig = c.post("/rigs", json={"name": f"bench{width}", "config": rig_config(width, height)})
     rig_id = rig.raise_for_status().json()["id"]
     sess = c.post("/sessions", json={"rig_id": rig_id, "preset": "default"}).json()
@@ -152,7 +157,9 @@ def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -
     for _ in range(poses):
         load = os.getloadavg()[0]
         api0, workers0 = cpu_seconds(pid)
+        steal0 = steal_ms()
         job, posted, seen = capture(c, sess["id"])
+        steal1 = steal_ms()
         api1, workers1 = cpu_seconds(pid)
         cap, dec = job["result"]["capture"], job["result"]["decode"]
         n = sess["frame_count"]
@@ -163,6 +170,8 @@ def bench_size(c: httpx.Client, pid: int, width: int, height: int, poses: int) -
                      "np_ratio": (last - posted) * REFRESH_HZ / n,
                      "store_s": cap["store_s"], "recaptures": cap["recaptures"],
                      "late_ms": 1e3 * cap["trigger_late_s"],
+                     "stall_ms": probe.worst_ms(posted, last),
+                     "steal_ms": math.nan if steal0 is None else steal1 - steal0,
                      "tail_s": cap["controller_done_at"] - last, "close_s": cap["close_s"],
                      "lag_s": dec["caught_up_at"] - last, "finish_s": dec["finish_s"],
                      "finish_cpu": dec["finish_cpu_s"], "write_cpu": dec["write_cpu_s"],
@@ -212,6 +221,7 @@ COLUMNS = [  # header, row key, width, format
     ("client s", "client_cap_s", 8, ".2f"), ("R cl", "client_ratio", 5, ".2f"),
     ("x N*P", "np_ratio", 5, ".2f"), ("store s", "store_s", 7, ".3f"),
     ("recap", "recaptures", 5, "d"), ("late ms", "late_ms", 7, ".1f"),
+    ("stall ms", "stall_ms", 8, ".1f"), ("steal ms", "steal_ms", 8, ".0f"),
     ("tail s", "tail_s", 6, ".2f"),
     ("close", "close_s", 5, ".2f"), ("lag s", "lag_s", 6, ".2f"),
     ("finish", "finish_s", 6, ".2f"), ("fin cpu", "finish_cpu", 7, ".2f"),
@@ -234,10 +244,13 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="phasecal-bench-") as tmp:
         data = Path(tmp) / "data"
         proc, url = start_server(data)
+        probe = StallProbe()
         try:
             with httpx.Client(base_url=url, timeout=60) as c:
-                rows = [r for w, h in sizes for r in bench_size(c, proc.pid, w, h, args.poses)]
+                rows = [r for w, h in sizes
+                        for r in bench_size(c, proc.pid, w, h, args.poses, probe)]
         finally:
+            probe.close()
             proc.terminate()
             proc.wait(30)
         lib = library_finish(data, rows[-1]) if args.library else None
