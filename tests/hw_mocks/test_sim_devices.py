@@ -207,9 +207,10 @@ def _replay_rig():
                                                options=opts)
 
 
-def test_replay_blends_a_torn_frame_from_replayed_frames_instead_of_rendering(monkeypatch):
+def test_replay_tears_a_frame_from_replayed_frames_instead_of_rendering(monkeypatch):
     """With `replay`, a pose of the same screen content renders nothing, even when a late
-    trigger tears a frame: the torn frame is blended from the images it mixes."""
+    trigger tears a frame: the torn frame is made of rows of the images it mixes, those
+    of the image that held each row longest (a horizontal tear, both images in it)."""
     from acquisition.sinks import MemoryFrameStore
 
     r, plan, capture = _replay_rig()
@@ -219,12 +220,27 @@ def test_replay_blends_a_torn_frame_from_replayed_frames_instead_of_rendering(mo
     render = r.camera.optics.render_irradiance
     monkeypatch.setattr(r.camera.optics, "render_irradiance",
                         lambda light: renders.append(1) or render(light))
+    delivered: dict[int, np.ndarray] = {}  # every frame of the second pose, by sequence
+    deliver = r.camera._deliver
+
+    def recording(exp):
+        frame = deliver(exp)
+        delivered[frame.sequence] = frame.image
+        return frame
+
+    monkeypatch.setattr(r.camera, "_deliver", recording)
     r.camera.faults.late_triggers[r.camera._triggers + 6] = 0.02
     second = MemoryFrameStore()
     res = capture(second)
     assert res.status == "complete" and [rc.reason[:4] for rc in res.recaptures] == ["torn"]
     torn = [t for t in r.camera.truth.values() if not t.pure]
     assert torn and renders == []
+    mixed = delivered[torn[0].sequence]
+    pure = [delivered[t.sequence] for t in r.camera.truth.values()
+            if t.pure and t.sequence in delivered]
+    rows = [np.all(mixed == frame, axis=1) for frame in pure]  # its rows equal to each one's
+    assert np.logical_or.reduce(rows).all()  # every row from a replayed pure frame
+    assert not any(r.all() for r in rows)  # but not all from one: a tear
     np.testing.assert_array_equal(first.stack(len(plan.frames)), second.stack(len(plan.frames)))
 
 
