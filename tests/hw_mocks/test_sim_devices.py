@@ -240,7 +240,7 @@ def test_replay_tears_a_frame_from_replayed_frames_instead_of_rendering(monkeypa
             if t.pure and t.sequence in delivered]
     rows = [np.all(mixed == frame, axis=1) for frame in pure]  # its rows equal to each one's
     assert np.logical_or.reduce(rows).all()  # every row from a replayed pure frame
-    assert not any(r.all() for r in rows)  # but not all from one: a tear
+    assert not any(match.all() for match in rows)  # but not all from one: a tear
     np.testing.assert_array_equal(first.stack(len(plan.frames)), second.stack(len(plan.frames)))
 
 
