@@ -24,11 +24,18 @@ _CHUNK = 1 << 15  # pixels per chunk of `directions`
 
 def _distort_complex(model: PinholeFamily, x: np.ndarray, y: np.ndarray,
                      dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The model's distortion with complex inputs and coefficients (complex step)."""
+    """The model's distortion with complex inputs and coefficients (complex step); NaN
+    where an input is not finite (a pixel `_undistort` did not converge on), without
+    complex arithmetic on it (NumPy's complex division of a NaN warns "invalid value")."""
+    finite = np.isfinite(x) & np.isfinite(y)
     saved = model.dist
     model.dist = dist
     try:
-        return model.distort(x, y)
+        if finite.all():
+            return model.distort(x, y)
+        dx, dy = (np.full(x.shape, complex(np.nan, np.nan)) for _ in range(2))
+        dx[finite], dy[finite] = model.distort(x[finite], y[finite])
+        return dx, dy
     finally:
         model.dist = saved
 

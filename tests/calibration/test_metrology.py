@@ -46,6 +46,30 @@ def test_direction_jacobians_match_finite_differences(name: str) -> None:
         assert np.abs(fd - jac[:, :, i]).max() <= 1e-6 * (np.abs(fd).max() + 1e-9)
 
 
+def test_directions_of_a_pixel_that_does_not_undistort_are_nan_without_warnings() -> None:
+    """A pixel whose undistortion does not converge (far outside a strongly distorting
+    model's image) gets a NaN direction and Jacobian, silently; the others are as when
+    decoded alone (the complex-step Jacobians skip it, NaN complex division warns)."""
+    import warnings
+
+    from calibration.metrology.directions import _distort_jac_xy
+
+    model = MODELS["rational"]()
+    pix = np.array([[100.0, 80.0], [320.0, 240.0], [600.0, 400.0]])
+    alone = directions(model, pix)
+    jac_alone = _distort_jac_xy(model, np.array([0.1, -0.2]), np.array([0.05, 0.3]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any RuntimeWarning fails the test
+        dirs, jac, _ = directions(model, np.vstack([pix[:1], [[-4e4, 5e4]], pix[1:]]))
+        jac_nan = _distort_jac_xy(model, np.array([0.1, np.nan, -0.2]),
+                                  np.array([0.05, 0.0, 0.3]))
+    assert np.isnan(dirs[1, :2]).all() and np.isnan(jac[1, :2]).all()  # (z: 1, its rows 0)
+    np.testing.assert_array_equal(dirs[[0, 2, 3]], alone[0])
+    np.testing.assert_array_equal(jac[[0, 2, 3]], alone[1])
+    assert np.isnan(jac_nan[1]).all()
+    np.testing.assert_array_equal(jac_nan[[0, 2]], jac_alone)
+
+
 def test_screen_trace_matches_hw_mocks_and_its_jacobians() -> None:
     """The fit's panel model hits where hw_mocks' exact tracer does; Jacobians by FD."""
     sm = ScreenModel(SCREEN, "fit", 1.52, np.array([0.5, 0.3, 0.2, 1.5]))
