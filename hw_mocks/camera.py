@@ -325,7 +325,7 @@ class SimulatedCamera:
         at the same height longest during the exposure (a scan-out's horizontal tear),
         else None. Approximate content (the controller rejects such frames by timing),
         made by row copies: a benchmark whose frames sometimes tear must not time the
-        simulator (a per-pixel blend took 30-200 ms at 5 MP, in the controller's thread)."""
+        simulator (a per-pixel blend took 16-210 ms at 5 MP, in the controller's thread)."""
         if self.replay is None or len(shown) < 2:
             return None
         frames = [self.replay.get(self._replay_key([s], weights[k:k + 1], exposure_s))
