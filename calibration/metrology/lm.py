@@ -28,6 +28,7 @@ from calibration.models.parametric import PinholeFamily
 from calibration.threads import map_in_threads
 
 OUTLIER_SIGMAS = 5.0
+MISFIT_RTOL = 1e-6  # `_levenberg_marquardt`: converged when a step removes less of the misfit
 _CHUNK = 8192  # points per batch: the per-point temporaries stay in cache
 _CHI_MEDIAN_2DOF = float(np.sqrt(2 * np.log(2)))  # median of |r| for a whitened 2D Gaussian
 
@@ -91,6 +92,10 @@ class _Problem:
         self.index = np.split(inverse, splits)
         self.start: np.ndarray | None = None
         self._buffers: tuple | None = None  # `directions` outputs to fill again
+        # per pose, the points whose residuals count: those finite at the first evaluation
+        # on these points (a point the model cannot unproject there stays out, even if a
+        # later start finds a root for it)
+        self.support: list[np.ndarray] | None = None
 
     @property
     def sizes(self) -> tuple[int, int, int]:
@@ -162,14 +167,25 @@ class _Problem:
                 hmat[np.ix_(cols, cols)] += h
                 grad[cols] += g
         residuals = [np.concatenate(p) if p else np.zeros(0) for p in parts]
+        if self.support is None:
+            self.support = [np.isfinite(r[0::2]) & np.isfinite(r[1::2]) for r in residuals]
         return cost, residuals, hmat, grad
 
     def _chunk_terms(self, j: int, sl: slice, dirs: np.ndarray, jdir: np.ndarray | None,
                      want_jac: bool) -> tuple[np.ndarray, float, Any, Any]:
-        """One chunk's residuals, cost and (if asked) normal-matrix and gradient terms."""
+        """One chunk's residuals, cost and (if asked) normal-matrix and gradient terms. The
+        cost is infinite where a point of the support has no residual (the parameters left
+        the region where the model unprojects it: a step there is rejected, not rewarded by
+        a smaller sum); points outside the support get NaN residuals."""
         res, blk = self._pose_terms(j, sl, dirs, jdir, want_jac)
         ok = np.isfinite(res)
-        cost = float(res[ok] @ res[ok])
+        lost = False
+        if self.support is not None:
+            counted = np.repeat(self.support[j][sl], 2)
+            lost = bool(np.any(counted & ~ok))
+            res[~counted] = np.nan
+            ok &= counted
+        cost = np.inf if lost else float(res[ok] @ res[ok])
         if blk is None:
             return res, cost, None, None
         ok &= np.isfinite(blk.sum(axis=1))
@@ -177,16 +193,25 @@ class _Problem:
             blk[~ok] = 0.0
         return res, cost, blk.T @ blk, blk.T @ np.where(ok, res, 0.0)
 
-    def params(self) -> tuple[np.ndarray, np.ndarray, list[PoseEstimate]]:
-        """A snapshot of the state (model params, screen params, poses)."""
+    def params(self) -> tuple:
+        """A snapshot of the state: model params, screen params, poses and the warm start of
+        the model's iterative unprojection (`directions`)."""
         return (self.model.get_params().copy(), self.screen.params.copy(),
-                [PoseEstimate(p.rotation.copy(), p.translation.copy()) for p in self.poses])
+                [PoseEstimate(p.rotation.copy(), p.translation.copy()) for p in self.poses],
+                None if self.start is None else self.start.copy())
 
-    def restore(self, snap: tuple[np.ndarray, np.ndarray, list[PoseEstimate]]) -> None:
-        """Go back to a snapshot."""
+    def restore(self, snap: tuple) -> None:
+        """Go back to a snapshot, warm start included: an evaluation at rejected parameters
+        leaves no trace (where a wide-angle model's unprojection has more than one root, a
+        start left by such a trial could lead the next evaluation to another root, and the
+        cost at the same parameters would depend on the trials made before)."""
         self.model.set_params(snap[0])
         self.screen.params = snap[1].copy()
         self.poses = [PoseEstimate(p.rotation.copy(), p.translation.copy()) for p in snap[2]]
+        if snap[3] is None or self.start is None or self.start.shape != snap[3].shape:
+            self.start = None if snap[3] is None else snap[3].copy()
+        else:
+            self.start[...] = snap[3]  # (in place: the array is one of the reused buffers)
 
     def step(self, delta: np.ndarray) -> None:
         """Apply a parameter update in the normal equations' layout."""
@@ -207,14 +232,26 @@ def _levenberg_marquardt(prob: _Problem, max_iter: int, tol: float,
     """Minimize the problem's cost in place; returns (last evaluation, iterations, converged).
 
     Stops when a step lowers (or would by the quadratic model lower) the cost, a sum of
-    whitened squares, by less than `tol`: it moves the parameters by << 1 sigma.
+    whitened squares, by less than `tol` times the residuals' robust variance scale (at
+    least 1): it moves the parameters by << 1 of their reported sigma, which the reduced
+    chi-square scales. Where the model cannot reach the noise floor, also when a step
+    removes less than `MISFIT_RTOL` of the cost above the noise's expectation: such a
+    model crawls along valleys for dozens of iterations that change none of its reported
+    figures (measured: 100 more iterations moved a 150-degree fisheye's opencv5 ray error
+    by 0.6 %). A step's first trial is evaluated with the Jacobian (it is usually
+    accepted); after a rejection, trials evaluate the cost only, and the Jacobian follows
+    at the accepted point.
     """
     state = prob.evaluate(True)
+    counted = sum(int(np.isfinite(r).sum()) for r in state[1])
+    tol = max(tol * max(1.0, robust_scale(state[1]) ** 2),
+              MISFIT_RTOL * max(state[0] - counted, 0.0))
     lam, it = 1e-8, 0
     for it in range(1, max_iter + 1):
         cost, _, hmat, grad = state
         diag = np.maximum(np.diag(hmat), 1e-300)
         snap = prob.params()
+        with_jac = True
         while True:
             try:
                 delta = np.linalg.solve(hmat + lam * np.diag(diag), -grad)
@@ -224,10 +261,13 @@ def _levenberg_marquardt(prob: _Problem, max_iter: int, tol: float,
                 if -2 * grad @ delta - delta @ hmat @ delta < tol:
                     return state, it, True  # the next step would gain nothing measurable
                 prob.step(delta)
-                trial = prob.evaluate(True)
+                trial = prob.evaluate(with_jac)
+                if not with_jac and np.isfinite(trial[0]) and trial[0] <= cost:
+                    trial = prob.evaluate(True)
                 if np.isfinite(trial[0]) and trial[0] <= cost:
                     break
                 prob.restore(snap)
+                with_jac = False
             lam *= 8.0
             if lam > 1e12:
                 return state, it, True  # no descent direction left: at the minimum
@@ -239,6 +279,15 @@ def _levenberg_marquardt(prob: _Problem, max_iter: int, tol: float,
     return state, it, False
 
 
+def robust_scale(residuals: list[np.ndarray]) -> float:
+    """The whitened residuals' scale from their median 2D norm (1 for pure noise): robust to
+    the gross decoding outliers that a mean of squares would count."""
+    norms = np.concatenate([np.hypot(r[0::2], r[1::2]) for r in residuals])
+    if not np.isfinite(norms).any():
+        return 1.0
+    return float(np.nanmedian(norms)) / _CHI_MEDIAN_2DOF
+
+
 def _outliers(residuals: list[np.ndarray]) -> list[np.ndarray]:
     """Keep-masks: whitened residual norm within max(5, sqrt(2 ln(100 N))) robust sigmas.
 
@@ -246,9 +295,9 @@ def _outliers(residuals: list[np.ndarray]) -> list[np.ndarray]:
     on millions of points does not trim its own tails.
     """
     norms = [np.hypot(r[0::2], r[1::2]) for r in residuals]
-    allv = np.concatenate(norms)
-    robust = float(np.nanmedian(allv)) / _CHI_MEDIAN_2DOF
-    limit = max(OUTLIER_SIGMAS, float(np.sqrt(2 * np.log(100 * allv.size)))) * max(1.0, robust)
+    size = sum(nm.size for nm in norms)
+    limit = max(OUTLIER_SIGMAS, float(np.sqrt(2 * np.log(100 * size)))) * max(
+        1.0, robust_scale(residuals))
     return [np.isfinite(nm) & (nm <= limit) for nm in norms]
 
 

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
 from calibration.compare import ray_angle_difference
+from calibration.fit.classic.parametric import fit_parametric
 from calibration.fit.correspondences import point_set
 from calibration.metrology.directions import directions
+from calibration.metrology.lm import _Problem
 from calibration.metrology.refine import fit_parametric_dense
 from calibration.metrology.screen import ScreenModel
 from calibration.models.parametric import FisheyeModel, OpenCV5Model, OpenCVRationalModel
@@ -168,3 +172,45 @@ def test_bad_screen_options_are_named() -> None:
     with pytest.raises(ValueError, match="needs options"):
         fit_parametric_dense(pts, (80, 60), "opencv5", SCREEN, {"screen": "fit",
                                                                  "points": "sampled"})
+
+
+@pytest.fixture(scope="module")
+def fisheye_seen_by_opencv5():
+    """A 150-degree fisheye seen by opencv5 (a model it cannot fit): its points, sample
+    pixels, and OpenCV's sampled fit (model, poses)."""
+    cam = cameras.wide_fisheye(160, 120, fov_deg=150)
+    pts, pix = _scene(cam, 4, None)
+    model, found, _, _ = fit_parametric(pts, (160, 120), "opencv5")
+    return cam, pts, pix, model, found
+
+
+def test_a_rejected_trial_leaves_no_trace_in_the_cost(fisheye_seen_by_opencv5) -> None:
+    """The unprojection's warm start is part of the state: after a trial step and a restore
+    the cost is the same as before the trial (a start left by a trial had made it orders
+    of magnitude higher), and a step that makes points unprojectable is not rewarded by a
+    smaller sum."""
+    _, pts, _, model, found = fisheye_seen_by_opencv5
+    prob = _Problem(copy.deepcopy(model), found, pts, ScreenModel(SCREEN),
+                    np.ones(model.get_params().size, dtype=bool))
+    cost, residuals, hmat, grad = prob.evaluate(True)
+    assert np.isfinite(cost)
+    snap = prob.params()
+    delta = np.linalg.solve(hmat + 1e-8 * np.diag(np.diag(hmat)), -grad)
+    for scale in (1.0, 0.1):
+        prob.step(scale * delta)
+        trial, trial_res, _, _ = prob.evaluate(False)
+        lost = any(np.any(np.isnan(t) & np.isfinite(r))
+                   for t, r in zip(trial_res, residuals, strict=True))
+        assert not lost or trial == np.inf
+        prob.restore(snap)
+        assert prob.evaluate(False)[0] == pytest.approx(cost, rel=1e-12)
+
+
+def test_dense_fit_of_a_model_that_cannot_fit_still_improves_on_opencv(
+        fisheye_seen_by_opencv5) -> None:
+    """Dense LM of an inadequate model moves from OpenCV's start to a smaller ray error and
+    stops on its own (before, every trial looked worse and the fit stayed at the start)."""
+    cam, pts, pix, start, _ = fisheye_seen_by_opencv5
+    model, _, _, stats, _ = fit_parametric_dense(pts, (160, 120), "opencv5", SCREEN)
+    assert stats["converged"] and np.isfinite(stats["reduced_chi2"])
+    assert _ray_rms(cam, model, pix) < 0.99 * _ray_rms(cam, start, pix)
