@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import functools
+import os
+import sys
+from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 
@@ -10,7 +16,57 @@ import numpy as np
 @functools.lru_cache(maxsize=1)
 def warm_up() -> None:
     """Run each kernel on a few pixels with the argument types a uint8 camera's decode
-    passes (a live capture does this while frames arrive, not after the last one)."""
+    passes (a live capture does this while frames arrive, not after the last one); where
+    they are not compiled yet, one process of the install compiles them while the others
+    wait for its cache (`compiled_once`)."""
+    from calibration.decode.kernel_sums import finish_sums
+
+    with compiled_once(getattr(getattr(finish_sums, "_cache", None), "cache_path", None)):
+        _run_kernels()
+
+
+@contextlib.contextmanager
+def compiled_once(folder: str | os.PathLike | None) -> Iterator[None]:
+    """Run the body (which loads or compiles the kernels cached in `folder`) so that the
+    processes of one install compile them one at a time: the first takes a lock beside
+    the cache and compiles, the others wait and then load its machine code (two service
+    workers of a fresh install used to compile the same kernels at once: twice the ~2 CPU
+    minutes). Once a run has finished, a mark with the kernels' sources digest, numba's
+    and Python's versions lets every later process load without taking the lock. Without
+    a writable folder (numba then compiles in memory) the body just runs."""
+    if folder is None:
+        yield
+        return
+    import numba
+
+    from calibration.decode.kernel_cache import sources_digest
+
+    folder = Path(folder)
+    mark = folder / "kernels.warm"
+    stamp = f"{sources_digest()} numba {numba.__version__} python {sys.version.split()[0]}"
+    try:
+        warm = mark.read_text() == stamp
+    except OSError:
+        warm = False
+    if warm:
+        yield
+        return
+    try:
+        lock = open(folder / "kernels.lock", "a")
+    except OSError:
+        yield
+        return
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        yield
+        with contextlib.suppress(OSError):
+            part = folder / f"kernels.warm.{os.getpid()}"
+            part.write_text(stamp)
+            part.replace(mark)
+
+
+def _run_kernels() -> None:
+    """`warm_up`'s calls: every kernel with a uint8 decode's argument types."""
     from calibration.decode.accumulate_kernel import NO_CLIP_HI, accumulate_block
     from calibration.decode.finish import output_planes
     from calibration.decode.kernel import warm_up as warm_finish
