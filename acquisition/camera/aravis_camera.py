@@ -14,7 +14,10 @@ Device timestamps (ns, start of frame) are mapped to the controller's clock by t
 smallest observed (arrival - device time) offset over recent frames, the arrival dated
 by the host's reception timestamp: a mapped time is never earlier than the true one, so
 a frame exposed after a trigger always passes the staleness check, and one exposed
-before it is caught even if it is the first frame seen.
+before it is caught even if it is the first frame seen. Each mapped time is an upper
+bound, not a clock in step with the device: right after a frame that arrived late (a
+stream's first frames, a loaded host) the next frame can be dated before it; `sequence`
+orders frames (dating it later instead would let a stale frame pass the check).
 """
 
 from __future__ import annotations
