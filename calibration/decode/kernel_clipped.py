@@ -346,8 +346,9 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
     f32 = np.float32
     index, rows, basis = tables
     expl, dofk, levk = scratch[0], scratch[1], scratch[2]
+    sq = squares[j0:j0 + m]  # (empty where not kept)
     for j in range(m):
-        rss[j] = float(squares[j0 + j]) if residual else 0.0
+        rss[j] = float(sq[j]) if residual else 0.0
         dof[j] = 0.0
         lev[j] = 0.0
         low[j] = False

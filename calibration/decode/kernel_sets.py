@@ -239,9 +239,10 @@ def _phase_blur(sa, sb, scale, period, m, wrapped, blur, lg, lg_e, lg_m, wt) -> 
 @njit(cache=True, error_model="numpy", inline="always")
 def contrast(bright, dark, flats, line, own_mode, j0, m, own, snr) -> None:
     """snr[:m] = bright-minus-dark flat contrast over its noise (0 where not finite)."""
+    lit_row, unlit_row = bright[j0:j0 + m], dark[j0:j0 + m]  # (views: the loop vectorizes)
     for j in range(m):
-        lit = bright[j0 + j] / flats[0]
-        unlit = dark[j0 + j] / flats[1]
+        lit = lit_row[j] / flats[0]
+        unlit = unlit_row[j] / flats[1]
         if own_mode:
             var_b = var_d = own[j]
         else:

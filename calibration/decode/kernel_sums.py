@@ -128,8 +128,9 @@ def finish_sums(
         ex[:] = mode == MODE_OWN
         blur[:, :, :m] = 0.0
         if general:  # some pixels with clipped steps: per-pixel fits first
+            lit_row, unlit_row = bright[j0:j0 + m], dark[j0:j0 + m]
             for j in range(m):
-                lit, unlit = bright[j0 + j] / nb, dark[j0 + j] / nd
+                lit, unlit = lit_row[j] / nb, unlit_row[j] / nd
                 skip[j] = not (lit - unlit) >= params[P_MIN_CONTRAST] * floor_sigma
                 d[j] = False
             fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, residual,
@@ -159,8 +160,9 @@ def finish_sums(
                                 blur_out, o0 + b0, reason, b0)
                     continue
             if residual:  # residual variance per pixel (decoder `_residuals`)
+                sq = squares[j0:j0 + m]
                 for j in range(m):
-                    ow[j] = f64(squares[j0 + j])
+                    ow[j] = f64(sq[j])
                 for k in range(n_sets):
                     explained(sums, row0[k], nrows[k], steps[k], j0, m, expl)
                     for j in range(m):
@@ -194,10 +196,11 @@ def finish_sums(
         unwrap_block(m, wrapped, sig, use, blur, snr_a, snr, d, first, set_axis, periods,
                      chi2_limit, extents, params, pos_out, sig_out, mod_out, blur_out,
                      o0 + b0, reason[b0:b0 + m], state)
+        codes = reason[b0:b0 + m]
         for j in range(m):  # every step clipped in every set: no fit (phase.fit_set)
             if dd[j]:
                 q = 0.0 if mode == MODE_OWN else snr[j]  # (no residual dof: no noise level)
-                reason[b0 + j] = 1 if not q >= params[P_MIN_CONTRAST] else 2
+                codes[j] = 1 if not q >= params[P_MIN_CONTRAST] else 2
                 for ax in range(2):
                     if first[ax] >= 0:
                         mod_out[ax, o0 + b0 + j] = 0.0
@@ -225,14 +228,16 @@ def _dark_block(sums, row0, steps, last, j0, m, pos_out, sig_out, mod_out, blur_
         if k < 0:
             continue  # the plan has no frames on this axis
         r0, scale = row0[k], f32(2.0 / steps[k])
+        sa, sb = sums[r0 + 1, j0:j0 + m], sums[r0 + 2, j0:j0 + m]  # (views: loops vectorize)
+        mod, pos = mod_out[ax, o0:o0 + m], pos_out[ax, o0:o0 + m]
+        sig, blur = sig_out[ax, o0:o0 + m], blur_out[ax, o0:o0 + m]
         for j in range(m):
-            a, b = float(sums[r0 + 1, j0 + j] * scale), float(sums[r0 + 2, j0 + j] * scale)
-            mod_out[ax, o0 + j] = math.sqrt(a * a + b * b)
-            pos_out[ax, o0 + j] = np.nan
-            sig_out[ax, o0 + j] = np.nan
-            blur_out[ax, o0 + j] = np.nan
-    for j in range(m):
-        reason[b0 + j] = 1
+            a, b = float(sa[j] * scale), float(sb[j] * scale)
+            mod[j] = math.sqrt(a * a + b * b)
+            pos[j] = np.nan
+            sig[j] = np.nan
+            blur[j] = np.nan
+    reason[b0:b0 + m] = 1
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

@@ -71,15 +71,18 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
         min_mod = params[P_MIN_MOD]
         width_row, snr_row, mod_row = blur[0, ax], anchor[0, ax], anchor[1, ax]
         ok_row = anchor[2, ax]  # the anchor period fitted (1.0) or not
-        pos, sgo, mdo, blo = pos_out[ax], sig_out[ax], mod_out[ax], blur_out[ax]
+        # views from column o0: `row[o0 + j]` (a signed index, maybe negative to numba)
+        # would keep this loop from vectorizing
+        pos, sgo = pos_out[ax, o0:o0 + m], sig_out[ax, o0:o0 + m]
+        mdo, blo = mod_out[ax, o0:o0 + m], blur_out[ax, o0:o0 + m]
         for j in range(m):  # outputs and the first failed rule (kernel._axis_rule)
             sigma = math.sqrt(var[j])
             width = width_row[j]
             x = mu[j]
-            pos[o0 + j] = x
-            sgo[o0 + j] = sigma
-            mdo[o0 + j] = mod_row[j]
-            blo[o0 + j] = width
+            pos[j] = x
+            sgo[j] = sigma
+            mdo[j] = mod_row[j]
+            blo[j] = width
             reach = edge * (width if abs(width) < np.inf else 0.0)
             margin = margin_sigma * sigma
             rule = 99.0 if sigma <= sigma_max else 8.0
