@@ -70,3 +70,56 @@ def test_aravis_camera() -> None:
         finally:
             cam.close()
             fake.stop()
+
+
+class _FreeRunningStub:
+    """A free-running GigE-like camera: 16-bit frame counter, frames dated by the
+    smallest arrival offset seen, so a late first frame is dated after the next one."""
+
+    def __init__(self, clock: RealClock, sequences: list[int], dates: list[float]) -> None:
+        from acquisition.protocols import CameraInfo
+
+        self.info = CameraInfo("stub", "0", 8, 6, 8)
+        self.clock, self.sequences, self.dates = clock, sequences, dates
+
+    def configure(self, settings):
+        from acquisition.errors import DeviceSettingsError
+
+        if settings.exposure_s <= 0:
+            raise DeviceSettingsError("exposure_s: must be > 0")
+        if settings.pixel_format != "Mono8":
+            raise DeviceSettingsError(f"pixel_format: {settings.pixel_format} not offered")
+        return settings
+
+    def start(self) -> None:
+        self.t0, self.count = self.clock.now(), 0
+
+    def flush(self) -> None:
+        self.count = 0
+
+    def grab(self, timeout_s: float):
+        from acquisition.protocols import Frame
+
+        i, self.count = self.count, self.count + 1
+        return Frame(np.zeros((6, 8), np.uint8), self.t0 + self.dates[i], 0.005,
+                     self.sequences[i])
+
+    def stop(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("sequences, dates, good", [
+    ([65535, 1], [0.010, 0.026], True),  # the block id wraps (GigE skips 0)
+    ([65410, 65411], [0.010, 0.009986], True),  # late first frame: dated 14 us after
+    ([7, 7], [0.010, 0.026], False),  # the counter did not advance
+])
+def test_free_running_order_is_checked_by_sequence(sequences, dates, good) -> None:
+    """The kit orders free-running frames by their (wrap-aware) counter, not by their
+    mapped times, which are upper bounds; a counter that does not advance still fails."""
+    clock = RealClock()
+    cam = _FreeRunningStub(clock, sequences, dates)
+    if good:
+        protocol.check_camera(cam, clock)
+    else:
+        with pytest.raises(AssertionError, match="sequence"):
+            protocol.check_camera(cam, clock)
