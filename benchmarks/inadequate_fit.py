@@ -3,7 +3,8 @@ to find that out, and how close each model gets (ray error against the simulator
 
 Run: .venv/bin/python benchmarks/inadequate_fit.py [--camera fisheye|noncentral|both]
 Prints per camera and model: wall and CPU seconds of `calibrate`, the dense LM's iterations,
-whether it converged, the noise-floor ratio and the RMS ray-angle error (mrad, after the
+whether it converged, the noise-floor ratios (camera px and screen plane) and the verdict
+`model_adequate` (every row should say no), the RMS ray-angle error (mrad, after the
 best rotation) on every second pixel the poses saw. Data: the test suite's scenes
 (hw_mocks: 150-degree equidistant fisheye, 7 poses at 640x480; smooth non-central camera
 with local bumps, 8 poses at 320x240; 0.05 px decoding noise, 2 % gross outliers on the
@@ -56,7 +57,7 @@ def main() -> int:
     print(f"inadequate_fit: every parametric model, dense fit (load {os.getloadavg()[0]:.2f} "
           f"on {os.cpu_count()} CPUs)")
     print(f"{'camera':<11} {'model':<16} {'wall s':>7} {'CPU s':>7} {'LM it':>6} {'conv':>5} "
-          f"{'floor x':>8} {'ray mrad':>9}")
+          f"{'floor x':>8} {'screen x':>8} {'adequate':>8} {'ray mrad':>9}")
     total = 0.0
     for name in names:
         cam, maps = scene(name)
@@ -74,7 +75,10 @@ def main() -> int:
             dense = res.stats.get("dense", {})
             print(f"{name:<11} {model:<16} {wall:7.1f} {cpu:7.1f} "
                   f"{dense.get('iterations', 0):6d} {res.stats.get('converged')!s:>5} "
-                  f"{res.stats['noise_floor_ratio']:8.1f} {ray * 1e3:9.3f}", flush=True)
+                  f"{res.stats['noise_floor_ratio']:8.2f} "
+                  f"{res.stats['noise_floor_ratio_screen']:8.2f} "
+                  f"{'yes' if res.stats['model_adequate'] else 'no':>8} {ray * 1e3:9.3f}",
+                  flush=True)
     print(f"inadequate fits: {total:.1f} s wall in all (load {os.getloadavg()[0]:.2f})")
     return 0
 

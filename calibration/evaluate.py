@@ -4,7 +4,10 @@ Residuals are camera-pixel differences `project(R S + t) - pixel`. The decoded s
 in screen px; the expected camera-px residual of a point is its screen covariance pushed
 through the local screen->camera Jacobian of the fitted model and pose, so
 `noise_floor_ratio = rms_px / expected_rms_px` is ~1 for an adequate model and >> 1 for a
-wrong one (systematic residuals). Residuals are also mapped back to the screen plane.
+wrong one (systematic residuals). Residuals are also mapped back to the screen plane, where
+the same ratio (`noise_floor_ratio_screen`) weighs every point by its decoded sigma alone:
+camera-px sums are dominated by points where the fitted model's screen->camera Jacobian is
+huge (near a pole or fold of a distortion that does not fit), which can hide a misfit.
 """
 
 from __future__ import annotations
@@ -93,7 +96,9 @@ def pose_residuals(model: CameraModel, pose: PoseEstimate, points: PointSet) -> 
 
 
 def summarize(per_pose: list[dict[str, Any]]) -> dict[str, Any]:
-    """Overall RMS (camera and screen px), noise-floor ratio and the model-adequacy flag."""
+    """Overall RMS (camera and screen px), noise-floor ratios and the model-adequacy flag:
+    adequate when neither ratio exceeds ADEQUATE_RATIO (a NaN screen ratio: no screen
+    residuals, the camera ratio decides)."""
     n = np.array([p["n_points"] for p in per_pose], dtype=np.float64)
     tot = max(float(n.sum()), 1.0)
 
@@ -101,11 +106,14 @@ def summarize(per_pose: list[dict[str, Any]]) -> dict[str, Any]:
         return float(np.sqrt(np.nansum(n * np.array([p[key] for p in per_pose]) ** 2) / tot))
 
     rms, exp = pooled("rms_px"), pooled("expected_rms_px")
+    rms_screen, exp_screen = pooled("rms_screen_px"), pooled("expected_rms_screen_px")
     ratio = rms / exp if exp > 0 else float("nan")
+    screen = rms_screen / exp_screen if exp_screen > 0 else float("nan")
     return {
-        "rms_px": rms, "expected_rms_px": exp, "rms_screen_px": pooled("rms_screen_px"),
-        "expected_rms_screen_px": pooled("expected_rms_screen_px"), "noise_floor_ratio": ratio,
-        "model_adequate": bool(ratio <= ADEQUATE_RATIO),
+        "rms_px": rms, "expected_rms_px": exp, "rms_screen_px": rms_screen,
+        "expected_rms_screen_px": exp_screen, "noise_floor_ratio": ratio,
+        "noise_floor_ratio_screen": screen,
+        "model_adequate": bool(ratio <= ADEQUATE_RATIO and not screen > ADEQUATE_RATIO),
     }
 
 

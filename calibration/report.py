@@ -84,6 +84,7 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     flag = "OK" if stats.get("model_adequate") else "MODEL INADEQUATE"
     fig.suptitle(f"{result.model.type_name}: RMS {stats.get('rms_px', float('nan')):.4g} px, "
                  f"noise floor {stats.get('expected_rms_px', float('nan')):.4g} px, "
-                 f"ratio {stats.get('noise_floor_ratio', float('nan')):.3g} -> {flag}")
+                 f"ratio {stats.get('noise_floor_ratio', float('nan')):.3g} (screen plane "
+                 f"{stats.get('noise_floor_ratio_screen', float('nan')):.3g}) -> {flag}")
     fig.tight_layout()
     fig.savefig(str(path), dpi=90)

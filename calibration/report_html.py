@@ -54,6 +54,7 @@ def _numbers(data: ReportData) -> str:
             ["expected RMS from decoded noise (px)", st.get("expected_rms_px")],
             ["noise-floor ratio", st.get("noise_floor_ratio")],
             ["RMS in the screen plane (screen px)", st.get("rms_screen_px")],
+            ["noise-floor ratio in the screen plane", st.get("noise_floor_ratio_screen")],
             ["ray 1-sigma median (urad)", float(np.median(sig)) * 1e6 if sig.size else None],
             ["ray 1-sigma max (urad)", float(np.max(sig)) * 1e6 if sig.size else None],
             ["iterations", st.get("iterations")], ["fit time (s)", st.get("wall_s")]]

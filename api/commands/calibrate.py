@@ -56,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
     save_model(result.model, args.output)
     st = result.stats
     print(f"wrote {args.output}: {args.model}, RMS {st['rms_px']:.4g} px "
-          f"(noise floor {st['expected_rms_px']:.4g} px, ratio {st['noise_floor_ratio']:.3g}"
+          f"(noise floor {st['expected_rms_px']:.4g} px, ratio {st['noise_floor_ratio']:.3g}, "
+          f"in the screen plane {st.get('noise_floor_ratio_screen', float('nan')):.3g}"
           f"{'' if st['model_adequate'] else ', MODEL INADEQUATE'})")
     for pp in st["per_pose"]:
         print(f"  pose {pp['pose']}: RMS {pp['rms_px']:.4g} px, screen {pp['rms_screen_px']:.4g} "
