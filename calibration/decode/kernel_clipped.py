@@ -23,7 +23,6 @@ from calibration.decode.kernel_sets import explained, line_var, nyquist
 from calibration.decode.phase import _basis, _normal_inverse
 
 MAX_TABLE_STEPS = 16  # dense pattern index per set: 2^steps entries (steps above: array path)
-FIT_SCRATCH = 8  # rows of `_table_fits`' scratch beyond the widest set's coefficients
 MODE_GIVEN, MODE_LINE, MODE_OWN = 0, 1, 2  # as kernel_sums (given / photon-transfer / own)
 # Rows of `PatternTables.rows`, per set and pattern (F: the widest set's columns, T: its
 # steps): minv (F x F), residual weights (F), gains (2 x T), sum_i g g^T (3: aa, bb, ab),
@@ -150,174 +149,104 @@ def _table_fits(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, residu
     use_step_levels numerators (with `cov`, in `covs[3..5, k]`; `partial` where fitted);
     with `residual` the explained sum, dof and level (`expl`, `dofk`, `levk`); with
     `want_low` a step clipped at the dark end (or-ed into `low`). Pixels with every step
-    clipped, or `skip`, get no fit. `p`: (F + FIT_SCRATCH, >= m) scratch; `lin`: (c0,
-    slope, threshold) of `line` as c0 + slope * mu, valid where every fitted step value mu
-    exceeds the threshold. Neighbouring pixels mostly share a pattern (phases vary
-    smoothly), so each run of one pattern is fitted in loops over its pixels that LLVM
-    vectorizes (one table row for all), each pixel with the arithmetic of a lone fit
-    (pixel by pixel, each fit waited on its chained sums: ~3x slower)."""
+    clipped, or `skip`, get no fit. `p`: (F,) scratch; `lin`: (c0, slope, threshold) of
+    `line` as c0 + slope * mu, valid where every fitted step value mu exceeds the
+    threshold. One loop over the pixels, not a call per pixel: the arrays a per-pixel call
+    binds cost reference counting (numba) that was ~3x the fit's arithmetic."""
+    f32 = np.float32
+    width, t_max = basis.shape[1], basis.shape[0]
+    size = rows.shape[1]
     every = (1 << n) - 1
     alpha, beta, mean = fits[0, k], fits[1, k], fits[2, k]
-    qrow = bits[k]
-    j = 0
-    while j < m:
-        q = qrow[j0 + j]
+    # alpha, beta and the mean need 3 rows of the table's inverse; the harmonics' rows
+    # only for the residuals, the dark-end test or a noise line that is not one constant
+    # over every step value (else they are left 0)
+    need = nrow if residual or want_low or (cov and (lin[1] != 0.0 or lin[2] > -math.inf)) else 3
+    for j in range(m):
+        q = bits[k, j0 + j]
         if q == 0:
-            j += 1
             continue
         if q == every or skip[j]:  # every step clipped, or no screen seen: no fit
             mean[j] = alpha[j] = beta[j] = 0.0
             fitted[k, j] = False
             expl[j] = dofk[j] = levk[j] = 0.0
-            j += 1
             continue
-        end = j + 1
-        while end < m and qrow[j0 + end] == q and not skip[end]:
-            end += 1
-        _fit_run(sums, j0, j, end, r0, nrow, n, q, rows, index[k, q], basis, p, residual,
-                 want_low, cov, lin, line, k, fits, fitted, partial, covs, expl, dofk, levk,
-                 low)
-        j = end
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _fit_run(sums, j0, a, b, r0, nrow, n, q, rows, t, basis, p, residual, want_low, cov, lin,
-             line, k, fits, fitted, partial, covs, expl, dofk, levk, low):
-    """`_table_fits` of the block pixels a..b, which share the clipped pattern q (table
-    row t): each coefficient p_i = sum_m minv[i, m] s_m in one loop over the run (the
-    sums of its inner loop unrolled: the run's pixels vectorize), then the residual terms,
-    the dark-end test and the use_step_levels numerators likewise. Unsigned column indices:
-    no negative-index wraparound in the loops, which would stop the vectorizer."""
-    f32 = np.float32
-    width, t_max = basis.shape[1], basis.shape[0]
-    size, run = rows.shape[1], b - a
-    col, at = np.uint64(j0 + a), np.uint64(a)  # the run's first column in sums, in p
-    good, lev, e, lw = p[width, a:b], p[width + 1, a:b], p[width + 2, a:b], p[width + 3, a:b]
-    tab = rows[t]
-    # alpha, beta and the mean need 3 rows of the table's inverse; the harmonics' rows
-    # only for the residuals, the dark-end test or a noise line that is not one constant
-    # over every step value (else they are left 0)
-    need = nrow if residual or want_low or (cov and (lin[1] != 0.0 or lin[2] > -math.inf)) else 3
-    for j in range(run):  # each p_i is finite exactly when every sum is (finite tables)
-        ok = True
+        t, jc = index[k, q], j0 + j
+        # each p_i is finite exactly when every sum is (finite tables, float64 headroom)
+        good = True
         for mm in range(nrow):
-            ok &= math.isfinite(sums[r0 + mm, col + np.uint64(j)])
-        good[j] = 1.0 if ok else 0.0
-    for i in range(nrow):
-        pi, c = p[i, a:b], i * width
-        for j in range(run if i < need else 0):
+            good = good and math.isfinite(sums[r0 + mm, jc])
+        for i in range(nrow):
             acc = 0.0
-            for mm in range(nrow):
-                acc += tab[c + mm] * float(sums[r0 + mm, col + np.uint64(j)])
-            pi[j] = acc if good[j] != 0.0 else 0.0
-        for j in range(0 if i < need else run):
-            pi[j] = 0.0
-    for j in range(run):
-        lv = ev = 0.0
+            for mm in range(nrow if i < need else 0):
+                acc += rows[t, i * width + mm] * float(sums[r0 + mm, jc])
+            p[i] = acc if good else 0.0
+        kept, used = rows[t, size - 2], rows[t, size - 1]
+        lev = 0.0
+        e = 0.0
         for i in range(nrow if residual else 0):
-            pij = p[i, at + np.uint64(j)]
-            lv += tab[width * width + i] * pij
-            ev += pij * float(sums[r0 + i, col + np.uint64(j)])
-        lev[j], e[j], lw[j] = lv, ev, 0.0
-    for i in range(min(n, t_max) if want_low else 0):
-        if (q >> i) & 1:
-            p0 = p[0, a:b]
-            for j in range(run):
-                mu = 0.0
+            lev += rows[t, width * width + i] * p[i]
+            e += p[i] * float(sums[r0 + i, jc])
+        lw = False
+        if want_low:
+            for i in range(min(n, t_max)):
+                if (q >> i) & 1:
+                    mu = 0.0
+                    for mm in range(nrow):
+                        mu += p[mm] * basis[i, mm]
+                    lw = lw or mu < p[0]
+        naa = nbb = nab = 0.0
+        if cov and good:
+            g0 = width * width + width
+            c0, slope, threshold = lin[0], lin[1], lin[2]
+            bound = p[0]  # a lower bound of every step's fitted value (none needed: -inf)
+            for h in range(1, nrow - 1 if threshold > -math.inf else 1, 2):
+                bound -= math.sqrt(p[h] * p[h] + p[h + 1] * p[h + 1])
+            if bound > threshold:  # the line is linear over the steps: tables' sums
+                cv = g0 + 2 * t_max
+                naa, nbb, nab = c0 * rows[t, cv], c0 * rows[t, cv + 1], c0 * rows[t, cv + 2]
                 for mm in range(nrow):
-                    mu += p[mm, at + np.uint64(j)] * basis[i, mm]
-                lw[j] = 1.0 if lw[j] != 0.0 or mu < p0[j] else 0.0
-    if cov:
-        _numerators(p, a, b, nrow, n, tab, basis, lin, line)
-    kept, used = tab[size - 2], tab[size - 1]
-    dof = float(f32(max(kept - used, 0.0)))
-    caa, cbb, cab = (float(f32(tab[width + 1])), float(f32(tab[2 * width + 2])),
-                     float(f32(tab[width + 2])))
-    p0, p1, p2 = p[0, a:b], p[1, a:b], p[2, a:b]
-    naa, nbb, nab = p[width + 4, a:b], p[width + 5, a:b], p[width + 6, a:b]
-    alpha, beta, mean = fits[0, k, a:b], fits[1, k, a:b], fits[2, k, a:b]
-    c_aa, c_bb, c_ab = covs[0, k, a:b], covs[1, k, a:b], covs[2, k, a:b]
-    m_aa, m_bb, m_ab = covs[3, k, a:b], covs[4, k, a:b], covs[5, k, a:b]
-    ok_row, part_row = fitted[k, a:b], partial[k, a:b]
-    ex, dk, lk, lo = expl[a:b], dofk[a:b], levk[a:b], low[a:b]
-    for j in range(run):
-        ok = good[j] != 0.0
-        mean[j], alpha[j], beta[j] = f32(p0[j]), f32(p1[j]), f32(p2[j])
-        lk[j] = f32(lev[j] / max(kept - used, 1.0))
-        c_aa[j] = caa if ok else 0.0
-        c_bb[j] = cbb if ok else 0.0
-        c_ab[j] = cab if ok else 0.0
-        ex[j], dk[j] = e[j], dof
-        with_cov = cov and ok
-        m_aa[j] = naa[j] if with_cov else 0.0
-        m_bb[j] = nbb[j] if with_cov else 0.0
-        m_ab[j] = nab[j] if with_cov else 0.0
-        ok_row[j] = ok
-        part_row[j] = with_cov
-        lo[j] = lo[j] or lw[j] != 0.0
+                    w = slope * p[mm]
+                    naa += w * rows[t, cv + 3 + 3 * mm]
+                    nbb += w * rows[t, cv + 4 + 3 * mm]
+                    nab += w * rows[t, cv + 5 + 3 * mm]
+            else:  # each kept step's own variance (SetFit.use_step_levels)
+                for i in range(n):
+                    mu = 0.0
+                    for mm in range(nrow):
+                        mu += p[mm] * basis[i, mm]
+                    vi = line_var(line, max(mu, 0.0))
+                    ga, gb = rows[t, g0 + i], rows[t, g0 + t_max + i]
+                    naa += vi * ga * ga
+                    nbb += vi * gb * gb
+                    nab += vi * ga * gb
+        mean[j], alpha[j], beta[j] = f32(p[0]), f32(p[1]), f32(p[2])
+        levk[j] = f32(lev / max(kept - used, 1.0))
+        covs[0, k, j] = float(f32(rows[t, width + 1])) if good else 0.0
+        covs[1, k, j] = float(f32(rows[t, 2 * width + 2])) if good else 0.0
+        covs[2, k, j] = float(f32(rows[t, width + 2])) if good else 0.0
+        expl[j], dofk[j] = e, float(f32(max(kept - used, 0.0)))
+        covs[3, k, j], covs[4, k, j], covs[5, k, j] = naa, nbb, nab
+        fitted[k, j] = good
+        partial[k, j] = good and cov
+        low[j] = low[j] or lw
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _numerators(p, a, b, nrow, n, tab, basis, lin, line):
-    """use_step_levels' numerators of the run a..b (table row `tab`) into p's scratch rows
-    F+4..F+6: where the line is linear over every fitted step value (a lower bound of
-    them above its threshold) from the pattern's summed tables, else from each kept step's
-    own variance."""
-    width, t_max = basis.shape[1], basis.shape[0]
-    g0, run, at = width * width + width, b - a, np.uint64(a)
-    cv = g0 + 2 * t_max
-    c0, slope, threshold = lin[0], lin[1], lin[2]
-    good = p[width, a:b]
-    naa, nbb, nab = p[width + 4, a:b], p[width + 5, a:b], p[width + 6, a:b]
-    own = p[width + 7, a:b]  # 1: from each step's own variance
-    harmonics = nrow - 1 if threshold > -math.inf else 1
-    for j in range(run):
-        sa, sb, sab = c0 * tab[cv], c0 * tab[cv + 1], c0 * tab[cv + 2]
-        for mm in range(nrow):
-            w = slope * p[mm, at + np.uint64(j)]
-            sa += w * tab[cv + 3 + 3 * mm]
-            sb += w * tab[cv + 4 + 3 * mm]
-            sab += w * tab[cv + 5 + 3 * mm]
-        bound = p[0, at + np.uint64(j)]  # a lower bound of every step's fitted value
-        for h in range(1, harmonics, 2):
-            ph, pk = p[h, at + np.uint64(j)], p[h + 1, at + np.uint64(j)]
-            bound -= math.sqrt(ph * ph + pk * pk)
-        naa[j], nbb[j], nab[j] = sa, sb, sab
-        own[j] = 0.0 if bound > threshold or good[j] == 0.0 else 1.0
-    for j in range(run):
-        if own[j] == 0.0:
-            continue
-        sa = sb = sab = 0.0  # each kept step's own variance (SetFit.use_step_levels)
-        for i in range(n):
-            mu = 0.0
-            for mm in range(nrow):
-                mu += p[mm, at + np.uint64(j)] * basis[i, mm]
-            vi = line_var(line, max(mu, 0.0))
-            ga, gb = tab[g0 + i], tab[g0 + t_max + i]
-            sa += vi * ga * ga
-            sb += vi * gb * gb
-            sab += vi * ga * gb
-        naa[j], nbb[j], nab[j] = sa, sb, sab
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _table_fits_n(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, residual,
-                  want_low, cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk,
-                  levk, low):
+def _table_fits_n(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, residual, want_low,
+                  cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk, levk, low):
     """`_table_fits` with the set's row count a constant for the common layouts (3 + 2
     harmonics: 5 or 7 rows), so that LLVM unrolls the small loops."""
     if nrow == 5:
-        _table_fits(sums, bits, k, j0, m, r0, 5, n, rows, index, basis, p, residual,
-                    want_low, cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk,
-                    levk, low)
+        _table_fits(sums, bits, k, j0, m, r0, 5, n, rows, index, basis, p, residual, want_low,
+                    cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk, levk, low)
     elif nrow == 7:
-        _table_fits(sums, bits, k, j0, m, r0, 7, n, rows, index, basis, p, residual,
-                    want_low, cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk,
-                    levk, low)
+        _table_fits(sums, bits, k, j0, m, r0, 7, n, rows, index, basis, p, residual, want_low,
+                    cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk, levk, low)
     else:
         _table_fits(sums, bits, k, j0, m, r0, nrow, n, rows, index, basis, p, residual,
-                    want_low, cov, lin, line, skip, fits, fitted, partial, covs,
-                    expl, dofk, levk, low)
+                    want_low, cov, lin, line, skip, fits, fitted, partial, covs, expl, dofk,
+                    levk, low)
 
 
 def linear_line(noise_line: tuple) -> np.ndarray:
@@ -342,7 +271,7 @@ def fit_block(sums, bits, squares, j0, m, row0, nrows, steps, tables, skip, resi
     `cov`: the noise is a line), `covs[3..5, k]` use_step_levels' numerators. With
     `residual`: the decoder's `_residuals` (rss, dof, dof-weighted level); with
     `want_low`, in `low` a step clipped at the dark end. `skip`: pixels seeing no screen
-    (no fit where clipped). `p`: `_table_fits`' (F + FIT_SCRATCH, >= m) scratch."""
+    (no fit where clipped)."""
     f32 = np.float32
     index, rows, basis = tables
     expl, dofk, levk = scratch[0], scratch[1], scratch[2]

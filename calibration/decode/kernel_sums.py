@@ -18,7 +18,7 @@ from numba import njit
 
 from calibration.decode.kernel import P_MIN_CONTRAST
 from calibration.decode.kernel_cache import drop_stale_kernels
-from calibration.decode.kernel_clipped import FIT_SCRATCH, fit_block
+from calibration.decode.kernel_clipped import fit_block
 from calibration.decode.kernel_sets import (
     MODE_GIVEN,
     MODE_LINE,
@@ -98,7 +98,7 @@ def finish_sums(
     covs = np.empty((6, n_sets, BLOCK))
     rdof, rlev, low = np.empty(BLOCK), np.empty(BLOCK), np.empty(BLOCK, dtype=np.bool_)
     scratch = np.empty((3, BLOCK))
-    p = np.empty((tables[2].shape[2] + FIT_SCRATCH, BLOCK))  # fit_block's scratch
+    p = np.empty(tables[2].shape[2])
     first, last = np.full(2, -1), np.full(2, -1)
     for k in range(n_sets):
         if first[set_axis[k]] < 0:
@@ -260,7 +260,7 @@ def residual_stats(sums, bits, squares, c0, row0, nrows, steps, level_out, rss_o
     partial = np.empty((n_sets, BLOCK), dtype=np.bool_)
     covs = np.empty((6, n_sets, BLOCK))
     rdof, scratch = np.empty(BLOCK), np.empty((3, BLOCK))
-    p = np.empty((tables[2].shape[2] + FIT_SCRATCH, BLOCK))  # fit_block's scratch
+    p = np.empty(tables[2].shape[2])
     none, lin = (0.0, 0.0, 0.0, False, 0.0), np.zeros(3)  # (no noise line: no covariance)
     nb, nd = clip[1], clip[2]
     floor_sigma = np.sqrt(clip[0] * (1.0 / nb + 1.0 / nd))

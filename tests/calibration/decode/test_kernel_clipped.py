@@ -6,12 +6,7 @@ import pytest
 
 from acquisition.patterns import build_plan
 from calibration.decode import StreamingDecoder
-from calibration.decode.kernel_clipped import (
-    FIT_SCRATCH,
-    _table_fits,
-    linear_line,
-    pattern_tables,
-)
+from calibration.decode.kernel_clipped import _table_fits, linear_line, pattern_tables
 from calibration.decode.phase import _basis, _normal_inverse
 
 # offset, slope, black, clamp, floor: a sensor line with a black level (clamped below it)
@@ -76,7 +71,7 @@ def test_table_fit_matches_phase_tables_and_step_levels(noise):
     always = np.array([lin[0], lin[1], -np.inf])  # the shortcut always taken
     rng = np.random.default_rng(7)
     psi = np.asarray(s.layout.psi)
-    p_scratch = np.empty((tables.basis.shape[2] + FIT_SCRATCH, 1))
+    p_scratch = np.empty(tables.basis.shape[2])
     for q in PATTERNS:
         for level, amp, linear in ((200.0, 80.0, True), (7.0, 5.0, False)):
             v = level + amp * np.cos(psi + 0.3) + rng.normal(0.0, 1.0, n)
@@ -106,7 +101,7 @@ def test_table_fit_skips_harmonic_rows_only_where_unused(cov):
     lin = linear_line(np.array([2.25, 0.0, 0.0, 0.0, 1.0 / 12.0]))
     assert lin[1] == 0.0 and lin[2] == -np.inf
     psi = np.asarray(s.layout.psi)
-    p_scratch = np.empty((tables.basis.shape[2] + FIT_SCRATCH, 1))
+    p_scratch = np.empty(tables.basis.shape[2])
     for q in PATTERNS:
         v = 150.0 + 60.0 * np.cos(psi + 0.7) + 25.0 * np.cos(2 * psi + 0.2)  # a harmonic
         sums, p, _ = expected(n, s.harmonics, q, v)
@@ -114,10 +109,10 @@ def test_table_fit_skips_harmonic_rows_only_where_unused(cov):
         t, basis = index[k, q], tables.basis[k]
         fast = _table_fit(col, 0, nrow, n, 0, rows, t, basis, p_scratch, False, False, q, cov,
                           lin, constant)
-        assert np.all(p_scratch[3:nrow, 0] == 0.0)  # (not computed)
+        assert np.all(p_scratch[3:nrow] == 0.0)  # (not computed)
         full = _table_fit(col, 0, nrow, n, 0, rows, t, basis, p_scratch, False, True, q, cov,
                           lin, constant)  # the dark-end test needs every coefficient
-        np.testing.assert_allclose(p_scratch[:nrow, 0], p, rtol=1e-6)
+        np.testing.assert_allclose(p_scratch[:nrow], p, rtol=1e-6)
         assert abs(p[3]) > 1.0  # the harmonic is there: zeroing it would show
         assert fast[:13] == full[:13]
         np.testing.assert_allclose([fast[1], fast[3], fast[4]], p[:3], rtol=1e-6)
