@@ -43,6 +43,7 @@ from acquisition.pose_types import (
 )
 from acquisition.protocols import Camera, CameraSettings, Display, Frame
 from acquisition.rig import Rig
+from acquisition.setup import pose_latency
 from acquisition.sinks import FrameSink
 from acquisition.usb.trigger_box import TriggerSink
 from calibration.plan import Plan
@@ -77,6 +78,7 @@ class _Runner:
         self.stale = 0
         self.reconnects = 0
         self.late_s = 0.0  # the latest trigger after its planned time (a stall: torn frames)
+        self.trigger_lag_s = 0.0  # learned delay from a trigger to its exposure's start
         self.last_seq = -1
         self.fr_ref: tuple[float, int] | None = None  # (timestamp, sequence) of a recent frame
         self.delivery_s = 0.0  # learned delay from an exposure's end to its frame's arrival
@@ -148,25 +150,28 @@ class _Runner:
         k, e = self.opts.average, self.settings.exposure_s
         if self.triggered:  # triggered one margin after `on`: timestamp jitter stays inside
             start = max(self.clock.now(), on + self.opts.margin_s)
-            return start + k * (e + self.opts.trigger_overhead_s)
+            return start + k * (e + max(self.opts.trigger_overhead_s, self.trigger_lag_s))
         if self.fr_ref is None:
             return on + k * self.frame_period + e
         ts, _ = self.fr_ref
         first = ts + math.ceil((on - ts) / self.frame_period) * self.frame_period
         return first + (k - 1) * self.frame_period + e
 
-    def begin_exposures(self, on: float, flush: bool) -> None:
+    def begin_exposures(self, on: float, flush: bool) -> float:
         """Wait until `on` (triggered: one margin later, in one sleep, as every wake-up may
-        be late); flush stale frames if allowed; trigger the pattern's exposures."""
+        be late); flush stale frames if allowed; trigger the pattern's exposures. Returns
+        the time the first trigger fired (free-running: the time the wait ended)."""
         start = on + self.opts.margin_s if self.triggered else on
         if self.clock.now() < start:
             self.clock.sleep_until(start)
             if flush:
                 self.camera.flush()
+        fired = self.clock.now()
         if self.triggered:
-            self.late_s = max(self.late_s, self.clock.now() - start)
+            self.late_s = max(self.late_s, fired - start)
             for _ in range(self.opts.average):
                 self.fire()
+        return fired
 
     def next_flip_target(self, flip: float, end: float) -> float:
         """Earliest vsync (on the grid of `flip`) at which the next pattern may flip."""
@@ -180,8 +185,9 @@ class _Runner:
         if now - asked > 1e-4 and now > end:
             self.delivery_s = _slow_max(now - end, self.delivery_s, self.period)
 
-    def collect(self, on: float, off: float) -> tuple[list[Frame], str]:
-        """Grab `average` frames exposed inside [on, off]; ([], reason) if one is torn."""
+    def collect(self, on: float, off: float, fired: float) -> tuple[list[Frame], str]:
+        """Grab `average` frames exposed inside [on, off] of the pattern triggered at
+        `fired`; ([], reason) if one is torn."""
         frames: list[Frame] = []
         while len(frames) < self.opts.average:
             self.check_cancel()
@@ -194,6 +200,10 @@ class _Runner:
             if fr.timestamp_s < on:
                 self.stale += 1
                 continue
+            if not frames and self.triggered:  # a camera that polls for triggers, holds
+                # back overlapping ones, or a busy host: retries must wait for the lag
+                self.trigger_lag_s = _slow_max(fr.timestamp_s - fired, self.trigger_lag_s,
+                                               self.opts.grab_timeout_s)
             if fr.timestamp_s + fr.exposure_s > off:
                 return [], (f"torn: exposure {fr.timestamp_s:.4f}+{fr.exposure_s:.4f} s ran past "
                             f"the next pattern at {off + self.opts.margin_s:.4f} s")
@@ -260,14 +270,14 @@ class _Runner:
                     continue
                 else:
                     entry = unbegun[0]
-                    self.begin_exposures(entry["on"], flush=entry is inflight[0])
+                    entry["fired"] = self.begin_exposures(entry["on"], flush=entry is inflight[0])
                     entry["end"] = self.predicted_end(entry["on"])
                     entry["begun"] = True
                     continue
                 assert head is not None
                 off = inflight[1]["flip"] + self.lat - m if len(inflight) > 1 else math.inf
                 asked = self.clock.now()
-                frames, reason = self.collect(head["on"], off)
+                frames, reason = self.collect(head["on"], off, head["fired"])
                 self.learn_delivery(asked, head["end"])
             except CameraTimeout as exc:
                 frames, reason = [], f"timeout: {exc}"
@@ -331,7 +341,7 @@ def capture_pose(
     if len(set(order)) != len(order) or any(not 0 <= i < len(plan.frames) for i in order):
         raise ValueError(f"indices: expected distinct plan frame indices 0..{len(plan.frames) - 1}")
     applied = camera.configure(settings)
-    latency = _latency(rig, opts, applied)
+    latency = pose_latency(rig, opts.latency_s, applied)
     started = clock.now()
     wall0 = time.monotonic()
     runner = _Runner(display, camera, clock, applied, plan, opts, latency, rig.trigger, cancelled)
@@ -385,14 +395,3 @@ def capture_pose(
             camera.stop()
         except CameraDisconnected:
             pass
-
-
-def _latency(rig: Rig, opts: ControllerOptions, settings: CameraSettings) -> float:
-    """Flip-to-panel latency: given, kept on the rig, or measured now (and kept)."""
-    if opts.latency_s is not None:
-        return opts.latency_s
-    if rig.latency_s is None:
-        from acquisition.setup import decided_latency
-
-        rig.latency_s = decided_latency(rig.display, rig.camera, rig.clock, settings).latency_s
-    return rig.latency_s

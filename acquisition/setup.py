@@ -17,6 +17,7 @@ from acquisition.clock import Clock
 from acquisition.errors import AcquisitionError
 from acquisition.patterns import DisplayResponse
 from acquisition.protocols import Camera, CameraSettings, Display, Frame
+from acquisition.rig import Rig
 
 
 @dataclass(frozen=True)
@@ -304,3 +305,12 @@ def measure_display_response(display: Display, camera: Camera, clock: Clock,
                                "(choose_exposure) first")
     linear = np.maximum.accumulate(np.clip((means - means[0]) / (means[-1] - means[0]), 0, 1))
     return DisplayResponse(lv.astype(np.float64), linear)
+
+
+def pose_latency(rig: Rig, given_s: float | None, settings: CameraSettings) -> float:
+    """Flip-to-panel latency for a pose: given, kept on the rig, or measured now (and kept)."""
+    if given_s is not None:
+        return given_s
+    if rig.latency_s is None:
+        rig.latency_s = decided_latency(rig.display, rig.camera, rig.clock, settings).latency_s
+    return rig.latency_s

@@ -278,6 +278,23 @@ def test_a_torn_pattern_is_shown_again_later_without_discarding_the_pipeline():
     assert [res.accepted.index(i) for i in torn] == [len(PLAN.frames) - 2, len(PLAN.frames) - 1]
 
 
+def test_a_camera_lagging_its_triggers_is_learned_after_one_torn_pattern():
+    """A camera that starts exposing 20 ms after each trigger (polling, a slow link), far
+    past `trigger_overhead_s`: the first pattern tears, the controller learns the lag from
+    that frame's timestamp and waits for it from then on. Only the patterns already shown
+    by then (the pipeline's depth: 3 at 2 periods of latency) tear; without the learned
+    lag every pattern tore until its attempts ran out."""
+    r = make_rig(2, trigger_latency_s=0.02, timestamp_jitter_s=0.0)
+    store = MemoryFrameStore()
+    s = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    res = capture_pose(r.rig, PLAN, store, settings=s, options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete", res.reason
+    torn = [rc.index for rc in res.recaptures]
+    assert 1 <= len(torn) <= 3 and torn == list(range(len(torn)))
+    assert all(rc.reason.startswith("torn") for rc in res.recaptures)
+    assert sorted(store.frames) == list(range(len(PLAN.frames))) and mis_synced(r, res) == []
+
+
 @pytest.mark.parametrize("stall_s, torn", [(0.0, 0), (0.003, 0), (0.02, 1)])
 def test_a_stalled_trigger_is_reported_and_tears_beyond_the_window_slack(
         stall_s: float, torn: int, monkeypatch: pytest.MonkeyPatch) -> None:
