@@ -1,6 +1,11 @@
 """Decoder throughput: a 2448x2048, 64-frame uint8 stack, versus a memory-bandwidth floor.
 
 Run: .venv/bin/python benchmarks/decode.py [--xp numpy|cupy] [--repeats N] [--cli-only]
+       [--read-noise DN] [--gain E_PER_DN]
+The stacks carry camera noise (by default read 1.5 DN and 4 e-/DN: ~5.2 DN at mid grey,
+a typical 8-bit machine-vision camera); the "noise given" rows get that noise model,
+"noise from residuals" fits it. `--read-noise 0 --gain 0`: the noise-free stacks of the
+sessions before 12 ("noise given": 1 DN).
 Prints Mpixel-frames/s for the whole stack decoded at once (`decode_stack`: compiled,
 cache-blocked accumulation and finish range by range, the goal's "end to end"), for the
 streaming decoder frame by frame (`add`, `finish`, as a live capture runs it), and the
@@ -28,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from acquisition.patterns import build_plan
 from calibration.decode import StreamingDecoder, decode_stack
+from calibration.decode.noise import NoiseModel
 from calibration.plan import Plan, plan_from_dict
 
 H, W = 2048, 2448
@@ -50,23 +56,39 @@ def bench_plan() -> Plan:
     return plan
 
 
-def make_stack(plan: Plan, border: bool, partly: bool = False) -> np.ndarray:
+def black_dn(partly: bool) -> float:
+    """The stacks' black level (DN)."""
+    return 6.0 if partly else 20.0
+
+
+def make_stack(plan: Plan, border: bool, partly: bool = False, read_dn: float = 0.0,
+               gain_e_per_dn: float | None = None, seed: int = 0) -> np.ndarray:
     """Camera frames of a tilted screen; `border` adds a black (0 DN, clipped) margin;
     `partly`: a black level of 6 DN and a brightness rising across the image so that the
-    brightest steps of about a third of the pixels saturate (255 DN: some steps clipped)."""
+    brightest steps of about a third of the pixels saturate (255 DN: some steps clipped).
+    Camera noise where asked: Gaussian, variance read_dn^2 + (level - black) / gain (DN^2,
+    as `NoiseModel`), before the 8-bit rounding (neither: noise-free, as the stacks of the
+    sessions before 12)."""
     u = np.arange(W, dtype=np.float32)[None, :]
     v = np.arange(H, dtype=np.float32)[:, None]
     x = 0.75 * u + 0.05 * v
     y = 0.5 * v - 0.03 * u + 20.0
     stack = np.empty((len(plan.frames), H, W), dtype=np.uint8)
-    black, gain = (6.0, 280.0 * (0.6 + 0.4 * u / W)) if partly else (20.0, 200.0)
+    black, gain = black_dn(partly), 280.0 * (0.6 + 0.4 * u / W) if partly else 200.0
+    shot = 1.0 / gain_e_per_dn if gain_e_per_dn else 0.0
+    rng = np.random.default_rng(seed)
     for i, f in enumerate(plan.frames):
         if f.kind == "flat":
             lin = np.full((H, W), f.level, dtype=np.float32)
         else:
             c = x if f.axis == "x" else y
             lin = 0.5 + 0.5 * np.cos(2 * np.pi * c / f.period_px + f.phase_shift)
-        stack[i] = np.minimum(black + gain * lin, 255.0).astype(np.uint8)
+        level = black + gain * lin
+        if read_dn or shot:
+            level = level + rng.standard_normal((H, W), dtype=np.float32) * np.sqrt(
+                read_dn**2 + shot * (level - black)).astype(np.float32)
+            level = np.rint(level)
+        stack[i] = np.clip(level, 0.0, 255.0).astype(np.uint8)
         if border:
             stack[i, :, :64] = 0
             stack[i, :, -64:] = 0
@@ -88,7 +110,7 @@ KERNEL_LOAD_S = [float("nan")]  # a fresh process's kernel import + load, wall s
 
 
 def run_numpy(
-    plan: Plan, stack: np.ndarray, repeats: int, noise: float | None
+    plan: Plan, stack: np.ndarray, repeats: int, noise: NoiseModel | float | None
 ) -> tuple[float, float, float, tuple[float, float, float]]:
     """(setup, add, finish) best wall seconds and the CPU seconds of the best end-to-end run."""
     setup = add = finish = float("inf")
@@ -109,7 +131,7 @@ def run_numpy(
     return setup, add, finish, cpu
 
 
-def run_stack(plan: Plan, stack: np.ndarray, repeats: int, noise: float | None
+def run_stack(plan: Plan, stack: np.ndarray, repeats: int, noise: NoiseModel | float | None
               ) -> tuple[float, float]:
     """Best wall seconds and its CPU seconds of `decode_stack` on the whole stack."""
     best, cpu = float("inf"), 0.0
@@ -217,6 +239,11 @@ def main() -> int:
     ap.add_argument("--no-cli", action="store_true", help="skip the phasecal decode comparison")
     ap.add_argument("--cli-only", action="store_true",
                     help="only the phasecal decode comparison (about 20 s on an idle machine)")
+    ap.add_argument("--read-noise", type=float, default=1.5, metavar="DN",
+                    help="camera read noise added to the stacks (std, DN; default 1.5)")
+    ap.add_argument("--gain", type=float, default=4.0, metavar="E_PER_DN",
+                    help="shot noise added to the stacks: conversion gain, electrons per DN "
+                         "(variance = signal above black / gain; default 4; 0: none)")
     args = ap.parse_args()
     plan = bench_plan()
     npf = H * W * len(plan.frames) / 1e6  # Mpixel-frames
@@ -228,13 +255,13 @@ def main() -> int:
         print(f"compiled kernels loaded in {time.perf_counter() - t0:.2f} s "
               f"({time.process_time() - c0:.2f} CPU s; once per process, not in the rows)")
         if args.cli_only:
-            cli_report(plan, args.repeats)
+            cli_report(plan, args.repeats, cli_stack(plan, args))
             return 0
     rows: list[tuple[str, float]] = []
     finishes: list[tuple[str, float, float]] = []  # (config, finish s, end-to-end s)
     floor = 0.0
     for clip, border, partly in CONFIGS:
-        stack = make_stack(plan, border, partly)
+        stack = make_stack(plan, border, partly, args.read_noise, args.gain)
         if not (border or partly):
             floor = timed(
                 lambda s=stack: [s[i].sum(dtype=np.uint64) for i in range(s.shape[0])],
@@ -242,7 +269,7 @@ def main() -> int:
             )
             rows.append(("numpy sum over the same bytes (floor)", floor))
         if args.xp == "numpy":
-            for noise in (1.0, None):
+            for noise in (given_noise(args, partly), None):
                 tag = f"{clip}, noise {'given' if noise else 'from residuals'}"
                 name = f"end to end, whole stack: decode_stack ({tag})"
                 t_stack, CPU[name] = run_stack(plan, stack, args.repeats, noise)
@@ -259,8 +286,11 @@ def main() -> int:
             tag = clip
             rows.extend((f"{name} ({tag})", t) for name, t in run_cupy(plan, stack, args.repeats))
     floor_rate = npf / floor
+    noise = (f"camera noise: read {args.read_noise:g} DN, gain {args.gain or 'inf'} e-/DN "
+             "(given: that model)" if camera_noise(args) else
+             "noise-free stacks (given: 1 DN)")
     print(f"decode benchmark: {W}x{H}, {len(plan.frames)} uint8 frames "
-          f"({npf:.0f} Mpixel-frames), xp={args.xp}")
+          f"({npf:.0f} Mpixel-frames), xp={args.xp}; {noise}")
     print(f"load: {os.getloadavg()[0]:.2f} (1 min) on {os.cpu_count()} CPUs")
     print(f"{'stage':72s} {'seconds':>9s} {'Mpix-frames/s':>14s} {'vs floor':>9s} "
           f"{'CPU s':>7s}")
@@ -283,8 +313,26 @@ def main() -> int:
             print(f"{tag:44s} {t_fin:9.3f} {H * W / 1e6 / t_fin:9.2f} {t_fin / total:10.0%} "
                   f"{t_fin / capture:11.0%}")
     if args.xp == "numpy" and not args.no_cli:
-        cli_report(plan, args.repeats)
+        cli_report(plan, args.repeats, cli_stack(plan, args))
     return 0
+
+
+def cli_stack(plan: Plan, args: argparse.Namespace) -> np.ndarray:
+    """The stack `phasecal decode` is timed on: unclipped, with the camera noise asked."""
+    return make_stack(plan, False, False, args.read_noise, args.gain)
+
+
+def camera_noise(args: argparse.Namespace) -> bool:
+    """Whether the stacks carry camera noise."""
+    return bool(args.read_noise or args.gain)
+
+
+def given_noise(args: argparse.Namespace, partly: bool) -> NoiseModel | float:
+    """The "noise given" rows' model: the stacks' own camera noise, else 1 DN."""
+    if not camera_noise(args):
+        return 1.0
+    return NoiseModel(read_dn=args.read_noise, gain_e_per_dn=args.gain,
+                      black_dn=black_dn(partly))
 
 
 def fresh_kernel_load() -> float:
@@ -297,10 +345,9 @@ def fresh_kernel_load() -> float:
     return float(out.stdout.split()[-1])
 
 
-def cli_report(plan: Plan, repeats: int) -> None:
-    """`phasecal decode` against the library: best of `repeats` runs of each, the stage
-    breakdown of the command's best run, and the ratio (goal: <= 1.5x)."""
-    stack = make_stack(plan, False)
+def cli_report(plan: Plan, repeats: int, stack: np.ndarray) -> None:
+    """`phasecal decode` against the library on `stack`: best of `repeats` runs of each, the
+    stage breakdown of the command's best run, and the ratio (goal: <= 1.5x)."""
     KERNEL_LOAD_S[0] = fresh_kernel_load()
     runs = [cli_vs_library(plan, stack) for _ in range(max(1, repeats))]
     best = min(runs, key=lambda r: r[0])

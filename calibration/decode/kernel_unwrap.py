@@ -13,6 +13,7 @@ from numba import njit
 
 from calibration.decode.kernel import (
     _FAR_SIGMA,
+    _TOOTH_CUTOFF,
     P_EDGE_BLUR,
     P_MARGIN_SIGMA,
     P_MAX_AMB,
@@ -102,7 +103,7 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
 @njit(cache=True, error_model="numpy", inline="always")
 def _fuse_block(m, cw, sg, us, period, state) -> None:
     """One finer period into the block's posteriors (kernel._fuse where its neighbouring
-    teeth carry no weight, exp(-740) and below; `_fuse` itself for the other pixels, except
+    teeth are negligible, `_TOOTH_CUTOFF`; `_fuse` itself for the other pixels, except
     those that see no screen (code 1, decided before unwrapping and final whatever the
     other rules say; their positions, sigmas and blur are NaN in the maps): ~15 % of a 5 MP
     image's pixels in the kernel, with a period-wide sigma that sent each to the scalar
@@ -118,7 +119,7 @@ def _fuse_block(m, cw, sg, us, period, state) -> None:
         gain = var[j] * inv_total
         half = 0.5 * period * period * inv_total
         tilt = d0 * period * inv_total
-        teeth = (half + tilt < 740.0) | (half - tilt < 740.0)
+        teeth = (half + tilt < _TOOTH_CUTOFF) | (half - tilt < _TOOTH_CUTOFF)
         flag[j] = 1.0 if u and teeth else 0.0
         mu2[j] = mu[j] - d0 * gain if u else mu[j]
         var2[j] = gain * var_k if u else var[j]
