@@ -2,10 +2,11 @@
 
 Run: .venv/bin/python benchmarks/decode.py [--xp numpy|cupy] [--repeats N] [--cli-only]
        [--read-noise DN] [--gain E_PER_DN]
-The stacks carry camera noise (by default read 1.5 DN and 4 e-/DN: ~5.2 DN at mid grey,
-a typical 8-bit machine-vision camera); the "noise given" rows get that noise model,
-"noise from residuals" fits it. `--read-noise 0 --gain 0`: the noise-free stacks of the
-sessions before 12 ("noise given": 1 DN).
+The stacks carry camera noise, by default that of hw_mocks' default sensor (10,000 e-
+full well over 8 bits, 3 e- read noise: read 0.08 DN, 40 e-/DN, ~1.6 DN at mid grey;
+`--read-noise 1.5 --gain 4`: a noisy camera, ~5 DN); the "noise given" rows get that
+noise model, "noise from residuals" fits it. `--read-noise 0 --gain 0`: the noise-free
+stacks of the sessions before 12 ("noise given": 1 DN).
 Prints Mpixel-frames/s for the whole stack decoded at once (`decode_stack`: compiled,
 cache-blocked accumulation and finish range by range, the goal's "end to end"), for the
 streaming decoder frame by frame (`add`, `finish`, as a live capture runs it), and the
@@ -239,11 +240,11 @@ def main() -> int:
     ap.add_argument("--no-cli", action="store_true", help="skip the phasecal decode comparison")
     ap.add_argument("--cli-only", action="store_true",
                     help="only the phasecal decode comparison (about 20 s on an idle machine)")
-    ap.add_argument("--read-noise", type=float, default=1.5, metavar="DN",
-                    help="camera read noise added to the stacks (std, DN; default 1.5)")
-    ap.add_argument("--gain", type=float, default=4.0, metavar="E_PER_DN",
+    ap.add_argument("--read-noise", type=float, default=0.08, metavar="DN",
+                    help="camera read noise added to the stacks (std, DN; default 0.08)")
+    ap.add_argument("--gain", type=float, default=40.0, metavar="E_PER_DN",
                     help="shot noise added to the stacks: conversion gain, electrons per DN "
-                         "(variance = signal above black / gain; default 4; 0: none)")
+                         "(variance = signal above black / gain; default 40; 0: none)")
     args = ap.parse_args()
     plan = bench_plan()
     npf = H * W * len(plan.frames) / 1e6  # Mpixel-frames

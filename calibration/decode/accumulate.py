@@ -36,7 +36,8 @@ def harmonic_orders(steps: int, residual_noise: bool) -> tuple[int, ...]:
     They are orthogonal to the fundamental over all steps, but leak into the phase when
     clipped steps are excluded and inflate the residual noise estimate. Harmonic 2 is
     modelled from 6 steps on; harmonic 3 (residual-noise mode only) from 8. Each keeps
-    at least one residual degree of freedom and stays below the Nyquist order.
+    at least one residual degree of freedom and stays below the Nyquist order. Fits on
+    partial steps model harmonic 2 at most (`phase.PARTIAL_MAX_ORDER`).
     """
     orders: list[int] = []
     for k, wanted in ((2, True), (3, residual_noise)):

@@ -175,7 +175,9 @@ def finish_range(dec: Any, chunk: ChunkSums, sl: slice,
                             opt.screen_margin_sigma, opt.edge_margin_blur, opt.max_sigma_px,
                             MIN_PERIOD_SNR])
         extents = np.array([plan.screen.extent_px(a) for a in ("x", "y")], dtype=np.float64)
-        max_dof = int((lay.steps - lay.nrows).sum())
+        # the most residual dof a pixel can have: a partial fit may model fewer harmonics
+        # than its set's rows (`phase.PARTIAL_MAX_ORDER`), the fundamental at least
+        max_dof = int((lay.steps - 3).sum())
         leak = np.zeros(len(acc.sets)) if dec._leak is None else np.asarray(dec._leak, float)
         inputs = _inputs(chunk, acc)
         tables = _tables(acc, inputs[1], inputs[5], chunk.size)

@@ -22,6 +22,9 @@ from calibration.decode.arrays import to_host
 
 # Kept steps whose normal matrix is this ill-conditioned cannot fix a phase.
 _MAX_CONDITION = 1e6
+# The highest harmonic a fit on partial steps models (display gamma: ~30 % of the
+# fundamental in harmonic 2, ~1 % in harmonic 3), whatever the noise mode.
+PARTIAL_MAX_ORDER = 2
 
 
 @dataclass
@@ -151,11 +154,17 @@ def _basis(steps: int, harmonics: tuple[int, ...]) -> np.ndarray:
 def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) -> _Pattern:
     """Least-squares tables of the kept steps of one exclusion pattern.
 
-    When too few steps are kept for all columns, the highest harmonics are dropped (their
-    rows and columns of the full-size inverse are zero); NaN when even the fundamental
-    cannot be fitted. The residual weights `w` give `w . p = sum_i (1 - h_ii) mu_i` (h: the
-    hat matrix, mu: fitted values): with noise variance linear in the level, the expected
-    residual sum of squares is `offset * dof + slope * w . p`. Kept steps are unevenly
+    Harmonics above `PARTIAL_MAX_ORDER` are not fitted on partial steps (residual-noise
+    mode models harmonic 3 to keep it out of the noise estimate; with steps excluded it
+    would also move the phase, and with the brightest 3 of 10 steps clipped it left no
+    residual dof and 80-150x the fundamental's variance, which failed pixels that the
+    same fit with the noise given decodes; the phase model is now the same in both
+    modes). When too few steps are kept for all columns, the highest harmonics are
+    dropped too (their rows and columns of the full-size inverse are zero); NaN when even
+    the fundamental cannot be fitted. The residual weights `w` give
+    `w . p = sum_i (1 - h_ii) mu_i` (h: the hat matrix, mu: fitted values): with noise
+    variance linear in the level, the expected residual sum of squares is
+    `offset * dof + slope * w . p`. Kept steps are unevenly
     weighted: when the bright ones clip, the dark ones carry most residual dof, so the kept
     samples' average level would overstate their noise. The gains let the (alpha, beta)
     covariance use each kept step's own noise variance. Cached: a pose has few patterns.
@@ -165,7 +174,8 @@ def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) 
     full = basis.shape[1]
     rows = basis[kept]
     n = int(rows.shape[0])
-    for columns in range(full, 2, -2):
+    widest = 3 + 2 * sum(1 for k in harmonics if k <= PARTIAL_MAX_ORDER) if excluded_mask else full
+    for columns in range(widest, 2, -2):
         m = rows[:, :columns].T @ rows[:, :columns]
         if n >= columns and np.linalg.cond(m) <= _MAX_CONDITION:
             out = np.zeros((full, full))
