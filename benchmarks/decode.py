@@ -337,7 +337,7 @@ def given_noise(args: argparse.Namespace, partly: bool) -> NoiseModel | float:
     """The "noise given" rows' model: the stacks' own camera noise, else 1 DN."""
     if not camera_noise(args):
         return 1.0
-    return NoiseModel(read_dn=args.read_noise, gain_e_per_dn=args.gain,
+    return NoiseModel(read_dn=args.read_noise, gain_e_per_dn=args.gain or None,
                       black_dn=black_dn(partly))
 
 
