@@ -138,6 +138,11 @@ def calibrate_raygrid(
     k = 2 if opts.central else 4
     covered = np.all(np.isfinite(d), axis=1)
     dof = 2 * int(inl.sum()) - k * int(covered.sum()) - 6 * len(rc)
+    if dof <= 0:
+        raise ValueError(
+            f"raygrid: {2 * int(inl.sum())} screen coordinates at grid_step {step} do not "
+            f"over-determine {k * int(covered.sum())} ray and {6 * len(rc)} pose parameters; "
+            "use a finer grid_step or more poses")
     chi2_dof = cost / max(dof, 1)
     cov = cov_raw * max(1.0, chi2_dof)
     ang = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
@@ -153,13 +158,16 @@ def calibrate_raygrid(
     )
     poses, per_pose, res_px, pix_out = [], [], {}, {}
     expected2: list[np.ndarray] = []
+    screen2: list[np.ndarray] = []  # per inlier: squared screen residual, its expected size
     pitch = np.asarray(screen.pitch_mm)
     for j in range(len(rc)):
         px, exp2 = pixel_residuals(model, rc[j], tc[j], ob.pixels, res_mm[j], ob.sigma[j])
         ok = inl[j] & np.all(np.isfinite(px), axis=1)
         expected2.append(exp2[ok])
+        screen2.append(np.stack([np.sum((res_mm[j][inl[j]] / pitch) ** 2, axis=1),
+                                 np.sum((ob.sigma[j][inl[j]] / pitch) ** 2, axis=1)]))
         rms_px = float(np.sqrt(np.mean(np.sum(px[ok] ** 2, axis=1))))
-        rms_scr = float(np.sqrt(np.mean(np.sum((res_mm[j][inl[j]] / pitch) ** 2, axis=1))))
+        rms_scr = float(np.sqrt(np.mean(screen2[-1][0])))
         poses.append(PoseEstimate(rc[j].T, -rc[j].T @ tc[j], rms_px, rms_scr, int(inl[j].sum())))
         per_pose.append({
             "pose": j,
@@ -172,15 +180,25 @@ def calibrate_raygrid(
     all_px = np.concatenate([res_px[j] for j in res_px])
     rms_px = float(np.sqrt(np.mean(np.sum(all_px**2, axis=1))))
     # Training residuals of a per-pixel fit are shrunk by its degrees of freedom.
-    expected_rms = float(np.sqrt(np.mean(np.concatenate(expected2)) * dof / max(2 * inl.sum(), 1)))
+    shrink = dof / max(2 * inl.sum(), 1)
+    expected_rms = float(np.sqrt(np.mean(np.concatenate(expected2)) * shrink))
+    # the same ratio in the screen plane (evaluate.py: camera px can hide a misfit where
+    # the screen->camera Jacobian is large)
+    scr2 = np.concatenate(screen2, axis=1)
+    rms_screen = float(np.sqrt(np.mean(scr2[0])))
+    expected_screen = float(np.sqrt(np.mean(scr2[1]) * shrink))
+    ratio, ratio_screen = rms_px / expected_rms, rms_screen / expected_screen
     stats: dict[str, Any] = {
         "model": "raygrid",
         "central": opts.central,
         "grid_step": step,
         "rms_px": rms_px,
         "expected_rms_px": expected_rms,
-        "noise_floor_ratio": rms_px / expected_rms,
-        "model_adequate": bool(rms_px / expected_rms <= ADEQUATE_RATIO),
+        "rms_screen_px": rms_screen,
+        "expected_rms_screen_px": expected_screen,
+        "noise_floor_ratio": ratio,
+        "noise_floor_ratio_screen": ratio_screen,
+        "model_adequate": bool(ratio <= ADEQUATE_RATIO and not ratio_screen > ADEQUATE_RATIO),
         "per_pose": per_pose,
         "iterations": iterations,
         "converged": converged,

@@ -100,6 +100,9 @@ def test_statistics_and_heldout(pinhole_fit):
     st = res.stats
     assert len(res.poses) == 3 and len(st["per_pose"]) == 3
     assert 0.8 < st["noise_floor_ratio"] < 1.25 and st["model_adequate"]
+    # the same ratio in the screen plane, where the fit's residuals live
+    assert 0.8 < st["noise_floor_ratio_screen"] < 1.25
+    assert st["rms_screen_px"] > 0 and st["expected_rms_screen_px"] > 0
     held = st["heldout"]["per_pose"][0]
     assert held["pose"] == 3
     # Held-out residuals carry the ray noise too (rays from 3 poses): chi2 ~ 1 + 2/3.
@@ -212,6 +215,10 @@ def test_bad_options_raise_clear_errors(pinhole_fit):
         calibrate(maps, SCREEN, "raygrid", options={"grid_step": 0})
     with pytest.raises(ValueError, match=">= 3 poses"):
         calibrate(maps, SCREEN, "raygrid", heldout=[0, 1])
+    # a grid so coarse that the nodes' coordinates do not over-determine rays and poses
+    # (it used to end in a division by zero or NaN noise-floor ratios)
+    with pytest.raises(ValueError, match="finer grid_step or more poses"):
+        calibrate(maps, SCREEN, "raygrid", options={"grid_step": 40})
 
 
 def test_cli_calibrate_raygrid(pinhole_fit, tmp_path, capsys):
