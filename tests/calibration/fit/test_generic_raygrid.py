@@ -237,6 +237,7 @@ def test_cli_calibrate_raygrid(pinhole_fit, tmp_path, capsys):
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "raygrid" in printed and "held-out RMS" in printed and "INADEQUATE" not in printed
+    assert "in the screen plane nan" not in printed  # raygrid's screen-plane ratio is shown
     model = load_model(out)
     assert isinstance(model, RayGridModel) and model.stats["converged"]
     pix = _grid(7.0, 0.5)
@@ -244,6 +245,11 @@ def test_cli_calibrate_raygrid(pinhole_fit, tmp_path, capsys):
     ok = np.all(np.isfinite(d), axis=1)
     assert ok.mean() > 0.5
     assert np.max(np.abs(model.project(o + 500.0 * d)[ok] - pix[ok])) < 1e-6
+    # a grid too coarse for the maps: a clear error, no model written
+    coarse = tmp_path / "coarse.json"
+    assert main([*args[:-2], "--option", "grid_step=40", "-o", str(coarse)]) != 0
+    assert "finer grid_step or more poses" in capsys.readouterr().err
+    assert not coarse.exists()
 
 
 def test_progress_and_cancellation(pinhole_fit):
