@@ -61,7 +61,7 @@ COARSEST_MARGIN = 1.05
 def choose_periods(extent_px: int, finest_period_px: float, max_ratio: float) -> list[float]:
     """Geometric period ladder from >= extent down to ~finest, each ratio <= max_ratio.
 
-    PHYSICS.md section 2: the coarsest period covers the screen (no ambiguity) and each
+    docs/physics.md section 3: the coarsest period covers the screen (no ambiguity) and each
     ratio is small enough that the coarser period's sigma is a small fraction of the
     finer period, so the Bayesian unwrapping picks the right order reliably.
     """

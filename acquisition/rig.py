@@ -53,7 +53,7 @@ class ScreenConfig(_Strict):
 
 class PanelConfig(_Strict):
     """Simulated rigs: the emitting layer's bow/twist (mm) behind a cover glass (thickness mm,
-    index), traced exactly by `hw_mocks.panel.PanelShape` (PHYSICS.md section 7)."""
+    index), traced exactly by `hw_mocks.panel.PanelShape` (docs/physics.md section 8)."""
 
     bow_x_mm: float = Field(default=0.0, allow_inf_nan=False,
                             description="sag centre to x edges (+: towards the camera)")

@@ -1,4 +1,4 @@
-"""`phasecal` command line: one subcommand per module in `api.commands` (FORMATS.md contract).
+"""`phasecal` command line: one subcommand per module in `api.commands` (docs/formats.md).
 
 Each command module defines `HELP`, `add_arguments(parser)` and `run(args) -> int`.
 Errors that are the user's (bad files, bad values) exit 1 with one line on stderr.

@@ -1,7 +1,7 @@
 """Validate uploaded frames (a `.npy` stack or PNG/TIFF images) against a plan and store them.
 
 Uploads are checked before anything is decoded: count, shape, dtype and names must
-match the plan (FORMATS.md "Captured frames"); files are written under our own names.
+match the plan (docs/formats.md, "Captured frames"); files are written under our own names.
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ def make_durable(pose_dir: Path) -> bool:
 
 def intact_maps(path: Path) -> str | None:
     """None if `path` is a whole maps NPZ as written (every member's CRC-32 matches, the
-    FORMATS.md members are there); otherwise why not, in a few words."""
+    maps members of docs/formats.md are there); otherwise why not, in a few words."""
     try:
         with zipfile.ZipFile(path) as zf:
             names = {n.removesuffix(".npy") for n in zf.namelist()}

@@ -1,7 +1,7 @@
 """Validate an uploaded maps NPZ (`import-maps`) before anything is stored or fully read.
 
 Order matters: member names and declared uncompressed sizes first (a 1 MB zip can expand
-to gigabytes), then each `.npy` header (dtype and shape per FORMATS.md, the declared size
+to gigabytes), then each `.npy` header (dtype and shape per docs/formats.md, the declared size
 matching the member), then the values (where `mask`: finite coordinates inside the screen
 with a margin, finite positive sigmas).
 """
@@ -85,7 +85,7 @@ def check_archive(data: bytes, name: str, max_bytes: int) -> tuple[int, int]:
                 continue
             shape, dtype = _header(zf, info, name)
             if dtype != np.dtype(want):
-                raise _bad(name, f"{key}: dtype {dtype}, FORMATS.md says {np.dtype(want)}")
+                raise _bad(name, f"{key}: dtype {dtype}, expected {np.dtype(want)}")
             if len(shape) != 2 or min(shape) < 1:
                 raise _bad(name, f"{key}: expected a non-empty 2-D (H, W) array, got {shape}")
             shape0 = shape0 or shape

@@ -1,8 +1,8 @@
 """Time per pose of the acquisition controller against the timing floor (simulated 60 Hz rig).
 
-Floor (PHYSICS.md section 6), per pose of N patterns, display period P, exposure e,
+Floor (docs/physics.md section 7), per pose of N patterns, display period P, exposure e,
 latency L, camera frame period T (free-running):
-  continuous floor  = L + P + N * (P + e)                      (the PHYSICS.md formula)
+  continuous floor  = L + P + N * (P + e)                      (ignores that flips wait for vsyncs)
   vsync floor       = L + P + N * max(ceil((P + e) / P) * P, T_fr)   with T_fr = T for a
                       free-running camera (one frame per pattern at most), else 0
 Flips happen only at vsyncs, so the vsync floor is the real lower bound. The free-running

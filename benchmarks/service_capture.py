@@ -11,7 +11,7 @@ pose fills the simulated camera's replay cache, so the timed poses measure the s
 simulator's renderer.
 
 R is the capture time over the vsync floor of the plan (benchmarks/acquisition_timing.py,
-PHYSICS.md section 6): L + P + N * ceil((P + e) / P) * P for N plan frames, refresh period
+docs/physics.md section 7): L + P + N * ceil((P + e) / P) * P for N plan frames, refresh period
 P, latency L, exposure e. A global-shutter exposure sees one pattern on every row only
 while that pattern is held through a full scan-out, so each pattern needs two refreshes
 when e > 0; the integrity repeats at the end of the pose (3 frames) and everything else

@@ -74,7 +74,7 @@ class DecodedMaps:
             )
 
     def npz_arrays(self) -> dict[str, np.ndarray]:
-        """The NPZ members (FORMATS.md layout); arrays already of the right dtype are not copied."""
+        """The NPZ members (docs/formats.md); arrays already of the right dtype are not copied."""
         arrays: dict[str, np.ndarray] = {
             "x": np.asarray(self.x, dtype=np.float64),
             "y": np.asarray(self.y, dtype=np.float64),
@@ -109,7 +109,7 @@ class DecodedMaps:
                     out.write(memoryview(arr.reshape(-1)).cast("B") if arr.ndim else arr.tobytes())
 
     def to_npz_bytes(self, compress: bool = False) -> bytes:
-        """Serialize to NPZ bytes (FORMATS.md layout)."""
+        """Serialize to NPZ bytes (docs/formats.md layout)."""
         buf = io.BytesIO()
         self.write_npz(buf, compress)
         return buf.getvalue()

@@ -1,6 +1,6 @@
 """A pose's maps file laid out before its decode, so the decoder writes into it directly.
 
-The FORMATS.md array members of a pose's maps (x, y float64; sigma, modulation, blur
+The array members of a pose's maps (docs/formats.md) (x, y float64; sigma, modulation, blur
 float32; mask bool) have shapes known once the camera's shape and the plan's axes are. The
 live decode creates the stored NPZ with every array member's data at a page-aligned offset
 before the first frame (`MapsFile`), its pages are faulted in while frames arrive
@@ -9,7 +9,7 @@ before the first frame (`MapsFile`), its pages are faulted in while frames arriv
 directory are written (`commit`) and the file is renamed into place whole: no copy of
 ~200 MB of maps and no page faults after the last frame.
 A failed or cancelled decode removes the temporary file (`close`); np.load reads the result
-like any NPZ (FORMATS.md). POSIX: the file is renamed while the decoder's views of it may
+like any NPZ (docs/formats.md). POSIX: the file is renamed while the decoder's views of it may
 still be mapped.
 """
 
@@ -47,7 +47,7 @@ PLANES = {"position": ("x", "y"), "sigma": ("sigma_x", "sigma_y"),
 
 
 _F64, _F32 = np.dtype(np.float64), np.dtype(np.float32)
-# the array members in `DecodedMaps.npz_arrays` order (FORMATS.md dtypes)
+# the array members in `DecodedMaps.npz_arrays` order (docs/formats.md dtypes)
 _DTYPES = {"x": _F64, "y": _F64, "sigma_x": _F32, "sigma_y": _F32, "mask": np.dtype(bool),
            "modulation_x": _F32, "modulation_y": _F32, "blur_x": _F32, "blur_y": _F32}
 

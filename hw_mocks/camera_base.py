@@ -1,6 +1,6 @@
 """The ground-truth camera interface of the simulator and the helpers every truth camera uses.
 
-Conventions (FORMATS.md): pixel centers at integers, top-left pixel center (0, 0);
+Conventions (docs/formats.md): pixel centers at integers, top-left pixel center (0, 0);
 camera frame x right, y down, z forward; millimetres.
 """
 

@@ -2,7 +2,7 @@
 
 Written independently of `calibration.models` (closed-form formulas, own inverses) so
 that a bug in a fitted model cannot hide by appearing on both sides of a test.
-Conventions (FORMATS.md): pixel centers at integers, top-left pixel center (0, 0);
+Conventions (docs/formats.md): pixel centers at integers, top-left pixel center (0, 0);
 camera frame x right, y down, z forward; millimetres.
 """
 

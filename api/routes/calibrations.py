@@ -183,7 +183,7 @@ def project(cal_id: str, body: ProjectRequest, svc: Svc) -> dict[str, Any]:
     """Camera-frame points (mm) -> pixels with the fitted model."""
     pts = _rows(body.points, 3)
     model = _model(svc, cal_id)
-    # the camera centre (0,0,0) has no direction: a NaN row (FORMATS.md), not a failed fit
+    # the camera centre (0,0,0) has no direction: a NaN row (docs/formats.md), not a failed fit
     seen = np.linalg.norm(pts, axis=1) > MIN_POINT_NORM_MM
     pixels = np.full((len(pts), 2), np.nan)
     if seen.any():

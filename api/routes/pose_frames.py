@@ -79,7 +79,7 @@ def redecode_pose(session_id: str, pose_id: str, svc: Svc,
             responses={200: {"content": {"application/zip": {}}}})
 def export_frames(session_id: str, pose_id: str, svc: Svc, background: BackgroundTasks,
                   format: Annotated[Literal["png", "tiff"], Query()] = "png") -> FileResponse:
-    """The pose's frames as frame_NNNN.png (or .tif) images in a zip (FORMATS.md folder)."""
+    """The pose's frames as frame_NNNN.png (or .tif) images in a zip (docs/formats.md folder)."""
     import cv2
     import numpy as np
 

@@ -1,4 +1,4 @@
-"""Per-pixel Gaussian blur width from modulation versus period (PHYSICS.md section 3).
+"""Per-pixel Gaussian blur width from modulation versus period (docs/physics.md section 4).
 
 Blur of width W on the screen scales the modulation of period T by exp(-2 pi^2 W^2 / T^2),
 so `ln(B*/amplitude) = ln B0 - 2 pi^2 W^2 / T^2` is linear in 1/T^2. A weighted

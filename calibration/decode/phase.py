@@ -1,7 +1,7 @@
 """Per-period least-squares cosine fit: wrapped position, modulation B* and its covariance.
 
 Each pixel's samples of one period obey `v_i = C + alpha sin(psi_i) + beta cos(psi_i)`
-with `alpha = -B sin(phi)`, `beta = B cos(phi)` (PHYSICS.md section 1). With all steps
+with `alpha = -B sin(phi)`, `beta = B cos(phi)` (docs/physics.md section 1). With all steps
 kept this is the classic closed form; with clipped steps excluded it is the least-squares
 solution over the kept steps, solved per distinct exclusion pattern (a handful), not per pixel.
 """

@@ -1,6 +1,6 @@
 """Multi-period Bayesian unwrapping: product of per-period likelihood combs with a screen prior.
 
-Periods are fused coarsest first (PHYSICS.md section 2). The coarsest period's comb times
+Periods are fused coarsest first (docs/physics.md section 3). The coarsest period's comb times
 the uniform prior on the screen extent picks its order; each finer period's comb
 multiplies the current Gaussian posterior N(mu, s^2): the candidate orders m give
 components with weights exp(-d_m^2 / 2(s^2 + sigma_k^2)). Components whose centres are

@@ -3,7 +3,7 @@
 Residual of pixel p in pose j: where the model's ray for p reaches the panel
 (calibration.metrology.screen), minus the decoded screen point, per axis, divided by
 the decoded sigma (screen px): the maximum-likelihood fit for independent Gaussian
-decoding noise (PHYSICS.md section 5). Jacobians are analytic (directions.py,
+decoding noise (docs/physics.md section 6). Jacobians are analytic (directions.py,
 screen.py); each residual touches the intrinsics, the screen parameters and its own
 pose, so the normal equations are one small dense matrix, accumulated pose by pose with
 BLAS. Pose update: R <- R exp([w]x), t <- t + dt. Covariance: the inverse normal matrix

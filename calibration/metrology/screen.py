@@ -4,7 +4,7 @@ Screen frame (mm): x, y along the pixel rows/columns, z into the screen. With
 `screen: "fit"` the emitting layer lies at z_s = bow_x (xi^2 - 1/3) + bow_y (eta^2 - 1/3) +
 twist xi eta (xi, eta in [-1, 1] over the panel), behind a flat cover glass of index n
 (known) and thickness h (estimated) whose front surface is z = -h; the medium in
-between has index n (PHYSICS.md section 7). Gauge: the shape terms have zero mean and
+between has index n (docs/physics.md section 8). Gauge: the shape terms have zero mean and
 zero tilt over the panel, so no plane of it trades with the pose; the pose places the
 emitting layer's mean plane. A camera ray with origin o and lateral slope q = d_xy / d_z
 reaches the panel at the fixed point Q = o_xy - (h + o_z) q + (z_s(Q) + h) m(q), with

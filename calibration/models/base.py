@@ -1,6 +1,6 @@
 """The one camera-model interface every model implements, the registry, and model JSON I/O.
 
-A model maps between camera pixels (u, v; FORMATS.md conventions) and rays in its own
+A model maps between camera pixels (u, v; docs/formats.md conventions) and rays in its own
 camera frame (x right, y down, z forward, mm). Central models have all origins at 0.
 """
 

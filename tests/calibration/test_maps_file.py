@@ -74,7 +74,7 @@ def _same_npz(got: Path, want: Path) -> None:
                 assert json.loads(str(a[key])) == json.loads(str(b[key]))
             else:
                 assert a[key].tobytes() == b[key].tobytes(), key
-    load_maps(got)  # FORMATS.md members, dtypes, meta format
+    load_maps(got)  # docs/formats.md members, dtypes, meta format
 
 
 def _data_offsets(path: Path) -> dict[str, int]:

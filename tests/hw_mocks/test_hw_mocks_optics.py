@@ -41,7 +41,7 @@ CAMERAS = {
 
 
 def _decode(frames: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """PHYSICS.md section 1: wrapped phase and modulation of an N-step stack."""
+    """docs/physics.md section 1: wrapped phase and modulation of an N-step stack."""
     psi = 2 * np.pi * np.arange(steps) / steps
     a = np.tensordot(np.sin(psi), frames, axes=1)
     b = np.tensordot(np.cos(psi), frames, axes=1)
@@ -258,7 +258,7 @@ def test_rendered_cosine_decodes_to_truth_without_bias() -> None:
     inner = truth["visible"] & (truth["edge_distance_px"] > 4 * period)
     assert inner.mean() > 0.2
     bias = _wrap_px(phase, truth["x_true"], period)[inner]
-    # Noisy frames through the sensor: error spread matches the PHYSICS.md prediction.
+    # Noisy frames through the sensor: error spread matches the docs/physics.md prediction.
     frames, ft = render_plan_frames(
         plan,
         setup,

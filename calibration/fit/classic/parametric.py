@@ -153,7 +153,7 @@ _SINGLE_THREAD_LOCK = threading.Lock()
 
 @contextmanager
 def _opencv_single_threaded() -> Iterator[None]:
-    """Run OpenCV's solver on one thread (repeatable results, FACTS.md).
+    """Run OpenCV's solver on one thread (repeatable results, docs/calibration.md step 3).
 
     `cv2.setNumThreads` is process-wide, so concurrent fits in one process take turns
     here instead of resetting each other's thread count mid-solve.

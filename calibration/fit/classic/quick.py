@@ -42,7 +42,7 @@ def white_flat_index(plan: Plan) -> int:
 
 
 def read_white_flat(frames: str | Path, plan: Plan) -> np.ndarray:
-    """The white flat frame of a captured pose (FORMATS.md frames: .npy stack or folder)."""
+    """The white flat frame of a captured pose (docs/formats.md frames: .npy stack or folder)."""
     src = read_frames(frames)
     index = white_flat_index(plan)
     if src.count <= index:

@@ -8,8 +8,8 @@ are eliminated by a Schur complement, leaving a 6J x 6J pose system solved by a 
 pseudo-inverse that drops the gauge (rotation; translation too when non-central). A plain
 alternation (rays | poses) converges far too slowly along the joint weak directions, hence
 the joint step. Residual: the ray, moved into the pose's screen frame, meets z = 0 at Q;
-e = (Q - S) / sigma (PHYSICS.md §5). Pixels seen in < 2 poses get NaN rays. Ray covariance
-includes pose uncertainty (gauge projected out), scaled by max(1, chi2/dof).
+e = (Q - S) / sigma (docs/physics.md section 6). Pixels seen in < 2 poses get NaN rays. Ray
+covariance includes pose uncertainty (gauge projected out), scaled by max(1, chi2/dof).
 Options: `central` (true), `grid_step` (1 up to 640x480, else 2), `max_iterations` (30),
 `tolerance` (1e-9 relative cost change), `cut_sigmas` (8, hard outlier cut in sigmas).
 """

@@ -1,4 +1,4 @@
-"""Levenberg–Marquardt for sGCC ray-field splines and screen poses (PHYSICS.md section 5).
+"""Levenberg–Marquardt for sGCC ray-field splines and screen poses (docs/physics.md section 6).
 
 Residual of pixel p in pose j: the model ray, moved into the screen frame
 (o_s = Rc o + tc, r_s = Rc r with Rc = R_j^T, tc = -R_j^T t_j), meets the plane z = 0 at

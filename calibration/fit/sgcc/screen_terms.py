@@ -1,7 +1,7 @@
 """The fitted screen of sGCC (`screen: "fit"`): rays traced to a bowed panel behind cover glass.
 
-Same physics and parameters as `calibration.metrology.screen.ScreenModel` (PHYSICS.md
-section 7: emitting layer z_s = bow_x (xi^2 - 1/3) + bow_y (eta^2 - 1/3) + twist xi eta,
+Same physics and parameters as `calibration.metrology.screen.ScreenModel` (docs/physics.md
+section 8: emitting layer z_s = bow_x (xi^2 - 1/3) + bow_y (eta^2 - 1/3) + twist xi eta,
 flat cover glass of known index n and fitted thickness h, front surface z = -h), but
 feature-major ((k, n) arrays) and on any array module, so the threaded CPU path
 (sgcc/problem.py) and the GPU path (sgcc/device.py) share it.

@@ -226,7 +226,7 @@ def test_cli_batch_on_local_cluster_matches_in_process(tmp_path, capsys):
     common = ["batch", "--plan", str(tmp_path / "plan.json"), "--maps", *maps,
               "--model", "opencv5", "opencv-rational"]
     # in-process reference: one model per run, because concurrent fits in threads of one
-    # process share OpenCV's global thread setting (not repeatable, see FACTS.md)
+    # process share OpenCV's global thread setting (not repeatable, docs/calibration.md step 3)
     for model in ("opencv5", "opencv-rational"):
         assert cli_main([*common[:-2], model, "--executor", "inprocess",
                          "-o", str(tmp_path / "a")]) == 0

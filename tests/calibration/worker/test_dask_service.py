@@ -123,7 +123,8 @@ def test_batch_endpoint_on_cluster_matches_in_process(cluster, tmp_path):
                            files={"file": (f.name, f.read_bytes(), "application/octet-stream")})
                 assert r.status_code == 201, r.text
             # in-process: one model per batch, because concurrent fits in threads of one
-            # process share OpenCV's global thread setting (not repeatable, see FACTS.md)
+            # process share OpenCV's global thread setting (not repeatable: docs/calibration.md,
+            # pipeline step 3)
             sweeps = ([["opencv5"], ["opencv-rational"]] if executor is None
                       else [["opencv5", "opencv-rational"]])
             for models in sweeps:
