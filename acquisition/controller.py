@@ -6,7 +6,9 @@ the scan-out period P, a pattern is fully on the panel from F + L + P until the 
 pattern's flip F' + L. A frame is accepted only if its exposure [t, t + e] (camera
 timestamp = start of exposure) lies inside [F + L + P + m, F' + L - m], m = timestamp
 uncertainty margin. Frames starting earlier are stale (dropped silently); frames ending
-later are torn (the pattern is re-shown and re-captured). A consistency check rejects
+later are torn (the pattern is re-shown and re-captured); a triggered frame the camera
+reports lost on its link (`FrameLost`: an incomplete buffer) is re-shown and re-captured
+the same way, at once rather than after the grab timeout. A consistency check rejects
 frames whose sequence number does not increase (re-delivered buffers). Timing is used
 rather than image content because content checks cannot tell adjacent phase steps of
 a low-contrast pattern apart reliably and cost a full image comparison per frame,
@@ -31,7 +33,7 @@ import numpy as np
 
 from acquisition.clock import Clock
 from acquisition.controller_phase import rephase
-from acquisition.errors import AcquisitionError, CameraDisconnected, CameraTimeout
+from acquisition.errors import AcquisitionError, CameraDisconnected, CameraTimeout, FrameLost
 from acquisition.integrity import IntegrityReport, compare_references, reference_indices
 from acquisition.pattern_cache import cache_for
 from acquisition.pose_types import (
@@ -45,6 +47,7 @@ from acquisition.protocols import Camera, CameraSettings, Display, Frame
 from acquisition.rig import Rig
 from acquisition.setup import pose_latency
 from acquisition.sinks import FrameSink
+from acquisition.stream_statistics import ReportsStreamStatistics, StreamStatistics
 from acquisition.usb.trigger_box import TriggerSink
 from calibration.plan import Plan
 from calibration.progress import Cancel, Cancelled, Progress, is_cancelled
@@ -77,6 +80,7 @@ class _Runner:
         self.recaptures: list[Recapture] = []
         self.stale = 0
         self.reconnects = 0
+        self.lost = 0  # triggered frames that came back incomplete and were triggered again
         self.late_s = 0.0  # the latest trigger after its planned time (a stall: torn frames)
         self.trigger_lag_s = 0.0  # learned delay from a trigger to its exposure's start
         self.last_seq = -1
@@ -279,6 +283,9 @@ class _Runner:
                 asked = self.clock.now()
                 frames, reason = self.collect(head["on"], off, head["fired"])
                 self.learn_delivery(asked, head["end"])
+            except FrameLost as exc:  # the camera is in step: its frame alone is gone
+                frames, reason = [], f"lost: {exc}"
+                self.lost += 1
             except CameraTimeout as exc:
                 frames, reason = [], f"timeout: {exc}"
                 self.restart()
@@ -292,9 +299,10 @@ class _Runner:
                 if tries >= self.opts.max_attempts:
                     raise _Failed(f"plan frame {failed}: no valid frame after "
                                   f"{self.opts.max_attempts} attempts (last: {reason})")
-                if reason.startswith("torn") and head is not None:
+                if reason.startswith(("torn", "lost")) and head is not None:
                     # the camera is in step: the patterns in flight stay valid, and the
-                    # torn one is shown again after the others
+                    # torn or lost one is shown again after the others (frames still due
+                    # for it predate the next pattern's window: dropped as stale)
                     order.append(failed)
                     attempts[len(order) - 1] = tries
                     inflight.pop(0)
@@ -352,6 +360,9 @@ def capture_pose(
     originals: dict[int, np.ndarray] = {}
     accepted: list[int] = []
     frames: dict[int, AcceptedFrame] = {}
+    stream0: StreamStatistics | None = None  # the camera's transfer counters before the pose
+    if isinstance(camera, ReportsStreamStatistics):
+        stream0 = camera.stream_statistics()
 
     def accept(i: int, image: np.ndarray, info: AcceptedFrame) -> None:
         if i in frames:  # a reference seen before: this is its repeat
@@ -369,9 +380,12 @@ def capture_pose(
                               else "integrity"))
 
     def result(status: Status, reason: str, report: IntegrityReport | None = None) -> PoseCapture:
+        stream = None
+        if stream0 is not None and isinstance(camera, ReportsStreamStatistics):
+            stream = camera.stream_statistics().since(stream0)
         return PoseCapture(status, reason, len(order), accepted, frames, runner.recaptures,
                            runner.stale, runner.reconnects, latency, started, clock.now(), report,
-                           runner.late_s)
+                           runner.late_s, lost_frames=runner.lost, stream=stream)
 
     camera.start()
     try:  # one pipelined run: the repeats follow the last plan frame without a restart

@@ -24,3 +24,7 @@ class CameraTimeout(CameraError):
 class CameraDisconnected(CameraError):
     """The camera is gone (unplugged, powered off, link lost); reconnect may help."""
 
+
+class FrameLost(CameraError):
+    """A triggered frame came back incomplete (packets lost on the link, not recovered by
+    resend): no frame will come for that trigger, so trigger again instead of waiting."""

@@ -4,10 +4,11 @@ timing, recaptures and the pose's result (kept apart so callers need not import 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 from acquisition.integrity import IntegrityReport, IntegrityThresholds
 from acquisition.patterns import DisplayResponse
+from acquisition.stream_statistics import StreamStatistics
 
 Status = Literal["complete", "cancelled", "failed", "flagged"]
 
@@ -67,6 +68,19 @@ class PoseCapture:
     # the latest any trigger fired after its planned time (triggered modes): a stall of the
     # capture machine longer than the pattern's exposure window tears that pattern's frame
     trigger_late_s: float = 0.0
+    # triggered frames that came back incomplete (packets lost on the link) and were
+    # triggered again; each is also a `Recapture` whose reason starts with "lost"
+    lost_frames: int = 0
+    # the camera's transfer counters over this pose, when the camera offers them
+    stream: StreamStatistics | None = None
+
+    def counters(self) -> dict[str, Any]:
+        """Recapture and transfer counts for a capture report (JSON-ready)."""
+        out: dict[str, Any] = {"recaptures": len(self.recaptures),
+                               "lost_frames": self.lost_frames}
+        if self.stream is not None:
+            out["stream"] = self.stream.as_dict()
+        return out
 
     @property
     def accepted_count(self) -> int:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from acquisition.clock import Clock
-from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError
+from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError, FrameLost
 from acquisition.protocols import CameraInfo, CameraSettings, Frame, TriggerMode
 from hw_mocks.display import SimulatedDisplay
 from hw_mocks.optics import OpticalSetup
@@ -35,6 +35,9 @@ class CameraFaults:
     timeout_grabs: frozenset[int] = frozenset()  # grab calls that time out
     late_triggers: dict[int, float] = field(default_factory=dict)  # trigger n -> extra delay s
     drop_probability: float = 0.0  # random frames lost in transfer (sequence gaps)
+    # triggers whose frame arrives incomplete (packets lost on the link): grab raises
+    # `FrameLost` when it reaches that frame, as a GigE Vision backend does
+    lost_triggers: frozenset[int] = frozenset()
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,7 @@ class _Exposure:
     sequence: int
     start_s: float
     timestamp_s: float
+    lost: bool = False  # arrives as an incomplete buffer (`CameraFaults.lost_triggers`)
 
 
 class SimulatedCamera:
@@ -187,7 +191,9 @@ class SimulatedCamera:
         delay = self.trigger_latency_s + self.faults.late_triggers.get(self._triggers, 0.0)
         start = max(self.clock.now() + delay, self._busy_until)
         self._busy_until = start + self._settings.exposure_s + 1e-4
-        self._pending.append(self._new_exposure(start))
+        exp = self._new_exposure(start)
+        exp.lost = self._triggers in self.faults.lost_triggers
+        self._pending.append(exp)
 
     def grab(self, timeout_s: float) -> Frame:
         """Oldest queued frame; waits up to `timeout_s` for one."""
@@ -199,6 +205,10 @@ class SimulatedCamera:
             raise CameraTimeout(f"{self._info.name}: no frame within {timeout_s} s (injected)")
         while True:
             self._update(self.clock.now())
+            if self._queue and self._queue[0].lost:
+                exp = self._queue.popleft()
+                raise FrameLost(f"{self._info.name}: frame {exp.sequence} arrived incomplete "
+                                "(injected packet loss); trigger again")
             if self._queue:
                 return self._deliver(self._queue.popleft())
             nxt = self._next_delivery()

@@ -11,6 +11,7 @@ from acquisition.controller import ControllerOptions, capture_pose
 from acquisition.patterns import build_plan
 from acquisition.setup import choose_exposure, measure_display_response, measure_latency
 from acquisition.sinks import MemoryFrameStore
+from acquisition.stream_statistics import StreamStatistics
 from calibration.plan import ScreenGeometry
 from hw_mocks.camera import CameraFaults
 from hw_mocks.cameras import mild_pinhole
@@ -325,3 +326,44 @@ def test_a_stalled_trigger_is_reported_and_tears_beyond_the_window_slack(
     assert len(res.recaptures) == torn and all(rc.reason.startswith("torn")
                                                for rc in res.recaptures)
     assert sorted(store.frames) == list(range(len(PLAN.frames))) and mis_synced(r, res) == []
+
+
+def test_a_lost_triggered_frame_is_shown_again_and_counted():
+    """Two triggered frames arrive incomplete (GigE packets lost, not resent): the camera
+    raises `FrameLost` at once, and each pattern is shown again after the others like a
+    torn one, the stream and the patterns in flight untouched. The pose completes and its
+    report counts the lost frames and the camera's transfer counters over the pose."""
+    r = make_rig(2, CameraFaults(lost_triggers=frozenset({5, 20})), timestamp_jitter_s=0.0)
+    reads = iter([StreamStatistics(received_packets=100, missing_packets=1),
+                  StreamStatistics(received_packets=900, missing_packets=5, resend_requests=6,
+                                   resent_packets=4, incomplete_frames=2, packet_resend=True)])
+    r.camera.stream_statistics = lambda: next(reads)  # a camera that counts its transfers
+    store = MemoryFrameStore()
+    s = r.with_settings(exposure_s=0.004, trigger_mode="software")
+    res = capture_pose(r.rig, PLAN, store, settings=s, options=ControllerOptions(latency_s=2 / 60))
+    assert res.status == "complete", res.reason
+    assert [rc.reason.split(":")[0] for rc in res.recaptures] == ["lost", "lost"]
+    assert "arrived incomplete" in res.recaptures[0].reason and res.lost_frames == 2
+    lost = [rc.index for rc in res.recaptures]
+    shown = [h for h in r.display.history() if h.image_id > 0]
+    assert len(shown) == len(PLAN.frames) + 3 + len(lost)  # one extra show each, no restart
+    assert [res.accepted.index(i) for i in lost] == [len(PLAN.frames) - 2, len(PLAN.frames) - 1]
+    assert sorted(store.frames) == list(range(len(PLAN.frames))) and mis_synced(r, res) == []
+    assert shown_codes_match(r, res) and res.integrity is not None and res.integrity.ok
+    assert res.stream == StreamStatistics(received_packets=800, missing_packets=4,
+                                          resend_requests=6, resent_packets=4,
+                                          incomplete_frames=2, packet_resend=True)
+    counters = res.counters()
+    assert counters["recaptures"] == counters["lost_frames"] == 2
+    assert counters["stream"]["missing_packets"] == 4 and counters["stream"]["packet_resend"]
+
+
+def test_a_pattern_whose_frames_keep_getting_lost_fails_clearly():
+    """Every triggered frame lost: each pattern is tried `max_attempts` times, then the
+    pose fails with the lost frame as the reason (never an endless loop)."""
+    r = make_rig(2, CameraFaults(lost_triggers=frozenset(range(1, 1000))))
+    res = capture_pose(r.rig, PLAN, MemoryFrameStore(), settings=settings(r, "software"),
+                       options=ControllerOptions(latency_s=2 / 60, max_attempts=3))
+    assert res.status == "failed" and "after 3 attempts" in res.reason
+    assert "lost:" in res.reason and res.accepted == []
+    assert res.lost_frames == len(res.recaptures) >= 3
