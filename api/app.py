@@ -31,6 +31,7 @@ from api.routes import (
 )
 from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
+from api.storage import NoSpaceMiddleware
 from api.timing import ServerTimingMiddleware
 from api.version import phasecal_version
 
@@ -87,15 +88,21 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
 
     @app.get("/health", tags=["service"])
     async def health(request: Request) -> dict[str, Any]:
-        """Liveness: status and number of active jobs; the data directory only for clients
-        that sent the API token (or when the server has none). Async: it never blocks, and
-        a sync endpoint would queue probes behind the thread pool and the GIL."""
+        """Liveness: status (`ok`, or `degraded` with the reasons, e.g. low on space) and the
+        number of active jobs; the data directory and its free space only for clients that
+        sent the API token (or when the server has none). Async: it never blocks, and a sync
+        endpoint would queue probes behind the thread pool and the GIL."""
+        space = services.space.report()
         body: dict[str, Any] = {"status": "ok", "active_jobs": len(services.jobs.active_ids())}
+        if space.degraded:
+            body.update(status="degraded", reasons=[space.degraded])
         if token_matches(cfg.token, request.headers.get("authorization")):
             body["data_dir"] = str(services.store.root)
+            body["storage"] = space.to_dict()
         return body
 
     app.add_middleware(IdempotencyMiddleware, db_getter=lambda: services.db)
+    app.add_middleware(NoSpaceMiddleware, space=services.space)  # also idempotency's writes
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)
     if cfg.token:
         app.add_middleware(TokenMiddleware, token=cfg.token)

@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
+DEFAULT_SPACE_RESERVE_BYTES = 16 << 20  # held for the database on a full disk (api/storage.py)
+DEFAULT_MIN_FREE_BYTES = 32 << 20  # kept free beyond a capture's estimate
 
 
 @dataclass(frozen=True)
@@ -23,6 +25,8 @@ class ServiceConfig:
     max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES
     rigs_dir: Path | None = None  # operator rig files (*.toml/*.json), one rig each
     aravis_addresses: tuple[str, ...] = ()  # Aravis cameras GET /devices lists (no broadcast)
+    space_reserve_bytes: int = DEFAULT_SPACE_RESERVE_BYTES
+    min_free_bytes: int = DEFAULT_MIN_FREE_BYTES
 
     @classmethod
     def from_env(cls, **overrides: object) -> ServiceConfig:
@@ -50,6 +54,12 @@ class ServiceConfig:
                     f"PHASECAL_MAX_UPLOAD_BYTES: expected a byte count (integer), got {raw!r}"
                 )
             values["max_upload_bytes"] = int(raw)
+        for key in ("space_reserve_bytes", "min_free_bytes"):
+            name = f"PHASECAL_{key.upper()}"
+            if env.get(name):
+                if not env[name].isdigit():
+                    raise ValueError(f"{name}: expected a byte count (integer), got {env[name]!r}")
+                values[key] = int(env[name])
         values.update({k: v for k, v in overrides.items() if v is not None})
         for key in ("data_dir", "rigs_dir"):
             if key in values:

@@ -13,6 +13,7 @@ from api.jobs.manager import JobManager
 from api.live_preview import LivePreview
 from api.maps_durability import MapsSyncer, recover_pending
 from api.rigs import RigManager
+from api.storage import DiskSpace
 from api.store import DataStore
 from calibration.worker.executor import Executor, make_executor
 
@@ -28,6 +29,8 @@ class Services:
     jobs: JobManager
     rigs: RigManager
     preview: LivePreview
+    #: free space in the data directory and the database's reserve (api/storage.py)
+    space: DiskSpace
     #: makes captured poses' maps durable after they are ready (api/maps_durability.py)
     maps_sync: MapsSyncer = field(default_factory=MapsSyncer)
 
@@ -35,9 +38,10 @@ class Services:
     def build(cls, config: ServiceConfig) -> Services:
         """Open (or create) the data directory and database; recover interrupted work."""
         store = DataStore(config.data_dir)
+        space = DiskSpace(store.root, config.space_reserve_bytes, config.min_free_bytes)
         db = Database(store.db_path)
         executor = make_executor(config.executor)
-        jobs = JobManager(db, executor)
+        jobs = JobManager(db, executor, space)
         try:
             rigs = RigManager(db, config.rig, store.root, config.rigs_dir,
                               tuple(config.aravis_addresses))
@@ -45,8 +49,8 @@ class Services:
             executor.shutdown(wait=False)
             db.close()
             raise
-        services = cls(config, store, db, executor, jobs, rigs, LivePreview())
-        services.recover()
+        services = cls(config, store, db, executor, jobs, rigs, LivePreview(), space)
+        space.retrying(services.recover)  # (on a full disk: with the reserve)
         return services
 
     def recover(self) -> None:

@@ -3,6 +3,7 @@ over the target, so readers never see a half-written file (and a crash leaves th
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import tempfile
@@ -64,3 +65,19 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 def write_json_atomic(path: str | Path, data: Any, *, indent: int = 1) -> None:
     """Write `data` as JSON (no NaN/Infinity: they are not JSON) plus a newline, atomically."""
     write_text_atomic(path, json.dumps(data, indent=indent, allow_nan=False) + "\n")
+
+
+def allocate(fd: int, size: int) -> None:
+    """Give an open file `size` bytes of real blocks (fallocate, or zeros written where the
+    filesystem cannot), so that writes into it cannot fail later for lack of space: a full
+    disk then shows when the file is made, not halfway through filling it."""
+    try:
+        os.posix_fallocate(fd, 0, size)
+        return
+    except OSError as exc:
+        if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+            raise
+    chunk = bytes(1 << 20)
+    done = 0
+    while done < size:
+        done += os.pwrite(fd, chunk[: min(len(chunk), size - done)], done)

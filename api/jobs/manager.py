@@ -14,6 +14,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +25,7 @@ from sqlalchemy.orm import Session
 from api.db import Database, JobLockRecord, JobRecord
 from api.jobs.model import ACTIVE_JOB_STATES, Job, JobState, JobStatus
 from api.problems import Problem
+from api.storage import DiskSpace, is_no_space
 from api.store import new_id
 from calibration.progress import Cancelled, TaskContext
 from calibration.worker.executor import Executor
@@ -54,9 +56,10 @@ class JobManager:
     committed.
     """
 
-    def __init__(self, db: Database, executor: Executor) -> None:
+    def __init__(self, db: Database, executor: Executor, space: DiskSpace | None = None) -> None:
         self.db = db
         self.executor = executor
+        self.space = space  # the data directory's reserve: outcomes are stored on a full disk
         self._live: dict[str, _Live] = {}
         self._lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -129,9 +132,9 @@ class JobManager:
         return self.get(job_id) or live.record.to_dict()
 
     def _drive(self, job_id: str, job: Job, ctx: TaskContext) -> None:
-        self._set(job_id, status=JobStatus.RUNNING.value, started_at=time.time(),
-                  stage="starting")
         try:
+            self._set(job_id, status=JobStatus.RUNNING.value, started_at=time.time(),
+                      stage="starting")
             ctx.check_cancelled()
             result = job.run(ctx)
         except Cancelled:
@@ -141,9 +144,22 @@ class JobManager:
                 self._finish(job_id, job, *self._stop_reason())
             else:
                 log.info("job %s failed", job_id, exc_info=True)
-                self._finish(job_id, job, JobStatus.FAILED.value, _describe(exc))
+                self._finish(job_id, job, JobStatus.FAILED.value, self._reason(exc))
         else:
             self._finish(job_id, job, JobStatus.SUCCEEDED.value, None, result)
+
+    def _reason(self, exc: BaseException) -> str:
+        """A failed job's reason: one line, naming the lack of space when that was it."""
+        if self.space is not None and is_no_space(exc):
+            return self.space.no_space_reason(exc)
+        return _describe(exc)
+
+    def _storing(self, write: Callable[[], None]) -> None:
+        """Run a database write; on a full disk with the reserve released and once more."""
+        if self.space is None:
+            write()
+        else:
+            self.space.retrying(write)
 
     def _stop_reason(self) -> tuple[str, str]:
         """(status, reason) of a job stopped by cancel or by the server shutting down."""
@@ -160,23 +176,31 @@ class JobManager:
         # commit: a client seeing "succeeded" must find the resource updated too.
         final = live.record.copy(status=status, error=error, result=result,
                                  finished_at=time.time(), stage=status, eta_s=None)
-        try:
+
+        def store(state: JobState, hook: bool) -> None:
             with self.db.session() as s:
-                if status == JobStatus.SUCCEEDED:
-                    job.succeeded(s, result or {})
-                else:
-                    job.ended(s, status, error or "")
-                self._write(s, job_id, final)
+                if hook and state.status == JobStatus.SUCCEEDED:
+                    job.succeeded(s, state.result or {})
+                elif hook:
+                    job.ended(s, state.status, state.error or "")
+                self._write(s, job_id, state)
                 s.execute(delete(JobLockRecord).where(JobLockRecord.job_id == job_id))
-        except Exception as exc:  # a failing hook must still end the job
+
+        try:
+            self._storing(lambda: store(final, True))
+        except Exception as exc:  # a failing hook or a full disk must still end the job
             log.exception("finishing job %s failed", job_id)
+            why = self._reason(exc) if is_no_space(exc) else _describe(exc)
             final = live.record.copy(status=JobStatus.FAILED.value,
-                                     error=f"could not store the job's outcome: {_describe(exc)}",
+                                     error=f"could not store the job's outcome: {why}",
                                      finished_at=time.time(), stage=JobStatus.FAILED.value,
                                      eta_s=None)
-            with self.db.session() as s:
-                self._write(s, job_id, final)
-                s.execute(delete(JobLockRecord).where(JobLockRecord.job_id == job_id))
+            for hook in (True, False):  # the resource too if it can be, else the job alone
+                try:
+                    self._storing(lambda hook=hook: store(final, hook))
+                    break
+                except Exception:
+                    log.exception("storing the failure of job %s failed (hook %s)", job_id, hook)
         live.record = final
         with self._lock:
             self._recent[job_id] = final.to_dict()
@@ -199,8 +223,13 @@ class JobManager:
         rec.done, rec.total, rec.stage = done, total, stage
         if now - live.persisted_at >= PERSIST_INTERVAL_S:
             live.persisted_at = now
-            with self.db.session() as s:
-                self._write(s, job_id, rec)
+            try:
+                with self.db.session() as s:
+                    self._write(s, job_id, rec)
+            except Exception as exc:  # progress lives in memory; the outcome is stored later
+                if not is_no_space(exc):
+                    raise
+                log.warning("job %s: progress not stored (no space left)", job_id)
         self._publish(job_id, "progress")
 
     def cancel(self, job_id: str) -> bool:

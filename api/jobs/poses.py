@@ -15,6 +15,8 @@ from api.capture import capture_frames, stored_indices
 from api.db import PoseRecord
 from api.jobs.model import STOPPED_STATES, Job, JobKind
 from api.maps_durability import mark_pending
+from api.storage import NO_SPACE, pose_bytes
+from calibration.decode.frame_store import FrameStore
 from calibration.plan import Plan
 from calibration.progress import TaskContext
 from calibration.worker.tasks import decode_task, stream_decode_task, warm_decode_task
@@ -71,7 +73,10 @@ class PoseJob(Job):
 
     def ended(self, s: Session, status: str, error: str) -> None:
         p = s.get(PoseRecord, self.pose_id)
-        p.status = status if status in STOPPED_STATES else "failed"
+        # a pose cut off by a full disk keeps its frames and resumes once there is space
+        stopped = status in STOPPED_STATES or error.startswith(NO_SPACE)
+        p.status = (status if status in STOPPED_STATES else "interrupted") if stopped \
+            else "failed"
         p.error = error
         if self.frames_dir is not None:
             p.frames_done = len(stored_indices(self.frames_dir))
@@ -90,6 +95,15 @@ class CaptureJob(PoseJob):
     def __post_init__(self) -> None:
         super().__post_init__()
         self.frames_dir = self.svc.store.dir_for(self.pose_id, create=False)
+
+    def bytes_needed(self) -> int:
+        """Disk the capture will take: the frame store (allocated whole at the first frame,
+        so a resume needs none) and the maps, for the rig's camera as configured now."""
+        info = self.svc.rigs.handle(self.rig_id).rig.camera.info
+        need = pose_bytes(len(self.plan.frames), info.width, info.height, info.bit_depth)
+        if self.frames_dir is not None and FrameStore(self.frames_dir).exists():
+            need = pose_bytes(0, info.width, info.height, info.bit_depth)
+        return need
 
     def run(self, ctx: TaskContext) -> dict[str, Any]:
         svc, plan = self.svc, self.plan

@@ -1,7 +1,9 @@
 """DELETE for poses, calibrations and sessions: records and files; 409 while a job uses them.
 
 Deletes run in `Database.claim_session`, serialized with every job start, so a job cannot
-claim a resource between the check and the delete.
+claim a resource between the check and the delete. They work on a full disk: a record
+delete that SQLite refuses for lack of space runs again with the database reserve released
+(api/storage.py), and the reserve is taken back once the files are gone.
 """
 
 from __future__ import annotations
@@ -45,18 +47,24 @@ def _used_by_active_calibration(s: Any, session_id: str, pose_ids: set[str], wha
 
 
 def _remove_folders(svc: Services, ids: list[str]) -> None:
+    """Remove the resources' files (their records are gone), then retake the space reserve."""
     for ident in ids:
         shutil.rmtree(svc.store.dir_for(ident, create=False), ignore_errors=True)
+    svc.space.restore()
 
 
 @router.delete("/sessions/{session_id}/poses/{pose_id}", status_code=204, response_class=Response)
 def delete_pose(session_id: str, pose_id: str, svc: Svc) -> Response:
     """Delete a pose (record, frames, maps); 409 while a job captures, decodes or reads it."""
-    with svc.db.claim_session() as s:
-        pose = get_pose(s, session_id, pose_id)
-        _busy(s, [pose_id], f"pose {pose_id}")
-        _used_by_active_calibration(s, session_id, {pose_id}, f"pose {pose_id}")
-        s.delete(pose)
+
+    def forget() -> None:
+        with svc.db.claim_session() as s:
+            pose = get_pose(s, session_id, pose_id)
+            _busy(s, [pose_id], f"pose {pose_id}")
+            _used_by_active_calibration(s, session_id, {pose_id}, f"pose {pose_id}")
+            s.delete(pose)
+
+    svc.space.retrying(forget)
     _remove_folders(svc, [pose_id])
     return Response(status_code=204)
 
@@ -65,12 +73,16 @@ def delete_pose(session_id: str, pose_id: str, svc: Svc) -> Response:
 def delete_calibration(cal_id: str, svc: Svc) -> Response:
     """Delete a calibration (record, model, exports); 409 while its job runs."""
     check_id(cal_id, "cal", "calibration")
-    with svc.db.claim_session() as s:
-        cal = s.get(CalibrationRecord, cal_id)
-        if cal is None:
-            raise Problem(404, "not-found", f"calibration {cal_id!r} does not exist")
-        _busy(s, [cal_id], f"calibration {cal_id}")
-        s.delete(cal)
+
+    def forget() -> None:
+        with svc.db.claim_session() as s:
+            cal = s.get(CalibrationRecord, cal_id)
+            if cal is None:
+                raise Problem(404, "not-found", f"calibration {cal_id!r} does not exist")
+            _busy(s, [cal_id], f"calibration {cal_id}")
+            s.delete(cal)
+
+    svc.space.retrying(forget)
     _remove_folders(svc, [cal_id])
     return Response(status_code=204)
 
@@ -79,15 +91,19 @@ def delete_calibration(cal_id: str, svc: Svc) -> Response:
 def delete_session(session_id: str, svc: Svc) -> Response:
     """Delete a session with its poses and calibrations (records and files); 409 while any
     job uses one of them."""
-    with svc.db.claim_session() as s:
-        get_session(s, session_id)
-        pose_ids = list(s.scalars(select(PoseRecord.id)
-                                  .where(PoseRecord.session_id == session_id)))
-        cal_ids = list(s.scalars(select(CalibrationRecord.id)
-                                 .where(CalibrationRecord.session_id == session_id)))
-        _busy(s, pose_ids + cal_ids, f"session {session_id}")
-        s.execute(delete(CalibrationRecord).where(CalibrationRecord.session_id == session_id))
-        s.execute(delete(PoseRecord).where(PoseRecord.session_id == session_id))
-        s.execute(delete(SessionRecord).where(SessionRecord.id == session_id))
-    _remove_folders(svc, [*pose_ids, *cal_ids, session_id])
+
+    def forget() -> list[str]:
+        with svc.db.claim_session() as s:
+            get_session(s, session_id)
+            pose_ids = list(s.scalars(select(PoseRecord.id)
+                                      .where(PoseRecord.session_id == session_id)))
+            cal_ids = list(s.scalars(select(CalibrationRecord.id)
+                                     .where(CalibrationRecord.session_id == session_id)))
+            _busy(s, pose_ids + cal_ids, f"session {session_id}")
+            s.execute(delete(CalibrationRecord).where(CalibrationRecord.session_id == session_id))
+            s.execute(delete(PoseRecord).where(PoseRecord.session_id == session_id))
+            s.execute(delete(SessionRecord).where(SessionRecord.id == session_id))
+        return [*pose_ids, *cal_ids]
+
+    _remove_folders(svc, [*svc.space.retrying(forget), session_id])
     return Response(status_code=204)

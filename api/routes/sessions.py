@@ -121,6 +121,7 @@ def capture_pose(session_id: str, svc: Svc, body: CaptureRequest | None = None) 
     job = CaptureJob(svc=svc, session_id=session_id, pose_id=new_id("pose"), rig_id=rig_id,
                      plan=plan_from_dict(plan_data, f"session {session_id} plan"),
                      screen_pose=screen_pose, noise_dn=body.noise_dn if body else None)
+    svc.space.require(job.bytes_needed(), f"a capture on rig {rig_id}")
     with svc.db.claim_session() as s:
         job_id = _add_pose(s, svc, job, "capture", screen_pose)
     return accepted(svc.jobs.start(job_id, job))
@@ -141,6 +142,7 @@ def resume_pose(session_id: str, pose_id: str, svc: Svc) -> JSONResponse:
                          rig_id=sess.rig_id or "",
                          plan=plan_from_dict(sess.plan, f"session {session_id} plan"),
                          screen_pose=pose.screen_pose)
+        svc.space.require(job.bytes_needed(), f"resuming pose {pose_id}")
         state = svc.jobs.create(s, job)
         pose.job_id, pose.status, pose.error = state.id, "pending", None
     return accepted(svc.jobs.start(state.id, job))

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.atomic import fsync_path
+from calibration.atomic import allocate, fsync_path
 from calibration.decode.accumulate import ACCEPTED_DTYPES, DecodeError
 
 FRAMES_NAME = "frames.npy"
@@ -104,11 +104,24 @@ class FrameStore:
         self.folder.mkdir(parents=True, exist_ok=True)
         shape = (self.count, *image.shape)
         done_tmp = self.done_path.with_name(DONE_NAME + ".tmp")
-        with open(done_tmp, "wb") as fh:
-            fh.truncate(self.count)
-        os.replace(done_tmp, self.done_path)
         tmp = self.frames_path.with_name(FRAMES_NAME + ".tmp")
-        np.lib.format.open_memmap(tmp, mode="w+", dtype=image.dtype, shape=shape).flush()
+        try:
+            # both files get their blocks now (the markers are written through a map, where
+            # a full disk would be a SIGBUS): a disk too small for the pose fails here, at
+            # its first frame, with ENOSPC, and a capture that started never runs out
+            with open(done_tmp, "wb") as fh:
+                fh.write(bytes(self.count))
+            np.lib.format.open_memmap(tmp, mode="w+", dtype=image.dtype, shape=shape).flush()
+            fd = os.open(tmp, os.O_WRONLY)
+            try:
+                allocate(fd, os.fstat(fd).st_size)
+            finally:
+                os.close(fd)
+        except OSError:
+            done_tmp.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
+            raise
+        os.replace(done_tmp, self.done_path)
         os.replace(tmp, self.frames_path)
 
     def add(self, index: int, image: np.ndarray) -> None:
@@ -163,7 +176,12 @@ class FrameStore:
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.flush_interval_s):
-            self.flush()
+            try:
+                self.flush()
+            except OSError:  # (an I/O error) marked dirty again: `close` flushes and raises it
+                with self._lock:
+                    self._dirty = True
+                return
 
     def close(self) -> None:
         """Stop the flusher and flush what is left (end of the pose's capture)."""
