@@ -11,6 +11,7 @@ that free space can still be written. The reserve is made again once there is ro
 from __future__ import annotations
 
 import errno
+import json
 import logging
 import os
 import shutil
@@ -21,8 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from api.problems import Problem
-from api.security import send_problem
+from api.problems import MEDIA_TYPE, Problem, problem_body
 from calibration.atomic import allocate
 
 log = logging.getLogger("phasecal.storage")
@@ -84,7 +84,9 @@ class SpaceReport:
     total_bytes: int
     reserve_bytes: int
     reserve_held: bool
-    min_free_bytes: int
+    #: below this the service is degraded: the margin, or what the last capture refused or
+    #: cut off for lack of space needed (until that much is free again)
+    wanted_bytes: int
 
     @property
     def degraded(self) -> str | None:
@@ -92,15 +94,16 @@ class SpaceReport:
         if not self.reserve_held:
             return (f"low on space: the database reserve is in use ({mib(self.free_bytes)} "
                     "free in the data directory); delete poses, sessions or calibrations")
-        if self.free_bytes < self.min_free_bytes:
-            return (f"low on space: {mib(self.free_bytes)} free in the data directory "
-                    f"(below {mib(self.min_free_bytes)})")
+        if self.free_bytes < self.wanted_bytes:
+            return (f"low on space: {mib(self.free_bytes)} free in the data directory, "
+                    f"{mib(self.wanted_bytes)} wanted; delete poses, sessions or calibrations")
         return None
 
     def to_dict(self) -> dict[str, object]:
         """Plain data for `GET /health`."""
         return {"free_bytes": self.free_bytes, "total_bytes": self.total_bytes,
-                "reserve_bytes": self.reserve_bytes, "reserve_held": self.reserve_held}
+                "wanted_bytes": self.wanted_bytes, "reserve_bytes": self.reserve_bytes,
+                "reserve_held": self.reserve_held}
 
 
 class DiskSpace:
@@ -116,6 +119,7 @@ class DiskSpace:
         self.reserve_bytes = reserve_bytes
         self.margin_bytes = margin_bytes
         self.reserve_path = self.root / RESERVE_NAME
+        self.shortfall = 0  # bytes the last refused or cut-off write wanted free (0: none)
         self._lock = threading.Lock()
         self.restore()
 
@@ -178,12 +182,14 @@ class DiskSpace:
         """Bytes an unprivileged writer can still use on the data directory's filesystem."""
         return int(shutil.disk_usage(self.root).free)
 
-    def report(self, min_free_bytes: int | None = None) -> SpaceReport:
+    def report(self) -> SpaceReport:
         """Free and total space and the reserve (taken back first if there is room now)."""
         held = self.restore()
         usage = shutil.disk_usage(self.root)
-        floor = self.margin_bytes if min_free_bytes is None else min_free_bytes
-        return SpaceReport(int(usage.free), int(usage.total), self.reserve_bytes, held, floor)
+        if usage.free >= self.shortfall:
+            self.shortfall = 0  # space was freed since
+        return SpaceReport(int(usage.free), int(usage.total), self.reserve_bytes, held,
+                           max(self.margin_bytes, self.shortfall))
 
     def require(self, needed: int, what: str) -> None:
         """507 when `needed` bytes plus the margin do not fit in the free space (the reserve
@@ -191,16 +197,24 @@ class DiskSpace:
         free = self.free_bytes()
         want = needed + self.margin_bytes
         if free < want:
+            self.shortfall = want
             raise Problem(507, "insufficient-storage",
                           f"{what} needs about {mib(want)} in the data directory ({mib(needed)} "
                           f"+ {mib(self.margin_bytes)} margin) and {mib(free)} is free: delete "
                           "poses, sessions or calibrations, or free space on that disk",
                           needed_bytes=want, free_bytes=free)
 
+    def ran_out(self) -> int:
+        """Note that a write found no space: the service reports itself degraded until the
+        margin is free beyond what is free now (returned)."""
+        left = self.free_bytes()
+        self.shortfall = max(self.shortfall, left + self.margin_bytes)
+        return left
+
     def no_space_reason(self, exc: BaseException) -> str:
         """The reason a job that ran out of space ends with: says so, and how much is free."""
         try:
-            free = mib(self.free_bytes())
+            free = mib(self.ran_out())
         except OSError:
             free = "unknown"
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -238,7 +252,12 @@ class NoSpaceMiddleware:
             log.warning("no space left on %s %s: %s", scope.get("method"), scope.get("path"), exc)
             if started:  # the answer went out; what failed after it was bookkeeping
                 return
-            await send_problem(send, 507, "insufficient-storage",
-                               f"{NO_SPACE} in the data directory ({mib(self.space.free_bytes())} "
-                               "free): delete poses, sessions or calibrations, or free space on "
-                               "that disk, then retry")
+            body = json.dumps(problem_body(
+                507, "insufficient-storage",
+                f"{NO_SPACE} in the data directory ({mib(self.space.ran_out())} free): delete "
+                "poses, sessions or calibrations, or free space on that disk, then retry",
+                scope.get("path"))).encode()
+            await send({"type": "http.response.start", "status": 507,
+                        "headers": [(b"content-type", MEDIA_TYPE.encode()),
+                                    (b"content-length", str(len(body)).encode())]})
+            await send({"type": "http.response.body", "body": body})
