@@ -8,14 +8,19 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
-HELP = "quick intrinsics (rectangle VPs, general-motion selfcal, rotation-only) before decoding"
+HELP = ("quick intrinsics before decoding: rectangle vanishing points, general-motion "
+        "self-calibration, or rotation-only self-calibration")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", required=True, choices=["rectangle", "selfcal", "rotation"],
-                   help="rectangle: one rectangle (screen/card) in >= 4 varied views (seed 002); "
-                        "selfcal: two non-parallel rectangles, camera moving freely, >= 3 "
-                        "images (seed 004); rotation: camera turning in place (pan-tilt), >= 3")
+                   help="rectangle: vanishing points of one rectangle (screen/card) in >= 4 "
+                        "varied views (Lu & Whangbo, 'A Practical Camera Calibration System "
+                        "on Mobile Phones'); selfcal: vanishing points of two non-parallel "
+                        "rectangles, camera moving and turning freely, >= 3 images (Chang, "
+                        "Wang & Wang, 'Camera Self-calibration Based on the Vanishing "
+                        "Points'); rotation: camera turning in place (pan-tilt), >= 3 images "
+                        "(Hartley's rotating-camera self-calibration)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--images", nargs="+", metavar="IMG",
                      help="grey images (PNG/TIFF, or 2-D .npy) of bright rectangles on dark")
