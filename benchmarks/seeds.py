@@ -1,4 +1,9 @@
-"""The source papers' experiments (seeds 002, 003, 004) on simulated data, next to their claims.
+"""The quick-intrinsics papers' experiments on simulated data, next to their claims.
+
+Rectangle vanishing points (Lu & Whangbo, "A Practical Camera Calibration System on Mobile
+Phones"), general-motion self-calibration (Chang, Wang & Wang, "Camera Self-calibration Based
+on the Vanishing Points"), rotation-only self-calibration (Hartley), and the classic RANSAC
+and PnP estimators.
 
 Usage: .venv/bin/python benchmarks/seeds.py [--trials 8] [--seed 0] [--no-flats]
 Camera: distortion-free pinhole 640x480, fx 520, fy 530 (fy/fx = 1.019), principal point
@@ -74,7 +79,7 @@ def seed002(trials: int, rng: np.random.Generator) -> None:
     """Rectangle VPs (both forms) vs Zhang on the same corners."""
     board = two_board_scene()[:1]
     plane = board[0].corners()[..., :2].reshape(-1, 2)  # board 0 lies in the world plane z = 0
-    print("\n## Seed 002: intrinsics from a rectangle's vanishing points (err %, median (max))")
+    print("\n## Rectangle vanishing points (err %, median (max))")
     print("paper: exact without noise; 'no significant differences' from Zhang (20 views)")
     print("| sigma px | views | eq.4 fx!=fy, grid lines | square px, grid lines "
           "| eq.4, outline only | Zhang (same corners) | eq.4 / Zhang |")
@@ -110,7 +115,7 @@ def seed004(trials: int, rng: np.random.Generator) -> None:
     """General-motion self-calibration: the paper's linear K and the ML refinement."""
     boards = two_board_scene()
     t = normalizer(SIZE)
-    print("\n## Seed 004: self-calibration under general motion (err %, median (max))")
+    print("\n## General-motion self-calibration (err %, median (max))")
     print("paper: exact without noise; more images -> more stable; Cholesky of K K^T can "
           "fail on noisy data")
     print("| sigma px | images | linear (paper) | Cholesky failures | ML refined | "
@@ -183,7 +188,7 @@ def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
 
 def seed003(trials: int, rng: np.random.Generator) -> None:
     """Robust estimation at gross outlier rates; non-planar PnP vs noise."""
-    print("\n## Seed 003: RANSAC inlier recall vs outlier rate (mean over trials)")
+    print("\n## RANSAC inlier recall vs outlier rate (mean over trials)")
     print("| outliers | adaptive RANSAC H: recall, samples (theory) | USAC MAGSAC++ H: recall "
           "| adaptive RANSAC DLT: recall, samples (theory) |")
     print("|---|---|---|---|")
@@ -216,7 +221,7 @@ def seed003(trials: int, rng: np.random.Generator) -> None:
         print(f"| {frac:.0%} | {np.mean(old):.3f}, {np.median(h_drawn):.0f} ({th4:.0f}) | "
               f"{np.mean(new):.3f} | {np.mean(dlt):.3f}, {np.median(drawn) if drawn else 0:.0f} "
               f"({th6:.0f}) |")
-    print("\n## Seed 003: non-planar PnP, rotation error (deg) vs pixel noise, 50 points")
+    print("\n## Non-planar PnP, rotation error (deg) vs pixel noise, 50 points")
     print("| sigma px | sqpnp | epnp | iterative |")
     print("|---|---|---|---|")
     for sigma in NOISE:

@@ -1,18 +1,19 @@
-"""sGCC fit benchmark (seed 000 setup): W x H pixels, 3 poses, default 10x10 mesh, to convergence.
+"""sGCC fit benchmark on the setup of Pak's smooth generic calibration: W x H pixels, 3 poses,
+default 10x10 mesh, to convergence.
 
 Usage: .venv/bin/python benchmarks/sgcc.py [--size 1024] [--model sgcc-noncentral]
        [--sigma-px 0.05] [--design seed000|random] [--poses 3] [--distance-mm 150 450]
        [--repeats 1] [--smooth W] [--xp numpy|cupy]
 
 Prints wall time, CPU time (all threads; on a loaded machine the steadier figure), the load
-average, iterations, final cost and the ratio to seed 000's reported 20 minutes,
+average, iterations, final cost and the ratio to the paper's reported 20 minutes,
 then the ray errors against ground truth (in the sGCC gauge) next to the fit's own predicted
-1-sigma, the z-score std, and the noise at which the errors would reach seed 000's reported
-O(1e-6) direction / O(1e-4) origin errors (seed 000 does not state its noise; the errors are
+1-sigma, the z-score std, and the noise at which the errors would reach the paper's reported
+O(1e-6) direction / O(1e-4) origin errors (the paper does not state its noise; the errors are
 linear in the noise, so this is the comparable-noise point).
 
 Designs: `seed000` (default, `hw_mocks.poses.full_view_poses`) puts 3 tilted screens at
-60/110/160 mm so that every pose covers the whole image, as seed 000's "1024x1024 data
+60/110/160 mm so that every pose covers the whole image, as the paper's "1024x1024 data
 points" per pose; `random` draws
 `--poses` random poses at `--distance-mm` that need cover only 20% of the image. Errors are
 evaluated on pixels seen by every pose. `--repeats N` refits N noise realizations of the same
@@ -141,7 +142,7 @@ def main() -> None:
           f"(RMS over fits; z pooled over fits):")
     print()
     print("| ray error vs truth | RMS error | predicted 1-sigma (RMS) | z std "
-          "| sigma-px for seed 000's error |")
+          "| sigma-px for the paper's error |")
     print("|---|---|---|---|---|")
     for name, sl, target in groups:
         e = float(np.sqrt(np.mean(np.sum(err[:, :, sl] ** 2, axis=2))))

@@ -200,7 +200,8 @@ def rotation_only_poses(
     return poses
 
 
-# (distance mm, tilt deg, tilt azimuth deg): seed 000's setup of 3 poses that each see
+# (distance mm, tilt deg, tilt azimuth deg): the setup of Pak's smooth generic calibration, 3
+# poses that each see
 # "1024 x 1024 data points", i.e. fill the whole image of a ~60 deg camera (`mild_pinhole`,
 # `smooth_noncentral`) on the default 1920x1080, 0.2745 mm screen, at a 2.7x depth spread.
 FULL_VIEW_DESIGN = ((60.0, 30.0, 0.0), (110.0, 30.0, 120.0), (160.0, 20.0, 240.0))

@@ -1,6 +1,7 @@
 """Rectangles seen by a moving camera: two non-parallel boards, general motion, white flats.
 
-Ground truth for the vanishing-point methods (seeds 002 and 004): a world with two
+Ground truth for the vanishing-point methods (rectangle and general-motion
+self-calibration): a world with two
 planar rectangular boards (grids of corners) whose planes are not parallel and whose
 edge directions are four distinct directions, no three of them coplanar; a camera that
 moves and rotates around them; and a bright quadrilateral (the screen showing a white
@@ -55,7 +56,8 @@ def two_board_scene(
 ) -> list[Board]:
     """Two boards on the faces of a corner of `hinge_deg` (open towards the cameras), each
     turned in its plane by `twist_deg` so that no edge runs along the hinge and no three of
-    the four edge directions share a plane (seed 004's two non-parallel checkerboards)."""
+    the four edge directions share a plane (the general-motion method's two non-parallel
+    checkerboards)."""
     z = np.array([0, 0, 1.0])
     a_axes = _rotation(z, np.radians(twist_deg[0])) @ np.array([[1.0, 0, 0], [0, 1.0, 0]]).T
     turn = _rotation(np.array([0, 1.0, 0]), np.radians(180.0 - hinge_deg))

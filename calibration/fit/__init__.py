@@ -23,7 +23,7 @@ _EXPORTS = {
     "IntrinsicsEstimate": "classic.estimate",
     # the full calibration
     "calibrate": "dispatch",
-    # seed 003: DLT, homographies, Zhang, PnP, RANSAC
+    # classic estimators: DLT, homographies, Zhang, PnP, RANSAC
     "ransac": "ransac",
     "fit_homography": "classic.homography",
     "ransac_homography": "classic.homography",
@@ -42,7 +42,7 @@ _EXPORTS = {
     "common_point": "classic.lines",
     "grid_vanishing_points": "classic.lines",
     "find_quads": "classic.quad",
-    # seed 002, seed 004, rotation-only
+    # quick intrinsics: rectangle vanishing points, general-motion and rotation-only
     "vanishing_points": "classic.rectangle",
     "rectangle_intrinsics": "classic.rectangle",
     "selfcal_intrinsics": "classic.selfcal",

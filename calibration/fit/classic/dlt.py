@@ -1,4 +1,4 @@
-"""Direct linear transform (seed 003): 3x4 camera matrix from non-coplanar 3D-2D points, RANSAC."""
+"""Direct linear transform: 3x4 camera matrix from non-coplanar 3D-2D points, RANSAC."""
 
 from __future__ import annotations
 

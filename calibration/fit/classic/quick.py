@@ -1,9 +1,11 @@
 """Quick intrinsics before (or without) decoding: the papers' closed-form methods on images
 of bright rectangles (white flat frames of the screen, cards) or on decoded poses.
 
-- rectangle (seed 002): one rectangle per image, its two vanishing points, >= 4 images.
-- selfcal (seed 004): two non-parallel rectangles per image, the camera moving and turning
-  freely, >= 3 images; the rectangles are matched left to right, sides top-first.
+- rectangle (Lu & Whangbo's vanishing points): one rectangle per image, its two vanishing
+  points, >= 4 images.
+- selfcal (Chang, Wang & Wang's self-calibration): two non-parallel rectangles per image, the
+  camera moving and turning freely, >= 3 images; the rectangles are matched left to right,
+  sides top-first.
 - rotation (Hartley): one fixed rectangle, a camera that only rotates (pan-tilt rig), >= 3.
 """
 

@@ -1,4 +1,5 @@
-"""Intrinsics from the two vanishing points of a rectangle in 4+ views (seed 002).
+"""Intrinsics from the two vanishing points of a rectangle in 4+ views (Lu & Whangbo,
+"A Practical Camera Calibration System on Mobile Phones").
 
 The rectangle's sides give two vanishing points A, B per view whose directions are
 orthogonal: A^T w B = 0 with w = K^-T K^-1 (the image of the absolute conic). With zero

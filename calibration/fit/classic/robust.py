@@ -1,4 +1,4 @@
-"""Seed 003's classic estimators through OpenCV: PnP for any (non-)coplanar points and
+"""Classic estimators through OpenCV: PnP for any (non-)coplanar points and
 USAC (MAGSAC++ scoring, local optimization, adaptive termination) for homographies and PnP.
 The 3x4 DLT, which OpenCV lacks, runs in the package's own adaptive RANSAC
 (`classic.dlt.ransac_dlt`)."""

@@ -3,7 +3,7 @@
 Between two views of a camera that only rotates about its centre of projection, the
 image-to-image map is the infinite homography H = K R K^-1; scaled to det H = 1 it
 satisfies H C H^T = C, linear in the six entries of C = K K^T; K follows by Cholesky.
-Here the H come from a fixed plane's homographies (G_k G_0^-1). Seed 004's general-motion
+Here the H come from a fixed plane's homographies (G_k G_0^-1). The general-motion
 method (`classic.selfcal`) reaches the same linear step through vanishing points instead;
 when the camera also translates, plane homographies are not conjugate rotations and this
 method is wrong by tens of percent (benchmarks/RESULTS.md).

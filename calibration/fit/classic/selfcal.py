@@ -1,4 +1,6 @@
-"""Self-calibration under general motion from vanishing points (seed 004, Chang, Wang & Wang).
+"""Self-calibration under general motion from vanishing points (Chang, Wang & Wang).
+
+"Camera Self-calibration Based on the Vanishing Points".
 
 The camera moves and rotates; vanishing points of >= 4 world directions (the edge
 directions of two non-parallel rectangles, no three of them coplanar) are tracked across
@@ -142,7 +144,7 @@ def selfcal_intrinsics(
     zero_skew: bool = False, refine: bool = True, rng: np.random.Generator | None = None,
     mc_samples: int = _MC_SAMPLES,
 ) -> IntrinsicsEstimate:
-    """K from vanishing points of the same >= 4 world directions in >= 3 images (seed 004).
+    """K from vanishing points of the same >= 4 world directions in >= 3 images (Chang et al.).
 
     `tracks[i][d]` is direction d's vanishing point in image i. Every image pair gives
     one infinite homography; the paper's linear K (with skew) is then refined by maximum

@@ -1,4 +1,5 @@
-"""Seed 003 through OpenCV: non-planar PnP (3 solvers), USAC PnP/homography, adaptive DLT RANSAC."""
+"""Classic estimators through OpenCV: non-planar PnP (3 solvers), USAC PnP/homography,
+adaptive DLT RANSAC."""
 
 from __future__ import annotations
 

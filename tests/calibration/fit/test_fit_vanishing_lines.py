@@ -1,4 +1,5 @@
-"""Seeds 002 and 004 from image lines vs hw_mocks truth: rectangle VPs, white flats, selfcal."""
+"""Vanishing-point intrinsics from image lines vs hw_mocks truth: rectangle VPs, white flats,
+general-motion selfcal."""
 
 from __future__ import annotations
 

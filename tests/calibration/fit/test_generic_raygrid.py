@@ -2,8 +2,9 @@
 
 Measured on the pinhole fixture below (3 training poses, sigma 0.05 screen px, 160x120):
 raygrid ray RMS 2.83e-5 rad vs opencv5 (the true family, fitted to the same maps) 1.22e-5
-rad, a ratio of 2.3 (printed by `test_central_rays_within_predicted_sigma` with -s; seed 001
-reports ~7x vs Zhang, under other conditions). The ratio is recorded, not asserted.
+rad, a ratio of 2.3 (printed by `test_central_rays_within_predicted_sigma` with -s; Dunne,
+Mallon & Whelan's comparison of generic and parametric calibration reports ~7x vs Zhang,
+under other conditions). The ratio is recorded, not asserted.
 """
 
 from __future__ import annotations

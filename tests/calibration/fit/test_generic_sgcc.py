@@ -210,7 +210,8 @@ def test_noncentral_rays_consistent_with_uncertainty():
 
 
 def _full_view_fit(size, sigma_px, seed):
-    """sgcc-noncentral on seed 000's design: size x size pixels, 3 poses that fill the image.
+    """sgcc-noncentral on the design of Pak's smooth generic calibration: size x size pixels,
+    3 poses that fill the image.
 
     Returns the truth camera, the fit result, and on a 20x20 pixel grid the ray errors against
     truth in the sGCC gauge (direction rad, origin mm) and their predicted std.
@@ -232,7 +233,8 @@ def _full_view_fit(size, sigma_px, seed):
 
 
 def test_noncentral_seed000_setup_reaches_seed000_accuracy():
-    # Seed 000: 1024x1024, 3 poses, 10x10 mesh, O(1e-6) direction and O(1e-4) origin errors
+    # Pak's smooth generic calibration: 1024x1024, 3 poses, 10x10 mesh, O(1e-6) direction and
+    # O(1e-4) origin errors
     # at an unstated noise. Here 0.0015 screen px (0.4 um on the screen); the errors scale
     # with the noise down to the mesh's approximation floor of this camera (3.6e-7 rad,
     # 2.7e-5 mm), see benchmarks/RESULTS.md.
