@@ -1,4 +1,4 @@
-"""CLI start-up: `phasecal --help` against `python -c "import numpy, cv2"` (issue 14 target:
+"""CLI start-up: `phasecal --help` against `python -c "import numpy, cv2"` (goal:
 within 2.5x). Runs each command N times in fresh processes, alternating, and prints the
 medians, their ratio and the load average (the ratio is what to compare across machines).
 

@@ -5,8 +5,8 @@ Run: .venv/bin/python benchmarks/decode.py [--xp numpy|cupy] [--repeats N] [--cl
 The stacks carry camera noise, by default that of hw_mocks' default sensor (10,000 e-
 full well over 8 bits, 3 e- read noise: read 0.08 DN, 40 e-/DN, ~1.6 DN at mid grey;
 `--read-noise 1.5 --gain 4`: a noisy camera, ~5 DN); the "noise given" rows get that
-noise model, "noise from residuals" fits it. `--read-noise 0 --gain 0`: the noise-free
-stacks of the sessions before 12 ("noise given": 1 DN).
+noise model, "noise from residuals" fits it. `--read-noise 0 --gain 0`: noise-free
+stacks ("noise given": 1 DN).
 Prints Mpixel-frames/s for the whole stack decoded at once (`decode_stack`: compiled,
 cache-blocked accumulation and finish range by range, the goal's "end to end"), for the
 streaming decoder frame by frame (`add`, `finish`, as a live capture runs it), and the
@@ -68,8 +68,7 @@ def make_stack(plan: Plan, border: bool, partly: bool = False, read_dn: float = 
     `partly`: a black level of 6 DN and a brightness rising across the image so that the
     brightest steps of about a third of the pixels saturate (255 DN: some steps clipped).
     Camera noise where asked: Gaussian, variance read_dn^2 + (level - black) / gain (DN^2,
-    as `NoiseModel`), before the 8-bit rounding (neither: noise-free, as the stacks of the
-    sessions before 12)."""
+    as `NoiseModel`), before the 8-bit rounding (neither: noise-free stacks)."""
     u = np.arange(W, dtype=np.float32)[None, :]
     v = np.arange(H, dtype=np.float32)[:, None]
     x = 0.75 * u + 0.05 * v

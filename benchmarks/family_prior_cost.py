@@ -7,7 +7,7 @@ or with `--maps DIR` the decoded maps a demo stored (its `data` folder: poses/*/
 sessions/*/plan.json). Each mode runs `--repeats` times, alternating (off, auto, off, ...),
 in one process; the table gives median CPU seconds (time.process_time, all threads) per
 stage, the stages timed by wrapping the sGCC modules' functions here (benchmark only).
-`--before` adds the issue-16c method (every family fitted on every point, no screening
+`--before` adds the earlier method (every family fitted on every point, no screening
 subset): about 100 CPU s more.
 
     .venv/bin/python benchmarks/family_prior_cost.py [--maps DIR] [--repeats 2] [--before]
@@ -89,7 +89,7 @@ def main() -> None:
     ap.add_argument("--maps", help="a demo's data folder (default: synthetic demo maps)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--before", action="store_true",
-                    help="also the issue-16c method (every family on every point)")
+                    help="also the earlier method (every family on every point)")
     args = ap.parse_args()
     maps, screen = _demo_maps(args.maps)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; "

@@ -1,4 +1,4 @@
-"""Generic vs OpenCV models on a camera outside every parametric family (issue: sgcc-noncentral
+"""Generic vs OpenCV models on a camera outside every parametric family (goal: sgcc-noncentral
 RMS ray-angle error <= 0.05x that of the best OpenCV model).
 
 Camera: hw_mocks `smooth_noncentral(bumps=True)` (smooth non-central deviations plus three

@@ -6,7 +6,7 @@ those pixels) against phasecal's `points: "sampled"` (OpenCV on 2000 points per 
 former default) and `points: "all"` (weighted LM on every given pixel), and phasecal on
 every decoded pixel against OpenCV on every 8th. Ray error: RMS angle to the true rays
 (after the best rotation) over the pixels that saw the screen, pooled over seeds.
-Goals (issue 16): "all" within 1.1x of OpenCV on the same pixels; all pixels <= 0.25x.
+Goals: "all" within 1.1x of OpenCV on the same pixels; all pixels <= 0.25x.
 
 Table 2, real screen (hw_mocks.panel: bow 0.5 mm x, 0.3 mm y, 1.5 mm glass, n 1.52):
 `screen: "flat"` and `screen: "fit"` against the flat fit of an ideal screen, with the

@@ -1,5 +1,5 @@
 """The photon-transfer (noise) line fitted after a pose's last frame: `residual_line` on a
-synthetic 5 MP-like noise sample (issue 15g).
+synthetic 5 MP-like noise sample.
 
 Run: .venv/bin/python benchmarks/noise_line.py [--repeats N] [--pixels N]
 The decoder fits it on ~0.3 M sampled pixels' residuals, serially, between the last frame
@@ -8,7 +8,7 @@ steps), 30-44 residual degrees of freedom, a photon-transfer variance (read 0.6 
 a display harmonic on 6 fringe sets (gamma without LUT) and a few model errors. Prints ms
 per call (best and median wall, CPU) for the product code with its compiled passes (numba
 loaded and freed memory kept, as in a decode worker), for its NumPy path (a process
-without numba), and for the code before issue 15g (tests/calibration/decode/
+without numba), and for the reference code kept in the tests (tests/calibration/decode/
 ptc_reference.py, when the tests are present), with the ratio to it and whether all three
 give the same line and harmonic.
 """
