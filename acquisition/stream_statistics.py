@@ -28,13 +28,21 @@ class StreamStatistics:
 
     def since(self, earlier: StreamStatistics) -> StreamStatistics:
         """The counts accumulated after `earlier` was read (`packet_resend` as now)."""
-        counts = {f.name: getattr(self, f.name) - getattr(earlier, f.name)
-                  for f in fields(self) if f.name != "packet_resend"}
+        counts = {name: getattr(self, name) - getattr(earlier, name) for name in COUNTS}
         return StreamStatistics(**counts, packet_resend=self.packet_resend)
+
+    def plus(self, later: StreamStatistics) -> StreamStatistics:
+        """These counts and those of `later` (a stream that followed), `packet_resend` as
+        `later`'s."""
+        counts = {name: getattr(self, name) + getattr(later, name) for name in COUNTS}
+        return StreamStatistics(**counts, packet_resend=later.packet_resend)
 
     def as_dict(self) -> dict[str, int | bool]:
         """Plain counters for JSON reports."""
         return asdict(self)
+
+
+COUNTS = tuple(f.name for f in fields(StreamStatistics) if f.name != "packet_resend")
 
 
 @runtime_checkable

@@ -3,12 +3,18 @@
 Open by device id or address (never by discovery here), choose the pixel format
 (Mono8/10/12/16, packed and Bayer formats decoded to grey), exposure and gain with auto
 modes off and read back, frame rate, software or hardware trigger. Frames come from a
-pool of stream buffers; incomplete or lost buffers are counted and recycled, every wait
-has a timeout, frames exposed before the last trigger or flush are dropped (never
-returned stale), software triggers sent while a frame is still due are held back and
-sent when it arrives (cameras ignore overlapping triggers), and a lost control channel
-surfaces as `CameraDisconnected` so that `reconnect()` can reopen the device with the
-same settings.
+pool of stream buffers; every wait has a timeout, frames exposed before the last trigger
+or flush are dropped (never returned stale), software triggers sent while a frame is
+still due are held back and sent when it arrives (cameras ignore overlapping triggers),
+and a lost control channel surfaces as `CameraDisconnected` so that `reconnect()` can
+reopen the device with the same settings.
+
+GigE Vision links drop packets (a busy switch or host). The stream asks the camera to
+resend missing packets (GVSP packet resend, where the camera offers it) and gives a frame
+up `frame_retention_s` after its last packet arrived. An incomplete buffer is recycled;
+in a triggered mode it means the frame of a trigger is gone, so `grab` raises `FrameLost`
+at once (the caller triggers again) instead of waiting for a frame that will never come.
+`stream_statistics()` counts received, missing and resent packets and incomplete frames.
 
 Device timestamps (ns, start of frame) are mapped to the controller's clock by the
 smallest observed (arrival - device time) offset over recent frames, the arrival dated
@@ -33,13 +39,31 @@ import numpy as np
 from acquisition.camera.aravis_gi import GLib, aravis
 from acquisition.camera.pixel_formats import PIXEL_FORMATS, decode_image, pixel_format
 from acquisition.clock import Clock, RealClock
-from acquisition.errors import CameraDisconnected, CameraError, CameraTimeout, DeviceSettingsError
+from acquisition.errors import (
+    CameraDisconnected,
+    CameraError,
+    CameraTimeout,
+    DeviceSettingsError,
+    FrameLost,
+)
 from acquisition.protocols import CameraInfo, CameraSettings, Frame, TriggerMode
+from acquisition.stream_statistics import StreamStatistics
 
 # How many recent frames the device-to-clock offset is estimated from.
 OFFSET_WINDOW = 64
 # Relative tolerance on exposure read-back (devices round to their own increments).
 EXPOSURE_TOLERANCE = 0.02
+# Aravis stream counters (`ArvStream` infos) -> `StreamStatistics` fields; a stream type
+# without one of them (USB3 Vision has no packets) leaves that count at 0.
+STREAM_INFOS = {
+    "n_completed_buffers": "completed_frames",
+    "n_failures": "incomplete_frames",
+    "n_missing_frames": "missing_frames",
+    "n_received_packets": "received_packets",
+    "n_missing_packets": "missing_packets",
+    "n_resend_requests": "resend_requests",
+    "n_resent_packets": "resent_packets",
+}
 
 
 class AravisCamera:
@@ -54,6 +78,9 @@ class AravisCamera:
         trigger_line: str = "Line0",
         region: tuple[int, int, int, int] | None = None,
         clock: Clock | None = None,
+        packet_resend: bool = True,
+        packet_timeout_s: float = 0.02,
+        frame_retention_s: float = 0.2,
     ) -> None:
         if not device:
             raise DeviceSettingsError(
@@ -61,6 +88,11 @@ class AravisCamera:
             )
         if buffers < 2:
             raise DeviceSettingsError(f"Aravis camera: buffers must be >= 2, got {buffers}")
+        if not 0 < packet_timeout_s < frame_retention_s:
+            raise DeviceSettingsError(
+                f"Aravis camera: need 0 < packet_timeout_s < frame_retention_s, got "
+                f"{packet_timeout_s} and {frame_retention_s} (a resend needs time to arrive)"
+            )
         self._Aravis = aravis()
         self.device = device
         self._buffers = buffers
@@ -68,6 +100,14 @@ class AravisCamera:
         self._trigger_line = trigger_line
         self._region = region  # (x, y, width, height) of the sensor to read; None: as is
         self._clock = clock if clock is not None else RealClock()
+        # GigE Vision streams: ask for lost packets again after `packet_timeout_s`, give
+        # a frame up `frame_retention_s` after its last packet (Aravis: 20 ms / 100 ms; a
+        # longer retention keeps a frame whose sender stalled on a loaded host)
+        self._packet_resend = packet_resend
+        self._packet_timeout_s = packet_timeout_s
+        self._frame_retention_s = frame_retention_s
+        self._stats_before = StreamStatistics()  # counts of the streams already released
+        self._resending = False  # whether the current stream asks for resends
         self._lost = threading.Event()
         self._offsets: collections.deque[float] = collections.deque(maxlen=OFFSET_WINDOW)
         self._not_before = -np.inf
@@ -225,6 +265,7 @@ class AravisCamera:
             return
         try:
             self._stream = self._cam.create_stream(None, None)
+            self._tune_stream(self._stream)
             payload = self._cam.get_payload()
             for _ in range(self._buffers):
                 self._stream.push_buffer(self._Aravis.Buffer.new_allocate(payload))
@@ -235,6 +276,35 @@ class AravisCamera:
         self._outstanding, self._deferred = 0, 0
         self._running = True
 
+    def _tune_stream(self, stream: Any) -> None:
+        """GigE Vision: packet resend on (unless the camera cannot resend: Aravis turns it
+        off for such cameras when it creates the stream) and the resend timings."""
+        A = self._Aravis
+        if not isinstance(stream, A.GvStream):
+            self._resending = False
+            return
+        offered = stream.get_property("packet-resend") == A.GvStreamPacketResend.ALWAYS
+        self._resending = self._packet_resend and offered
+        stream.set_property("packet-resend", A.GvStreamPacketResend.ALWAYS if self._resending
+                            else A.GvStreamPacketResend.NEVER)
+        stream.set_property("packet-timeout", int(self._packet_timeout_s * 1e6))
+        stream.set_property("frame-retention", int(self._frame_retention_s * 1e6))
+
+    def _read_stream(self, stream: Any) -> StreamStatistics:
+        """The counters of one stream (all zero for counters its type does not keep)."""
+        counts = dict.fromkeys(STREAM_INFOS.values(), 0)
+        for i in range(stream.get_n_infos()):
+            field = STREAM_INFOS.get(stream.get_info_name(i))
+            if field is not None:
+                counts[field] = int(stream.get_info_uint64(i))
+        return StreamStatistics(**counts, packet_resend=self._resending)
+
+    def stream_statistics(self) -> StreamStatistics:
+        """Transfer counters since the camera was opened, over every stream started."""
+        if self._stream is None:
+            return self._stats_before
+        return self._stats_before.plus(self._read_stream(self._stream))
+
     def stop(self) -> None:
         """Stop acquisition and release the stream (buffers are freed with it)."""
         if not self._running:
@@ -244,6 +314,8 @@ class AravisCamera:
             self._cam.stop_acquisition()
         except GLib.Error:
             pass  # the device may be gone; the stream is released anyway
+        if self._stream is not None:
+            self._stats_before = self.stream_statistics()
         self._stream = None
 
     def trigger(self) -> None:
@@ -291,10 +363,12 @@ class AravisCamera:
             if remaining <= 0:
                 self._outstanding, self._deferred = 0, 0  # lost triggers: start afresh
                 self._check_alive()
+                stats = self.stream_statistics()
                 raise CameraTimeout(
                     f"Aravis camera {self.device}: no frame within {timeout_s:.3f} s "
-                    f"(trigger mode {self._settings.trigger_mode}; "
-                    f"{self.incomplete_buffers} incomplete buffers so far)"
+                    f"(trigger mode {self._settings.trigger_mode}; so far "
+                    f"{self.incomplete_buffers} incomplete buffers, {stats.missing_frames} "
+                    f"frames missing, {stats.missing_packets} packets missing)"
                 )
             buf = self._stream.timeout_pop_buffer(max(1, int(min(remaining, 0.1) * 1e6)))
             if buf is None:
@@ -306,15 +380,28 @@ class AravisCamera:
                 return frame
 
     def _accept(self, buf: Any) -> Frame | None:
+        """A popped buffer -> its frame; None if stale (or incomplete while free-running);
+        `FrameLost` if it is a triggered frame that came back incomplete."""
         arrived = self._clock.now()
         self._outstanding = max(0, self._outstanding - 1)  # stale or not, it answered one
         if self._deferred and not self._outstanding:
             self._deferred -= 1
             self._send_trigger()
         try:
-            if buf.get_status() != self._Aravis.BufferStatus.SUCCESS:
+            status = buf.get_status()
+            if status != self._Aravis.BufferStatus.SUCCESS:
                 self.incomplete_buffers += 1
-                return None
+                if self._settings.trigger_mode == "free-running" or self._stale_incomplete(buf):
+                    return None  # free-running: the next frame is already on its way
+                stats = self.stream_statistics()
+                resend = ("packet resend on" if self._resending else "packet resend off"
+                          if not self._packet_resend else "the camera cannot resend")
+                fid = buf.get_frame_id()  # 0 when the frame's leader was lost as well
+                raise FrameLost(
+                    f"Aravis camera {self.device}: triggered frame {fid or '(id lost)'} "
+                    f"arrived incomplete ({status.value_nick}; so far {stats.missing_packets} "
+                    f"packets missing, {stats.resent_packets} resent, {resend}); trigger again"
+                )
             w, h = buf.get_image_width(), buf.get_image_height()
             fmt = pixel_format(buf.get_image_pixel_format())
             image = decode_image(buf.get_data(), fmt, w, h, self._bayer)
@@ -326,6 +413,16 @@ class AravisCamera:
             self.stale_frames += 1
             return None
         return Frame(image, t, self._settings.exposure_s, int(seq))
+
+    def _stale_incomplete(self, buf: Any) -> bool:
+        """True when an incomplete buffer is dated (its leader arrived) before the last
+        trigger or flush: a frame nobody waits for, lost or not."""
+        device_ns = buf.get_timestamp()
+        if device_ns <= 0 or not self._offsets:
+            return False  # undated: count it as the awaited frame
+        stale = device_ns * 1e-9 + min(self._offsets) < self._not_before
+        self.stale_frames += int(stale)
+        return stale
 
     def flush(self) -> int:
         """Return every queued buffer to the pool; later frames start after this call."""

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from acquisition.clock import RealClock
-from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError
+from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError, FrameLost
 from acquisition.protocols import CameraSettings
-from tests.hw_aravis_support import fake_camera_lock, require_aravis
+from tests.hw_aravis_support import fake_camera_lock, lossy_fake_camera, require_aravis
 
 SERIAL = "PHASECAL-T1"
 W, H = 64, 48
@@ -54,9 +54,40 @@ def cam(fake):
     c.close()
 
 
+@pytest.fixture
+def lossy(fake):
+    """The scene's fake replaced, for one test, by Aravis' own fake losing 10% of its
+    packets (a frame of 64x48 Mono16 is 7 packets: about half the frames lose one)."""
+    from acquisition.camera.aravis_camera import AravisCamera
+    from acquisition.camera.aravis_fake import FakeGigECamera
+
+    fake["fake"].stop()
+    try:
+        with lossy_fake_camera(SERIAL, lost_ratio=0.1):
+            c = AravisCamera("127.0.0.1", clock=RealClock(), bayer="raw", region=(0, 0, W, H))
+            try:
+                yield c
+            finally:
+                c.close()
+    finally:
+        fake["fake"] = FakeGigECamera(SERIAL, fake["scene"])
+
+
 def _software(pixel_format: str = "Mono16", **kw) -> CameraSettings:
     return CameraSettings(exposure_s=0.004, gain_db=0.0, pixel_format=pixel_format,
                           trigger_mode="software", **kw)
+
+
+def _grab_retriggering(cam, timeout_s: float) -> tuple[object, int]:
+    """A frame, triggering again for each lost one (as the controller does); the frame
+    and how many were lost on the way."""
+    lost = 0
+    while True:
+        try:
+            return cam.grab(timeout_s), lost
+        except FrameLost:
+            lost += 1
+            cam.trigger()
 
 
 def test_info_by_address(cam) -> None:
@@ -168,10 +199,70 @@ def test_opening_an_absent_camera_is_a_clear_error() -> None:
 
 
 def test_back_to_back_triggers_each_give_a_frame(cam, fake) -> None:
+    """On a loaded host the fake's sender can stall mid-frame past the frame retention:
+    that frame is lost (`FrameLost`, at once) and triggered again, never a timeout."""
     scene = fake["scene"]
     cam.configure(_software("Mono16"))
     cam.start()
     for _ in range(3):
         cam.trigger()  # faster than the camera can expose: held back, not lost
-    counts = [int(cam.grab(2.0).image[0, 0]) for _ in range(3)]
-    assert counts == [1, 2, 3] and scene.count == 3
+    grabs = [_grab_retriggering(cam, 2.0) for _ in range(3)]
+    counts = [int(frame.image[0, 0]) for frame, _ in grabs]
+    lost = sum(n for _, n in grabs)
+    assert lost == cam.incomplete_buffers and scene.count == 3 + lost
+    assert counts == sorted(set(counts)) and (lost > 0 or counts == [1, 2, 3])
+
+
+def test_a_lost_packet_loses_its_frame_at_once_and_a_new_trigger_recovers(lossy) -> None:
+    """Packets dropped on the link and not resent: the frame's buffer comes back
+    incomplete and grab raises `FrameLost` right away (it used to wait for the grab
+    timeout, then raise `CameraTimeout`); triggering again gives the next frame, and the
+    stream statistics count the missing packets."""
+    cam = lossy
+    cam.configure(_software("Mono16"))
+    cam.start()
+    frames, lost = [], []
+    for _ in range(200):  # until both outcomes were seen enough (about 15 triggers)
+        cam.trigger()
+        try:
+            frames.append(cam.grab(30.0))  # a timeout this long would fail the test
+        except FrameLost as exc:
+            lost.append(str(exc))
+        if len(frames) >= 5 and len(lost) >= 3:
+            break
+    assert len(frames) >= 5 and len(lost) >= 3
+    assert "arrived incomplete" in lost[0] and "trigger again" in lost[0]
+    assert all(0 < (b.sequence - a.sequence) % 65536 < 100 for a, b in pairwise(frames))
+    stats = cam.stream_statistics()
+    assert cam.incomplete_buffers == len(lost) == stats.incomplete_frames
+    assert stats.completed_frames == len(frames) and stats.missing_packets >= len(lost)
+    assert stats.received_packets > 0 and not stats.packet_resend  # the fake cannot resend
+    cam.stop()  # the counts survive a stream restart
+    assert cam.stream_statistics() == stats
+
+
+def test_back_to_back_triggers_survive_lost_packets(lossy) -> None:
+    """Three triggers at once on a lossy link: each gives a frame or a `FrameLost`, and
+    triggering again for each lost one ends with three good frames in order."""
+    cam = lossy
+    cam.configure(_software("Mono16"))
+    cam.start()
+    for _ in range(3):
+        cam.trigger()
+    grabs = [_grab_retriggering(cam, 30.0) for _ in range(3)]
+    seqs = [frame.sequence for frame, _ in grabs]
+    assert all(0 < (b - a) % 65536 < 100 for a, b in pairwise(seqs))
+    assert sum(n for _, n in grabs) == cam.incomplete_buffers
+    assert cam.stream_statistics().completed_frames == 3
+
+
+def test_gige_stream_asks_for_resends_where_the_camera_offers_them(cam) -> None:
+    """Packet resend follows the camera's capability (Aravis' fake has none, so it stays
+    off); resend timings that leave no time for a resend are refused."""
+    from acquisition.camera.aravis_camera import AravisCamera
+
+    cam.configure(_software())
+    cam.start()
+    assert cam.stream_statistics().packet_resend is False
+    with pytest.raises(DeviceSettingsError, match="packet_timeout_s < frame_retention_s"):
+        AravisCamera("127.0.0.1", packet_timeout_s=0.2, frame_retention_s=0.1)
