@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from calibration.atomic import atomic_path, write_json_atomic
 from calibration.decode import DecodeError, DecodeOptions, decode_stack, read_frames
 from calibration.maps import DecodedMaps, load_maps
+from calibration.models.base import ModelError, jsonable, save_model
 from calibration.plan import Plan, read_plan
 from calibration.progress import CancelCheck, ProgressFn, check_cancelled
 
@@ -63,14 +64,12 @@ def write_model_folder(
 ) -> dict[str, Any]:
     """model.json, result.json (stats, poses) and every export the model has, each written
     atomically into `out_dir`; returns {"stats", "exports"} (the exports' file names)."""
-    from calibration.models.base import _jsonable, save_model
-
     out = Path(out_dir)
     save_model(result.model, out / "model.json")
     poses = [{"rotation": p.rotation.tolist(), "translation_mm": p.translation.tolist(),
               "rms_px": p.rms_px, "rms_screen_px": p.rms_screen_px, "n_points": p.n_points}
              for p in result.poses]
-    stats = _jsonable(dict(result.stats))
+    stats = jsonable(dict(result.stats))
     write_json_atomic(out / "result.json", {"model": model, "stats": stats, "poses": poses})
     return {"stats": stats, "exports": _write_exports(result, out)}
 
@@ -78,7 +77,6 @@ def write_model_folder(
 def _write_exports(result: CalibrationResult, out: Path) -> list[str]:
     """OpenCV YAML and ROS camera_info (pinhole-family models) and the residual plot."""
     from calibration import export, report
-    from calibration.models.base import ModelError
 
     written: list[str] = []
     jobs = (

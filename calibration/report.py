@@ -18,9 +18,10 @@ _QUIVER_POINTS = 1500
 _POINTS_PER_BIN = 4  # magnitude map: about this many residuals per bin
 
 
-def _binned_rms(pix: np.ndarray, mag: np.ndarray, w: int, h: int) -> np.ndarray:
-    """RMS of `mag` on square bins sized for about 4 points each (NaN where empty): an image
-    that draws in milliseconds where a per-point scatter of a dense fit took seconds."""
+def binned_rms(pix: np.ndarray, mag: np.ndarray, w: int, h: int) -> np.ndarray:
+    """RMS of `mag` at pixels `pix` (N, 2) on square bins over a `w` x `h` image, sized for
+    about 4 points each; NaN where a bin is empty. The magnitude map of every residual plot:
+    an image draws in milliseconds where a per-point scatter of a dense fit took seconds."""
     side = max(1.0, float(np.sqrt(w * h * _POINTS_PER_BIN / max(len(mag), 1))))
     nx, ny = max(1, int(np.ceil(w / side))), max(1, int(np.ceil(h / side)))
     ix = np.clip((pix[:, 0] / side).astype(int), 0, nx - 1)
@@ -56,7 +57,7 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
     ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual vectors (camera px)")
     ax = axes[1]
     hi = float(np.percentile(mag, 99)) if mag.size else 1.0
-    im = ax.imshow(_binned_rms(pix, mag, w, h), extent=(0, w, h, 0), vmin=0, vmax=hi,
+    im = ax.imshow(binned_rms(pix, mag, w, h), extent=(0, w, h, 0), vmin=0, vmax=hi,
                    cmap="magma", interpolation="nearest")
     fig.colorbar(im, ax=ax, label="RMS |residual| px")
     ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude (binned RMS)")

@@ -13,7 +13,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
 from calibration.figures import one_at_a_time, subplots
-from calibration.report import _binned_rms
+from calibration.report import binned_rms
 from calibration.report_data import PoseView, ReportData, whitened
 
 _QUIVER_POINTS = 900
@@ -64,7 +64,7 @@ def pose_png(view: PoseView, image_size: tuple[int, int], path: Path) -> None:
     ax.set_title("residual vectors", loc="left")
     ax = axes[1]
     hi = float(np.percentile(mag, 99)) if mag.size else 1.0
-    im = ax.imshow(_binned_rms(pix, mag, w, h), extent=(0, w, h, 0), vmin=0, vmax=hi,
+    im = ax.imshow(binned_rms(pix, mag, w, h), extent=(0, w, h, 0), vmin=0, vmax=hi,
                    cmap="magma", interpolation="nearest")
     fig.colorbar(im, ax=ax, label="RMS |residual| (camera px)")
     ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude (binned RMS)",

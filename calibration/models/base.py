@@ -68,7 +68,7 @@ class CameraModel(ABC):
             "type": self.type_name,
             "image_size": list(self.image_size),
             "params": self.params_to_json(),
-            "stats": _jsonable(self.stats),
+            "stats": jsonable(self.stats),
         }
 
 
@@ -147,16 +147,18 @@ def save_model(model: CameraModel, path: str | Path) -> None:
     write_text_atomic(path, json.dumps(model.to_dict(), indent=1) + "\n")
 
 
-def _jsonable(value: Any) -> Any:
-    """Convert NumPy scalars/arrays (and non-finite floats) to plain JSON data."""
+def jsonable(value: Any) -> Any:
+    """Fit statistics as plain JSON data: NumPy scalars and arrays become numbers and lists,
+    dict keys strings, and NaN/infinities null (strict JSON has none), so model and result
+    files parse in any JSON reader."""
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
+        return jsonable(value.tolist())
     if isinstance(value, np.generic):
-        return _jsonable(value.item())
+        return jsonable(value.item())
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from calibration.export import export_opencv_yaml, read_opencv_yaml, ros_camera_info_yaml
-from calibration.models.base import ModelError, load_model, model_types, save_model
+from calibration.models.base import ModelError, jsonable, load_model, model_types, save_model
 from calibration.models.parametric import FisheyeModel, OpenCV5Model, OpenCVRationalModel
 from hw_mocks.cameras import PinholeCamera, mild_pinhole, wide_fisheye
 
@@ -131,3 +131,11 @@ def test_opencv_and_ros_export(tmp_path) -> None:
     assert "distortion_model: plumb_bob" in text and "camera_name: cam0" in text
     assert "image_width: 640" in text
     assert "equidistant" in ros_camera_info_yaml(_fisheye_model()[1])
+
+
+def test_jsonable_gives_strict_json_for_numpy_statistics() -> None:
+    stats = {1: np.float32(2.5), "per_pixel": np.array([np.nan, 1.0]), "n": (np.int64(3),),
+             "worst": np.float64(np.inf)}
+    plain = jsonable(stats)
+    assert plain == {"1": 2.5, "per_pixel": [None, 1.0], "n": [3], "worst": None}
+    assert json.loads(json.dumps(plain, allow_nan=False)) == plain
