@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import json
+
+from api.cli import UserError
 
 HELP = "fit a camera model (opencv5, opencv-rational, fisheye, raygrid, sgcc, ...) to maps"
 
@@ -26,7 +29,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from api.cli import UserError
     from api.progress import progress_bar
     from calibration.fit.ransac import DegenerateError
     from calibration.fit.registry import MODEL_NAMES, PARAMETRIC
@@ -39,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         flag = "--export-opencv" if args.export_opencv else "--export-ros"
         raise UserError(f"{flag}: a {args.model} model has no OpenCV/ROS form; after fitting, "
                         "use `phasecal export --format opencv-fit|mrcal|remap` instead")
-    options = _parse_options(args.option)
+    options = parse_options(args.option)
     if args.max_points is not None:
         if args.model not in PARAMETRIC:
             raise UserError(f"--max-points: applies to the parametric models "
@@ -98,12 +100,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parse_options(pairs: list[str]) -> dict[str, object]:
-    """`KEY=VALUE` strings to an options dict; VALUE is JSON, or a bare string if not JSON."""
-    import json
-
-    from api.cli import UserError
-
+def parse_options(pairs: list[str]) -> dict[str, object]:
+    """The `--option KEY=VALUE` model options (of `calibrate` and `demo`) as a dict: VALUE is
+    JSON, or a bare string if it is not JSON (`screen=fit` reads as `screen="fit"`)."""
     options: dict[str, object] = {}
     for pair in pairs:
         key, sep, raw = pair.partition("=")

@@ -9,6 +9,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from api.cli import UserError
+from api.commands.calibrate import parse_options
+
 HELP = "the whole flow on the simulated rig over HTTP: poses, calibrations, comparison table"
 DEFAULT_MODELS = ("opencv-rational", "sgcc")
 
@@ -33,8 +36,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point for `phasecal demo`: 0 when every calibration succeeded."""
-    from api.cli import UserError
-    from api.commands.calibrate import _parse_options
     from api.demo import demo_rig_config, run_demo
     from api.rigs import load_default_config
     from calibration.fit.registry import model_spec
@@ -50,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         if rig.get("kind") != "simulated":
             raise UserError(f"--rig {args.rig}: the demo needs a simulated rig "
                             f"(kind = \"simulated\"), got {rig.get('kind')!r}")
-    options = _parse_options(args.option) or None
+    options = parse_options(args.option) or None
     for model in args.models:  # before any capture: a typo fails now, not after the poses
         try:
             model_spec(model).parse_options(options)

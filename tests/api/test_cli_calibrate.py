@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from acquisition.patterns import build_plan
-from api.cli import main
+from api.cli import UserError, main
+from api.commands.calibrate import parse_options
 from calibration.export import read_opencv_yaml
 from calibration.maps import save_maps
 from calibration.models.base import save_model
@@ -190,3 +191,13 @@ def test_calibrate_fits_the_screen_inside_sgcc(tmp_path, capsys) -> None:
     capsys.readouterr()
     assert main([*base, "--option", "glass_index=0.9"]) == 1
     assert "options.glass_index" in capsys.readouterr().err
+
+
+def test_option_values_are_json_or_bare_strings() -> None:
+    """`--option` of `calibrate` and `demo`: JSON values, a bare word as a string."""
+    assert parse_options(["cells=[8,8]", "screen=fit", "central=false", "glass_index=1.52",
+                          'name="a=b"']) == {"cells": [8, 8], "screen": "fit",
+                                             "central": False, "glass_index": 1.52,
+                                             "name": "a=b"}
+    with pytest.raises(UserError, match="expected KEY=VALUE, got 'cells'"):
+        parse_options(["cells"])
