@@ -8,6 +8,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
+# Bodies parsed as JSON (everything but file uploads): ample room over the largest real
+# one (an extreme full-control plan is 270 KB; see api/body_limits.py).
+DEFAULT_MAX_JSON_BYTES = 4 * 1024 * 1024
 DEFAULT_SPACE_RESERVE_BYTES = 16 << 20  # held for the database on a full disk (api/storage.py)
 DEFAULT_MIN_FREE_BYTES = 32 << 20  # kept free beyond a capture's estimate
 
@@ -23,6 +26,7 @@ class ServiceConfig:
     rig: str = "simulated"
     executor: str | None = None
     max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES
+    max_json_bytes: int = DEFAULT_MAX_JSON_BYTES
     rigs_dir: Path | None = None  # operator rig files (*.toml/*.json), one rig each
     aravis_addresses: tuple[str, ...] = ()  # Aravis cameras GET /devices lists (no broadcast)
     space_reserve_bytes: int = DEFAULT_SPACE_RESERVE_BYTES
@@ -47,13 +51,13 @@ class ServiceConfig:
             values["aravis_addresses"] = tuple(env["PHASECAL_ARAVIS_ADDRESSES"].split(","))
         if env.get("PHASECAL_DASK"):
             values["executor"] = env["PHASECAL_DASK"]
-        if env.get("PHASECAL_MAX_UPLOAD_BYTES"):
-            raw = env["PHASECAL_MAX_UPLOAD_BYTES"]
-            if not raw.isdigit():
-                raise ValueError(
-                    f"PHASECAL_MAX_UPLOAD_BYTES: expected a byte count (integer), got {raw!r}"
-                )
-            values["max_upload_bytes"] = int(raw)
+        for key in ("max_upload_bytes", "max_json_bytes"):
+            name = f"PHASECAL_{key.upper()}"
+            if env.get(name):
+                raw = env[name]
+                if not raw.isdigit():
+                    raise ValueError(f"{name}: expected a byte count (integer), got {raw!r}")
+                values[key] = int(raw)
         for key in ("space_reserve_bytes", "min_free_bytes"):
             name = f"PHASECAL_{key.upper()}"
             if env.get(name):

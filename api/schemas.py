@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, RootModel, create_model
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, RootModel, create_model
 
 from api.jobs.model import JobKind as JobKindEnum
 from api.jobs.model import JobStatus as JobStatusEnum
@@ -16,6 +16,17 @@ JobStatus = Literal[tuple(s.value for s in JobStatusEnum)]  # type: ignore[valid
 JobKind = Literal[tuple(k.value for k in JobKindEnum)]  # type: ignore[valid-type]
 MAX_POINTS = 200_000
 MAX_OFFSET = 1_000_000_000  # list offsets (SQLite integers overflow past 2**63)
+MAX_ID_LENGTH = 64  # ids are 20 characters; room for the rig alias `default` and more
+# A plan from the builder has at most 122 frames with a preset and 1666 in an extreme
+# full-control case (64 steps, 13 periods per axis); a frame has 7 keys.
+MAX_PLAN_FRAMES = 10_000
+MAX_PLAN_KEYS = 64  # format, screen, frames and the plan's own metadata
+MAX_FRAME_KEYS = 16
+MAX_PLAN_NODES = 200_000  # keys and values in the whole plan
+MAX_RIG_CONFIG_KEYS = 32  # a rig config has about 10 sections
+MAX_RIG_CONFIG_NODES = 2_000
+MAX_TREE_DEPTH = 8  # a plan nests 4 deep, a rig config 3
+MAX_TREE_STRING = 4096  # names, device ids and paths in free-form documents
 # Numbers in request bodies are typed strictly: `false` or "1" is not a number, NaN and
 # infinities are refused (JSON has none, but Python's parser accepts NaN/Infinity).
 Num = Annotated[float, Field(strict=True, allow_inf_nan=False)]
@@ -23,6 +34,63 @@ Coord = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1e9, le=1e9
 PoseStatus = Literal[
     "pending", "capturing", "decoding", "ready", "flagged", "failed", "cancelled", "interrupted"
 ]
+
+
+def check_tree(value: Any, where: str, max_nodes: int, max_depth: int = MAX_TREE_DEPTH,
+               max_string: int = MAX_TREE_STRING) -> None:
+    """Raise ValueError if a free-form JSON document has more than `max_nodes` keys and
+    values, nests deeper than `max_depth` or holds a string longer than `max_string`
+    (whatever a request may carry is bounded before any code walks it recursively)."""
+    nodes = 0
+    todo: list[tuple[Any, int]] = [(value, 0)]
+    while todo:
+        item, depth = todo.pop()
+        nodes += 1
+        if nodes > max_nodes:
+            raise ValueError(f"{where}: more than {max_nodes} keys and values")
+        if depth > max_depth:
+            raise ValueError(f"{where}: nested more than {max_depth} levels deep")
+        if isinstance(item, str) and len(item) > max_string:
+            raise ValueError(f"{where}: a string of {len(item)} characters "
+                             f"(at most {max_string})")
+        if isinstance(item, dict):
+            nodes += len(item)  # the keys
+            longest = max(map(len, item), default=0)
+            if longest > max_string:
+                raise ValueError(f"{where}: a key of {longest} characters (at most {max_string})")
+            todo.extend((v, depth + 1) for v in item.values())
+        elif isinstance(item, list):
+            todo.extend((v, depth + 1) for v in item)
+
+
+def _check_plan(plan: dict[str, Any]) -> dict[str, Any]:
+    """Bound a plan document's size (its meaning is checked by `plan_from_dict`)."""
+    frames = plan.get("frames")
+    if isinstance(frames, list):
+        if len(frames) > MAX_PLAN_FRAMES:
+            raise ValueError(f"frames: {len(frames)} frames (at most {MAX_PLAN_FRAMES})")
+        for i, frame in enumerate(frames):
+            if isinstance(frame, dict) and len(frame) > MAX_FRAME_KEYS:
+                raise ValueError(f"frames[{i}]: {len(frame)} keys (at most {MAX_FRAME_KEYS})")
+    check_tree(plan, "plan", MAX_PLAN_NODES)
+    return plan
+
+
+def _check_rig_config(config: dict[str, Any]) -> dict[str, Any]:
+    """Bound a rig config's size (its meaning is checked by `parse_rig_config`)."""
+    check_tree(config, "config", MAX_RIG_CONFIG_NODES)
+    return config
+
+
+PlanDocument = Annotated[dict[str, Any], Field(
+    max_length=MAX_PLAN_KEYS,
+    json_schema_extra={"properties": {"frames": {
+        "type": "array", "maxItems": MAX_PLAN_FRAMES,
+        "items": {"type": "object", "maxProperties": MAX_FRAME_KEYS}}}},
+), AfterValidator(_check_plan)]
+RigConfigDocument = Annotated[dict[str, Any], Field(max_length=MAX_RIG_CONFIG_KEYS),
+                              AfterValidator(_check_rig_config)]
+IdStr = Annotated[str, Field(max_length=MAX_ID_LENGTH)]
 
 
 def _strict(*examples: dict[str, Any]) -> ConfigDict:
@@ -85,7 +153,8 @@ class RigCreate(BaseModel):
         {"name": "bench-sim", "config": {"kind": "simulated"}}
     ]})
     name: str = Field(min_length=1, max_length=200)
-    config: dict[str, Any]
+    config: RigConfigDocument = Field(
+        description=f"at most {MAX_RIG_CONFIG_NODES} keys and values, {MAX_TREE_DEPTH} levels")
 
 
 class Rig(BaseModel):
@@ -128,9 +197,12 @@ class SessionCreate(BaseModel):
         {"name": "lab-1", "preset": "fast"}
     )
     name: str = Field(default="", max_length=200)
-    rig_id: str | None = Field(default=None, description="default: the server's rig")
-    plan: dict[str, Any] | None = Field(default=None, description="a phasecal.plan/1 document")
-    preset: str | None = Field(default=None, description="plan preset when no plan is given")
+    rig_id: IdStr | None = Field(default=None, description="default: the server's rig")
+    plan: PlanDocument | None = Field(
+        default=None, description=f"a phasecal.plan/1 document (at most {MAX_PLAN_FRAMES} "
+        f"frames, {MAX_PLAN_NODES} keys and values, {MAX_TREE_DEPTH} levels)")
+    preset: str | None = Field(default=None, max_length=32,
+                               description="plan preset when no plan is given")
 
 
 class Session(BaseModel):
@@ -179,8 +251,8 @@ class _CalibrationFields(BaseModel):
     """What every model's calibration request has besides its model and options."""
 
     model_config = ConfigDict(extra="forbid")
-    pose_ids: list[str] | None = Field(default=None, max_length=500)
-    heldout_pose_ids: list[str] = Field(default_factory=list, max_length=500)
+    pose_ids: list[IdStr] | None = Field(default=None, max_length=500)
+    heldout_pose_ids: list[IdStr] = Field(default_factory=list, max_length=500)
 
 
 def per_model(base: type[BaseModel], prefix: str) -> Any:
@@ -214,7 +286,7 @@ class IntrinsicsCreate(BaseModel):
                             "pose_ids": ["pose_0123456789abcdef"]})
     method: Literal["rectangle", "selfcal", "rotation"]
     source: Literal["flats", "maps"] = "flats"
-    pose_ids: list[str] | None = Field(default=None, max_length=500)
+    pose_ids: list[IdStr] | None = Field(default=None, max_length=500)
     square_pixels: bool = False
     zero_skew: bool = False
 

@@ -1,4 +1,4 @@
-"""Bearer-token check and request-size limit as pure ASGI middleware (problem+json on refusal)."""
+"""Bearer-token check and request-body limits as pure ASGI middleware (problem+json on refusal)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,9 @@ import json
 from typing import Any
 from urllib.parse import unquote_to_bytes
 
+from api.body_limits import BodyLimits, Refusal, shape_refusal, size_refusal
+from api.config import DEFAULT_MAX_JSON_BYTES
+from api.json_shape import JsonShape
 from api.problems import MEDIA_TYPE, problem_body
 
 Scope = dict[str, Any]
@@ -71,45 +74,73 @@ class TokenMiddleware:
 
 
 class BodyLimitMiddleware:
-    """Rejects request bodies over `max_bytes` (by Content-Length, and while streaming)."""
+    """Refuses request bodies past what their route needs (`api.body_limits`): file uploads
+    up to `max_bytes` (PHASECAL_MAX_UPLOAD_BYTES), every other body up to the far smaller
+    JSON limit and, as it streams in, past a budget of JSON values, arrays/objects and
+    nesting depth, so the app never parses a body whose objects would need many times its
+    size in memory. Checked by Content-Length up front and on the bytes as they arrive.
 
-    def __init__(self, app: Any, max_bytes: int) -> None:
+    `max_json_bytes` defaults to the app's `ServiceConfig.max_json_bytes` (read from
+    `app.state.services.config` on the first request), else `DEFAULT_MAX_JSON_BYTES`."""
+
+    def __init__(self, app: Any, max_bytes: int, max_json_bytes: int | None = None) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.max_json_bytes = max_json_bytes
+        self.limits: BodyLimits | None = None
+
+    def body_limits(self, scope: Scope) -> BodyLimits:
+        """The limits, built once (the JSON limit may come from the app's configuration)."""
+        if self.limits is None:
+            json_bytes = self.max_json_bytes
+            if json_bytes is None:
+                services = getattr(getattr(scope.get("app"), "state", None), "services", None)
+                config = getattr(services, "config", None)
+                json_bytes = getattr(config, "max_json_bytes", DEFAULT_MAX_JSON_BYTES)
+            self.limits = BodyLimits(self.max_bytes, int(json_bytes))
+        return self.limits
 
     async def __call__(self, scope: Scope, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        declared = dict(scope.get("headers", [])).get(b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
-            await send_problem(send, 413, "too-large",
-                               f"request body of {declared.decode(errors='replace')} bytes exceeds "
-                               f"the limit of {self.max_bytes} bytes (PHASECAL_MAX_UPLOAD_BYTES)")
+        headers = dict(scope.get("headers", []))
+        budget = self.body_limits(scope).for_request(scope.get("path", ""),
+                                                     headers.get(b"content-type"))
+        declared = headers.get(b"content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > budget.max_bytes):
+            size = int(declared) if declared.isdigit() else None
+            await _answer(send, size_refusal(budget, size))
             return
-        seen = 0
+        shape = JsonShape() if budget.json else None
+        seen = 0  # body bytes received so far
         started = False  # a response went out to the client
-        exceeded = False  # the body passed the limit while streaming
-        too_large = f"request body exceeds the limit of {self.max_bytes} bytes"
+        refusal: Refusal | None = None  # why the body was refused while streaming
 
         async def limited_receive() -> dict[str, Any]:
-            nonlocal seen, exceeded
+            nonlocal seen, refusal
             msg = await receive()
-            if msg["type"] == "http.request":
-                seen += len(msg.get("body", b""))
-                if seen > self.max_bytes:
-                    exceeded = True
-                    raise _TooLarge
+            if msg["type"] == "http.request" and refusal is None:
+                chunk = msg.get("body", b"")
+                seen += len(chunk)
+                if seen > budget.max_bytes:
+                    refusal = size_refusal(budget)
+                elif shape is not None:
+                    shape.feed(chunk)
+                    refusal = shape_refusal(budget, shape)
+                if refusal is not None:
+                    raise _Refused
             return msg
 
         async def tracking_send(msg: dict[str, Any]) -> None:
             nonlocal started
-            if exceeded:
-                # The app caught _TooLarge while parsing (FastAPI turns any form-parsing
-                # error into a 400): answer 413 instead and drop the app's own response.
+            if refusal is not None:
+                # The app caught _Refused while reading the body (FastAPI turns any
+                # body-reading error into a 400): answer our refusal instead and drop the
+                # app's own response.
                 if not started:
                     started = True
-                    await send_problem(send, 413, "too-large", too_large)
+                    await _answer(send, refusal)
                 return
             if msg["type"] == "http.response.start":
                 started = True
@@ -117,10 +148,15 @@ class BodyLimitMiddleware:
 
         try:
             await self.app(scope, limited_receive, tracking_send)
-        except _TooLarge:
-            if not started:
-                await send_problem(send, 413, "too-large", too_large)
+        except _Refused:
+            if not started and refusal is not None:
+                await _answer(send, refusal)
 
 
-class _TooLarge(Exception):
-    """Raised from receive() when a streamed body passes the limit."""
+async def _answer(send: Any, refusal: Refusal) -> None:
+    """Send a refusal as problem+json."""
+    await send_problem(send, refusal.status, refusal.slug, refusal.detail)
+
+
+class _Refused(Exception):
+    """Raised from receive() when a streamed body passes its route's budget."""
