@@ -59,6 +59,15 @@ def _v4l2(dev_root: Path, sysfs: Path) -> list[DeviceEntry]:
     return out
 
 
+def list_device_nodes(dev_root: str | Path = "/dev",
+                      sysfs_root: str | Path = "/sys/class") -> list[DeviceEntry]:
+    """The framebuffers and V4L2 devices under `dev_root`: the devices a rig config names by
+    their path, which is what a REST client may name (`api.rig_policy`) without any
+    broadcast or driver query."""
+    dev, sysfs = Path(dev_root), Path(sysfs_root)
+    return _framebuffers(dev, sysfs / "graphics") + _v4l2(dev, sysfs / "video4linux")
+
+
 def _usb(backend: Any) -> list[DeviceEntry]:
     from acquisition.usb.discovery import list_usb_cameras
 

@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from acquisition.discovery import list_device_nodes
 from api.problems import Problem
 
 OPERATOR_ONLY = "give such a rig in an operator rig file (serve --rig FILE or --rigs-dir DIR)"
@@ -20,11 +21,7 @@ SDL_DRIVER_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
 def listed_devices(dev_root: Path, sysfs_root: Path, aravis_ids: tuple[str, ...]) -> set[str]:
     """Device ids this machine lists in `GET /devices` that a rig config can name."""
-    from acquisition.discovery import _framebuffers, _v4l2
-
-    found = {d.id for d in _framebuffers(dev_root, sysfs_root / "graphics")}
-    found |= {d.id for d in _v4l2(dev_root, sysfs_root / "video4linux")}
-    return found | set(aravis_ids)
+    return {d.id for d in list_device_nodes(dev_root, sysfs_root)} | set(aravis_ids)
 
 
 def _refuse(field: str, detail: str) -> Problem:

@@ -143,7 +143,7 @@ def test_screen_size_must_match_the_display(tmp_path: Path, fb_path: Path) -> No
 
 
 def test_list_devices_on_a_fake_system(tmp_path: Path, monkeypatch) -> None:
-    from acquisition.discovery import list_devices
+    from acquisition.discovery import list_device_nodes, list_devices
     from tests.acquisition.test_hw_usb import FakeBackend, _device
 
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
@@ -166,6 +166,8 @@ def test_list_devices_on_a_fake_system(tmp_path: Path, monkeypatch) -> None:
     assert "virtual" in by_backend["sdl"].description  # dummy driver: no real screen
     assert "usb3vision 2676:ba02 Basler a2A serial 77" in by_backend["aravis"].description
     assert not any(d.id == "127.0.0.1" for d in found)  # Aravis only when asked
+    # what a REST client may name: the /dev nodes, listed exactly as GET /devices lists them
+    assert list_device_nodes(dev, sysfs) == [by_backend["framebuffer"], by_backend["opencv"]]
 
 
 def test_devices_command_json(capsys, monkeypatch) -> None:
