@@ -14,6 +14,7 @@ from api.db import CalibrationRecord, PoseRecord
 from api.jobs.calibrations import CalibrateJob
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
+from api.routes.points import json_rows, point_rows
 from api.schemas import (
     MAX_OFFSET,
     Calibration,
@@ -165,35 +166,29 @@ def download(cal_id: str, name: str, svc: Svc) -> Response:
     return Response(path.read_bytes(), media_type=EXPORTS[name])
 
 
-def _model(svc: Services, cal_id: str) -> CameraModel:
+def fitted_model(svc: Services, cal_id: str) -> CameraModel:
+    """The model of a succeeded calibration (404 unknown id, 409 not succeeded yet): what
+    every route that applies a calibration to points or exports it starts from."""
     _succeeded(svc, cal_id)
     return load_model(svc.store.file(cal_id, "model.json"))
-
-
-def _rows(values: list[tuple[float, ...]], width: int) -> np.ndarray:
-    return np.asarray(values, np.float64).reshape(-1, width)
-
-
-def _listify(a: np.ndarray) -> list[list[float | None]]:
-    return [[None if not np.isfinite(v) else float(v) for v in row] for row in a]
 
 
 @router.post("/calibrations/{cal_id}/project", response_model=ProjectResponse)
 def project(cal_id: str, body: ProjectRequest, svc: Svc) -> dict[str, Any]:
     """Camera-frame points (mm) -> pixels with the fitted model."""
-    pts = _rows(body.points, 3)
-    model = _model(svc, cal_id)
+    pts = point_rows(body.points, 3)
+    model = fitted_model(svc, cal_id)
     # the camera centre (0,0,0) has no direction: a NaN row (docs/formats.md), not a failed fit
     seen = np.linalg.norm(pts, axis=1) > MIN_POINT_NORM_MM
     pixels = np.full((len(pts), 2), np.nan)
     if seen.any():
         pixels[seen] = model.project(pts[seen])
-    return {"pixels": _listify(pixels)}
+    return {"pixels": json_rows(pixels)}
 
 
 @router.post("/calibrations/{cal_id}/unproject", response_model=UnprojectResponse)
 def unproject(cal_id: str, body: UnprojectRequest, svc: Svc) -> dict[str, Any]:
     """Pixels -> rays (origins mm, unit directions) with the fitted model."""
-    px = _rows(body.pixels, 2)
-    origins, dirs = _model(svc, cal_id).unproject(px)
-    return {"origins": _listify(origins), "directions": _listify(dirs)}
+    px = point_rows(body.pixels, 2)
+    origins, dirs = fitted_model(svc, cal_id).unproject(px)
+    return {"origins": json_rows(origins), "directions": json_rows(dirs)}

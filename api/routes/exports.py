@@ -10,8 +10,9 @@ from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from api.problems import Problem
-from api.routes.calibrations import _listify, _model, _rows
+from api.routes.calibrations import fitted_model
 from api.routes.common import PROBLEM_RESPONSES
+from api.routes.points import json_rows, point_rows
 from api.schemas import MAX_POINTS, Coord, Num, _strict
 from api.services import Services, get_services
 from calibration.formats import (
@@ -38,7 +39,7 @@ def _options(svc: Services, *, pinhole: str | None, rotation: str | None, align_
         return ExportOptions(
             pinhole=parse_pinhole(pinhole) if pinhole else None,
             rotation=parse_rotation(rotation) if rotation else None,
-            align_to=_model(svc, align_to) if align_to else None, **rest)
+            align_to=fitted_model(svc, align_to) if align_to else None, **rest)
     except ModelError as exc:
         raise Problem(422, "validation-error", str(exc)) from None
 
@@ -64,7 +65,7 @@ def export(
     `detail`); approximations (mrcal spline of a generic model, opencv-fit) report their
     residual in the `Phasecal-Export-Info` header.
     """
-    model = _model(svc, cal_id)
+    model = fitted_model(svc, cal_id)
     opts = _options(svc, pinhole=pinhole, rotation=rotation, align_to=align_to,
                     camera_name=camera_name, approximate=approximate, spline_nx=spline_nx,
                     opencv_kind=opencv_kind)
@@ -99,13 +100,13 @@ class UndistortResponse(BaseModel):
 @router.post("/calibrations/{cal_id}/undistort-points", response_model=UndistortResponse)
 def undistort_points(cal_id: str, body: UndistortRequest, svc: Svc) -> dict[str, Any]:
     """Pixels of the model -> pixels of a virtual pinhole (cv2.undistortPoints with R, P)."""
-    model = _model(svc, cal_id)
+    model = fitted_model(svc, cal_id)
     pin = None if body.pinhole is None else ",".join(map(str, (*body.pinhole, 1, 1)))
     rot = None if body.rotation is None else ",".join(map(str, body.rotation))
     opts = _options(svc, pinhole=pin, rotation=rot, align_to=body.align_to)
     try:
-        out = undistort_pixels(model, _rows(body.pixels, 2), opts)
+        out = undistort_pixels(model, point_rows(body.pixels, 2), opts)
     except ModelError as exc:
         raise Problem(422, "validation-error", str(exc)) from None
-    return {"pixels": _listify(out)}
+    return {"pixels": json_rows(out)}
 
