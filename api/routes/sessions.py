@@ -152,7 +152,8 @@ def resume_pose(session_id: str, pose_id: str, svc: Svc) -> JSONResponse:
              openapi_extra={"x-upload": "one .npy (F,H,W) or frame_NNNN.png/.tif images"})
 def import_pose(session_id: str, svc: Svc, files: Annotated[list[UploadFile], File()],
                 noise_dn: Annotated[float | None, Form(gt=0, le=1e4)] = None) -> JSONResponse:
-    """Import frames captured elsewhere (FORMATS.md) as a new pose and decode them (a job)."""
+    """Import frames captured elsewhere (docs/formats.md, "Captured frames") as a new pose and
+    decode them (a job)."""
     with svc.db.session() as s:
         plan = plan_from_dict(get_session(s, session_id).plan, f"session {session_id} plan")
     scratch = svc.store.temp_dir()
@@ -196,15 +197,19 @@ def import_maps(session_id: str, svc: Svc, file: Annotated[UploadFile, File()]) 
                       f"{file.filename}: maps were decoded with plan {digest}, the session's "
                       f"plan is {plan.digest()}")
     pid = new_id("pose")
-    svc.store.write_bytes(svc.store.file(pid, "maps.npz"), data)
     h, w = maps.shape
-    with svc.db.session() as s:
-        get_session(s, session_id)
-        index = _next_index(s, session_id)
-        rec = PoseRecord(id=pid, session_id=session_id, index=int(index), source="import",
-                         status="ready", job_id=None, valid_pixels=maps.valid_count(), width=w,
-                         height=h, frames_done=0, created_at=time.time())
-        s.add(rec)
+    try:
+        svc.store.write_bytes(svc.store.file(pid, "maps.npz"), data)
+        with svc.db.session() as s:
+            get_session(s, session_id)
+            index = _next_index(s, session_id)
+            rec = PoseRecord(id=pid, session_id=session_id, index=int(index), source="import",
+                             status="ready", job_id=None, valid_pixels=maps.valid_count(),
+                             width=w, height=h, frames_done=0, created_at=time.time())
+            s.add(rec)
+    except BaseException:  # (e.g. a full disk) no folder is left without its record
+        shutil.rmtree(svc.store.dir_for(pid, create=False), ignore_errors=True)
+        raise
     return JSONResponse(pose_to_dict(rec), status_code=201,
                         headers={"Location": f"/sessions/{session_id}/poses/{pid}"})
 

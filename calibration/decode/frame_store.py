@@ -1,6 +1,6 @@
 """Raw frame store of one pose: `frames.npy` (F, H, W), memory-mapped, plus `frames.done`.
 
-`frames.npy` is the FORMATS.md `.npy` stack (np.load and `phasecal decode` read it);
+`frames.npy` is the docs/formats.md `.npy` stack (np.load and `phasecal decode` read it);
 `frames.done` holds one byte per plan frame, set to 1 after that frame's pixels were
 written in. Storing a frame is a `pwrite` into the page cache (no encoding, no fsync
 on the capture loop): the data survive a killed process at once, and a background

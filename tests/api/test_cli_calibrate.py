@@ -1,4 +1,4 @@
-"""`phasecal calibrate / project / unproject` end to end on synthetic maps (FORMATS.md contract)."""
+"""`phasecal calibrate / project / unproject` end to end on synthetic maps (docs/formats.md)."""
 
 from __future__ import annotations
 

@@ -57,7 +57,7 @@ def test_rectangle_from_white_flat_images_and_frames(flats, capsys) -> None:
     np.testing.assert_allclose(model.camera_matrix[0, 0],
                                json.loads((flats / "k.json").read_text())["fx"])
     assert "rectangle from 5 views: fx" in capsys.readouterr().out
-    # the same white flats inside captured-pose frame stacks (FORMATS.md .npy)
+    # the same white flats inside captured-pose frame stacks (docs/formats.md .npy)
     plan = build_plan(DEFAULT_SCREEN.width_px, DEFAULT_SCREEN.height_px, 0.25)
     write_plan(plan, flats / "plan.json")
     stacks = []
