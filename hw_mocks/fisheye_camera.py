@@ -12,6 +12,19 @@ from hw_mocks.camera_base import NEWTON_ITERS, STEP_TOL, TruthCamera, as_points
 # -- equidistant fisheye ---------------------------------------------------------------
 
 
+def fisheye_theta_d(k: Sequence[float], theta: np.ndarray | float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The OpenCV fisheye lens polynomial: the distorted angle theta_d = theta (1 + k1 theta^2
+    + ... + k4 theta^8) of rays at `theta` radians from the axis, and its derivative (image
+    radius r = f theta_d, so the derivative must stay positive across the field of view)."""
+    k1, k2, k3, k4 = k
+    t = np.asarray(theta, dtype=np.float64)
+    t2 = t * t
+    poly = 1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+    dpoly = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+    return t * poly, dpoly
+
+
 @dataclass
 class EquidistantFisheye(TruthCamera):
     """Equidistant fisheye (OpenCV fisheye model): r = f * theta * (1 + k1 t^2 + ... k4 t^8).
@@ -38,17 +51,9 @@ class EquidistantFisheye(TruthCamera):
         self._k = kk
         self._theta_max = np.radians(self.fov_deg) / 2
         t = np.linspace(0.0, self._theta_max, 20001)
-        dtd = self._theta_d(t)[1]
+        dtd = fisheye_theta_d(self._k, t)[1]
         if np.any(dtd <= 0):
             raise ValueError("EquidistantFisheye.k: theta_d(theta) must increase within the FOV")
-
-    def _theta_d(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distorted angle theta_d(theta) and its derivative."""
-        k1, k2, k3, k4 = self._k
-        t2 = t * t
-        poly = 1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
-        dpoly = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-        return t * poly, dpoly
 
     def rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coords -> (zero origins, unit directions); NaN outside the lens' FOV."""
@@ -66,7 +71,7 @@ class EquidistantFisheye(TruthCamera):
         td = np.hypot(du, dv)
         theta = td.copy()
         for _ in range(NEWTON_ITERS):
-            val, der = self._theta_d(theta)
+            val, der = fisheye_theta_d(self._k, theta)
             step = (val - td) / der
             theta = theta - step
             if np.nanmax(np.abs(step), initial=0.0) < STEP_TOL:
@@ -76,7 +81,8 @@ class EquidistantFisheye(TruthCamera):
             sphi = np.where(td > 0, dv / td, 0.0)
         st = np.sin(theta)
         d = np.stack([st * cphi, st * sphi, np.cos(theta)], axis=-1)
-        solved = (np.abs(self._theta_d(theta)[0] - td) < 1e-12) & (theta >= 0) & (theta < np.pi)
+        residual = np.abs(fisheye_theta_d(self._k, theta)[0] - td)
+        solved = (residual < 1e-12) & (theta >= 0) & (theta < np.pi)
         d[~solved] = np.nan
         return d, theta
 
@@ -85,7 +91,7 @@ class EquidistantFisheye(TruthCamera):
         p = as_points(points)
         rxy = np.hypot(p[:, 0], p[:, 1])
         theta = np.arctan2(rxy, p[:, 2])
-        td, _ = self._theta_d(theta)
+        td, _ = fisheye_theta_d(self._k, theta)
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = np.where(rxy > 0, td / rxy, 0.0)
         return np.stack([self.f * scale * p[:, 0] + self.cx, self.f * scale * p[:, 1] + self.cy], 1)
@@ -104,8 +110,7 @@ def wide_fisheye(width: int = 640, height: int = 480, fov_deg: float = 150.0) ->
     """A fisheye whose farther left/right image edge sees rays at fov/2 from the axis."""
     k = (0.012, -0.004, 0.0008, -0.0001)
     cx, cy = (width - 1) / 2 + 0.004 * width, (height - 1) / 2 + 0.006 * height
-    tmp = EquidistantFisheye(width, height, 1.0, cx, cy, k, fov_deg)
-    theta_d_edge, _ = tmp._theta_d(np.radians(fov_deg) / 2)
+    theta_d_edge, _ = fisheye_theta_d(k, np.radians(fov_deg) / 2)
     edge_px = max(cx + 0.5, width - 0.5 - cx) + 1e-6
     f = edge_px / float(theta_d_edge)
     return EquidistantFisheye(width, height, f, cx, cy, k, fov_deg)

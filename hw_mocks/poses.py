@@ -24,8 +24,9 @@ def _screen_center_mm(screen: ScreenGeometry) -> np.ndarray:
     )
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation matrix about a unit axis by an angle in radians (Rodrigues formula)."""
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix about `axis` (any length, normalised here) by `angle` radians, right
+    handed (Rodrigues formula): how the simulator tilts, rolls and turns screens and cameras."""
     a = axis / np.linalg.norm(axis)
     k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
@@ -41,7 +42,7 @@ def _screen_axes(normal: np.ndarray, roll_rad: float) -> np.ndarray:
     ref = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
     ex = ref - (ref @ n) * n
     ex /= np.linalg.norm(ex)
-    ex = _rotation(n, roll_rad) @ ex
+    ex = rotation_about(n, roll_rad) @ ex
     ey = np.cross(n, ex)
     return np.stack([ex, ey, n], axis=1)
 
@@ -69,7 +70,7 @@ def look_at_pose(
     base = _screen_axes(d, 0.0)
     az = np.radians(tilt_azimuth_deg)
     tilt_axis = np.cos(az) * base[:, 1] - np.sin(az) * base[:, 0]
-    normal = _rotation(tilt_axis, np.radians(tilt_deg)) @ d
+    normal = rotation_about(tilt_axis, np.radians(tilt_deg)) @ d
     rot = _screen_axes(normal, np.radians(roll_deg))
     if target_px is None:
         s_target = _screen_center_mm(screen)
@@ -187,7 +188,7 @@ def rotation_only_poses(
         for _ in range(_MAX_TRIES_PER_POSE):
             axis = rng.normal(size=3)
             angle = np.radians(rng.uniform(0.3, 1.0) * max_rotation_deg)
-            q = _rotation(axis, angle)
+            q = rotation_about(axis, angle)
             pose = ScreenPose(q @ base.rotation, q @ base.translation)
             if coverage(camera, pose, screen) >= min_coverage:
                 poses.append(pose)

@@ -19,7 +19,7 @@ import numpy as np
 from calibration.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.optics import OpticalSetup
-from hw_mocks.poses import _rotation, fill_distance_mm, look_at_pose, rotation_only_poses
+from hw_mocks.poses import fill_distance_mm, look_at_pose, rotation_about, rotation_only_poses
 from hw_mocks.scene import ScreenPose
 from hw_mocks.sensor import SensorModel
 
@@ -59,9 +59,10 @@ def two_board_scene(
     the four edge directions share a plane (the general-motion method's two non-parallel
     checkerboards)."""
     z = np.array([0, 0, 1.0])
-    a_axes = _rotation(z, np.radians(twist_deg[0])) @ np.array([[1.0, 0, 0], [0, 1.0, 0]]).T
-    turn = _rotation(np.array([0, 1.0, 0]), np.radians(180.0 - hinge_deg))
-    b_axes = turn @ _rotation(z, np.radians(twist_deg[1])) @ np.array([[1.0, 0, 0], [0, 1.0, 0]]).T
+    in_plane = np.array([[1.0, 0, 0], [0, 1.0, 0]]).T
+    a_axes = rotation_about(z, np.radians(twist_deg[0])) @ in_plane
+    turn = rotation_about(np.array([0, 1.0, 0]), np.radians(180.0 - hinge_deg))
+    b_axes = turn @ rotation_about(z, np.radians(twist_deg[1])) @ in_plane
     w, h = size_mm
     a = Board(np.array([-w - 60.0, -h / 2, 0.0]), a_axes, size_mm, grid)
     b_origin = np.array([60.0, -h / 2, 0.0])
@@ -94,7 +95,7 @@ def _look_at(center: np.ndarray, target: np.ndarray, roll: float) -> CameraView:
     x = np.cross(up, z)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
-    r = _rotation(z, roll) @ np.stack([x, y, z], axis=1)  # camera axes in world
+    r = rotation_about(z, roll) @ np.stack([x, y, z], axis=1)  # camera axes in world
     rot = r.T
     return CameraView(rot, -rot @ center)
 
@@ -139,7 +140,8 @@ def general_motion_views(
             az = np.radians(rng.uniform(-35.0, 35.0))
             el = np.radians(rng.uniform(-max_elevation_deg, max_elevation_deg))
             d = rng.uniform(*distance_mm)
-            turn = _rotation(np.array([1.0, 0, 0]), el) @ _rotation(np.array([0, 1.0, 0]), az)
+            turn = (rotation_about(np.array([1.0, 0, 0]), el)
+                    @ rotation_about(np.array([0, 1.0, 0]), az))
             dirn = turn @ front
             target = mid + rng.uniform(-aim_jitter_mm, aim_jitter_mm, 3)
             view = _look_at(mid + d * dirn, target, np.radians(rng.uniform(-roll_deg, roll_deg)))
@@ -272,7 +274,7 @@ def pan_tilt_poses(
     sampling biases perfectly axis-aligned edges by up to 1/(2 supersample) px."""
     size = np.array([camera.width, camera.height]) - 1 - margin_px
     dist = fill_distance_mm(camera, screen, fill)
-    q0 = _rotation(rng.normal(size=3), np.radians(rng.uniform(3.0, 6.0)))
+    q0 = rotation_about(rng.normal(size=3), np.radians(rng.uniform(3.0, 6.0)))
     out: list[ScreenPose] = []
     for _ in range(_MAX_TRIES):
         cand = rotation_only_poses(camera, screen, 2, rng, distance_mm=dist,

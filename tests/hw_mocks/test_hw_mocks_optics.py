@@ -19,8 +19,15 @@ from hw_mocks.cameras import (
     smooth_noncentral,
     wide_fisheye,
 )
+from hw_mocks.fisheye_camera import fisheye_theta_d
 from hw_mocks.optics import OpticalSetup
-from hw_mocks.poses import coverage, look_at_pose, random_poses, rotation_only_poses
+from hw_mocks.poses import (
+    coverage,
+    look_at_pose,
+    random_poses,
+    rotation_about,
+    rotation_only_poses,
+)
 from hw_mocks.scene import ScreenPose, screen_points, screen_points_at
 from hw_mocks.sensor import SensorModel
 from hw_mocks.synthetic import render_plan_frames, synthetic_maps
@@ -120,6 +127,31 @@ def test_fisheye_matches_opencv_and_sees_75_degrees_at_edge() -> None:
     # Beyond the 75 degree half-FOV nothing is imaged, even inside the sensor.
     behind = np.array([[np.sin(np.radians(80.0)), 0.0, np.cos(np.radians(80.0))]])
     assert np.all(np.isnan(cam.project(behind)))
+
+
+def test_fisheye_polynomial_and_its_derivative() -> None:
+    theta = np.linspace(0.0, 1.3, 27)
+    td, der = fisheye_theta_d((0.0, 0.0, 0.0, 0.0), theta)
+    np.testing.assert_array_equal(td, theta)  # no distortion: r = f theta
+    np.testing.assert_array_equal(der, 1.0)
+    k = (0.012, -0.004, 0.0008, -0.0001)
+    td, der = fisheye_theta_d(k, theta)
+    t = theta[3]
+    assert td[3] == pytest.approx(t * (1 + k[0] * t**2 + k[1] * t**4 + k[2] * t**6 + k[3] * t**8))
+    h = 1e-6
+    numeric = (fisheye_theta_d(k, theta + h)[0] - fisheye_theta_d(k, theta - h)[0]) / (2 * h)
+    np.testing.assert_allclose(der, numeric, rtol=1e-8)
+
+
+def test_rotation_about_an_axis_is_right_handed_and_proper() -> None:
+    quarter = rotation_about(np.array([0.0, 0.0, 5.0]), np.pi / 2)  # axis length is irrelevant
+    np.testing.assert_allclose(quarter @ [1.0, 0, 0], [0, 1.0, 0], atol=1e-15)
+    axis = np.array([1.0, -2.0, 0.5])
+    r = rotation_about(axis, 0.7)
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-15)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    np.testing.assert_allclose(r @ axis, axis, atol=1e-15)
+    assert np.degrees(np.arccos((np.trace(r) - 1) / 2)) == pytest.approx(np.degrees(0.7))
 
 
 def test_project_rejects_points_not_imaged() -> None:
