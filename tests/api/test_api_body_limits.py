@@ -93,6 +93,16 @@ def test_bodies_that_would_amplify_are_refused_before_parsing(
     assert words in detail, detail
 
 
+def test_a_refused_body_leaves_no_idempotent_answer(client: TestClient) -> None:
+    """Refused while the idempotency layer spools it: the key stays free for the retry."""
+    big = _plan_body(b"[" + b"{}," * 1_300_000 + b"{}]")
+    r = client.post("/sessions", content=big, headers={**JSON, "Idempotency-Key": "limits-1"})
+    _problem(r, 413)
+    r = client.post("/sessions", json={"preset": "fast"}, headers={"Idempotency-Key": "limits-1"})
+    assert r.status_code == 201, r.text
+    assert "idempotent-replayed" not in r.headers
+
+
 def test_brackets_and_quotes_inside_strings_are_text(client: TestClient) -> None:
     """A string full of brackets, separators and escaped quotes nests nothing."""
     plan = dict(PLAN.to_dict(), note='[{,:\\"' * (MAX_TREE_STRING // 7))
