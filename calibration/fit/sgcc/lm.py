@@ -35,8 +35,8 @@ from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.problem import Problem
 from calibration.fit.sgcc.robust import block_weights, outlier_cut, robust_terms, sigma_norm
-from calibration.fit.sgcc.screen_terms import N_SCREEN
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
+from calibration.metrology.screen_trace import N_SCREEN
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import (
     SplineGrid,

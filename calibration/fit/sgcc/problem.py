@@ -13,13 +13,9 @@ from typing import Any
 import numpy as np
 
 from calibration.fit.observations import PoseObs
-from calibration.fit.sgcc.screen_terms import (
-    N_SCREEN,
-    ScreenTrace,
-    panel_ray_terms,
-    rays_in_screen_frame,
-)
+from calibration.fit.sgcc.screen_terms import panel_ray_terms, rays_in_screen_frame
 from calibration.fit.sgcc.state import LMState
+from calibration.metrology.screen_trace import N_SCREEN, ScreenTrace
 from calibration.models.bspline import (
     SplineGrid,
     monomial_basis,

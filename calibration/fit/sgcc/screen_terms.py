@@ -1,16 +1,16 @@
-"""The fitted screen of sGCC (`screen: "fit"`): rays traced to a bowed panel behind cover glass.
+"""The fitted screen of sGCC (`screen: "fit"`): its ray terms, gauge and statistics.
 
-Same physics and parameters as `calibration.metrology.screen.ScreenModel` (docs/physics.md
-section 8: emitting layer z_s = bow_x (xi^2 - 1/3) + bow_y (eta^2 - 1/3) + twist xi eta,
-flat cover glass of known index n and fitted thickness h, front surface z = -h), but
-feature-major ((k, n) arrays) and on any array module, so the threaded CPU path
-(sgcc/problem.py) and the GPU path (sgcc/device.py) share it.
+Rays are traced to the bowed panel behind cover glass by `ScreenTrace`
+(calibration/metrology/screen_trace.py), the tracer of the parametric fits' `ScreenModel`
+too, so both fits share the physics and the parameters (docs/physics.md section 8). Here that
+trace is chained to sGCC's spline components and poses, feature-major ((k, n) arrays) and on
+any array module, for the threaded CPU path (sgcc/problem.py) and the GPU path
+(sgcc/device.py) alike.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
@@ -18,80 +18,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calibration.metrology.screen import ScreenModel
+from calibration.metrology.screen_trace import N_SCREEN, ScreenTrace
 from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
 from calibration.plan import ScreenGeometry
-
-N_SCREEN = 4  # bow_x, bow_y, twist, glass thickness (mm): calibration.metrology.screen
-_FIXED_POINT_ITERS = 30
-_FIXED_POINT_TOL_MM = 1e-11
-
-
-@dataclass(frozen=True)
-class ScreenTrace:
-    """Panel geometry (centre and half extents, mm) and the glass index; parameters apart."""
-
-    cx: float
-    cy: float
-    ax: float
-    ay: float
-    index: float
-
-    @classmethod
-    def of(cls, geometry: ScreenGeometry, index: float) -> ScreenTrace:
-        """The tracer of a screen (ScreenModel's normalisation of the shape terms)."""
-        px, py = geometry.pitch_mm
-        return cls(0.5 * (geometry.width_px - 1) * px, 0.5 * (geometry.height_px - 1) * py,
-                   0.5 * geometry.width_px * px, 0.5 * geometry.height_px * py, float(index))
-
-    def _depth(self, params: Any, x: Any, y: Any) -> tuple[Any, Any, Any]:
-        """Normalised coordinates xi, eta (n,) and the panel depth z_s (n,) there."""
-        bx, by, tw = (float(v) for v in params[:3])
-        xi, eta = (x - self.cx) / self.ax, (y - self.cy) / self.ay
-        return xi, eta, bx * (xi * xi - 1 / 3) + by * (eta * eta - 1 / 3) + tw * xi * eta
-
-    def trace(self, xp: ModuleType, params: Any, o: Any, q: Any) -> tuple[Any, Any, Any, Any]:
-        """Panel points Q (2,n) mm of rays with origins o (3,n) and slopes q = r_xy/r_z (2,n)
-        in the screen frame, and dQ/do (2,3,n), dQ/dq (2,2,n), dQ/dparams (2,4,n).
-
-        Q = o_xy - (h + o_z) q + (z_s(Q) + h) m(q), m = q / sqrt(n^2 + (n^2 - 1)|q|^2),
-        solved by fixed-point iteration (contraction |grad z_s| |m|, ~1e-3 for real panels).
-        """
-        h, n2 = float(params[3]), self.index**2
-        w = xp.sqrt(n2 + (n2 - 1) * (q[0] * q[0] + q[1] * q[1]))
-        m = q / w
-        base = o[:2] - (h + o[2]) * q
-        pts = base + h * m
-        for _ in range(_FIXED_POINT_ITERS):
-            new = base + (self._depth(params, pts[0], pts[1])[2] + h) * m
-            step = float(xp.max(xp.abs(new - pts))) if pts.size else 0.0
-            pts = new
-            if step < _FIXED_POINT_TOL_MM:
-                break
-        xi, eta, zs = self._depth(params, pts[0], pts[1])
-        bx, by, tw = (float(v) for v in params[:3])
-        gx, gy = (2 * bx * xi + tw * eta) / self.ax, (2 * by * eta + tw * xi) / self.ay
-        cc = zs + h
-        # A = (I - m g^T)^-1 = I + m g^T / (1 - g.m) (Sherman-Morrison): dQ/d(base).
-        den = 1.0 / (1.0 - (gx * m[0] + gy * m[1]))
-        a = xp.empty((2, 2, w.size))
-        a[0, 0], a[0, 1] = 1.0 + m[0] * gx * den, m[0] * gy * den
-        a[1, 0], a[1, 1] = m[1] * gx * den, 1.0 + m[1] * gy * den
-        jo = xp.empty((2, 3, w.size))
-        jo[:, :2] = a
-        jo[:, 2] = -(a[:, 0] * q[0] + a[:, 1] * q[1])
-        # dm/dq = I / w - (n^2 - 1) q q^T / w^3; dQ/dq = A (-(h + o_z) I + c dm/dq).
-        w3 = (n2 - 1) / (w * w * w)
-        d = -(h + o[2]) + cc / w
-        inner = xp.empty((2, 2, w.size))
-        inner[0, 0], inner[1, 1] = d - cc * w3 * q[0] * q[0], d - cc * w3 * q[1] * q[1]
-        inner[0, 1] = inner[1, 0] = -cc * w3 * q[0] * q[1]
-        jq = (a[:, :, None] * inner[None]).sum(axis=1)
-        am = a[:, 0] * m[0] + a[:, 1] * m[1]  # (2,n): dQ/d(z_s) direction
-        js = xp.empty((2, N_SCREEN, w.size))
-        js[:, 0], js[:, 1] = am * (xi * xi - 1 / 3), am * (eta * eta - 1 / 3)
-        js[:, 2] = am * xi * eta
-        js[:, 3] = am - (a[:, 0] * q[0] + a[:, 1] * q[1])
-        return pts, jo, jq, js
 
 
 def _cross(a: Any, b: Any) -> Any:
@@ -124,10 +53,11 @@ def panel_ray_terms(
     c = len(comps)
     jr, r_s, o_s, ok, rz = rays_in_screen_frame(xp, comps, rc, tc, jacobian)
     slope = r_s[:2] / rz
+    if not jacobian:
+        q = panel[0].points(xp, panel[1], o_s, xp.where(ok, slope, 0.0))
+        return xp.where(ok, q - screen, 0.0), ok
     q, jo, jq, js = panel[0].trace(xp, panel[1], o_s, xp.where(ok, slope, 0.0))
     res = xp.where(ok, q - screen, 0.0)
-    if not jacobian:
-        return res, ok
     # dQ/d(r_s) = dQ/dq dq/d(r_s), dq/d(r_s) = [[1, 0, -qx], [0, 1, -qy]] / r_z.
     jr_s = xp.empty((2, 3, len(rz)))
     jr_s[:, 0], jr_s[:, 1] = jq[:, 0] / rz, jq[:, 1] / rz

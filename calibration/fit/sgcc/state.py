@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.fit.sgcc.screen_terms import ScreenTrace
+from calibration.metrology.screen_trace import ScreenTrace
 
 
 @dataclass
