@@ -82,10 +82,12 @@ def _check_rig_config(config: dict[str, Any]) -> dict[str, Any]:
     return config
 
 
+# The frame count is stated in words, not as maxItems: a schema fuzzer would answer a
+# maxItems of 10,000 with megabytes of frames, which the body limits refuse with a 413.
 PlanDocument = Annotated[dict[str, Any], Field(
     max_length=MAX_PLAN_KEYS,
     json_schema_extra={"properties": {"frames": {
-        "type": "array", "maxItems": MAX_PLAN_FRAMES,
+        "type": "array", "description": f"at most {MAX_PLAN_FRAMES} frames",
         "items": {"type": "object", "maxProperties": MAX_FRAME_KEYS}}}},
 ), AfterValidator(_check_plan)]
 RigConfigDocument = Annotated[dict[str, Any], Field(max_length=MAX_RIG_CONFIG_KEYS),

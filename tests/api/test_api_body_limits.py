@@ -196,7 +196,9 @@ def test_openapi_shows_the_bounds(client: TestClient) -> None:
     schemas = client.get("/openapi.json").json()["components"]["schemas"]
     plan = next(s for s in schemas["SessionCreate"]["properties"]["plan"]["anyOf"]
                 if s.get("type") == "object")
-    assert plan["properties"]["frames"]["maxItems"] == MAX_PLAN_FRAMES
+    frames = plan["properties"]["frames"]
+    assert frames["items"]["maxProperties"] == MAX_FRAME_KEYS
+    assert str(MAX_PLAN_FRAMES) in frames["description"]
     assert schemas["RigCreate"]["properties"]["config"]["maxProperties"] == MAX_RIG_CONFIG_KEYS
     assert schemas["SessionCreate"]["properties"]["preset"]["anyOf"][0]["maxLength"] == 32
 
