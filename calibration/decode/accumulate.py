@@ -10,6 +10,7 @@ bright/dark flats complete the state.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from types import ModuleType
@@ -25,8 +26,6 @@ except ImportError:  # pragma: no cover - opencv is a project dependency
     cv2 = None
 
 ACCEPTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
-
-
 
 
 def harmonic_orders(steps: int, residual_noise: bool) -> tuple[int, ...]:
@@ -80,6 +79,17 @@ class SetSums:
         return 3 + 2 * len(self.harmonics)
 
 
+@dataclass
+class KernelLayout:
+    """The sets as the compiled kernels read them (accumulate_kernel.py, kernel_sums.py):
+    each step's weight in each row of its set's sums, and where those rows are."""
+
+    weights: np.ndarray  # (S, R, T) float32: weight of step t in row r of set s (row 0: s0)
+    row0: np.ndarray  # (S,) int64 first row of each set in `FrameAccumulator.block`
+    nrows: np.ndarray  # (S,) int64
+    steps: np.ndarray  # (S,) int64
+
+
 def _bits_dtype(steps: int) -> np.dtype:
     """Smallest unsigned integer dtype that holds one bit per phase step."""
     for dt in (np.uint8, np.uint16, np.uint32, np.uint64):
@@ -112,10 +122,13 @@ class FrameAccumulator:
         self.dtype: np.dtype | None = None
         self.high: float | None = None
         self.low: float | None = None
-        self._seen = np.zeros(len(plan.frames), dtype=bool)
+        # plan frames folded into the sums (a whole-stack decode marks them all at its start)
+        self.added = np.zeros(len(plan.frames), dtype=bool)
         self.sets: list[SetSums] = []
         self.row0: list[int] = []  # first row of each set's sums (s0, a, b, extras) in `block`
-        self._role: dict[int, tuple[str, int, int]] = {}
+        # plan index -> (kind, set, step) of each frame the decoder uses: kind "cos" (step of
+        # set), "bright" or "dark"; other flats have no role
+        self.roles: dict[int, tuple[str, int, int]] = {}
         for k, ps in enumerate(plan.period_sets()):
             frames = [plan.frames[i] for i in ps.frame_indices]
             amps = {f.amplitude for f in frames if isinstance(f, CosineFrame)}
@@ -131,16 +144,16 @@ class FrameAccumulator:
             self.row0.append(sum(s.rows for s in self.sets))
             self.sets.append(sums)
             for step, idx in enumerate(ps.frame_indices):
-                self._role[idx] = ("cos", k, step)
+                self.roles[idx] = ("cos", k, step)
         self.rows = sum(s.rows for s in self.sets)
         self.bits_dtype = _bits_dtype(max(s.layout.steps for s in self.sets))
         levels = [f.level for f in plan.frames if isinstance(f, FlatFrame)]
         self.bright_level = max(levels)
         for i, f in enumerate(plan.frames):
             if isinstance(f, FlatFrame) and f.level == 0.0:
-                self._role[i] = ("dark", 0, 0)
+                self.roles[i] = ("dark", 0, 0)
             elif isinstance(f, FlatFrame) and f.level == self.bright_level:
-                self._role[i] = ("bright", 0, 0)
+                self.roles[i] = ("bright", 0, 0)
         self.compiled = False  # accumulate with the numba kernel (set by the decoder)
         self.block: Any | None = None  # (rows, H*W) float32 sums, allocated by `allocate`
         self.take: Any = None  # (shape, dtype) -> array to zero for the sums, None: new ones
@@ -152,6 +165,24 @@ class FrameAccumulator:
         self.squares: Any | None = None
         self.squares_dtype = np.dtype(np.float64)
         self.max_seen = -math.inf  # brightest cosine sample seen (reported: saturation hint)
+
+    @functools.cached_property
+    def kernel_layout(self) -> KernelLayout:
+        """Per-set weights of each step in each row (s0, a, b, extras): the weights
+        `_add_cosine` applies, for the compiled kernels (built once)."""
+        sets = self.sets
+        weights = np.zeros((len(sets), max(s.rows for s in sets),
+                            max(s.layout.steps for s in sets)), dtype=np.float32)
+        for k, s in enumerate(sets):
+            for t, psi in enumerate(s.layout.psi):
+                row = [1.0, math.sin(psi), math.cos(psi)]
+                for h in s.harmonics:
+                    row += [math.sin(h * psi), math.cos(h * psi)]
+                # the OpenCV path skips weights below 1e-12 (exact zeros of sin/cos)
+                weights[k, :len(row), t] = [w if abs(w) > 1e-12 else 0.0 for w in row]
+        return KernelLayout(weights, np.array(self.row0, dtype=np.int64),
+                            np.array([s.rows for s in sets], dtype=np.int64),
+                            np.array([s.layout.steps for s in sets], dtype=np.int64))
 
     def allocate(self) -> None:
         """Allocate and zero the full-image sums (once): the first `add` or a live capture's
@@ -180,18 +211,19 @@ class FrameAccumulator:
     @property
     def missing(self) -> list[int]:
         """Plan indices of frames the decoder needs that have not arrived."""
-        return [i for i in sorted(self._role) if not self._seen[i]]
+        return [i for i in sorted(self.roles) if not self.added[i]]
 
     # -- intake ----------------------------------------------------------------------
-    def _check(self, index: int, image: Any) -> Any:
-        """Validate one frame against the plan and the earlier frames; return it as an xp array."""
+    def check(self, index: int, image: Any) -> Any:
+        """Validate one frame against the plan and the earlier frames; return it as an xp array
+        (not marked added: the compiled paths check a whole batch before summing any)."""
         if isinstance(index, bool) or not isinstance(index, int | np.integer):
             raise DecodeError(f"frame index: expected an integer, got {index!r}")
         if not 0 <= index < len(self.plan.frames):
             raise DecodeError(
                 f"frame {index}: index out of range (the plan has {len(self.plan.frames)} frames)"
             )
-        if self._seen[index]:
+        if self.added[index]:
             raise DecodeError(f"frame {index}: already added (each plan frame exactly once)")
         if getattr(image, "ndim", None) != 2:
             shape = getattr(image, "shape", None)
@@ -241,15 +273,15 @@ class FrameAccumulator:
     def accept(self, index: int, image: Any) -> Any:
         """Validate plan frame `index`, allocate the sums, mark it seen; the frame as an xp
         array (for the compiled path, which sums it itself: calibration/decode/batch.py)."""
-        img = self._check(index, image)
+        img = self.check(index, image)
         self.allocate()
-        self._seen[index] = True
+        self.added[index] = True
         return img
 
     def add(self, index: int, image: Any) -> None:
         """Fold one frame into the sums (any order, each plan index once)."""
         img = self.accept(index, image)
-        role = self._role.get(int(index))
+        role = self.roles.get(int(index))
         if role is None:
             return  # a flat at another level: not used by the decoder
         kind, k, step = role

@@ -53,41 +53,9 @@ def run_parallel(fn: Callable[[Any], None], items: Sequence[Any]) -> None:
     list(pool().map(fn, items))
 
 
-@dataclass
-class Layout:
-    """The kernel's view of the accumulator's sets: weights, rows, thresholds."""
-
-    weights: np.ndarray  # (S, R, T) float32
-    row0: np.ndarray  # (S,) int64
-    nrows: np.ndarray  # (S,) int64
-    steps: np.ndarray  # (S,) int64
-
-
-def layout(acc: FrameAccumulator) -> Layout:
-    """Per-set weights of each step in each row (s0, a, b, extras), cached on `acc`."""
-    cached = getattr(acc, "_kernel_layout", None)
-    if cached is not None:
-        return cached
-    sets = acc.sets
-    weights = np.zeros((len(sets), max(s.rows for s in sets),
-                        max(s.layout.steps for s in sets)), dtype=np.float32)
-    for k, s in enumerate(sets):
-        for t, psi in enumerate(s.layout.psi):
-            row = [1.0, math.sin(psi), math.cos(psi)]
-            for h in s.harmonics:
-                row += [math.sin(h * psi), math.cos(h * psi)]
-            # the OpenCV path skips weights below 1e-12 (exact zeros of sin/cos)
-            weights[k, :len(row), t] = [w if abs(w) > 1e-12 else 0.0 for w in row]
-    out = Layout(weights, np.array(acc.row0, dtype=np.int64),
-                 np.array([s.rows for s in sets], dtype=np.int64),
-                 np.array([s.layout.steps for s in sets], dtype=np.int64))
-    acc._kernel_layout = out
-    return out
-
-
 def _roles(acc: FrameAccumulator, indices: Sequence[int]) -> tuple[np.ndarray, ...]:
     """(kind, set, step) int64 arrays of the batch's plan indices."""
-    roles = [acc._role.get(i, ("skip", 0, 0)) for i in indices]
+    roles = [acc.roles.get(i, ("skip", 0, 0)) for i in indices]
     kind = np.array([_KINDS.get(r[0], KIND_SKIP) for r in roles], dtype=np.int64)
     return kind, np.array([r[1] for r in roles], dtype=np.int64), np.array(
         [r[2] for r in roles], dtype=np.int64)
@@ -99,7 +67,7 @@ def _pieces(n: int, count: int) -> list[tuple[int, int]]:
     return [(c, min(step, n - c)) for c in range(0, n, step)]
 
 
-def _thresholds(acc: FrameAccumulator) -> tuple[float, float]:
+def clip_thresholds(acc: FrameAccumulator) -> tuple[float, float]:
     """Clip thresholds as float32 values that classify every float32 sample like the
     float64 ones (`v <= low`, `v >= high`): the largest float32 <= low, the smallest >= high."""
     lo = NO_CLIP_LO if acc.low is None else float(acc.low)
@@ -140,7 +108,7 @@ def add_frames(acc: FrameAccumulator, indices: Sequence[int], stack: Any,
             add_compiled(acc, [index], np.ascontiguousarray(img).reshape(1, -1), [0])
         return
     for index, row in zip(indices, rows, strict=True):
-        acc._check(index, stack[row])
+        acc.check(index, stack[row])
     flat = stack.reshape(stack.shape[0], -1)
     if not flat.flags.c_contiguous:
         flat, rows = np.ascontiguousarray(flat[rows]), list(range(len(rows)))
@@ -154,12 +122,12 @@ def ready_frames(acc: FrameAccumulator, available: Sequence[int]) -> list[int]:
     frames once every frame of their period group is available or already added."""
     have = set(int(i) for i in available)
     groups: dict[int, list[int]] = {}
-    for index, (kind, k, _) in acc._role.items():
+    for index, (kind, k, _) in acc.roles.items():
         if kind == "cos":
             groups.setdefault(k, []).append(index)
-    ready = [i for i in sorted(have) if acc._role.get(i, ("flat",))[0] != "cos"]
+    ready = [i for i in sorted(have) if acc.roles.get(i, ("flat",))[0] != "cos"]
     for members in groups.values():
-        if all(i in have or acc._seen[i] for i in members):
+        if all(i in have or acc.added[i] for i in members):
             ready += [i for i in members if i in have]
     return sorted(ready)
 
@@ -168,10 +136,10 @@ def add_compiled(acc: FrameAccumulator, indices: Sequence[int], flat: np.ndarray
                  rows: Sequence[int]) -> None:
     """Fold frames `flat[rows[j]]` (plan frames `indices[j]`, (F, H*W) C-contiguous) into
     the full-image sums of `acc`, in parallel over column ranges."""
-    lay = layout(acc)
+    lay = acc.kernel_layout
     kind, fset, fstep = _roles(acc, indices)
     use = np.asarray(rows, dtype=np.int64)
-    lo, hi = _thresholds(acc)
+    lo, hi = clip_thresholds(acc)
     npix = flat.shape[1]
     squares = (acc.squares.reshape(-1) if acc.squares is not None
                else np.empty(0, acc.squares_dtype))
@@ -271,12 +239,12 @@ def accumulate_range(acc: FrameAccumulator, flat: np.ndarray, c0: int, n: int,
     """Sums of pixels c0..c0+n of a whole stack `flat` ((F, H*W), frame i = plan frame i),
     in this thread's buffers (valid until its next call). `state` collects the brightest
     sample (shared by the calling threads; updated under a lock)."""
-    lay = layout(acc)
+    lay = acc.kernel_layout
     kind, fset, fstep = state["roles"]
     block, bits, squares, bright, dark = _buffers(acc, n)
     top = np.full(1, -np.inf)
     clipped = np.zeros(len(acc.sets), dtype=np.int64)
-    lo, hi = _thresholds(acc)
+    lo, hi = clip_thresholds(acc)
     accumulate_block(flat, state["use"], kind, fset, fstep, lay.weights, lay.row0, lay.nrows,
                      lo, hi, c0, 0, n, block, bits, squares, bright, dark, top, clipped)
     with state["lock"]:
@@ -294,7 +262,7 @@ def stack_state(acc: FrameAccumulator) -> dict[str, Any]:
              "lock": threading.Lock(), "top": -math.inf}
     kind, fset, _ = state["roles"]
     _note(acc, kind, fset, -math.inf)
-    acc._seen[:] = True
+    acc.added[:] = True  # (summed range by range, each frame byte once)
     return state
 
 

@@ -7,12 +7,13 @@ validity rules (validity.py), chunk by chunk over the pixels to bound temporary 
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 from collections.abc import Callable
 from dataclasses import asdict
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -20,14 +21,24 @@ from calibration.decode import sums_cache
 from calibration.decode.accumulate import DecodeError, FrameAccumulator
 from calibration.decode.arrays import array_module, to_host
 from calibration.decode.axes import decode_axes_compiled, decode_axes_xp
-from calibration.decode.batch import ChunkSums, add_frames, chunk_view, ready_frames, run_parallel
-from calibration.decode.dark_chunks import finish_dark_range
+from calibration.decode.batch import (
+    ChunkSums,
+    accumulate_range,
+    add_frames,
+    chunk_view,
+    finish_stack_state,
+    ready_frames,
+    run_parallel,
+    stack_state,
+)
+from calibration.decode.dark_chunks import write_dark_range
 from calibration.decode.finish import (
+    FinishInputs,
     chi2_tail,
     finish_range,
     no_valid_message,
+    noise_params,
     output_planes,
-    residual_arrays,
     residual_stats,
     software_version,
 )
@@ -49,16 +60,22 @@ from calibration.decode.validity import hide_invalid, hide_screen_edges
 from calibration.maps import MAPS_FORMAT, DecodedMaps
 from calibration.plan import Plan
 
+if TYPE_CHECKING:  # (a numba module: loaded only with the compiled path)
+    from calibration.decode.kernel_clipped import PatternTables
+
 # The photon-transfer fit uses only pixels without clipped steps when at least this many exist.
 _MIN_CLEAN_PIXELS = 2000
 # Larger images fit the photon-transfer line on evenly spread pieces of this many pixels,
 # about _NOISE_SAMPLE in all (the fit needs ~1e5 pixels; more costs time, twice in finish_stack).
 _NOISE_PIECE = 1 << 14
 _NOISE_SAMPLE = 1 << 19
-_COMPILED_MIN_PIXELS = 1 << 20
+# Images of at least this many pixels take the compiled kernels once loaded (below, a
+# one-off process spends more loading them than they save); public: a service worker
+# prepares its heap for the compiled path by the same rule (calibration.worker.tasks).
+COMPILED_MIN_PIXELS = 1 << 20
 # One-off decodes (decode_stack) of images this large load the compiled kernels (~0.7 s of
 # CPU once per process) even when no live capture has loaded them yet: they pay back.
-_ALWAYS_COMPILED_PIXELS = 1 << 21
+ALWAYS_COMPILED_PIXELS = 1 << 21
 _KERNELS = ("calibration.decode.kernel_sums", "calibration.decode.accumulate_kernel")
 
 
@@ -105,9 +122,9 @@ class StreamingDecoder:
         self._leak: Any = None  # per set r^2 of the display harmonic in the residuals
         # Large NumPy images (any size with `compiled`: a long-lived live worker) may take the
         # compiled per-pixel kernel; other namespaces (CuPy) the array-namespace path.
-        self._use_kernels = self.xp is np and (
-            compiled or int(shape[0]) * int(shape[1]) >= _COMPILED_MIN_PIXELS)
-        self._acc.compiled = self._compiled
+        self.uses_kernels = self.xp is np and (
+            compiled or int(shape[0]) * int(shape[1]) >= COMPILED_MIN_PIXELS)
+        self._acc.compiled = self.compiled_now
 
     @property
     def missing(self) -> list[int]:
@@ -118,11 +135,11 @@ class StreamingDecoder:
         """Load the compiled kernels now (>= 1 Mpixel, or `compiled`; ~0.7 s of CPU: a decoder
         uses them only once loaded in the process) and allocate the sums (a live capture
         calls this before frames arrive)."""
-        if self._use_kernels:
+        if self.uses_kernels:
             from calibration.decode.kernel_warm import warm_up
 
             warm_up()
-            self._acc.compiled = self._compiled
+            self._acc.compiled = self.compiled_now
         if self.xp is np:  # in a long-lived process: an earlier decode's sums, zeroed again
             self._acc.take = sums_cache.take
         self._acc.allocate()
@@ -134,9 +151,11 @@ class StreamingDecoder:
         acc.block = acc.bright = acc.dark = acc.squares = None
 
     @property
-    def _compiled(self) -> bool:
-        """Accumulate and finish with the compiled kernels: a large NumPy image, loaded."""
-        return self._use_kernels and all(name in sys.modules for name in _KERNELS)
+    def compiled_now(self) -> bool:
+        """Whether frames added now are accumulated, and a finish now decodes, with the
+        compiled kernels: `uses_kernels` and the kernels' modules loaded in the process
+        (by `prepare`, or by `decode_stack` for a whole stack)."""
+        return self.uses_kernels and all(name in sys.modules for name in _KERNELS)
 
     def add(self, index: int, image: np.ndarray) -> None:
         """Fold plan frame `index` into the running sums (any order, each index once)."""
@@ -147,7 +166,7 @@ class StreamingDecoder:
         flats and whole period groups (one cache-blocked pass per group, not one per frame);
         once one group is left, its frames as they come (one frame's pass after the last)."""
         ready = ready_frames(self._acc, available)
-        last = len({self._acc._role[i][:2] for i in self._acc.missing}) == 1
+        last = len({self._acc.roles[i][:2] for i in self._acc.missing}) == 1
         return ready or (sorted(int(i) for i in available) if last else [])
 
     def add_frames(self, indices: list[int], stack: Any, rows: list[int] | None = None) -> None:
@@ -156,7 +175,7 @@ class StreamingDecoder:
         decoder catching up on a frame store's new frames pays one pass for all of them."""
         if self._finished:
             raise DecodeError(f"frames {list(indices)[:10]}: the decoder has already finished")
-        if self._compiled:
+        if self.compiled_now:
             self._acc.compiled = True
             add_frames(self._acc, indices, stack, rows)
             return
@@ -187,13 +206,11 @@ class StreamingDecoder:
         full-image sums exist (no page faults for them) and each frame byte is read once.
         `step(fraction)` runs between groups of ranges (progress, cancellation); `into` as
         for `finish`."""
-        from calibration.decode.batch import accumulate_range, finish_stack_state, stack_state
-
         acc = self._acc
-        if self._finished or acc._seen.any():
+        if self._finished or acc.added.any():
             raise DecodeError("frames: finish_stack needs a fresh decoder")
         for i in range(stack.shape[0]):
-            acc._check(i, stack[i])
+            acc.check(i, stack[i])
         self._finished = True
         flat = stack.reshape(stack.shape[0], -1)
         if not flat.flags.c_contiguous:
@@ -219,18 +236,19 @@ class StreamingDecoder:
         out = {f"{kind}{axis}": planes[kind.rstrip("_") or "position"][row]
                for row, axis in enumerate(("x", "y"))
                for kind in ("", "sigma_", "modulation_", "blur_")}
-        kernel_planes = planes if self._compiled else None
+        kernel_planes = planes if self.compiled_now else None
         reason = np.zeros(npix, dtype=np.uint8)
         mask = np.empty(npix, dtype=bool) if into is None else into["mask"]
         size = self.options.chunk_pixels
         if self._variance is None:
             self._estimate_noise(npix, chunk_of)
+        inputs = self._finish_inputs() if kernel_planes is not None else None
         chunks = [slice(s, min(s + size, npix)) for s in range(0, npix, size)]
         group = max(1, len(chunks) // 16) if step is not None else len(chunks)
         tallies: list[np.ndarray] = []  # (list.append: atomic across the pool's threads)
         for g in range(0, len(chunks), group):
             self._map(lambda sl: tallies.append(self._finish_chunk(
-                chunk_of(sl), sl, out, kernel_planes, reason, mask)), chunks[g:g + group])
+                chunk_of(sl), sl, out, inputs, kernel_planes, reason, mask)), chunks[g:g + group])
             if step is not None:
                 step(min(g + group, len(chunks)) / len(chunks))
         if summed is not None:
@@ -308,10 +326,12 @@ class StreamingDecoder:
         power = np.empty((len(acc.sets), size), dtype=np.float32)
         clean, no_dark_clip = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
         offsets = np.cumsum([0] + [sl.stop - sl.start for sl in pieces])
+        inputs = self._finish_inputs() if self.compiled_now else None
 
         def one(k: int, lazy: bool) -> None:
             to, chunk = slice(int(offsets[k]), int(offsets[k + 1])), chunk_of(pieces[k])
-            stats = (residual_stats if self._compiled else residual_arrays)(self, chunk, lazy)
+            stats = (self._residual_arrays(chunk) if inputs is None
+                     else self._residual_stats(inputs, chunk, lazy))
             mean[to], rss[to], dof[to], clean[to], no_dark_clip[to], power[:, to] = stats
             dark[to] = to_host(chunk.dark / acc.n_dark)
             span[to] = to_host(chunk.bright / acc.n_bright) - dark[to]
@@ -366,15 +386,82 @@ class StreamingDecoder:
             f.use_step_levels(xp, ptc, var, ~excess)
         return per_set, ptc  # the flats are not subject to the cosine-fit model error
 
-    def _finish_chunk(self, chunk: ChunkSums, sl: slice, out: dict, planes: dict | None,
-                      reason: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """Decode one flattened pixel range into `out` (or `planes`), `reason` and `mask`;
-        returns its tally of reason codes (`hide_invalid`)."""
-        if planes is None:
+    def _finish_chunk(self, chunk: ChunkSums, sl: slice, out: dict,
+                      inputs: FinishInputs | None, planes: dict | None, reason: np.ndarray,
+                      mask: np.ndarray) -> np.ndarray:
+        """Decode one flattened pixel range into `out` (or, compiled: `planes`), `reason`
+        and `mask`; returns its tally of reason codes (`hide_invalid`)."""
+        if inputs is None or planes is None:
             reason[sl] = self._finish_arrays(chunk, sl, out=out)
-        elif not finish_dark_range(self, chunk, sl, planes, reason):  # a dark surround
-            finish_range(self, chunk, sl, planes, reason)
+        elif not self._finish_dark_range(chunk, sl, planes, reason):  # a dark surround
+            self._finish_range(inputs, chunk, sl, planes, reason)
         return hide_invalid(out, mask, reason, sl)
+
+    def _finish_dark_range(self, chunk: ChunkSums, sl: slice, planes: dict[str, np.ndarray],
+                           reason: np.ndarray) -> bool:
+        """If no pixel of `sl` clipped a step and every one fails the flat-contrast test even
+        at the smallest credible noise (`_sees_no_screen`), write what the compiled finish
+        would (`write_dark_range`) and return True; False leaves the range to the kernel.
+
+        Only in residual-noise mode, where the kernel's flat variances (the photon-transfer
+        line or the pixel's own residual) are never below that floor; a given noise may be."""
+        if self._variance is not None or (chunk.bits is not None and chunk.bits.any()):
+            return False
+        if not self._sees_no_screen(chunk).all():
+            return False
+        write_dark_range(chunk, sl, planes, reason)
+        return True
+
+    def _finish_range(self, inputs: FinishInputs, chunk: ChunkSums, sl: slice,
+                      planes: dict[str, np.ndarray], reason: np.ndarray) -> None:
+        """The compiled finish of the range `sl` (`finish_range`), then the pixels it left
+        by the array path, on a gathered copy of their sums."""
+        dirty = finish_range(inputs, chunk, sl, planes, reason)
+        if dirty.size == 0:
+            return
+        sub = output_planes(dirty.size, self.plan.axes())
+        reason[sl][dirty] = self._finish_arrays(chunk.take(dirty), slice(None), planes=sub)
+        for name, arr in sub.items():
+            planes[name][:, sl][:, dirty] = arr
+
+    def _residual_stats(self, inputs: FinishInputs, chunk: ChunkSums, lazy: bool
+                        ) -> tuple[np.ndarray, ...]:
+        """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line by
+        the compiled pass (`residual_stats`), the pixels it left by the array path."""
+        stats, left = residual_stats(inputs, chunk, lazy)
+        if left.size:
+            for arr, part in zip(stats, self._residual_arrays(chunk.take(left)), strict=True):
+                arr[..., left] = part
+        return stats
+
+    def _residual_arrays(self, chunk: ChunkSums) -> tuple[np.ndarray, ...]:
+        """(level, rss, dof, clean, no_dark_clip, power) of a range for the noise line by the
+        array path (every pixel fitted), as host arrays."""
+        xp = self.xp
+        fits = [fit_set(xp, s, slice(None), residuals=True, skip=self._sees_no_screen(chunk))
+                for s in chunk.sets]
+        r, d, m = self._residuals(fits, chunk)
+        clean = ~functools.reduce(lambda x, y: x | y, [f.clipped for f in fits])
+        low = functools.reduce(lambda x, y: x | y, [f.low_clipped for f in fits])
+        power = xp.stack(nyquist_power(xp, fits, chunk.sets))
+        return tuple(to_host(v) for v in (m, r, d, clean, ~low, power))
+
+    def _finish_inputs(self) -> FinishInputs:
+        """What the compiled passes read of this decoder now (`FinishInputs`): the noise
+        parameters and harmonic leak as known at this point of the decode."""
+        leak = np.zeros(len(self._acc.sets)) if self._leak is None else np.asarray(
+            self._leak, float)
+        return FinishInputs(self._acc, self.plan, self.options, self._floor,
+                            noise_params(self._noise, self._ptc, self._floor), leak,
+                            self._pattern_tables)
+
+    @functools.cached_property
+    def _pattern_tables(self) -> PatternTables | None:
+        """The least-squares tables of the clipped patterns this decoder's ranges meet
+        (grown as they are met; None for plans of > 16 steps)."""
+        from calibration.decode.kernel_clipped import pattern_tables  # (compiled path only)
+
+        return pattern_tables(self._acc.sets)
 
     def _finish_arrays(self, chunk: ChunkSums, sl: slice, out: dict | None = None,
                        planes: dict | None = None) -> np.ndarray:

@@ -16,8 +16,10 @@ from numba import njit
 
 from calibration.decode.kernel_cache import drop_stale_kernels
 
-# Gaussian-mass cut-off and merge distance of unwrap.py, duplicated as compile-time constants.
-_FAR_SIGMA = 8.5
+# Gaussian-mass cut-off and merge distance of unwrap.py, duplicated as compile-time constants
+# (FAR_SIGMA, TOOTH_CUTOFF, `coarsest_order` and `fuse_period` are public: kernel_unwrap.py's
+# block loops use the same ones, so both kernels give the same result for a pixel).
+FAR_SIGMA = 8.5
 _MERGE_SIGMA = 2.0
 _TWO_PI = 2.0 * math.pi
 # A finer period's neighbouring teeth weigh exp(-x) relative to the nearest one; below
@@ -25,7 +27,7 @@ _TWO_PI = 2.0 * math.pi
 # (a shift of < 1e-30 period): taken as 0, without calling exp. (The float64 underflow
 # limit, 740, sent every pixel of a realistically noisy pose on a period ratio of 8 to
 # the scalar fusion: the finish took twice as long.)
-_TOOTH_CUTOFF = 69.0
+TOOTH_CUTOFF = 69.0
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 
 # Indices of `params` (DecodeOptions values and the per-period SNR floor).
@@ -41,7 +43,8 @@ def _ndtr(x: float) -> float:
 
 
 @njit(cache=True, error_model="numpy")
-def _coarsest(c: float, sigma: float, period: float, lo: float, hi: float) -> tuple[float, float]:
+def coarsest_order(c: float, sigma: float, period: float, lo: float, hi: float
+                   ) -> tuple[float, float]:
     """Order of the coarsest period under a uniform prior on [lo, hi]: (mu, ambiguity)."""
     in_lo = min(hi - c + period, c - period - lo)
     in_0 = min(hi - c, c - lo)
@@ -49,7 +52,7 @@ def _coarsest(c: float, sigma: float, period: float, lo: float, hi: float) -> tu
     mu = c if in_0 >= in_lo else c - period
     if in_hi > max(in_0, in_lo):
         mu = c + period
-    reach = _FAR_SIGMA * sigma
+    reach = FAR_SIGMA * sigma
     if not (abs(in_lo) < reach or abs(in_0) < reach or abs(in_hi) < reach):
         return mu, 0.0
     top = -1.0
@@ -139,12 +142,12 @@ def decode_pixel(
                 first = k
                 anchor_ok = ok[k]
                 anchor_snr = mod / s_b if s_b > 0 else 0.0
-                mu, amb = _coarsest(c, sig, period, -0.5, extents[ax] - 0.5)
+                mu, amb = coarsest_order(c, sig, period, -0.5, extents[ax] - 0.5)
                 var_mu = sig * sig
                 continue
             if not use:
                 continue
-            mu, var_mu, innovation, amb_k = _fuse(mu, var_mu, c, sig, period)
+            mu, var_mu, innovation, amb_k = fuse_period(mu, var_mu, c, sig, period)
             chi2 += innovation
             dof += 1
             amb += amb_k * (1.0 - amb)
@@ -166,7 +169,7 @@ def decode_pixel(
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _fuse(mu: float, var_mu: float, c: float, sig: float, period: float):
+def fuse_period(mu: float, var_mu: float, c: float, sig: float, period: float):
     """One finer period into the Gaussian posterior N(mu, var_mu) (unwrap.py `fuse_axis`):
     (new mu, new variance, innovation chi-square, ambiguity of this step)."""
     var_k = sig * sig
@@ -177,9 +180,9 @@ def _fuse(mu: float, var_mu: float, c: float, sig: float, period: float):
     post_var = gain * var_k
     half = 0.5 * period * period * inv_total
     tilt = d0 * period * inv_total
-    # negligible teeth (`_TOOTH_CUTOFF`): no exp (nor libm's slow underflow path)
-    w_lo = math.exp(-(half + tilt)) if half + tilt < _TOOTH_CUTOFF else 0.0
-    w_hi = math.exp(tilt - half) if half - tilt < _TOOTH_CUTOFF else 0.0
+    # negligible teeth (`TOOTH_CUTOFF`): no exp (nor libm's slow underflow path)
+    w_lo = math.exp(-(half + tilt)) if half + tilt < TOOTH_CUTOFF else 0.0
+    w_hi = math.exp(tilt - half) if half - tilt < TOOTH_CUTOFF else 0.0
     step = period * gain
     new_mu = mu - d0 * gain
     if step * step > _MERGE_SIGMA * _MERGE_SIGMA * post_var:

@@ -2,7 +2,7 @@
 
 phase.py `fit_set` over a block of pixels: the closed form for every pixel, then, for the
 pixels with some steps clipped, the least squares over their kept steps (the tables of
-each exclusion pattern from `_normal_inverse`, gathered into `PatternTables`: one row per
+each exclusion pattern from `normal_inverse`, gathered into `PatternTables`: one row per
 pattern, looked up per pixel); with them the decoder's residuals (`_residuals`) and the
 numerators of `SetFit.use_step_levels`. The rest of the finish (variances, sigmas, phases,
 unwrapping) then runs in the same vectorized loops as for unclipped pixels. Float32
@@ -18,9 +18,10 @@ import threading
 import numpy as np
 from numba import njit
 
+from calibration.decode.accumulate import SetSums
 from calibration.decode.kernel_cache import drop_stale_kernels
 from calibration.decode.kernel_sets import explained, line_var, nyquist
-from calibration.decode.phase import _basis, _normal_inverse
+from calibration.decode.phase import design_matrix, normal_inverse
 
 MAX_TABLE_STEPS = 16  # dense pattern index per set: 2^steps entries (steps above: array path)
 MODE_GIVEN, MODE_LINE, MODE_OWN = 0, 1, 2  # as kernel_sums (given / photon-transfer / own)
@@ -33,7 +34,7 @@ class PatternTables:
     """Least-squares tables of the exclusion patterns met so far, per set: `index[k, mask]`
     is the row of `rows` (-1: not built yet, layout above). `basis[k]`: the (T, F) design."""
 
-    def __init__(self, sets: list) -> None:
+    def __init__(self, sets: list[SetSums]) -> None:
         self.sets = sets
         self.width = max(s.rows for s in sets)
         self.steps = max(s.layout.steps for s in sets)
@@ -42,7 +43,7 @@ class PatternTables:
                       np.zeros((0, self.row_size), dtype=np.float64))
         self.basis = np.zeros((len(sets), self.steps, self.width))
         for k, s in enumerate(sets):
-            b = _basis(s.layout.steps, s.harmonics)
+            b = design_matrix(s.layout.steps, s.harmonics)
             self.basis[k, :b.shape[0], :b.shape[1]] = b
         self.set_steps = np.array([s.layout.steps for s in sets], dtype=np.int64)
         self._lock = threading.Lock()
@@ -81,8 +82,8 @@ def _pattern_row(steps: int, mask: int, harmonics: tuple[int, ...], width: int,
                  t_max: int) -> np.ndarray:
     """One row of `PatternTables.rows` (layout above; read-only), kept for the process: a
     service decodes pose after pose with one plan and meets the same patterns again."""
-    pat = _normal_inverse(steps, mask, harmonics)
-    b = _basis(steps, harmonics)
+    pat = normal_inverse(steps, mask, harmonics)
+    b = design_matrix(steps, harmonics)
     basis = np.zeros((steps, width))
     basis[:, :b.shape[1]] = b
     f, t, w = width, t_max, pat.minv.shape[0]
@@ -113,12 +114,12 @@ def _covariance_terms(gains: np.ndarray, basis: np.ndarray, width: int) -> np.nd
     return terms.ravel()
 
 
-def pattern_tables(acc) -> PatternTables | None:
-    """The accumulator's pattern tables (created once), None for plans of > 16 steps."""
-    tables = getattr(acc, "_pattern_tables", None)
-    if tables is None and max(s.layout.steps for s in acc.sets) <= MAX_TABLE_STEPS:
-        tables = acc._pattern_tables = PatternTables(acc.sets)
-    return tables
+def pattern_tables(sets: list[SetSums]) -> PatternTables | None:
+    """New pattern tables of a plan's sets (its decoder keeps them: the patterns met grow
+    with its ranges), None for plans of > 16 steps (the array path fits those)."""
+    if max(s.layout.steps for s in sets) > MAX_TABLE_STEPS:
+        return None
+    return PatternTables(sets)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

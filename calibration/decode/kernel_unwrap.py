@@ -1,5 +1,5 @@
 """Vectorized unwrapping and validity rules over a block of pixels (numba): the same
-arithmetic as kernel.py's per-pixel `_coarsest`, `_fuse` and `_axis_rule`, written as
+arithmetic as kernel.py's per-pixel `coarsest_order`, `fuse_period` and `_axis_rule`, written as
 loops over the block's pixels that LLVM vectorizes. The rare pixels that need the
 Gaussian masses at a screen end or the exponential weights of neighbouring teeth are
 redone by the scalar functions (exactly the same results)."""
@@ -12,16 +12,16 @@ import numpy as np
 from numba import njit
 
 from calibration.decode.kernel import (
-    _FAR_SIGMA,
-    _TOOTH_CUTOFF,
+    FAR_SIGMA,
     P_EDGE_BLUR,
     P_MARGIN_SIGMA,
     P_MAX_AMB,
     P_MAX_SIGMA,
     P_MIN_CONTRAST,
     P_MIN_MOD,
-    _coarsest,
-    _fuse,
+    TOOTH_CUTOFF,
+    coarsest_order,
+    fuse_period,
 )
 from calibration.decode.kernel_cache import drop_stale_kernels
 
@@ -47,26 +47,26 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
             continue  # the plan has no frames on this axis
         lo, hi, p0 = -0.5, extents[ax] - 0.5, periods[k0]
         cw, sg = wrapped[k0], sig[k0]
-        for j in range(m):  # the coarsest period's order (kernel._coarsest's fast path)
+        for j in range(m):  # the coarsest period's order (kernel.coarsest_order's fast path)
             c = cw[j]
             in_lo = min(hi - c + p0, c - p0 - lo)
             in_0 = min(hi - c, c - lo)
             in_hi = min(hi - c - p0, c + p0 - lo)
             at = c if in_0 >= in_lo else c - p0
             mu[j] = c + p0 if in_hi > max(in_0, in_lo) else at
-            reach = _FAR_SIGMA * sg[j]
+            reach = FAR_SIGMA * sg[j]
             near = (abs(in_lo) < reach) | (abs(in_0) < reach) | (abs(in_hi) < reach)
             flag[j] = 1.0 if near else 0.0
             var[j] = sg[j] * sg[j]
             chi2[j] = 0.0
             dof[j] = 0.0
             amb[j] = 0.0
-        for j in range(m):  # (not for pixels that see no screen: see `_fuse_block`)
+        for j in range(m):  # (not for pixels that see no screen: see `fuse_block`)
             if flag[j] != 0.0 and code[j] != 1.0:
-                mu[j], amb[j] = _coarsest(cw[j], sg[j], p0, lo, hi)
+                mu[j], amb[j] = coarsest_order(cw[j], sg[j], p0, lo, hi)
         for k in range(k0 + 1, periods.shape[0]):
             if set_axis[k] == ax:
-                _fuse_block(m, wrapped[k], sig[k], use[k], periods[k], state)
+                fuse_block(m, wrapped[k], sig[k], use[k], periods[k], state)
         sigma_max, amb_max, margin_sigma, edge = (params[P_MAX_SIGMA], params[P_MAX_AMB],
                                                   params[P_MARGIN_SIGMA], params[P_EDGE_BLUR])
         min_mod = params[P_MIN_MOD]
@@ -101,13 +101,13 @@ def unwrap_block(m, wrapped, sig, use, blur, anchor, snr, dirty, first, set_axis
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _fuse_block(m, cw, sg, us, period, state) -> None:
-    """One finer period into the block's posteriors (kernel._fuse where its neighbouring
-    teeth are negligible, `_TOOTH_CUTOFF`; `_fuse` itself for the other pixels, except
+def fuse_block(m, cw, sg, us, period, state) -> None:
+    """One finer period into the block's posteriors (kernel.fuse_period where its neighbouring
+    teeth are negligible, `TOOTH_CUTOFF`; `fuse_period` itself for the other pixels, except
     those that see no screen (code 1, decided before unwrapping and final whatever the
     other rules say; their positions, sigmas and blur are NaN in the maps): ~15 % of a 5 MP
     image's pixels in the kernel, with a period-wide sigma that sent each to the scalar
-    `_coarsest` and `_fuse`, ~20 % of the kernel's time)."""
+    `coarsest_order` and `fuse_period`, ~20 % of the kernel's time)."""
     mu, var, chi2, dof, amb = state[S_MU], state[S_VAR], state[S_CHI2], state[S_DOF], state[S_AMB]
     mu2, var2, flag, code = state[S_MU2], state[S_VAR2], state[S_FLAG], state[S_CODE]
     for j in range(m):
@@ -119,7 +119,7 @@ def _fuse_block(m, cw, sg, us, period, state) -> None:
         gain = var[j] * inv_total
         half = 0.5 * period * period * inv_total
         tilt = d0 * period * inv_total
-        teeth = (half + tilt < _TOOTH_CUTOFF) | (half - tilt < _TOOTH_CUTOFF)
+        teeth = (half + tilt < TOOTH_CUTOFF) | (half - tilt < TOOTH_CUTOFF)
         flag[j] = 1.0 if u and teeth else 0.0
         mu2[j] = mu[j] - d0 * gain if u else mu[j]
         var2[j] = gain * var_k if u else var[j]
@@ -127,7 +127,7 @@ def _fuse_block(m, cw, sg, us, period, state) -> None:
         dof[j] += 1.0 if u else 0.0
     for j in range(m):
         if flag[j] != 0.0 and code[j] != 1.0:
-            mu2[j], var2[j], _, amb_k = _fuse(mu[j], var[j], cw[j], sg[j], period)
+            mu2[j], var2[j], _, amb_k = fuse_period(mu[j], var[j], cw[j], sg[j], period)
             amb[j] += amb_k * (1.0 - amb[j])
     for j in range(m):
         mu[j] = mu2[j]

@@ -128,7 +128,7 @@ class SetFit:
         return xp.mod(phi * (period / (2.0 * math.pi)), period)
 
 
-class _Pattern(NamedTuple):
+class ExclusionPattern(NamedTuple):
     """Least-squares tables of one exclusion pattern (which steps were clipped)."""
 
     minv: np.ndarray  # (k, k) inverse normal matrix, zero rows/columns for dropped harmonics
@@ -139,8 +139,11 @@ class _Pattern(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def _basis(steps: int, harmonics: tuple[int, ...]) -> np.ndarray:
-    """(steps, k) design matrix: 1, sin(psi), cos(psi), then sin(k psi), cos(k psi) per harmonic."""
+def design_matrix(steps: int, harmonics: tuple[int, ...]) -> np.ndarray:
+    """(steps, k) design matrix: 1, sin(psi), cos(psi), then sin(k psi), cos(k psi) per harmonic.
+
+    Public with `normal_inverse`: kernel_clipped.py builds its compiled tables from the same
+    matrices, so both paths fit a clipped pixel alike."""
     psi = 2.0 * np.pi * np.arange(steps) / steps
     columns = [np.ones(steps)]
     for k in (1, *harmonics):
@@ -151,7 +154,7 @@ def _basis(steps: int, harmonics: tuple[int, ...]) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=4096)
-def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) -> _Pattern:
+def normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) -> ExclusionPattern:
     """Least-squares tables of the kept steps of one exclusion pattern.
 
     Harmonics above `PARTIAL_MAX_ORDER` are not fitted on partial steps (residual-noise
@@ -169,7 +172,7 @@ def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) 
     samples' average level would overstate their noise. The gains let the (alpha, beta)
     covariance use each kept step's own noise variance. Cached: a pose has few patterns.
     """
-    basis = _basis(steps, harmonics)
+    basis = design_matrix(steps, harmonics)
     kept = np.array([(excluded_mask >> i) & 1 == 0 for i in range(steps)])
     full = basis.shape[1]
     rows = basis[kept]
@@ -182,9 +185,9 @@ def _normal_inverse(steps: int, excluded_mask: int, harmonics: tuple[int, ...]) 
             out[:columns, :columns] = np.linalg.inv(m)
             leverage = np.einsum("ij,jk,ik->i", rows, out, rows)
             gains = (out @ basis.T)[1:3] * kept
-            return _Pattern(out, n, columns, (1.0 - leverage) @ rows, gains)
+            return ExclusionPattern(out, n, columns, (1.0 - leverage) @ rows, gains)
     nan = np.full((full, full), np.nan)
-    return _Pattern(nan, n, full, np.zeros(full), np.zeros((2, steps)))
+    return ExclusionPattern(nan, n, full, np.zeros(full), np.zeros((2, steps)))
 
 
 def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False,
@@ -247,7 +250,7 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False
     if idx.shape[0] == 0:
         return fit
     uniq, inv = xp.unique(bits[idx], return_inverse=True)
-    tables = [_normal_inverse(n, int(u), sums.harmonics) for u in to_host(uniq)]
+    tables = [normal_inverse(n, int(u), sums.harmonics) for u in to_host(uniq)]
     inv = inv.reshape(-1)
     minv = xp.asarray(np.stack([t.minv for t in tables]))[inv]  # (P, k, k)
     counts = np.array([(t.kept, t.used) for t in tables], dtype=np.float64)
@@ -273,7 +276,7 @@ def fit_set(xp: ModuleType, sums: SetSums, sl: slice, *, residuals: bool = False
     fit.dof[idx] = xp.maximum(kept - used, 0.0)
     fit.ok[idx] = good
     fit.clipped[idx] = True
-    basis = _basis(n, sums.harmonics)
+    basis = design_matrix(n, sums.harmonics)
     excluded = xp.asarray((to_host(uniq)[:, None] >> np.arange(n)) & 1 == 1)[inv]  # (P, n)
     fit.low_clipped[idx] = (excluded & (p @ basis.T.astype(np.float64) < p[:, :1])).any(axis=1)
     gains = xp.asarray(np.stack([t.gains for t in tables]))

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from calibration.decode.accumulate import DecodeError
-from calibration.decode.decoder import _ALWAYS_COMPILED_PIXELS, StreamingDecoder
+from calibration.decode.decoder import ALWAYS_COMPILED_PIXELS, StreamingDecoder
 from calibration.decode.frames_io import FrameSource
 from calibration.decode.noise import NoiseModel, NoiseSource
 from calibration.decode.options import DecodeOptions
@@ -55,12 +55,12 @@ def decode_stack(
                                saturation_dn=saturation_dn, options=options, xp=xp,
                                compiled=prepare)
         npix = whole.shape[1] * whole.shape[2]
-        if dec._use_kernels and (prepare or npix >= _ALWAYS_COMPILED_PIXELS):
+        if dec.uses_kernels and (prepare or npix >= ALWAYS_COMPILED_PIXELS):
             # the kernels' modules; numba loads the machine code of the argument types
             # this stack needs at their first call (cheaper than warming every variant)
             import calibration.decode.accumulate_kernel
             import calibration.decode.kernel_sums  # noqa: F401
-        if dec._compiled:
+        if dec.compiled_now:
             def step(fraction: float) -> None:
                 if cancelled is not None and cancelled():
                     raise Cancelled(f"decode cancelled at {fraction:.0%}")

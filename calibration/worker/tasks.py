@@ -55,10 +55,10 @@ def _keep_heap(pixels: int) -> None:
     first-touch page faults of the finish's temporaries after the last frame; for images
     the compiled kernels decode, also faulted in now (once per worker)."""
     from calibration.decode import heap
-    from calibration.decode.decoder import _COMPILED_MIN_PIXELS
+    from calibration.decode.decoder import COMPILED_MIN_PIXELS
 
     heap.retain_freed_memory()
-    if pixels >= _COMPILED_MIN_PIXELS:
+    if pixels >= COMPILED_MIN_PIXELS:
         heap.warm_heap()
 
 

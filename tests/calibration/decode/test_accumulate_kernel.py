@@ -10,7 +10,7 @@ import pytest
 
 from acquisition.patterns import build_plan
 from calibration.decode.accumulate import FrameAccumulator
-from calibration.decode.batch import _thresholds, add_frames, layout
+from calibration.decode.batch import add_frames, clip_thresholds
 
 SHAPE = (12, 70)  # 840 pixels: a full cache block and a partial one
 
@@ -33,14 +33,14 @@ def _frames(dtype: str, count: int, rng: np.random.Generator) -> np.ndarray:
 
 def _reference(acc: FrameAccumulator, order: list[int], stack: np.ndarray) -> tuple:
     """The sums frame by frame in NumPy float32 (float64 flats and uint16 squares)."""
-    lay = layout(acc)
-    lo, hi = _thresholds(acc)
+    lay = acc.kernel_layout
+    lo, hi = clip_thresholds(acc)
     block = np.zeros((acc.rows, stack[0].size), np.float32)
     bits = np.zeros((len(acc.sets), stack[0].size), acc.bits_dtype)
     squares = np.zeros(stack[0].size, acc.squares_dtype)
     flats = {"bright": np.zeros(stack[0].size), "dark": np.zeros(stack[0].size)}
     for i in order:
-        kind, k, step = acc._role.get(i, ("skip", 0, 0))
+        kind, k, step = acc.roles.get(i, ("skip", 0, 0))
         if kind in flats:
             flats[kind] += stack[i].reshape(-1)
         if kind != "cos":
@@ -79,5 +79,5 @@ def test_grouped_accumulation_equals_frame_by_frame(dtype, residual):
                               strict=True):
             assert a.dtype == b.dtype, name
             np.testing.assert_array_equal(a, b, err_msg=name)
-        cosine = [i for i in order if acc._role.get(i, ("",))[0] == "cos"]
+        cosine = [i for i in order if acc.roles.get(i, ("",))[0] == "cos"]
         assert acc.max_seen == float(np.nanmax(stack[cosine]))  # (no NaN first in a block)

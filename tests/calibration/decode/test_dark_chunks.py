@@ -24,10 +24,10 @@ def _decode(plan, stack, noise):
 def test_dark_surround_ranges_skip_the_kernel_with_identical_maps(monkeypatch) -> None:
     warm_up()
     plan = build_plan(1920, 1080, 0.2745)
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)  # the compiled path
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)  # the compiled path
     stack, _, _ = render(plan, x0=-600.0, read=0.5, seed=4)  # ~95 columns left of the screen
     calls: list[bool] = []
-    real = decoder_module.finish_dark_range
+    real = StreamingDecoder._finish_dark_range
 
     def counted(*args):
         calls.append(real(*args))
@@ -35,10 +35,10 @@ def test_dark_surround_ranges_skip_the_kernel_with_identical_maps(monkeypatch) -
 
     for noise in (None, 1.5):  # a given noise may be under the floor: never skipped
         calls.clear()
-        monkeypatch.setattr(decoder_module, "finish_dark_range", counted)
+        monkeypatch.setattr(StreamingDecoder, "_finish_dark_range", counted)
         skipped = _decode(plan, stack, noise)
         dark = sum(calls)
-        monkeypatch.setattr(decoder_module, "finish_dark_range", lambda *args: False)
+        monkeypatch.setattr(StreamingDecoder, "_finish_dark_range", lambda *args: False)
         kernel = _decode(plan, stack, noise)
         if noise is None:  # most of [0, 64) of each row (10 DN, contrast noise 0.7 DN)
             assert dark > 0.8 * H, dark

@@ -307,10 +307,10 @@ def test_compiled_decoder_matches_array_namespace_path(plan, monkeypatch, noise)
     warm_up()
     stack, x, y = render(plan, white=320.0, blur=1.5, seed=37)  # clipped samples, blur
     stack[:, :, :6] = 0  # a black border: every step clipped (no fit)
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 1 << 40)
     ref = decode_stack(plan, stack, noise=noise)
     assert ref.meta["pixel_counts"]["no_screen"] >= 6 * H
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     whole = decode_stack(plan, stack, noise=noise)
     check_honest(whole, x, y)
     # In plan order: float32 sums in another order round differently, and the residual
@@ -332,7 +332,6 @@ def test_compiled_decoder_fits_partly_clipped_pixels_itself(plan, monkeypatch, n
     kernels (kernel_clipped.py), in the finish and in the noise estimate's first pass: the
     array path is never asked for them."""
     import calibration.decode.decoder as decoder_module
-    import calibration.decode.finish as finish_module
     from calibration.decode.kernel_warm import warm_up
 
     warm_up()
@@ -342,9 +341,9 @@ def test_compiled_decoder_fits_partly_clipped_pixels_itself(plan, monkeypatch, n
     def refuse(*args, **kwargs):
         raise AssertionError("array path used")
 
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     monkeypatch.setattr(decoder_module.StreamingDecoder, "_finish_arrays", refuse)
-    monkeypatch.setattr(finish_module, "residual_arrays", refuse)
+    monkeypatch.setattr(decoder_module.StreamingDecoder, "_residual_arrays", refuse)
     check_honest(decode_stack(plan, stack, noise=noise), x, y)
 
 
@@ -415,9 +414,9 @@ def test_compiled_decoder_with_display_harmonic_matches_array_path(monkeypatch):
     plan6 = build_plan(1920, 1080, 0.2745, steps=6)
     stack, _, _ = render(plan6, white=240.0, read=0.8, seed=3)
     stack = np.clip(np.rint(255.0 * (stack / 255.0) ** 1.8), 0, 255).astype(np.uint8)
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 1 << 40)
     ref = decode_stack(plan6, stack)
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     got = decode_stack(plan6, stack)
     leak = ref.meta["decoder"]["display_harmonic_r2"]
     assert leak is not None
@@ -446,9 +445,9 @@ def test_residual_noise_keeps_the_partly_clipped_pixels_a_given_noise_keeps(plan
     assert some.mean() > 0.5
     given = decode_stack(plan, stack, noise=NoiseModel(read_dn=1.5, gain_e_per_dn=4.0,
                                                        black_dn=0.0))
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 1 << 40)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 1 << 40)
     ref = decode_stack(plan, stack, noise=None)
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     got = decode_stack(plan, stack, noise=None)
     assert_same_maps(got, ref)
     check_honest(got, x, y)

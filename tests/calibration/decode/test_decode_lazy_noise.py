@@ -24,21 +24,21 @@ def test_lazy_noise_sample_equals_a_full_pass(monkeypatch, bright_from, passes) 
     bright, _, _ = render(plan, white=320.0, blur=1.5, seed=43)
     stack[:, :, bright_from:] = bright[:, :, bright_from:]
     assert (stack[:, :, bright_from:] == 255).any(axis=0).mean() > 0.9
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     stats, seen = finish_module.residual_stats, []
 
-    def eager(dec, chunk, lazy=False):
+    def eager(inputs, chunk, lazy=False):
         seen.append(lazy)
-        return stats(dec, chunk, False)
+        return stats(inputs, chunk, False)
 
     monkeypatch.setattr(decoder_module, "residual_stats", eager)
     ref = decode_stack(plan, stack)
     assert seen and ref.meta["decoder"]["photon_transfer"] is not None
     seen.clear()
 
-    def spy(dec, chunk, lazy=False):
+    def spy(inputs, chunk, lazy=False):
         seen.append(lazy)
-        return stats(dec, chunk, lazy)
+        return stats(inputs, chunk, lazy)
 
     monkeypatch.setattr(decoder_module, "residual_stats", spy)
     got = decode_stack(plan, stack)

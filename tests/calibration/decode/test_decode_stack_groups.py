@@ -19,7 +19,7 @@ def test_unobserved_decode_equals_observed_one(monkeypatch):
     from calibration.decode.kernel_warm import warm_up
 
     warm_up()
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     plan = build_plan(1920, 1080, 0.2745)
     stack, _, _ = render(plan, white=320.0, blur=1.5, seed=5)  # some steps clipped
     options = DecodeOptions(chunk_pixels=1024)  # many ranges: several groups

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from acquisition.patterns import build_plan
-from calibration.decode import StreamingDecoder
+from calibration.decode.accumulate import FrameAccumulator
 from calibration.decode.kernel_clipped import _table_fits, linear_line, pattern_tables
-from calibration.decode.phase import _basis, _normal_inverse
+from calibration.decode.phase import design_matrix, normal_inverse
 
 # offset, slope, black, clamp, floor: a sensor line with a black level (clamped below it)
 LINE = (0.8, 0.05, 6.0, True, 1.0 / 12.0)
@@ -35,8 +35,8 @@ def _table_fit(col, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, c
 
 def expected(n: int, harmonics: tuple[int, ...], q: int, v: np.ndarray) -> tuple:
     """(coefficients, use_step_levels numerators aa, bb, ab) from phase.py's tables."""
-    pat = _normal_inverse(n, q, harmonics)
-    basis = _basis(n, harmonics)
+    pat = normal_inverse(n, q, harmonics)
+    basis = design_matrix(n, harmonics)
     kept = np.array([(q >> i) & 1 == 0 for i in range(n)])
     sums = (basis[kept].T @ v[kept]).astype(np.float32).astype(np.float64)
     p = pat.minv @ sums
@@ -50,8 +50,8 @@ def _first_set_tables(noise):
     """A 10-step plan's accumulator, its pattern tables and their (index, rows) once
     PATTERNS were met in the first set."""
     plan = build_plan(1920, 1080, 0.2745, steps=10)
-    acc = StreamingDecoder(plan, (4, 4), noise=noise)._acc
-    tables = pattern_tables(acc)
+    acc = FrameAccumulator(plan, (4, 4), saturation_dn=None, need_squares=noise is None)
+    tables = pattern_tables(acc.sets)
     bits = np.zeros((len(acc.sets), len(PATTERNS)), dtype=acc.bits_dtype)
     bits[0] = PATTERNS
     return (acc, tables, *tables.tables(bits, 0, bits.shape[1]))
@@ -134,7 +134,8 @@ def test_pattern_tables_cover_every_partial_pattern_and_agree_across_decoders():
     from calibration.decode.kernel_clipped import unknown_patterns
 
     plan = build_plan(1920, 1080, 0.2745, steps=10)
-    first, second = (pattern_tables(StreamingDecoder(plan, (4, 4), noise=None)._acc)
+    first, second = (pattern_tables(FrameAccumulator(plan, (4, 4), saturation_dn=None,
+                                                     need_squares=True).sets)
                      for _ in range(2))
     sets = len(first.sets)
     rng = np.random.default_rng(11)
@@ -153,7 +154,7 @@ def test_pattern_tables_cover_every_partial_pattern_and_agree_across_decoders():
                 np.testing.assert_array_equal(rows2[index2[k, q]], rows[index[k, q]])
     fresh = np.zeros_like(rows[0])  # the row as PatternTables computed it before the cache
     k, q = 0, PATTERNS[0]
-    pat = _normal_inverse(10, q, first.sets[k].harmonics)
+    pat = normal_inverse(10, q, first.sets[k].harmonics)
     f, w = first.width, pat.minv.shape[0]
     minv = np.zeros((f, f))
     minv[:w, :w] = pat.minv

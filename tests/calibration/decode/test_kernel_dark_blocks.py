@@ -35,7 +35,7 @@ def test_dark_blocks_give_the_full_pass_maps(monkeypatch, mode) -> None:
     there for every pixel of the block. The other pixels' maps are the same, bit for bit,
     with a given noise, a photon-transfer line and each pixel's own residual variance."""
     warm_up()
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)  # the compiled path
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)  # the compiled path
     # a fixed noise line (or none: own residuals), not one fitted to each stack's pixels
     line = {"line": (LinearVariance(2.0, 0.02, 0.3), None), "own": (None, None)}.get(mode)
     if line is not None:

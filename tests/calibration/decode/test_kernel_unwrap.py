@@ -13,7 +13,7 @@ from calibration.decode.kernel_unwrap import (
     S_MU,
     S_VAR,
     STATE_ROWS,
-    _fuse_block,
+    fuse_block,
 )
 from calibration.decode.unwrap import fuse_axis
 
@@ -33,7 +33,7 @@ def test_block_fusion_matches_the_array_path_at_every_tooth_weight():
 
     state = np.zeros((STATE_ROWS, n))
     state[S_MU], state[S_VAR], state[S_CODE] = mu0, coarse_sigma**2, 99.0
-    _fuse_block(n, c, fine_sigma, np.ones(n, dtype=np.bool_), period, state)
+    fuse_block(n, c, fine_sigma, np.ones(n, dtype=np.bool_), period, state)
 
     # the array path from the same prior: a coarsest "period" far wider than the screen
     # puts every pixel's prior at mu0 with zero ambiguity
