@@ -56,8 +56,10 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         services.jobs.bind_loop(asyncio.get_running_loop())
-        yield
-        await asyncio.to_thread(services.close)
+        try:
+            yield
+        finally:  # (Services.close logs a failing step and goes on: it never raises)
+            await asyncio.to_thread(services.close)
 
     app = FastAPI(title="phasecal", version=phasecal_version(), description=DESCRIPTION,
                   lifespan=lifespan)

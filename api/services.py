@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from fastapi import Request
@@ -16,6 +18,8 @@ from api.rigs import RigManager
 from api.storage import DiskSpace
 from api.store import DataStore
 from calibration.worker.executor import Executor, make_executor
+
+log = logging.getLogger("phasecal.service")
 
 
 @dataclass
@@ -72,13 +76,23 @@ class Services:
         return len(stored_indices(self.store.dir_for(pose_id, create=False)))
 
     def close(self) -> None:
-        """Cancel live jobs, stop the executor, make committed maps durable, close rigs and
-        the database."""
-        self.jobs.shutdown()
-        self.maps_sync.drain()
-        self.executor.shutdown(wait=False)
-        self.rigs.close()
-        self.db.close()
+        """Stop live jobs (stored `interrupted`), make committed maps durable, stop the
+        executor's workers, close the rigs and the database.
+
+        Every step runs even when an earlier one failed (logged): a worker or manager process
+        that died first must not leave the rigs' devices or the database open."""
+        steps: tuple[tuple[str, Callable[[], object]], ...] = (
+            ("stopping the jobs", self.jobs.shutdown),
+            ("making maps durable", self.maps_sync.drain),
+            ("stopping the executor", lambda: self.executor.shutdown(wait=False)),
+            ("closing the rigs", self.rigs.close),
+            ("closing the database", self.db.close),
+        )
+        for what, step in steps:
+            try:
+                step()
+            except Exception:
+                log.exception("shutdown: %s failed; going on", what)
 
 
 def get_services(request: Request) -> Services:

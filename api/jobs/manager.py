@@ -293,10 +293,17 @@ class JobManager:
         return list(self._live)
 
     def shutdown(self, timeout_s: float = 5.0) -> None:
-        """Stop live jobs (they end `interrupted`) and wait briefly for their drivers."""
+        """Stop live jobs (they end `interrupted`) and wait briefly for their drivers.
+
+        Every job's own flag is set first; an executor that cannot pass the cancel on (its
+        workers or scheduler already gone) is logged and the other jobs are still stopped."""
         self._stopping = True
         for job_id in list(self._live):
-            self.cancel(job_id)
+            try:
+                self.cancel(job_id)
+            except Exception as exc:  # the job's flag is set: its driver still stops
+                log.warning("shutdown: the executor did not take job %s's cancel: %s",
+                            job_id, _describe(exc))
         deadline = time.monotonic() + timeout_s
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))

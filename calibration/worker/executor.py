@@ -10,8 +10,10 @@ and return a small JSON-able summary, so they can run in a thread or on a Dask w
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Protocol, runtime_checkable
@@ -71,6 +73,10 @@ class InProcessExecutor(TaskRunner):
 
 
 _FORGET = "__forget__"
+#: what talking to a manager process that is gone raises (refused, reset, no socket, EOF)
+MANAGER_GONE = (OSError, EOFError)
+
+log = logging.getLogger("phasecal.worker")
 
 
 class _RemoteContext(TaskContext):
@@ -94,14 +100,36 @@ def _run_remote(task_fn: Callable[..., Any], job_id: str, queue: Any, cancel_eve
     return task_fn(_RemoteContext(job_id, queue, cancel_event), *args, **kwargs)
 
 
+class ManagedFlag:
+    """A job's cancel flag kept by the manager process (`event`, what the worker polls).
+
+    Setting it once the manager is gone does nothing: no worker can read it any more, and a
+    shutdown that cancels every job must reach the next one."""
+
+    def __init__(self, event: Any) -> None:
+        self.event = event
+
+    def set(self) -> None:
+        """Set the managed event (a no-op when the manager is gone)."""
+        try:
+            self.event.set()
+        except MANAGER_GONE:
+            pass
+
+
 class ProcessExecutor(TaskRunner):
     """Runs tasks in worker processes (spawned), so GIL-bound numerics never stall the API.
 
-    Workers and the manager process exit when this process dies (`worker.lifetime`).
+    Workers and the manager process exit when this process dies (`worker.lifetime`), and
+    ignore the stop signals sent to the whole service so that `shutdown` stops them in order.
 
     Progress comes back through a managed queue drained by one thread; cancel flips a
     managed event the task polls through `TaskContext.cancelled()`.
     """
+
+    #: seconds `shutdown(wait=False)` gives cancelled tasks to return before their workers
+    #: are killed (a task in a long step that does not poll its cancel flag)
+    stop_grace_s = 5.0
 
     def __init__(self, max_workers: int | None = None) -> None:
         import multiprocessing as mp
@@ -118,7 +146,9 @@ class ProcessExecutor(TaskRunner):
                                          initializer=die_with_parent, initargs=guard)
         # Spawn every worker now, from this thread: PDEATHSIG follows the spawning thread,
         # and a worker spawned lazily by a short-lived job thread would die with it.
+        before = set(mp.active_children())
         self._pool._launch_processes()
+        self._workers = [p for p in mp.active_children() if p not in before]
         # A first task starts the pool's manager thread (spawning nothing more: every worker
         # exists); without it shutdown() and interpreter exit never stop the workers.
         self._pool.submit(os.getpid).result()
@@ -127,6 +157,7 @@ class ProcessExecutor(TaskRunner):
         self._queue = self._manager.Queue()
         self._callbacks: dict[str, ProgressFn] = {}
         self._lock = threading.Lock()
+        self._closed = False
         self._drain = threading.Thread(target=self._forward, name="phasecal-progress",
                                        daemon=True)
         self._drain.start()
@@ -135,32 +166,68 @@ class ProcessExecutor(TaskRunner):
         """Run a picklable callable in a worker process."""
         return self._pool.submit(fn, *args, **kwargs)
 
-    def _new_flag(self, job_id: str) -> Any:
-        return self._manager.Event()
+    def _new_flag(self, job_id: str) -> ManagedFlag:
+        return ManagedFlag(self._manager.Event())
 
     def _launch(self, task_fn: Callable[..., Any], ticket: Ticket, args: tuple[Any, ...],
                 kwargs: dict[str, Any]) -> Future:
         if ticket.on_progress is not None:
             with self._lock:
                 self._callbacks[ticket.job_id] = ticket.on_progress
-        return self._pool.submit(_run_remote, task_fn, ticket.job_id, self._queue, ticket.flag,
+        event = ticket.flag.event  # type: ignore[attr-defined]
+        return self._pool.submit(_run_remote, task_fn, ticket.job_id, self._queue, event,
                                  args, kwargs)
 
     def shutdown(self, wait: bool = True) -> None:
-        """Stop the workers (flagging running tasks cancelled when not waiting)."""
+        """Stop the workers, the progress thread and the manager; a second call does nothing.
+
+        Without waiting, running tasks are flagged cancelled and a worker still busy after
+        `stop_grace_s` is killed, so no worker outlives this call. A worker or a manager
+        that already died (killed with the service's process group) is no error."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
         if not wait:
             self.cancel_all()
-        self._pool.shutdown(wait=wait, cancel_futures=not wait)
-        self._queue.put(None)
+        try:
+            self._pool.shutdown(wait=wait, cancel_futures=not wait)
+        except Exception:  # a broken pool must not keep the manager running
+            log.warning("stopping the worker pool failed", exc_info=True)
+        if not wait:
+            self._end_workers(self.stop_grace_s)
+        try:
+            self._queue.put(None)
+        except MANAGER_GONE:
+            pass  # the progress thread sees the manager gone and returns by itself
         self._drain.join(5)
-        self._manager.shutdown()
+        self._manager.shutdown()  # asks, then terminates, then kills; a dead one is no error
+
+    def _end_workers(self, grace_s: float) -> None:
+        """Wait up to `grace_s` for the workers to exit; kill those still running (the pool's
+        own thread reaps them)."""
+        from multiprocessing.connection import wait as wait_ready
+
+        running = {}
+        for p in self._workers:
+            try:
+                running[p.sentinel] = p  # readable once the process has exited
+            except ValueError:  # closed: long gone
+                continue
+        deadline = time.monotonic() + grace_s
+        while running and time.monotonic() < deadline:
+            for sentinel in wait_ready(list(running), max(0.0, deadline - time.monotonic())):
+                running.pop(sentinel)
+        for p in running.values():
+            log.warning("worker process %s did not stop within %.0f s: killed", p.pid, grace_s)
+            p.kill()
 
     def _forward(self) -> None:
         """Deliver progress in order; a job's callback is dropped after its last report."""
         while True:
             try:
                 item = self._queue.get()
-            except (EOFError, OSError):  # the manager is gone (interpreter exit)
+            except MANAGER_GONE:  # the manager is gone (shutdown, interpreter exit)
                 return
             if item is None:
                 return
@@ -171,11 +238,19 @@ class ProcessExecutor(TaskRunner):
             job_id, done, total, stage = item
             cb = self._callbacks.get(job_id)
             if cb is not None:
-                cb(done, total, stage)
+                try:
+                    cb(done, total, stage)
+                except Exception:  # one job's failing callback must not end the others'
+                    log.exception("progress of job %s not delivered", job_id)
 
     def _settled(self, ticket: Ticket) -> None:
         # The worker queued all its progress before returning, so this marker comes last.
-        self._queue.put((_FORGET, ticket.job_id))
+        if self._closed:
+            return  # the progress thread is stopped or stopping: nothing left to deliver
+        try:
+            self._queue.put((_FORGET, ticket.job_id))
+        except MANAGER_GONE:
+            pass
 
 
 def make_executor(address: str | None = None) -> Executor:

@@ -1,9 +1,17 @@
-"""Worker processes die with the server that started them, however it dies (kill -9 too).
+"""Worker processes die with the server that started them, however it dies (kill -9 too),
+and stop only when that server says so.
 
 Two independent guards, installed by `die_with_parent` as a process initializer:
 Linux `prctl(PR_SET_PDEATHSIG, SIGKILL)` (the kernel kills the worker when the thread that
 spawned it exits, so it is used only when that thread is the parent's main thread), and a
 watchdog thread that exits the worker once its parent pid changes (any POSIX system).
+
+Stop signals meant for the service are not the workers' to act on: a terminal's Ctrl-C
+(SIGINT to the process group) and systemd's stop (SIGTERM to every process of the unit)
+reach the workers at the same moment as the server. A worker that died then would fail the
+job it runs (and its cancel flags with the manager) before the server could stop it in
+order, so workers ignore SIGINT, and SIGTERM unless their parent sent it (the process pool
+terminates a broken pool's workers with SIGTERM and must still be obeyed).
 """
 
 from __future__ import annotations
@@ -37,11 +45,47 @@ def _watch(parent_pid: int) -> None:
         time.sleep(WATCHDOG_PERIOD_S)
 
 
+def _only_one_thread() -> bool:
+    """True when this process runs a single thread (so a signal mask set now is everyone's:
+    threads started later inherit it). Unknown (no /proc) counts as more than one."""
+    try:
+        return len(os.listdir("/proc/self/task")) == 1
+    except OSError:
+        return False
+
+
+def _obey_sigterm_from(parent_pid: int) -> bool:
+    """Leave SIGTERM to a thread that ends the process only when `parent_pid` sent it.
+
+    The signal is blocked (in this thread and so in every thread started after) and taken
+    with `sigwaitinfo`, which names the sender. Needs sigwaitinfo and a process of one
+    thread; False (SIGTERM keeps its default action) otherwise.
+    """
+    if not hasattr(signal, "sigwaitinfo") or not _only_one_thread():
+        return False
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    threading.Thread(target=_take_sigterm, args=(parent_pid,), name="phasecal-sigterm",
+                     daemon=True).start()
+    return True
+
+
+def _take_sigterm(parent_pid: int) -> None:
+    while True:
+        info = signal.sigwaitinfo({signal.SIGTERM})
+        if info.si_pid == parent_pid:
+            # The server's own terminate(): SIGTERM's default action (the disposition was
+            # never changed), as it expects; unblocked in this thread only, raised to it.
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+            signal.raise_signal(signal.SIGTERM)
+            os._exit(128 + signal.SIGTERM)  # (not reached: a handler was installed)
+        # anyone else's: the server got it too and stops this worker in order
+
+
 def die_with_parent(parent_pid: int, use_pdeathsig: bool = True) -> None:
-    """Process initializer: exit as soon as `parent_pid` is no longer this process's parent.
-    A terminal's Ctrl-C reaches the whole process group: the worker ignores it and lets the
-    server stop it in order (else each idle worker printed a KeyboardInterrupt traceback)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    """Process initializer: exit as soon as `parent_pid` is no longer this process's parent;
+    ignore stop signals sent to the whole service (see the module's doc)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # else each worker printed a traceback
+    _obey_sigterm_from(parent_pid)
     if use_pdeathsig:
         _set_pdeathsig()
     if os.getppid() != parent_pid:  # the parent died before the guards were in place
