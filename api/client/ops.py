@@ -1,5 +1,6 @@
-"""One description per REST operation (method, path, body), shared by the sync and the async
-client so each resource is written once (`api.client.sync`, `api.client.aio` run them)."""
+"""One description per REST operation (method, path, body, how the answer is read), shared by
+the sync and the async client so each resource is written once: `api.client.methods` makes
+each builder here a method of both clients, `api.client.core` runs the descriptions."""
 
 from __future__ import annotations
 
@@ -10,20 +11,53 @@ from pathlib import Path
 from typing import Any, Generic, TypeVar
 from urllib.parse import quote
 
+import httpx
+
 from api.client import types as t
 
 T = TypeVar("T")
+#: Opens an upload's files afresh for each try: (httpx `files`, handles to close after it).
+Opener = Callable[[], tuple[list[tuple[str, Any]], list[Any]]]
+
+
+def json_body(r: httpx.Response) -> Any:
+    """The answer of most operations: the response's JSON."""
+    return r.json()
+
+
+def whole_response(r: httpx.Response) -> httpx.Response:
+    """The answer of `request`: the response itself."""
+    return r
+
+
+def response_headers(r: httpx.Response) -> httpx.Headers:
+    """The answer of a plain download: the headers (the body went to the file)."""
+    return r.headers
 
 
 @dataclass(frozen=True)
 class Op(Generic[T]):
-    """A REST call: JSON body or params in, JSON (typed `T`) out."""
+    """A REST call: JSON body, form data, uploaded files or params in; its `answer` read from
+    the response (JSON by default). With `save_to` the body is streamed into that file
+    (written under a temporary name, then renamed); with `stream` it is left unread for the
+    caller. `options` are further httpx request options (headers, content, timeout)."""
 
     method: str
     path: str
     json: Any = None
     params: dict[str, Any] | None = None
     ok: tuple[int, ...] = field(default=(200, 201, 202))
+    data: dict[str, Any] | None = None
+    upload: Opener | None = None
+    save_to: Path | None = None
+    stream: bool = False
+    options: dict[str, Any] = field(default_factory=dict)
+    answer: Callable[[httpx.Response], T] = json_body
+
+    def request_options(self) -> dict[str, Any]:
+        """Keyword arguments of `httpx.Client.build_request` (files excepted: an upload is
+        opened afresh for each try)."""
+        return {"json": self.json, "params": self.params, "data": self.data, **self.options}
 
 
 def ident(value: str | dict[str, Any], key: str = "id") -> str:
@@ -34,6 +68,25 @@ def ident(value: str | dict[str, Any], key: str = "id") -> str:
 
 def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in d.items() if v is not None}
+
+
+# -- any request --------------------------------------------------------------------------------
+def request(method: str, path: str, **options: Any) -> Op[httpx.Response]:
+    """Send a request (retried as every call is); `ServiceError` with the problem on 4xx/5xx.
+    `stream=True` leaves the body unread (the caller closes the response)."""
+    stream = bool(options.pop("stream", False))
+    return Op(method, path, stream=stream, upload=options.pop("upload", None), options=options,
+              answer=whole_response)
+
+
+def get(path: str, **params: Any) -> Op[Any]:
+    """GET returning JSON."""
+    return Op("GET", path, params=params or None)
+
+
+def post(path: str, body: dict[str, Any] | None = None) -> Op[Any]:
+    """POST JSON returning JSON."""
+    return Op("POST", path, json=body or {})
 
 
 # -- service, rigs ---------------------------------------------------------------------------
@@ -240,9 +293,6 @@ def job_id(job: str | t.Job | dict[str, Any]) -> str:
 
 
 # -- multipart uploads from files (streamed: httpx reads open files in chunks) ---------------
-Opener = Callable[[], tuple[list[tuple[str, Any]], list[Any]]]
-
-
 def upload_files(field_name: str, paths: Sequence[str | Path]) -> Opener:
     """A function opening the files afresh (for each retry): (httpx files, handles to close)."""
     ps = [Path(p) for p in paths]
@@ -259,24 +309,51 @@ def upload_files(field_name: str, paths: Sequence[str | Path]) -> Opener:
     return opener
 
 
-# -- server-sent events ------------------------------------------------------------------------
-class SSEDecoder:
-    """Feed SSE text lines; complete events come back as (event, data), keepalives as
-    ("keepalive", {}) so a waiting client can check its deadline."""
+def import_frames(session: str | t.Session, paths: list[Path],
+                  noise_dn: float | None = None) -> Op[t.Job]:
+    """Upload a `.npy` stack or frame images (streamed from disk) as a pose; the decode job."""
+    data = {"noise_dn": str(noise_dn)} if noise_dn is not None else None
+    return Op("POST", f"/sessions/{ident(session)}/poses/import", data=data,
+              upload=upload_files("files", paths))
 
-    def __init__(self) -> None:
-        self.event, self.data = "message", []  # type: tuple[str, list[str]]
 
-    def feed(self, line: str) -> tuple[str, dict[str, Any]] | None:
-        """One line without its newline -> an event when it completes one."""
-        if line.startswith(":"):
-            return ("keepalive", {})
-        if line.startswith("event:"):
-            self.event = line[6:].strip()
-        elif line.startswith("data:"):
-            self.data.append(line[5:].lstrip())
-        elif line == "" and self.data:
-            out = (self.event, json.loads("\n".join(self.data)))
-            self.event, self.data = "message", []
-            return out
-        return None
+def import_maps(session: str | t.Session, path: Path) -> Op[t.Pose]:
+    """Upload a decoded maps NPZ (streamed) as a ready pose."""
+    return Op("POST", f"/sessions/{ident(session)}/poses/import-maps",
+              upload=upload_files("file", [path]))
+
+
+# -- streamed downloads -------------------------------------------------------------------------
+def download(path: str, dest: str | Path, params: dict[str, Any] | None = None
+             ) -> Op[httpx.Headers]:
+    """Stream a GET to `dest` (written under a temporary name, then renamed); its headers."""
+    return Op("GET", path, params=params, save_to=Path(dest), answer=response_headers)
+
+
+def download_file(cal: str | t.Calibration, name: str, dest: str | Path) -> Op[Path]:
+    """A stored calibration file (model.json, result.json, residuals.png, ...) to `dest`."""
+    return Op("GET", file_path(cal, name), save_to=Path(dest), answer=lambda _: Path(dest))
+
+
+def download_maps(session: str | t.Session, pose: str | t.Pose, dest: str | Path) -> Op[Path]:
+    """A pose's decoded maps NPZ to `dest`."""
+    return Op("GET", maps_path(session, pose), save_to=Path(dest), answer=lambda _: Path(dest))
+
+
+def download_frames(session: str | t.Session, pose: str | t.Pose, dest: str | Path,
+                    image_format: str = "png") -> Op[Path]:
+    """A pose's captured frames as a zip of frame_NNNN.png (or .tif) images to `dest`."""
+    return Op("GET", frames_zip_path(session, pose), params={"format": image_format},
+              save_to=Path(dest), answer=lambda _: Path(dest))
+
+
+def export(cal: str | t.Calibration, fmt: str, dest: str | Path,
+           **params: Any) -> Op[dict[str, Any]]:
+    """`GET /calibrations/{id}/export` to `dest`; returns the export info (exact, residual)."""
+    path, query = export_request(cal, fmt, **params)
+    return Op("GET", path, params=query, save_to=Path(dest), answer=export_info)
+
+
+def export_info(r: httpx.Response) -> dict[str, Any]:
+    """What an export says of itself (`Phasecal-Export-Info`: exact, residual)."""
+    return json.loads(r.headers.get("phasecal-export-info", "{}"))

@@ -1,49 +1,33 @@
 """The synchronous phasecal client: a method per resource, typed answers, problem-details
-errors, SSE job waiting, streamed uploads/downloads, idempotent retries."""
+errors, SSE job waiting, streamed uploads/downloads, idempotent retries. What it does is
+written once in `api.client.core` and `api.client.ops`; here are only the blocking I/O of
+each step and what a blocking caller does differently (Ctrl-C while waiting)."""
 
 from __future__ import annotations
 
 import contextlib
-import json
-import os
-import tempfile
 import time
-import uuid
 from collections.abc import Callable, Iterator
-from pathlib import Path
-from typing import Any, Concatenate, ParamSpec, TypeVar
+from typing import Any, TypeVar
 
 import httpx
 
-from api.client import ops
+from api.client import core, ops
 from api.client import types as t
-from api.client.errors import ServiceError, job_error, raise_for_problem
+from api.client.errors import ServiceError
+from api.client.methods import Operations
 
-P = ParamSpec("P")
 T = TypeVar("T")
-RETRY_STATUS = (502, 503, 504)
-SSE_READ_TIMEOUT_S = 45.0  # the server sends a keepalive every 15 s
-CHUNK = 1 << 20
 
 
-def _method(build: Callable[P, ops.Op[T]]) -> Callable[Concatenate[PhasecalClient, P], T]:
-    """A client method running the operation `build` describes (same signature and doc)."""
-
-    def method(self: PhasecalClient, *args: P.args, **kwargs: P.kwargs) -> T:
-        return self.run(build(*args, **kwargs))
-
-    method.__doc__, method.__name__ = build.__doc__, build.__name__
-    return method
-
-
-class PhasecalClient:
-    """Calls the REST API. Every POST carries an Idempotency-Key; requests are retried (same
-    key) on transport errors and 502/503/504, up to `retries` times with backoff."""
+class PhasecalClient(Operations):
+    """Calls the REST API, blocking. Every POST carries an Idempotency-Key; requests are
+    retried (same key) on transport errors and 502/503/504, up to `retries` times with
+    backoff."""
 
     def __init__(self, base_url: str, token: str | None = None, timeout_s: float = 60.0,
                  retries: int = 2, transport: httpx.BaseTransport | None = None) -> None:
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout_s,
+        self.http = httpx.Client(**core.pool_options(base_url, token, timeout_s),
                                  transport=transport)
         self.retries = retries
 
@@ -57,150 +41,19 @@ class PhasecalClient:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- transport ------------------------------------------------------------------------
-    def _send(self, method: str, path: str, *, stream: bool = False,
-              upload: ops.Opener | None = None, **kwargs: Any) -> httpx.Response:
-        headers = dict(kwargs.pop("headers", None) or {})
-        if method == "POST":
-            headers.setdefault("Idempotency-Key", uuid.uuid4().hex)
-        for attempt in range(self.retries + 1):
-            handles: list[Any] = []
-            try:
-                if upload is not None:
-                    kwargs["files"], handles = upload()
-                req = self.http.build_request(method, path, headers=headers, **kwargs)
-                r = self.http.send(req, stream=stream)
-            except httpx.TransportError:
-                if attempt == self.retries:
-                    raise
-            else:
-                if r.status_code not in RETRY_STATUS or attempt == self.retries:
-                    if r.status_code >= 400:
-                        r.read()
-                        r.close()
-                        raise_for_problem(r)
-                    return r
-                r.close()
-            finally:
-                for fh in handles:
-                    fh.close()
-            time.sleep(0.2 * 2**attempt)
-        raise AssertionError("unreachable")
-
-    def request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
-        """Send a request (retried as above); `ServiceError` with the problem on 4xx/5xx."""
-        return self._send(method, path, **kwargs)
-
     def run(self, op: ops.Op[T]) -> T:
-        """Run an operation description and return its JSON answer."""
-        return self._send(op.method, op.path, json=op.json, params=op.params).json()
+        """Run an operation description and return its answer."""
+        return self._perform(core.perform(op, retries=self.retries))
 
-    def get(self, path: str, **params: Any) -> Any:
-        """GET returning JSON."""
-        return self.request("GET", path, params=params or None).json()
-
-    def post(self, path: str, body: dict[str, Any] | None = None) -> Any:
-        """POST JSON returning JSON."""
-        return self.request("POST", path, json=body or {}).json()
-
-    # -- resources (api.client.ops) -----------------------------------------------------------
-    health = _method(ops.health)
-    list_devices = _method(ops.list_devices)
-    list_rigs = _method(ops.list_rigs)
-    create_rig = _method(ops.create_rig)
-    get_rig = _method(ops.get_rig)
-    move_screen = _method(ops.move_screen)
-    camera_settings = _method(ops.camera_settings)
-    create_session = _method(ops.create_session)
-    list_sessions = _method(ops.list_sessions)
-    get_session = _method(ops.get_session)
-    get_plan = _method(ops.get_plan)
-    capture_pose = _method(ops.capture_pose)
-    resume_pose = _method(ops.resume_pose)
-    list_poses = _method(ops.list_poses)
-    get_pose = _method(ops.get_pose)
-    calibrate = _method(ops.calibrate)
-    quick_intrinsics = _method(ops.quick_intrinsics)
-    get_intrinsics = _method(ops.get_intrinsics)
-    list_calibrations = _method(ops.list_calibrations)
-    get_calibration = _method(ops.get_calibration)
-    project = _method(ops.project)
-    unproject = _method(ops.unproject)
-    undistort_points = _method(ops.undistort_points)
-    create_batch = _method(ops.create_batch)
-    get_job = _method(ops.get_job)
-    list_jobs = _method(ops.list_jobs)
-    cancel_job = _method(ops.cancel_job)
-
-    # -- streamed uploads -------------------------------------------------------------------
-    def import_frames(self, session: str | t.Session, paths: list[Path],
-                      noise_dn: float | None = None) -> t.Job:
-        """Upload a `.npy` stack or frame images (streamed from disk) as a pose; the decode job."""
-        data = {"noise_dn": str(noise_dn)} if noise_dn is not None else None
-        return self._send("POST", f"/sessions/{ops.ident(session)}/poses/import",
-                          upload=ops.upload_files("files", paths), data=data).json()
-
-    def import_maps(self, session: str | t.Session, path: Path) -> t.Pose:
-        """Upload a decoded maps NPZ (streamed) as a ready pose."""
-        return self._send("POST", f"/sessions/{ops.ident(session)}/poses/import-maps",
-                          upload=ops.upload_files("file", [path])).json()
-
-    # -- streamed downloads ---------------------------------------------------------------
-    def download(self, path: str, dest: str | Path, params: dict[str, Any] | None = None
-                 ) -> httpx.Headers:
-        """Stream a GET to `dest` (written under a temporary name, then renamed); its headers."""
-        out = Path(dest)
-        r = self._send("GET", path, params=params, stream=True)
-        fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".part", dir=out.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                for chunk in r.iter_bytes(CHUNK):
-                    fh.write(chunk)
-            os.replace(tmp, out)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        finally:
-            r.close()
-        return r.headers
-
-    def download_file(self, cal: str | t.Calibration, name: str, dest: str | Path) -> Path:
-        """A stored calibration file (model.json, result.json, residuals.png, ...) to `dest`."""
-        self.download(ops.file_path(cal, name), dest)
-        return Path(dest)
-
-    def download_maps(self, session: str | t.Session, pose: str | t.Pose,
-                      dest: str | Path) -> Path:
-        """A pose's decoded maps NPZ to `dest`."""
-        self.download(ops.maps_path(session, pose), dest)
-        return Path(dest)
-
-    def download_frames(self, session: str | t.Session, pose: str | t.Pose, dest: str | Path,
-                        image_format: str = "png") -> Path:
-        """A pose's captured frames as a zip of frame_NNNN.png (or .tif) images to `dest`."""
-        self.download(ops.frames_zip_path(session, pose), dest, params={"format": image_format})
-        return Path(dest)
-
-    def export(self, cal: str | t.Calibration, fmt: str, dest: str | Path,
-               **params: Any) -> dict[str, Any]:
-        """`GET /calibrations/{id}/export` to `dest`; returns the export info (exact, residual)."""
-        path, query = ops.export_request(cal, fmt, **params)
-        headers = self.download(path, dest, params=query)
-        return json.loads(headers.get("phasecal-export-info", "{}"))
-
-    # -- jobs -------------------------------------------------------------------------------
     def events(self, job: str | t.Job) -> Iterator[tuple[str, dict[str, Any]]]:
         """The job's server-sent events (`progress`..., `end`; keepalives included)."""
-        timeout = httpx.Timeout(self.http.timeout.connect, read=SSE_READ_TIMEOUT_S)
-        r = self._send("GET", ops.job_events_path(job), stream=True, timeout=timeout)
-        decoder = ops.SSEDecoder()
+        stream = self._perform(core.open_events(job, retries=self.retries,
+                                                timeout=self.http.timeout))
         try:
-            for line in r.iter_lines():
-                ev = decoder.feed(line)
-                if ev is not None:
-                    yield ev
+            while (event := self._perform(core.next_event(stream))) is not None:
+                yield event
         finally:
-            r.close()
+            stream.response.close()
 
     def wait(self, job: str | t.Job | dict[str, Any], timeout_s: float = 600.0,
              check: bool = True, on_progress: Callable[[t.Job], None] | None = None) -> t.Job:
@@ -210,34 +63,45 @@ class PhasecalClient:
         succeeded. Interrupted (Ctrl-C) while waiting, the job is cancelled on the server.
         Reconnects if the stream drops; `TimeoutError` after `timeout_s`.
         """
-        jid = ops.job_id(job)
-        deadline = time.monotonic() + timeout_s
         try:
-            final = self._follow(jid, deadline, on_progress)
+            final = self._perform(core.follow_job(job, timeout_s, on_progress,
+                                                  retries=self.retries, timeout=self.http.timeout))
         except KeyboardInterrupt:
             with contextlib.suppress(ServiceError, httpx.HTTPError):
-                self.cancel_job(jid)
+                self.cancel_job(ops.job_id(job))
             raise
-        if check and final["status"] != "succeeded":
-            raise job_error(final)
-        return final
+        return core.job_outcome(final, check)
 
-    def _follow(self, jid: str, deadline: float,
-                on_progress: Callable[[t.Job], None] | None) -> t.Job:
-        while True:
+    # -- I/O --------------------------------------------------------------------------------
+    def _perform(self, steps: core.Steps[T]) -> T:
+        """Run a `core` generator to its result, doing each step it yields; an exception of a
+        step goes back into the generator, which handles it or lets it through."""
+        step = core.advance(steps)
+        while not isinstance(step, core.Done):
             try:
-                for event, data in self.events(jid):
-                    if event == "end":
-                        return data  # type: ignore[return-value]
-                    if event == "progress" and on_progress is not None:
-                        on_progress(data)  # type: ignore[arg-type]
-                    if time.monotonic() > deadline:
-                        break
-            except httpx.TransportError:
-                pass  # stream dropped: look at the job, then reconnect
-            state = self.get_job(jid)
-            if state["status"] in t.TERMINAL:
-                return state
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"job {jid} still {state['status']} at the deadline")
-            time.sleep(0.2)
+                reply = self._do(step)
+            except BaseException as exc:  # Ctrl-C too: the generator closes what it opened
+                step = core.advance(steps, error=exc)
+            else:
+                step = core.advance(steps, reply)
+        return step.value
+
+    def _do(self, step: core.Step) -> Any:
+        """One step with the blocking httpx pool."""
+        match step:
+            case core.Send(method, path, options, stream):
+                return self.http.send(self.http.build_request(method, path, **options),
+                                      stream=stream)
+            case core.Sleep(seconds):
+                time.sleep(seconds)
+            case core.Close(response, read):
+                if read:
+                    response.read()
+                response.close()
+            case core.Iterate(response, None):
+                return response.iter_lines()
+            case core.Iterate(response, size):
+                return response.iter_bytes(size)
+            case core.Next(items):
+                return next(items, None)
+        return None

@@ -1,5 +1,6 @@
 """The typed client (sync and async) against a real `phasecal serve` subprocess: success,
-failed and cancelled jobs with problem details, SSE waiting, streamed upload memory, retries."""
+failed and cancelled jobs with problem details, SSE waiting, streamed upload memory (retries
+and the protocol core without a server: tests/api/test_client_core.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,6 @@ from pathlib import Path
 from typing import get_type_hints
 
 import cv2
-import httpx
 import numpy as np
 import pytest
 
@@ -172,27 +172,6 @@ def test_large_upload_is_streamed_with_flat_memory(client, session, tmp_path):
         tracemalloc.stop()
     assert err.value.status in (409, 422), err.value.detail
     assert peak < 8e6, f"client peak {peak / 1e6:.1f} MB for a {size / 1e6:.0f} MB upload"
-
-
-def test_posts_are_retried_with_the_same_idempotency_key():
-    seen: list[str] = []
-
-    def handler(request: httpx.Request) -> httpx.Response:
-        seen.append(request.headers["Idempotency-Key"])
-        if len(seen) == 1:
-            raise httpx.ConnectError("connection reset")
-        if len(seen) == 2:
-            return httpx.Response(503, json={"status": 503, "detail": "busy"})
-        return httpx.Response(201, json={"id": "ses_1"})
-
-    c = PhasecalClient("http://127.0.0.1:9", transport=httpx.MockTransport(handler), retries=2)
-    assert c.create_session("x")["id"] == "ses_1"
-    assert len(seen) == 3 and len(set(seen)) == 1
-    seen.clear()
-    c.retries = 0
-    with pytest.raises(httpx.ConnectError):
-        c.create_session("x")
-    c.close()
 
 
 def test_upload_of_a_missing_file_names_it(client, session):
