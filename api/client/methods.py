@@ -53,14 +53,16 @@ class Operation(Generic[P, T]):
         if client is None:
             return self
         build = self.build
-        if inspect.iscoroutinefunction(client.run):
-            async def method(*args: Any, **kwargs: Any) -> Any:
-                return await client.run(build(*args, **kwargs))
-        else:
-            def method(*args: Any, **kwargs: Any) -> Any:
-                return client.run(build(*args, **kwargs))
+
+        async def awaitable(*args: Any, **kwargs: Any) -> Any:
+            return await client.run(build(*args, **kwargs))
+
+        def blocking(*args: Any, **kwargs: Any) -> Any:
+            return client.run(build(*args, **kwargs))
+
+        method: Any = awaitable if inspect.iscoroutinefunction(client.run) else blocking
         functools.update_wrapper(method, build)
-        method.__signature__ = self.signature  # type: ignore[attr-defined]
+        method.__signature__ = self.signature
         return method
 
 

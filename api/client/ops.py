@@ -5,7 +5,7 @@ each builder here a method of both clients, `api.client.core` runs the descripti
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -60,9 +60,9 @@ class Op(Generic[T]):
         return {"json": self.json, "params": self.params, "data": self.data, **self.options}
 
 
-def ident(value: str | dict[str, Any], key: str = "id") -> str:
+def ident(value: str | Mapping[str, Any], key: str = "id") -> str:
     """An id given as a string or as the resource dict; URL-quoted."""
-    raw = value[key] if isinstance(value, dict) else value
+    raw = value[key] if isinstance(value, Mapping) else value
     return quote(str(raw), safe="")
 
 
