@@ -154,7 +154,7 @@ def closing(response: httpx.Response, steps: Steps[T]) -> Steps[T]:
     try:
         result = yield from steps
     except GeneratorExit:
-        raise  # abandoned by its client: no more steps can run; the pool closes the stream
+        raise  # abandoned by its client: no step can run now; the response stays with its pool
     except BaseException:
         yield Close(response)
         raise
