@@ -5,14 +5,21 @@ store: the capture loop only records which frame that is, nothing is copied or e
 there). While the rig is idle a snapshot takes the rig's lock without waiting, grabs one
 frame and releases it. Either way one JPEG per rig is encoded at most every
 `min_interval_s` and shared by every client asking within that interval.
+
+The service's routes wait for a JPEG with `jpeg_async`: a fresh shared JPEG comes back at
+once; otherwise the grab and encode (which may block on the camera for up to
+`grab_timeout_s`) run on this object's own pool of `PREVIEW_THREADS` threads, so previews
+never occupy the server's shared thread pool, however many clients ask.
 """
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -21,6 +28,8 @@ from api.problems import Problem
 
 MAX_WIDTH = 640  # previews are downscaled to at most this width
 JPEG_QUALITY = 80
+PREVIEW_THREADS = 4  # at most this many threads ever grab or encode previews
+T = TypeVar("T")
 
 
 def to_jpeg(image: np.ndarray) -> bytes:
@@ -67,6 +76,7 @@ class LivePreview:
         self._jpeg: dict[str, tuple[float, bytes]] = {}  # rig id -> (monotonic time, JPEG)
         self._locks: dict[str, threading.Lock] = {}
         self._guard = threading.Lock()
+        self._pool = ThreadPoolExecutor(PREVIEW_THREADS, thread_name_prefix="phasecal-preview")
 
     def publisher(self, rig_id: str) -> Callable[[Any, int], None]:
         """The capture's per-frame callback: remember which stored frame is newest."""
@@ -94,6 +104,29 @@ class LivePreview:
             data = self._fresh(handle)
             self._jpeg[rig_id] = (time.monotonic(), data)
             return data
+
+    def shared(self, rig_id: str) -> bytes | None:
+        """The rig's JPEG if it is younger than `min_interval_s` (no lock, no thread)."""
+        cached = self._jpeg.get(rig_id)
+        if cached is not None and time.monotonic() - cached[0] < self.min_interval_s:
+            return cached[1]
+        return None
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """`fn(*args)` on the preview pool (for the blocking steps around a preview)."""
+        return await asyncio.wrap_future(self._pool.submit(fn, *args))
+
+    async def jpeg_async(self, handle: Any) -> bytes:
+        """`jpeg` without blocking the event loop: the shared JPEG, or one made on the pool.
+        Cancelling it (a client that left) drops a request still waiting for a thread."""
+        data = self.shared(handle.rig_id)
+        if data is not None:
+            return data
+        return await self.run(self.jpeg, handle)
+
+    def close(self) -> None:
+        """Stop the preview threads (a grab in progress finishes first)."""
+        self._pool.shutdown(wait=False, cancel_futures=True)
 
     def _fresh(self, handle: Any) -> bytes:
         live = self._live.get(handle.rig_id)

@@ -26,19 +26,23 @@ _TITLES = {
     413: "Content too large",
     415: "Unsupported media type",
     422: "Unprocessable content",
+    429: "Too many requests",
     500: "Internal server error",
     503: "Service unavailable",
 }
 
 
 class Problem(Exception):
-    """An error answered as problem+json: status, short type slug and a specific detail."""
+    """An error answered as problem+json: status, short type slug and a specific detail
+    (plus response headers such as Retry-After, and extra members of the document)."""
 
-    def __init__(self, status: int, slug: str, detail: str, **extra: Any) -> None:
+    def __init__(self, status: int, slug: str, detail: str,
+                 headers: dict[str, str] | None = None, **extra: Any) -> None:
         super().__init__(detail)
         self.status = status
         self.slug = slug
         self.detail = detail
+        self.headers = headers
         self.extra = extra
 
 
@@ -90,7 +94,8 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem) -> JSONResponse:
-        return problem_response(exc.status, exc.slug, exc.detail, request.url.path, **exc.extra)
+        return problem_response(exc.status, exc.slug, exc.detail, request.url.path,
+                                headers=exc.headers, **exc.extra)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -138,7 +143,50 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return problem_response(500, "internal-error",
-                                f"internal error ({type(exc).__name__}); see the server log",
-                                request.url.path)
+        # Reached only for errors raised outside UnhandledErrorMiddleware (in middleware
+        # added after it); Starlette then re-raises and the server closes the connection.
+        return internal_error(request.method, request.url.path, exc)
+
+    # Added first, so it sits inside every middleware added later and right around the
+    # routes' own exception handling.
+    app.add_middleware(UnhandledErrorMiddleware)
+
+
+def internal_error(method: str, path: str, exc: BaseException) -> JSONResponse:
+    """Log an unexpected error with its traceback; the 500 problem answering it."""
+    log.error("unhandled error on %s %s", method, path, exc_info=exc)
+    return problem_response(500, "internal-error",
+                            f"internal error ({type(exc).__name__}); see the server log", path)
+
+
+class UnhandledErrorMiddleware:
+    """Answers an error no handler took with a 500 problem and keeps the connection usable.
+
+    Starlette's outermost error middleware answers such an error too, but then re-raises
+    it, and the server closes the keep-alive connection, so the client's next request on
+    it fails. Here the error ends with the answer. An error after the response has started
+    is re-raised: that response is cut short and the connection cannot be reused anyway.
+    """
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked(message: dict[str, Any]) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked)
+        except Exception as exc:
+            if started:
+                raise
+            response = internal_error(scope.get("method", ""), scope.get("path", ""), exc)
+            await response(scope, receive, send)

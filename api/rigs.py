@@ -16,7 +16,7 @@ from sqlalchemy import select
 
 from api.db import Database, RigRecord
 from api.problems import Problem
-from api.store import new_id
+from api.store import check_id, new_id
 
 if TYPE_CHECKING:
     from acquisition.protocols import SimulatorControls
@@ -145,6 +145,13 @@ class RigManager:
                             created_at=time.time())
             s.add(rec)
         return rec
+
+    def resolve(self, rig_id: str) -> str:
+        """The rig id a `/rigs/{id}/...` path names: `default` is the rig the server was
+        started with (`--rig`); anything else must be a well-formed rig id (else 404)."""
+        if rig_id == DEFAULT_RIG_NAME:
+            return self.default_id
+        return check_id(rig_id, "rig", "rig")
 
     def record(self, rig_id: str) -> RigRecord:
         """The stored rig or a 404 problem."""

@@ -25,6 +25,13 @@ PROBLEM_RESPONSES: dict[int | str, dict[str, Any]] = {
     422: _problem("Invalid input"),
 }
 
+#: The answer of a stream route beyond its caps (`api.stream_limits`).
+TOO_MANY_STREAMS: dict[int | str, dict[str, Any]] = {
+    429: {**_problem("Too many open streams from this client or in all; see Retry-After"),
+          "headers": {"Retry-After": {"description": "seconds to wait before retrying",
+                                      "schema": {"type": "integer"}}}},
+}
+
 
 def accepted(job: dict[str, Any]) -> JSONResponse:
     """202 Accepted with the job body and `Location: /jobs/<id>`."""

@@ -1,4 +1,8 @@
-"""Jobs: status with progress and ETA, listing with filters, cancel, live SSE events."""
+"""Jobs: status with progress and ETA, listing with filters, cancel, live SSE events.
+
+The event stream runs on the event loop and ends when the client hangs up or stops
+reading; open streams are capped per client and in all (`api.stream_limits`).
+"""
 
 from __future__ import annotations
 
@@ -8,16 +12,17 @@ from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import StreamingResponse
+from fastapi.responses import Response, StreamingResponse
 from sqlalchemy import func, select
 
 from api.db import JobRecord
 from api.jobs.model import TERMINAL_JOB_STATES, JobState
 from api.problems import Problem
-from api.routes.common import PROBLEM_RESPONSES
+from api.routes.common import PROBLEM_RESPONSES, TOO_MANY_STREAMS
 from api.schemas import MAX_OFFSET, Job, JobKind, JobPage, JobStatus
 from api.services import Services, get_services
 from api.store import check_id
+from api.stream_limits import EVENTS, GuardedStream, client_address, stream_limiter
 
 router = APIRouter(tags=["jobs"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -87,34 +92,43 @@ def _last_event_id(request: Request) -> int:
 
 @router.get("/jobs/{job_id}/events", response_class=StreamingResponse,
             responses={200: {"content": {"text/event-stream": {}},
-                             "description": "progress events until an `end` event"}})
-async def job_events(job_id: str, request: Request) -> StreamingResponse:
+                             "description": "progress events until an `end` event"},
+                       **TOO_MANY_STREAMS})
+async def job_events(job_id: str, request: Request) -> Response:
     """Server-sent events: `progress` on every change, then `end` with the final state.
 
     Every event has an `id` (the job's event count; `end` for the last). A client that
     reconnects with `Last-Event-ID` gets the current state if it changed since that event,
     then the live events: progress events are snapshots, so nothing is lost by the gap.
+    Each client address may follow a few dozen jobs at once (429 with Retry-After beyond).
     """
     svc: Services = request.app.state.services
-    seq0 = svc.jobs.event_seq(job_id) or 0  # read first: `first` is at least this new
-    first = await asyncio.to_thread(_job, svc, job_id)
-    queue = svc.jobs.subscribe(job_id)
+    check_id(job_id, "job", "job")
+    slot = stream_limiter(request.app, EVENTS).acquire(client_address(request))
+    try:
+        seq0 = svc.jobs.event_seq(job_id) or 0  # read first: `first` is at least this new
+        first = await asyncio.to_thread(_job, svc, job_id)
+    except BaseException:
+        slot.release()
+        raise
     seen = _last_event_id(request)
 
     async def stream() -> AsyncIterator[str]:
+        yield "retry: 1000\n\n"
+        queue = svc.jobs.subscribe(job_id)
+        if queue is None:
+            final = await asyncio.to_thread(_job, svc, job_id)
+            yield _sse("end", final, "end")
+            return
         try:
-            yield "retry: 1000\n\n"
-            if queue is None:
-                final = await asyncio.to_thread(_job, svc, job_id)
-                yield _sse("end", final, "end")
-                return
             if seq0 == 0 or seq0 > seen:
                 yield _sse("progress", first, seq0)
             while True:
                 try:
                     event, data = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
                 except TimeoutError:
-                    if await request.is_disconnected():
+                    if svc.jobs.event_seq(job_id) is None:  # ended as we subscribed
+                        yield _sse("end", await asyncio.to_thread(_job, svc, job_id), "end")
                         return
                     yield ": keepalive\n\n"
                     continue
@@ -127,8 +141,7 @@ async def job_events(job_id: str, request: Request) -> StreamingResponse:
                 if seq is None or seq > seen:
                     yield _sse(event, data, seq)
         finally:
-            if queue is not None:
-                svc.jobs.unsubscribe(job_id, queue)
+            svc.jobs.unsubscribe(job_id, queue)
 
-    return StreamingResponse(stream(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache"})
+    return GuardedStream(stream(), slot, media_type="text/event-stream",
+                         headers={"Cache-Control": "no-cache"})

@@ -1,58 +1,94 @@
-"""Live camera preview: `GET /rigs/{id}/camera/preview` (MJPEG) and `.../preview.jpg`."""
+"""Live camera preview: `GET /rigs/{id}/camera/preview` (MJPEG) and `.../preview.jpg`.
+
+Both run on the event loop; grabs and encodes go to the preview's own small thread pool
+(`api.live_preview`). A stream holds a slot of the app's preview `StreamLimiter` and ends
+when the client hangs up or stops reading (`api.stream_limits`).
+"""
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import time
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
-from api.routes.common import PROBLEM_RESPONSES
-from api.services import Services, get_services
-from api.store import check_id
+from api.live_preview import LivePreview
+from api.problems import Problem
+from api.rigs import RigHandle
+from api.routes.common import PROBLEM_RESPONSES, TOO_MANY_STREAMS
+from api.services import Services
+from api.stream_limits import PREVIEW, GuardedStream, client_address, stream_limiter
 
 router = APIRouter(tags=["rigs"], responses=PROBLEM_RESPONSES)
-Svc = Annotated[Services, Depends(get_services)]
+log = logging.getLogger("phasecal.api")
 BOUNDARY = "phasecal-frame"
-MAX_FPS = 10.0
+MEDIA_TYPE = f"multipart/x-mixed-replace; boundary={BOUNDARY}"
+MIN_FPS = 0.2  # slower previews are snapshots: poll preview.jpg
+MAX_FPS = 10.0  # the shared JPEG is renewed at most every 0.1 s
 
 
-def _handle(svc: Services, rig_id: str):
-    check_id(rig_id, "rig", "rig")
+def _handle(svc: Services, rig_id: str) -> RigHandle:
+    """The opened rig a path names (`default` too); 404 for an unknown rig. Blocking."""
+    rig_id = svc.rigs.resolve(rig_id)
     svc.rigs.record(rig_id)  # 404 for an unknown rig
     return svc.rigs.handle(rig_id)
 
 
+def _part(data: bytes) -> bytes:
+    return (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
+            f"Content-Length: {len(data)}\r\n\r\n").encode() + data + b"\r\n"
+
+
+async def _parts(preview: LivePreview, handle: RigHandle, first: bytes, fps: float,
+                 frames: int | None) -> AsyncIterator[bytes]:
+    """MJPEG parts at `fps`, paced from each frame's start; waits hold no thread."""
+    data, sent, period = first, 0, 1.0 / fps
+    due = time.monotonic()
+    while True:
+        yield _part(data)
+        sent += 1
+        if frames is not None and sent >= frames:
+            return
+        due = max(due + period, time.monotonic())  # behind (slow client): no burst after
+        await asyncio.sleep(due - time.monotonic())
+        try:
+            data = await preview.jpeg_async(handle)
+        except Problem as exc:  # e.g. the camera went away: end the stream, the client retries
+            log.info("preview of rig %s ended: %s", handle.rig_id, exc.detail)
+            return
+
+
 @router.get("/rigs/{rig_id}/camera/preview.jpg", response_class=Response,
             responses={200: {"content": {"image/jpeg": {}}}})
-def preview_jpeg(rig_id: str, svc: Svc) -> Response:
+async def preview_jpeg(rig_id: str, request: Request) -> Response:
     """One JPEG of the rig's camera (the newest captured frame during a capture)."""
-    data = svc.preview.jpeg(_handle(svc, rig_id))
+    svc: Services = request.app.state.services
+    handle = await svc.preview.run(_handle, svc, rig_id)
+    data = await svc.preview.jpeg_async(handle)
     return Response(data, media_type="image/jpeg", headers={"Cache-Control": "no-store"})
 
 
 @router.get("/rigs/{rig_id}/camera/preview", response_class=StreamingResponse,
-            responses={200: {"content": {f"multipart/x-mixed-replace; boundary={BOUNDARY}": {}}}})
-def preview_stream(rig_id: str, svc: Svc,
-                   fps: Annotated[float, Query(gt=0, le=MAX_FPS)] = 5.0,
-                   frames: Annotated[int | None, Query(ge=1)] = None) -> StreamingResponse:
-    """MJPEG stream of the rig's camera at up to `fps` (at most 10) frames a second; `frames`
-    ends it after that many (default: until the client disconnects)."""
-    handle = _handle(svc, rig_id)
-    first = svc.preview.jpeg(handle)  # problems (busy, unknown) before the stream starts
-
-    def parts() -> Iterator[bytes]:
-        data, sent = first, 0
-        while True:
-            yield (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
-                   f"Content-Length: {len(data)}\r\n\r\n").encode() + data + b"\r\n"
-            sent += 1
-            if frames is not None and sent >= frames:
-                return
-            time.sleep(1.0 / fps)
-            data = svc.preview.jpeg(handle)
-
-    return StreamingResponse(parts(), media_type=f"multipart/x-mixed-replace; boundary={BOUNDARY}",
-                             headers={"Cache-Control": "no-store"})
+            responses={200: {"content": {MEDIA_TYPE: {}}}, **TOO_MANY_STREAMS})
+async def preview_stream(
+    rig_id: str, request: Request,
+    fps: Annotated[float, Query(ge=MIN_FPS, le=MAX_FPS, allow_inf_nan=False)] = 5.0,
+    frames: Annotated[int | None, Query(ge=1)] = None,
+) -> Response:
+    """MJPEG stream of the rig's camera at `fps` (0.2 to 10) frames a second; `frames`
+    ends it after that many (default: until the client disconnects). Each client address
+    may hold a few streams at once, the server a few dozen (429 with Retry-After beyond)."""
+    svc: Services = request.app.state.services
+    slot = stream_limiter(request.app, PREVIEW).acquire(client_address(request))
+    try:
+        handle = await svc.preview.run(_handle, svc, rig_id)
+        first = await svc.preview.jpeg_async(handle)  # problems (busy, unknown) before the stream
+    except BaseException:
+        slot.release()
+        raise
+    return GuardedStream(_parts(svc.preview, handle, first, fps, frames), slot,
+                         media_type=MEDIA_TYPE, headers={"Cache-Control": "no-store"})

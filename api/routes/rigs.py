@@ -11,11 +11,9 @@ from sqlalchemy import select
 
 from api.db import RigRecord
 from api.problems import Problem
-from api.rigs import DEFAULT_RIG_NAME
 from api.routes.common import PROBLEM_RESPONSES
 from api.schemas import CameraSettingsModel, Device, Rig, RigCreate, ScreenPoseIn
 from api.services import Services, get_services
-from api.store import check_id
 
 router = APIRouter(tags=["rigs"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -55,17 +53,10 @@ def create_rig(body: RigCreate, svc: Svc) -> JSONResponse:
     return JSONResponse(_rig_dict(rec), status_code=201, headers={"Location": f"/rigs/{rec.id}"})
 
 
-def _rig_id(svc: Services, rig_id: str) -> str:
-    """The id a path names: `default` is the rig the server was started with (`--rig`)."""
-    if rig_id == DEFAULT_RIG_NAME:
-        return svc.rigs.default_id
-    return check_id(rig_id, "rig", "rig")
-
-
 @router.get("/rigs/{rig_id}", response_model=Rig)
 def read_rig(rig_id: str, svc: Svc) -> dict[str, Any]:
     """One rig."""
-    rig_id = _rig_id(svc, rig_id)
+    rig_id = svc.rigs.resolve(rig_id)
     return _rig_dict(svc.rigs.record(rig_id))
 
 
@@ -76,14 +67,14 @@ def _settings_dict(s: Any) -> dict[str, Any]:
 @router.get("/rigs/{rig_id}/camera/settings", response_model=CameraSettingsModel)
 def read_camera_settings(rig_id: str, svc: Svc) -> dict[str, Any]:
     """The camera settings currently applied."""
-    rig_id = _rig_id(svc, rig_id)
+    rig_id = svc.rigs.resolve(rig_id)
     return _settings_dict(svc.rigs.handle(rig_id).rig.settings)
 
 
 @router.put("/rigs/{rig_id}/camera/settings", response_model=CameraSettingsModel)
 def change_camera_settings(rig_id: str, body: CameraSettingsModel, svc: Svc) -> dict[str, Any]:
     """Change exposure, gain or pixel format (not while a capture runs on the rig: 409)."""
-    rig_id = _rig_id(svc, rig_id)
+    rig_id = svc.rigs.resolve(rig_id)
     h = svc.rigs.handle(rig_id)
     if not h.lock.acquire(blocking=False):
         raise Problem(409, "rig-busy", f"rig {rig_id} is capturing; change settings between poses")
@@ -99,7 +90,7 @@ def change_camera_settings(rig_id: str, body: CameraSettingsModel, svc: Svc) -> 
 @router.put("/rigs/{rig_id}/screen-pose", response_model=ScreenPoseIn)
 def move_screen(rig_id: str, body: ScreenPoseIn, svc: Svc) -> dict[str, Any]:
     """Place the simulated screen for the next capture (409 on a real rig or while capturing)."""
-    rig_id = _rig_id(svc, rig_id)
+    rig_id = svc.rigs.resolve(rig_id)
     h = svc.rigs.handle(rig_id)
     if not h.lock.acquire(blocking=False):
         raise Problem(409, "rig-busy", f"rig {rig_id} is capturing; move the screen between poses")
