@@ -213,6 +213,26 @@ class FrameAccumulator:
         """Plan indices of frames the decoder needs that have not arrived."""
         return [i for i in sorted(self.roles) if not self.added[i]]
 
+    def ready_frames(self, available: Any) -> list[int]:
+        """Of the plan indices `available` (stored, not yet added), those worth adding now:
+        flats and unused frames at once, cosine frames once every frame of their period
+        group is available or already added (one cache-blocked pass per group, not one per
+        frame); once one group is left, its frames as they come (one frame's pass after
+        the last)."""
+        have = set(int(i) for i in available)
+        groups: dict[int, list[int]] = {}
+        for index, (kind, k, _) in self.roles.items():
+            if kind == "cos":
+                groups.setdefault(k, []).append(index)
+        ready = [i for i in sorted(have) if self.roles.get(i, ("flat",))[0] != "cos"]
+        for members in groups.values():
+            if all(i in have or self.added[i] for i in members):
+                ready += [i for i in members if i in have]
+        if ready:
+            return sorted(ready)
+        last = len({self.roles[i][:2] for i in self.missing}) == 1
+        return sorted(int(i) for i in available) if last else []
+
     # -- intake ----------------------------------------------------------------------
     def check(self, index: int, image: Any) -> Any:
         """Validate one frame against the plan and the earlier frames; return it as an xp array

@@ -117,21 +117,6 @@ def add_frames(acc: FrameAccumulator, indices: Sequence[int], stack: Any,
     add_compiled(acc, indices, flat, rows)
 
 
-def ready_frames(acc: FrameAccumulator, available: Sequence[int]) -> list[int]:
-    """The plan indices of `available` to add now: flats and unused frames at once, cosine
-    frames once every frame of their period group is available or already added."""
-    have = set(int(i) for i in available)
-    groups: dict[int, list[int]] = {}
-    for index, (kind, k, _) in acc.roles.items():
-        if kind == "cos":
-            groups.setdefault(k, []).append(index)
-    ready = [i for i in sorted(have) if acc.roles.get(i, ("flat",))[0] != "cos"]
-    for members in groups.values():
-        if all(i in have or acc.added[i] for i in members):
-            ready += [i for i in members if i in have]
-    return sorted(ready)
-
-
 def add_compiled(acc: FrameAccumulator, indices: Sequence[int], flat: np.ndarray,
                  rows: Sequence[int]) -> None:
     """Fold frames `flat[rows[j]]` (plan frames `indices[j]`, (F, H*W) C-contiguous) into

@@ -27,7 +27,6 @@ from calibration.decode.batch import (
     add_frames,
     chunk_view,
     finish_stack_state,
-    ready_frames,
     run_parallel,
     stack_state,
 )
@@ -165,9 +164,7 @@ class StreamingDecoder:
         """Of the plan indices `available` (stored, not yet added), those worth adding now:
         flats and whole period groups (one cache-blocked pass per group, not one per frame);
         once one group is left, its frames as they come (one frame's pass after the last)."""
-        ready = ready_frames(self._acc, available)
-        last = len({self._acc.roles[i][:2] for i in self._acc.missing}) == 1
-        return ready or (sorted(int(i) for i in available) if last else [])
+        return self._acc.ready_frames(available)
 
     def add_frames(self, indices: list[int], stack: Any, rows: list[int] | None = None) -> None:
         """Fold several frames at once: `stack[rows[j]]` (default `stack[j]`) is plan frame
