@@ -13,7 +13,17 @@ import secrets
 import sys
 from pathlib import Path
 
-HELP = "re-calibrate many sessions / model settings as one job (in-process or on Dask)"
+from api.cli import UserError
+from calibration.atomic import write_json_atomic
+from calibration.fit.registry import model_spec
+from calibration.progress import TaskContext
+from calibration.worker import make_executor
+from calibration.worker.dask_batch import (
+    BATCH_FORMAT,
+    items_from_manifest,
+    read_manifest,
+    run_batch,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,9 +44,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _items(args: argparse.Namespace) -> list:
-    from api.cli import UserError
-    from calibration.worker.dask_batch import BATCH_FORMAT, items_from_manifest, read_manifest
-
     single = [args.plan, args.maps, args.model]
     if args.manifest:
         if any(v for v in single):
@@ -64,8 +71,6 @@ def _missing_inputs(items: list) -> str | None:
 
 def _invalid_item(items: list) -> str | None:
     """The first item whose model or options the model registry refuses (before any work)."""
-    from calibration.fit.registry import model_spec
-
     for item in items:
         try:
             model_spec(item.model).parse_options(item.options)
@@ -75,12 +80,6 @@ def _invalid_item(items: list) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from api.cli import UserError
-    from calibration.atomic import write_json_atomic
-    from calibration.progress import TaskContext
-    from calibration.worker import make_executor
-    from calibration.worker.dask_batch import run_batch
-
     items = _items(args)
     problem = _missing_inputs(items) or _invalid_item(items)
     if problem:

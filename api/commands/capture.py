@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import json
 import threading
 import time
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-HELP = "capture one pose on a rig (simulated or a rig .toml/.json) into POSE_DIR"
+from acquisition.rig import load_rig_config, open_rig, parse_rig_config
+from api.capture import capture_frames
+from api.cli import UserError
+from api.progress import progress_bar
+from calibration.plan import read_plan
+from calibration.progress import TaskContext
+from calibration.worker.tasks import stream_decode_task
+from hw_mocks.rig import open_simulated_rig
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -23,24 +31,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _open(spec: str) -> Any:
-    from acquisition.rig import load_rig_config, open_rig, parse_rig_config
-    from hw_mocks.rig import open_simulated_rig
-
     config = (parse_rig_config({"kind": "simulated"}, "--rig simulated") if spec == "simulated"
               else load_rig_config(spec))
     return open_rig(config, simulator=open_simulated_rig)
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
-
-    from api.capture import capture_frames
-    from api.cli import UserError
-    from api.progress import progress_bar
-    from calibration.plan import read_plan
-    from calibration.progress import TaskContext
-    from calibration.worker.tasks import stream_decode_task
-
     if args.noise_dn is not None and not args.noise_dn > 0:
         raise UserError(f"--noise-dn: must be > 0 DN, got {args.noise_dn}")
     plan = read_plan(args.plan)

@@ -10,14 +10,23 @@ from __future__ import annotations
 import argparse
 import json
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from acquisition.rig import Rig
-
-HELP = "check a rig: latency, exposure, flats, display response"
+from acquisition.camera.pixel_formats import PIXEL_FORMATS
+from acquisition.errors import AcquisitionError
+from acquisition.flat_check import FlatReport, flat_report
+from acquisition.rig import Rig, open_rig, parse_rig_config
+from acquisition.setup import (
+    choose_exposure,
+    grab_settled,
+    measure_display_response,
+    measure_latency,
+)
+from api.cli import UserError
+from api.rigs import load_default_config
+from hw_mocks.rig import open_simulated_rig
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -32,10 +41,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _open(spec: str) -> Rig:
     """Open `simulated` or a rig config file, read the way `phasecal serve --rig` reads it."""
-    from acquisition.rig import open_rig, parse_rig_config
-    from api.rigs import load_default_config
-    from hw_mocks.rig import open_simulated_rig
-
     config = parse_rig_config(load_default_config(spec), f"--rig {spec}")
     return open_rig(config, simulator=open_simulated_rig)
 
@@ -58,23 +63,12 @@ def _flat(display: Any, level: int) -> np.ndarray:
 
 def _full_scale(pixel_format: str, bit_depth: int) -> int:
     """Top DN of a pixel format (Mono12 -> 4095), else of the camera's bit depth."""
-    from acquisition.camera.pixel_formats import PIXEL_FORMATS
-
     fmt = PIXEL_FORMATS.get(pixel_format)
     return (1 << (fmt.bit_depth if fmt is not None else bit_depth)) - 1
 
 
 def check_rig(rig: Rig, *, target: float = 0.8, response: bool = True) -> dict[str, Any]:
     """Run the checks on an opened rig; returns the findings (JSON-friendly)."""
-    from acquisition.errors import AcquisitionError
-    from acquisition.flat_check import flat_report
-    from acquisition.setup import (
-        choose_exposure,
-        grab_settled,
-        measure_display_response,
-        measure_latency,
-    )
-
     display, camera, clock = rig.display, rig.camera, rig.clock
     trig = rig.trigger
     found: dict[str, Any] = {"display": asdict(display.info), "camera": asdict(camera.info)}
@@ -119,8 +113,6 @@ def check_rig(rig: Rig, *, target: float = 0.8, response: bool = True) -> dict[s
 
 
 def _print(found: dict[str, Any]) -> None:
-    from acquisition.flat_check import FlatReport
-
     d, c = found["display"], found["camera"]
     print(f"display: {d['name']} {d['width_px']}x{d['height_px']} @ {d['refresh_hz']:g} Hz, "
           f"{d['bit_depth']}-bit")
@@ -149,9 +141,6 @@ def _print(found: dict[str, Any]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from acquisition.errors import AcquisitionError
-    from api.cli import UserError
-
     if not 0.05 <= args.target <= 0.98:
         raise UserError(f"--target: expected a fraction in [0.05, 0.98], got {args.target}")
     rig = _open(args.rig)

@@ -6,9 +6,13 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 from typing import Any
 
-HELP = "decode captured frames (FRAMES.npy or a folder of frame_NNNN.png/.tif) into maps.npz"
+from api.cli import UserError
+from api.progress import progress_bar
+from calibration.readahead import prefetch
+
 # The maps are written, fsynced and renamed when `run` returns: the console script then
 # exits without the interpreter's teardown of the loaded kernels (api.cli `_exit_now`).
 EXIT_WITHOUT_TEARDOWN = True
@@ -60,6 +64,7 @@ def _laid_out(args: argparse.Namespace) -> Any:
     plan's axes before the decoder's imports (its pages are then faulted in by a thread at
     idle priority, on the core the single-threaded imports leave free); the decoder writes
     into it. None otherwise, or where the inputs are bad (the decode says why)."""
+    # lazy: NumPy and the maps writer load while the stack streams in (prefetch in `run`)
     import numpy as np
 
     from calibration.maps_file import MapsFile
@@ -77,21 +82,17 @@ def _laid_out(args: argparse.Namespace) -> Any:
     try:
         out = MapsFile(args.output, shape[1:], axes)
     except OSError as exc:  # disk full, no such folder: the previous file stays as it was
-        from api.cli import UserError
-
         raise UserError(f"{args.output}: cannot write the maps ({exc})") from None
     return out
 
 
 def run(args: argparse.Namespace) -> int:
-    from calibration.readahead import prefetch
-
     stages = _Stages()
     prefetch(args.frames)  # a cold stack streams in while NumPy and the kernels load
     out = _laid_out(args)
     if out is None:
         return _decode(args, stages, None, None)
-    from calibration.prefault import IdlePrefault
+    from calibration.prefault import IdlePrefault  # lazy: imports NumPy (see _laid_out)
 
     with out, IdlePrefault([out.mapped]) as ahead:
         return _decode(args, stages, out, ahead)
@@ -100,12 +101,9 @@ def run(args: argparse.Namespace) -> int:
 def _decode(args: argparse.Namespace, stages: _Stages, out: Any, ahead: Any) -> int:
     """Decode and write the maps (into `out` when laid out, its pages faulted in `ahead`),
     then print the summary."""
-    from dataclasses import replace
-
+    # lazy: the decoder and its kernels load while the stack streams in
     import numpy as np
 
-    from api.cli import UserError
-    from api.progress import progress_bar
     from calibration.decode import DecodeOptions
     from calibration.maps import save_maps
     from calibration.pipeline import decode_frames

@@ -6,7 +6,9 @@ import argparse
 import dataclasses
 import json
 
-HELP = "list simulated, framebuffer, SDL, V4L2, USB (and, if asked, Aravis) devices"
+from acquisition.discovery import list_devices
+from acquisition.errors import CameraError
+from api.cli import UserError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -18,10 +20,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from acquisition.discovery import list_devices
-    from acquisition.errors import CameraError
-    from api.cli import UserError
-
     try:
         found = list_devices(aravis_discovery=args.aravis, aravis_addresses=args.aravis_address)
     except CameraError as exc:

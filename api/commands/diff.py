@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-HELP = "difference of two models' rays (after the best rotation): diff.png + diff.json"
+import numpy as np
+
+from api.cli import UserError
+from calibration.formats import load_model_any
+from calibration.maps import load_maps
+from calibration.report_html import write_diff
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -17,15 +23,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    import numpy as np
-
-    from api.cli import UserError
-    from calibration.formats import load_model_any
-    from calibration.maps import load_maps
-    from calibration.report_html import write_diff
-
     if args.step < 1:
         raise UserError(f"--step: expected >= 1 px, got {args.step}")
     a, b = load_model_any(args.model_a), load_model_any(args.model_b)

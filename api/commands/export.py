@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "export a model: opencv-yaml, ros, mrcal (.cameramodel), remap (NPZ maps), opencv-fit"
+from api.cli import UserError
+from calibration.formats import (
+    ExportOptions,
+    export_model,
+    load_model_any,
+    parse_pinhole,
+    parse_rotation,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,8 +38,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def options_from_args(args: argparse.Namespace) -> object:
     """ExportOptions from the parsed command line (shared with undistort-points)."""
-    from calibration.formats import ExportOptions, load_model_any, parse_pinhole, parse_rotation
-
     return ExportOptions(
         pinhole=parse_pinhole(args.pinhole) if args.pinhole else None,
         rotation=parse_rotation(args.rotation) if args.rotation else None,
@@ -45,9 +50,6 @@ def options_from_args(args: argparse.Namespace) -> object:
 
 
 def run(args: argparse.Namespace) -> int:
-    from api.cli import UserError
-    from calibration.formats import export_model, load_model_any
-
     if args.spline_nx < 4:
         raise UserError(f"--spline-nx: expected >= 4 (cubic spline), got {args.spline_nx}")
     model = load_model_any(args.model)

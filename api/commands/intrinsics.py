@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
+import json
 
-if TYPE_CHECKING:
-    import numpy as np
+import cv2
+import numpy as np
 
-HELP = ("quick intrinsics before decoding: rectangle vanishing points, general-motion "
-        "self-calibration, or rotation-only self-calibration")
+from api.cli import UserError
+from calibration.fit import DegenerateError
+from calibration.fit.classic.quick import (
+    intrinsics_from_images,
+    intrinsics_from_maps,
+    read_white_flat,
+)
+from calibration.maps import load_maps
+from calibration.models.base import save_model
+from calibration.models.parametric import OpenCV5Model
+from calibration.plan import read_plan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,11 +48,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _read_image(path: str) -> np.ndarray:
-    import cv2
-    import numpy as np
-
-    from api.cli import UserError
-
     if path.lower().endswith(".npy"):
         img = np.load(path, allow_pickle=False)
     else:
@@ -56,18 +60,6 @@ def _read_image(path: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
-
-    from api.cli import UserError
-    from calibration.fit import DegenerateError
-    from calibration.fit.classic.quick import (
-        intrinsics_from_images,
-        intrinsics_from_maps,
-        read_white_flat,
-    )
-    from calibration.maps import load_maps
-    from calibration.plan import read_plan
-
     if (args.frames or args.maps) and not args.plan:
         raise UserError("--plan: required with --frames and --maps")
     try:
@@ -88,10 +80,7 @@ def run(args: argparse.Namespace) -> int:
     with open(args.output, "w") as fh:
         json.dump(est.to_dict(), fh, indent=1)
     if args.model_out:
-        import numpy as np
 
-        from calibration.models.base import save_model
-        from calibration.models.parametric import OpenCV5Model
 
         k = est.k.copy()
         k[0, 1] = 0.0

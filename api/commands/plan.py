@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "write a pattern plan (phasecal.plan/1 JSON)"
+from acquisition.patterns import PRESETS, build_plan
+from api.cli import UserError
+from calibration.plan import write_plan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from acquisition.patterns import PRESETS
-
     p.add_argument("--screen-width-px", type=int, default=1920, help="screen width in pixels")
     p.add_argument("--screen-height-px", type=int, default=1080, help="screen height in pixels")
     p.add_argument(
@@ -27,10 +27,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from acquisition.patterns import build_plan
-    from api.cli import UserError
-    from calibration.plan import write_plan
-
     if len(args.pitch_mm) not in (1, 2):
         raise UserError("--pitch-mm: give one value or two (x y)")
     pitch = args.pitch_mm * 2 if len(args.pitch_mm) == 1 else args.pitch_mm

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "project camera-frame points.npy (N,3 mm) to pixels.npy (N,2) with a model.json"
+import numpy as np
+
+from api.commands.unproject import load_array
+from calibration.models.base import load_model
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -14,11 +17,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from api.commands.unproject import load_array
-    from calibration.models.base import load_model
-
     model = load_model(args.model)
     pts = load_array(args.points, 3, "--points")
     pix = np.asarray(model.project(pts), dtype=np.float64)

@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 
-HELP = "calibration report (report.html + PNGs) from a model.json and the poses' maps"
+from calibration.maps import load_maps
+from calibration.models.base import load_model
+from calibration.plan import read_plan
+from calibration.report_data import gather
+from calibration.report_html import write_report
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,15 +26,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
-    from pathlib import Path
-
-    from calibration.maps import load_maps
-    from calibration.models.base import load_model
-    from calibration.plan import read_plan
-    from calibration.report_data import gather
-    from calibration.report_html import write_report
-
     model = load_model(args.model)
     plan = read_plan(args.plan)
     result = json.loads(Path(args.result).read_text()) if args.result else {}

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 
-NAME = "undistort-points"
-HELP = "map pixels.npy (N,2) of a model to a virtual pinhole camera (like cv2.undistortPoints)"
+import numpy as np
+
+from api.commands.export import options_from_args
+from api.commands.unproject import load_array
+from calibration.formats import load_model_any, undistort_pixels
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -22,12 +25,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from api.commands.export import options_from_args
-    from api.commands.unproject import load_array
-    from calibration.formats import load_model_any, undistort_pixels
-
     if args.pinhole and args.pinhole.count(",") == 3:
         args.pinhole += ",1,1"  # the size does not matter for points
     model = load_model_any(args.model)

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-HELP = "unproject pixels.npy (N,2) to rays.npz (origins, directions) with a model.json"
+from api.cli import UserError
+from calibration.models.base import load_model
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -18,8 +19,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def load_array(path: str, ncols: int, flag: str) -> np.ndarray:
     """Read an (N, ncols) numeric .npy file, or raise a one-line error naming the flag."""
-    from api.cli import UserError
-
     if not Path(path).is_file():
         raise UserError(f"{flag}: file not found: {path}")
     try:
@@ -33,8 +32,6 @@ def load_array(path: str, ncols: int, flag: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from calibration.models.base import load_model
-
     model = load_model(args.model)
     pix = load_array(args.pixels, 2, "--pixels")
     origins, directions = model.unproject(pix)
