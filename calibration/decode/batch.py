@@ -3,7 +3,7 @@
 `add_compiled` folds a batch of frames into the full-image sums (threads over column
 ranges). `ChunkSums` is what finishing a range of pixels reads: views of the full-image
 sums (`chunk_view`) or, when a whole stack is at hand, sums accumulated for that range
-only (`accumulate_range`: no full-image state, each frame byte read once).
+only (`StackPass`: no full-image state, each frame byte read once).
 """
 
 from __future__ import annotations
@@ -219,39 +219,45 @@ def _buffers(acc: FrameAccumulator, n: int) -> tuple[np.ndarray, ...]:
     return bufs[1:]
 
 
-def accumulate_range(acc: FrameAccumulator, flat: np.ndarray, c0: int, n: int,
-                     state: dict[str, Any]) -> ChunkSums:
-    """Sums of pixels c0..c0+n of a whole stack `flat` ((F, H*W), frame i = plan frame i),
-    in this thread's buffers (valid until its next call). `state` collects the brightest
-    sample (shared by the calling threads; updated under a lock)."""
-    lay = acc.kernel_layout
-    kind, fset, fstep = state["roles"]
-    block, bits, squares, bright, dark = _buffers(acc, n)
-    top = np.full(1, -np.inf)
-    clipped = np.zeros(len(acc.sets), dtype=np.int64)
-    lo, hi = clip_thresholds(acc)
-    accumulate_block(flat, state["use"], kind, fset, fstep, lay.weights, lay.row0, lay.nrows,
-                     lo, hi, c0, 0, n, block, bits, squares, bright, dark, top, clipped)
-    with state["lock"]:
-        state["top"] = max(state["top"], float(top[0]))
-    bits = bits if clipped.any() else None
-    return ChunkSums(_views(acc.sets, block, bits, (clipped > 0).tolist()), block, bits,
-                     squares if acc.need_squares else None, bright, dark)
+class StackPass:
+    """The accumulation of a whole stack in plan order, range by range (`finish_stack`):
+    no full-image sums, each frame byte read once. The frame counts, known from the plan,
+    are recorded in the accumulator at the start (finishing needs them), its brightest
+    cosine sample at the end (`done`)."""
 
+    def __init__(self, acc: FrameAccumulator, flat: np.ndarray) -> None:
+        self.acc = acc
+        self.flat = flat  # (F, H*W) C-contiguous, frame i = plan frame i
+        count = len(acc.plan.frames)
+        self.roles = _roles(acc, range(count))
+        self.use = np.arange(count, dtype=np.int64)
+        self.top = -math.inf  # brightest cosine sample summed so far, by all threads
+        self.lock = threading.Lock()
+        kind, fset, _ = self.roles
+        _note(acc, kind, fset, -math.inf)
+        acc.added[:] = True  # (summed range by range, each frame byte once)
 
-def stack_state(acc: FrameAccumulator) -> dict[str, Any]:
-    """Shared state of `accumulate_range` passes over a whole stack in plan order; the
-    frame counts, known from the plan, are recorded in `acc` now (finishing needs them)."""
-    count = len(acc.plan.frames)
-    state = {"roles": _roles(acc, range(count)), "use": np.arange(count, dtype=np.int64),
-             "lock": threading.Lock(), "top": -math.inf}
-    kind, fset, _ = state["roles"]
-    _note(acc, kind, fset, -math.inf)
-    acc.added[:] = True  # (summed range by range, each frame byte once)
-    return state
+    def sums(self, sl: slice) -> ChunkSums:
+        """Sums of the pixel range `sl`, in this thread's buffers (valid until its next
+        call); any thread of the pool may call it."""
+        acc, c0, n = self.acc, sl.start, sl.stop - sl.start
+        lay = acc.kernel_layout
+        kind, fset, fstep = self.roles
+        block, bits, squares, bright, dark = _buffers(acc, n)
+        top = np.full(1, -np.inf)
+        clipped = np.zeros(len(acc.sets), dtype=np.int64)
+        lo, hi = clip_thresholds(acc)
+        accumulate_block(self.flat, self.use, kind, fset, fstep, lay.weights, lay.row0,
+                         lay.nrows, lo, hi, c0, 0, n, block, bits, squares, bright, dark, top,
+                         clipped)
+        with self.lock:
+            self.top = max(self.top, float(top[0]))
+        bits = bits if clipped.any() else None
+        return ChunkSums(_views(acc.sets, block, bits, (clipped > 0).tolist()), block, bits,
+                         squares if acc.need_squares else None, bright, dark)
 
-
-def finish_stack_state(acc: FrameAccumulator, state: dict[str, Any]) -> None:
-    """Record the brightest cosine sample of a whole-stack pass in `acc`."""
-    if acc.high is not None or acc.low is not None:
-        acc.max_seen = max(acc.max_seen, state["top"])
+    def done(self) -> None:
+        """Record the pass's brightest cosine sample in the accumulator (every range summed)."""
+        acc = self.acc
+        if acc.high is not None or acc.low is not None:
+            acc.max_seen = max(acc.max_seen, self.top)

@@ -23,12 +23,10 @@ from calibration.decode.arrays import array_module, to_host
 from calibration.decode.axes import decode_axes_compiled, decode_axes_xp
 from calibration.decode.batch import (
     ChunkSums,
-    accumulate_range,
+    StackPass,
     add_frames,
     chunk_view,
-    finish_stack_state,
     run_parallel,
-    stack_state,
 )
 from calibration.decode.dark_chunks import write_dark_range
 from calibration.decode.finish import (
@@ -212,10 +210,8 @@ class StreamingDecoder:
         flat = stack.reshape(stack.shape[0], -1)
         if not flat.flags.c_contiguous:
             flat = np.ascontiguousarray(flat)
-        state = stack_state(acc)  # frame counts are known from the plan
-        return self._decode(lambda sl: accumulate_range(acc, flat, sl.start, sl.stop - sl.start,
-                                                        state), meta, step,
-                            lambda: finish_stack_state(acc, state), into)
+        whole = StackPass(acc, flat)  # frame counts are known from the plan
+        return self._decode(whole.sums, meta, step, whole.done, into)
 
     def _decode(self, chunk_of: Callable[[slice], ChunkSums], meta: dict[str, Any] | None,
                 step: Callable[[float], None] | None = None,
