@@ -8,7 +8,8 @@ the plan builder makes with every preset is 20 KB, an extreme full-control plan 
 frames 270 KB, a rig config under 1 KB) and a budget of values, arrays/objects and nesting
 depth that `api.json_shape.JsonShape` checks before the parser runs. The point routes
 (project, unproject, undistort-points) take up to `MAX_POINTS` rows of numbers, so their
-budget is sized from that instead.
+budget is sized from that instead, with room for a few keys and objects but not for rows of
+strings or objects (which would cost several times what rows of numbers do).
 """
 
 from __future__ import annotations
@@ -44,10 +45,12 @@ class BodyBudget:
     """What one request's body may be: bytes, and for JSON the shape of what it parses to."""
 
     max_bytes: int
-    setting: str  # the setting that raises max_bytes
+    why: str  # what sets max_bytes (the setting that raises it)
     json: bool  # the body is parsed as JSON, so its shape is checked
     max_values: int = 0
     max_containers: int = 0
+    max_objects: int = 0
+    max_strings: int = 0
     max_depth: int = MAX_DEPTH
 
 
@@ -85,21 +88,21 @@ class BodyLimits:
         self.max_upload_bytes = max_upload_bytes
         self.max_json_bytes = max_json_bytes
         self.upload = BodyBudget(max_upload_bytes, UPLOAD_SETTING, json=False)
-        self.general = self._json_budget(
-            max_json_bytes, max_json_bytes // BYTES_PER_VALUE,
-            max_json_bytes // BYTES_PER_CONTAINER)
-        # each row is one array and 2-3 numbers; a little room for the other fields
+        values = max_json_bytes // BYTES_PER_VALUE
+        containers = max_json_bytes // BYTES_PER_CONTAINER
+        self.general = self._json_budget(max_json_bytes, JSON_SETTING, values, containers,
+                                         containers, values)
+        # rows of numbers: one array and 2-3 numbers each, a few keys and objects around them
         self.points = self._json_budget(
-            max(max_json_bytes, POINT_ROUTE_BYTES),
-            max(self.general.max_values, 4 * MAX_POINTS + 1024),
-            max(self.general.max_containers, MAX_POINTS + 64))
+            POINT_ROUTE_BYTES, f"room for {MAX_POINTS} points, the most these routes take",
+            4 * MAX_POINTS + 1024, MAX_POINTS + 64, 16, 64)
 
-    def _json_budget(self, max_bytes: int, max_values: int, max_containers: int) -> BodyBudget:
+    def _json_budget(self, max_bytes: int, why: str, values: int, containers: int,
+                     objects: int, strings: int) -> BodyBudget:
         """A JSON budget, its bytes never above the upload limit (which bounds every body)."""
         if max_bytes > self.max_upload_bytes:
-            return BodyBudget(self.max_upload_bytes, UPLOAD_SETTING, True, max_values,
-                              max_containers)
-        return BodyBudget(max_bytes, JSON_SETTING, True, max_values, max_containers)
+            max_bytes, why = self.max_upload_bytes, UPLOAD_SETTING
+        return BodyBudget(max_bytes, why, True, values, containers, objects, strings)
 
     def for_request(self, path: str, content_type: bytes | None) -> BodyBudget:
         """The budget of a request to `path` with this Content-Type."""
@@ -115,7 +118,7 @@ def size_refusal(budget: BodyBudget, size: int | None = None) -> Refusal:
     what = "JSON request body" if budget.json else "request body"
     got = f" of {size} bytes" if size is not None else ""
     return Refusal(413, "too-large", f"{what}{got} exceeds the limit of {budget.max_bytes} "
-                   f"bytes for this route ({budget.setting})")
+                   f"bytes for this route ({budget.why})")
 
 
 def shape_refusal(budget: BodyBudget, shape: JsonShape) -> Refusal | None:
@@ -129,9 +132,12 @@ def shape_refusal(budget: BodyBudget, shape: JsonShape) -> Refusal | None:
         return Refusal(422, "validation-error",
                        f"JSON request body nests arrays/objects more than {budget.max_depth} "
                        "levels deep")
-    if shape.values > budget.max_values or shape.containers > budget.max_containers:
-        return Refusal(413, "too-large",
-                       f"JSON request body holds more than {budget.max_values} values or "
-                       f"{budget.max_containers} arrays/objects, the limit for this route "
-                       f"(it grows with {JSON_SETTING})")
+    for count, limit, what in ((shape.values, budget.max_values, "values"),
+                               (shape.containers, budget.max_containers, "arrays/objects"),
+                               (shape.objects, budget.max_objects, "objects"),
+                               (shape.strings, budget.max_strings, "strings (keys included)")):
+        if count > limit:
+            return Refusal(413, "too-large",
+                           f"JSON request body holds more than {limit} {what}, the most this "
+                           f"route takes ({budget.why})")
     return None

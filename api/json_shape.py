@@ -20,7 +20,7 @@ import numpy as np
 
 SLICE_BYTES = 1 << 18  # bytes scanned per vector step: bounds the scan's own memory
 
-_QUOTE, _BACKSLASH = ord('"'), ord("\\")
+_QUOTE, _BACKSLASH, _BRACE = ord('"'), ord("\\"), ord("{")
 _DEPTH_STEP = np.zeros(256, np.int8)  # +1 opens an array/object, -1 closes one
 _DEPTH_STEP[[ord("["), ord("{")]] = 1
 _DEPTH_STEP[[ord("]"), ord("}")]] = -1
@@ -33,20 +33,28 @@ class JsonShape:
 
     `values` counts every value a parser would build, object keys included, plus one per
     empty array or object (an upper bound that is exact for non-empty containers);
-    `containers` the arrays and objects; `max_depth` the deepest nesting; `has_nul` a raw
-    NUL byte (never in UTF-8 JSON; its presence would let a parser guess UTF-16 or UTF-32,
-    whose bytes this scan does not read as characters).
+    `containers` the arrays and objects, `objects` the objects alone, `strings` the strings
+    (keys included); `max_depth` the deepest nesting; `has_nul` a raw NUL byte (never in
+    UTF-8 JSON; its presence would let a parser guess UTF-16 or UTF-32, whose bytes this
+    scan does not read as characters).
     """
 
     def __init__(self) -> None:
         self.size = 0
         self.values = 1  # the top-level value
         self.containers = 0
+        self.objects = 0
+        self.quotes = 0  # quotes that open or close a string
         self.depth = 0
         self.max_depth = 0
         self.has_nul = False
         self._in_string = 0  # 1 while inside a string at the end of the last piece
         self._odd_backslashes = 0  # 1 if the last piece ended in an odd run of backslashes
+
+    @property
+    def strings(self) -> int:
+        """Strings begun so far (each has an opening quote)."""
+        return (self.quotes + 1) // 2
 
     def feed(self, data: bytes) -> None:
         """Account for the next piece of the body."""
@@ -69,12 +77,14 @@ class JsonShape:
         parity += self._in_string
         parity &= 1
         self._in_string = int(parity[-1])
+        self.quotes += int(np.count_nonzero(quote))
         outside = parity == 0
         step = _DEPTH_STEP[piece]
         step *= outside
         opened = int(np.count_nonzero(step > 0))
         separators = int(np.count_nonzero(_SEPARATOR[piece] & outside))
         self.containers += opened
+        self.objects += int(np.count_nonzero((piece == _BRACE) & outside))
         self.values += opened + separators
         depth = np.cumsum(step, dtype=np.int32)
         depth += self.depth

@@ -315,7 +315,8 @@ class ProjectRequest(BaseModel):
     model_config = _strict(
         {"points": [[0.0, 0.0, 1000.0], [100.0, 50.0, 800.0]]}
     )
-    points: list[tuple[Coord, Coord, Coord]] = Field(max_length=MAX_POINTS)
+    # fail_fast: one error for a bad row, not one per row (200,000 errors need ~300 MB)
+    points: list[tuple[Coord, Coord, Coord]] = Field(max_length=MAX_POINTS, fail_fast=True)
 
 
 class ProjectResponse(BaseModel):
@@ -330,7 +331,7 @@ class UnprojectRequest(BaseModel):
     model_config = _strict(
         {"pixels": [[320.0, 240.0], [10.5, 20.25]]}
     )
-    pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS)
+    pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS, fail_fast=True)
 
 
 class UnprojectResponse(BaseModel):

@@ -13,7 +13,9 @@ large requests close the run: the largest preset plan and 200,000 points for pro
 seconds (until the status line arrived), rss_growth_mb (the server's peak resident memory
 during the case above its resident memory before the first case, so memory kept from an
 earlier case counts against later ones) and held (refused with 413/422 within a second
-and at most 100 MB of growth; for the legitimate cases: answered as a valid request).
+and at most 100 MB of growth; for the legitimate cases: answered as a valid request);
+also expected (the statuses that hold), attack (held to time and memory too) and
+peak_reset (False where /proc would not reset the peak: growth is then since start).
 """
 
 from __future__ import annotations
@@ -81,6 +83,8 @@ SHAPES: dict[str, Callable[[int], tuple[str, bytes]]] = {
         PLAN_HEAD + b'"frames": [', b'"",', b'""', b"]}}", n)),
     "points [[0,0,0],...]": lambda n: (f"{UNKNOWN_CAL}/project", _fill(
         b'{"points": [', b"[0,0,0],", b"[0,0,0]", b"]}", n)),
+    "points as objects": lambda n: (f"{UNKNOWN_CAL}/project", b'{"points": [' + b",".join(
+        b'{"%040d": 0.5}' % i for i in range((n - 20) // 48)) + b"]}"),
 }
 
 
@@ -94,10 +98,13 @@ def legitimate_cases() -> list[Case]:
     row = [-123.45678901234568, 98.765432109876543, 1234.5678901234568]
     # as a client library sends them (13 MB: within a 16 MiB upload limit too)
     points = json.dumps({"points": [row] * MAX_POINTS})
+    bad_rows = json.dumps({"points": [[False, 0, 1]] * MAX_POINTS})
     # an unknown calibration answers 404 only after the body passed every limit and check
     return [Case("largest preset plan", "/sessions", plan.encode(), False, (201,), False),
             Case(f"{MAX_POINTS} points", f"{UNKNOWN_CAL}/project", points.encode(),
-                 False, (404,), False)]
+                 False, (404,), False),
+            Case(f"{MAX_POINTS} rows, each invalid", f"{UNKNOWN_CAL}/project",
+                 bad_rows.encode(), False, (422,), True)]
 
 
 def body_cases(attack_bytes: int = ATTACK_BYTES,
@@ -189,7 +196,8 @@ def run_body_cases(base_url: str, server_pid: int, cases: list[Case] | None = No
             held = held and seconds <= MAX_SECONDS and growth <= MAX_GROWTH_MB
         rows.append({"shape": case.shape, "bytes": len(case.body), "status": status,
                      "seconds": round(seconds, 3), "rss_growth_mb": round(growth, 1),
-                     "held": held, "peak_reset": can_reset})
+                     "held": held, "expected": list(case.expect), "attack": case.attack,
+                     "peak_reset": can_reset})
     return rows
 
 

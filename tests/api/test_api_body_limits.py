@@ -80,8 +80,7 @@ def test_chunked_json_over_the_limit_is_413_while_streaming(client: TestClient) 
     ("numbers", _plan_body(b"[" + b"0," * 2_000_000 + b"0]"), 413, "values"),
     ("many keys", b'{"plan": {' + b",".join(b'"k%07d":0' % i for i in range(300_000))
      + b"}}", 413, "values"),
-    ("empty arrays in pairs", _plan_body(b"[" + b"[[],[]]," * 400_000 + b"[]]"), 413,
-     "arrays/objects"),
+    ("empty arrays", _plan_body(b"[" + b"[]," * 100_000 + b"[]]"), 413, "arrays/objects"),
     ("deep nesting", _plan_body(b"[" * 100_000 + b"]" * 100_000), 422, "levels deep"),
     ("UTF-16", '{"preset": "fast"}'.encode("utf-16"), 422, "UTF-8"),
 ])
@@ -91,6 +90,21 @@ def test_bodies_that_would_amplify_are_refused_before_parsing(
     assert len(body) <= DEFAULT_MAX_JSON_BYTES, shape
     detail = _problem(client.post("/sessions", content=body, headers=JSON), status)["detail"]
     assert words in detail, detail
+
+
+def test_point_routes_take_rows_of_numbers(client: TestClient) -> None:
+    """Their larger budget is for numbers: rows of objects or strings would cost several
+    times as much memory, and 200,000 bad rows answer one error, not 200,000."""
+    path = f"{UNKNOWN_CAL}/project"
+    objects = b'{"points": [' + b",".join(b'{"%040d": 0.5}' % i for i in range(1000)) + b"]}"
+    assert "objects" in _problem(client.post(path, content=objects, headers=JSON),
+                                 413)["detail"]
+    strings = json.dumps({"points": [["a" * 40, "b", "c"]] * 1000})
+    assert "strings" in _problem(client.post(path, content=strings, headers=JSON),
+                                 413)["detail"]
+    bad_rows = json.dumps({"points": [[False, 0, 1]] * MAX_POINTS})
+    body = _problem(client.post(path, content=bad_rows, headers=JSON), 422)
+    assert len(body["errors"]) == 1 and body["errors"][0]["loc"][:3] == ["body", "points", "0"]
 
 
 def test_a_refused_body_leaves_no_idempotent_answer(client: TestClient) -> None:
@@ -225,9 +239,7 @@ def test_server_memory_stays_bounded_for_50_mb_bodies(tmp_path: Path) -> None:
         proc.terminate()
         proc.wait(30)
     for row in rows:
-        if row["shape"].startswith(("largest", f"{MAX_POINTS}")):
-            assert row["status"] in (201, 404), row
-            continue
-        assert row["status"] in (413, 422), row
-        assert row["rss_growth_mb"] <= MAX_GROWTH_MB, row
-        assert row["seconds"] < 20, row  # refused early; bound for a loaded 2-core machine
+        assert row["status"] in row["expected"], row
+        if row["attack"]:
+            assert row["rss_growth_mb"] <= MAX_GROWTH_MB, row
+            assert row["seconds"] < 20, row  # refused early; bound for a loaded 2-core machine

@@ -25,6 +25,17 @@ def reference(value: Any, depth: int = 1) -> tuple[int, int, int]:
     return 1, 0, depth - 1
 
 
+def objects_and_strings(value: Any) -> tuple[int, int]:
+    """(objects, strings with keys) in a parsed document."""
+    if isinstance(value, dict):
+        counts = [objects_and_strings(v) for v in value.values()]
+        return 1 + sum(o for o, _ in counts), len(value) + sum(n for _, n in counts)
+    if isinstance(value, list):
+        counts = [objects_and_strings(v) for v in value]
+        return sum(o for o, _ in counts), sum(n for _, n in counts)
+    return 0, int(isinstance(value, str))
+
+
 # strings that confuse a naive scan: brackets, separators, escaped quotes and backslashes
 TRICKY = ['a"b\\', "\\", '[{,:}]\\"', '\\\\"', "é😀", "", "]]]]", '\\"[[[', "\\\\\\"]
 
@@ -61,6 +72,7 @@ def test_counts_match_the_parsed_document(slice_bytes: int,
                           indent=rng.choice([None, 1])).encode()
         shape = shape_of(data, rng, rng.choice([1, 5, 64]))
         assert (shape.values, shape.containers, shape.max_depth) == reference(doc), data
+        assert (shape.objects, shape.strings) == objects_and_strings(doc), data
         assert shape.depth == 0 and shape.size == len(data) and not shape.has_nul
 
 
