@@ -33,11 +33,9 @@ from calibration.decode.finish import (
     FinishInputs,
     chi2_tail,
     finish_range,
-    no_valid_message,
     noise_params,
     output_planes,
     residual_stats,
-    software_version,
 )
 from calibration.decode.noise import (
     LinearVariance,
@@ -74,6 +72,27 @@ COMPILED_MIN_PIXELS = 1 << 20
 # CPU once per process) even when no live capture has loaded them yet: they pay back.
 ALWAYS_COMPILED_PIXELS = 1 << 21
 _KERNELS = ("calibration.decode.kernel_sums", "calibration.decode.accumulate_kernel")
+
+
+def _software_version() -> str:
+    """Installed phasecal version, or 'unknown' when running from a bare checkout."""
+    try:
+        from importlib.metadata import version
+
+        return version("phasecal")
+    except Exception:
+        return "unknown"
+
+
+def _no_valid_message(counts: dict[str, int], npix: int) -> str:
+    """One line saying why no pixel could be decoded."""
+    worst = max((n, name) for name, n in counts.items() if name != "valid")[1]
+    if counts["no_screen"] == npix:
+        return (
+            "frames: no pixel sees the screen (the bright flat is nowhere brighter than "
+            "the dark flat beyond the noise): all-dark stack, display off or lens capped?"
+        )
+    return f"frames: no pixel could be decoded; most common reason: {worst} ({counts})"
 
 
 class StreamingDecoder:
@@ -248,11 +267,11 @@ class StreamingDecoder:
             summed()
         counts = hide_screen_edges(reason.reshape(h, w), mask, out, tallies)
         if counts["valid"] == 0:
-            raise DecodeError(no_valid_message(counts, npix))
+            raise DecodeError(_no_valid_message(counts, npix))
         info = {
             "format": MAPS_FORMAT,
             "plan_digest": self.plan.digest(),
-            "software": f"phasecal {software_version()}",
+            "software": f"phasecal {_software_version()}",
             "decoder": {
                 "noise": self._noise_kind,
                 "photon_transfer": asdict(self._ptc) if self._ptc is not None else None,

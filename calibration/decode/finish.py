@@ -2,7 +2,8 @@
 finish, straight from the range's sums in one numba pass each (kernel_sums.py). They
 return the pixels the kernel leaves (clipped patterns without tables, noise models the
 kernel cannot evaluate), which the decoder takes through its array path on a gathered copy
-of their sums; what they read of the decoder it hands over as `FinishInputs`."""
+of their sums; what they read of the decoder it hands over as `FinishInputs`. The output
+planes and the chi-square tail here serve both paths."""
 
 from __future__ import annotations
 
@@ -40,16 +41,6 @@ class FinishInputs:
     tables: PatternTables | None  # clipped patterns' least squares (None: > 16 steps)
 
 
-def software_version() -> str:
-    """Installed phasecal version, or 'unknown' when running from a bare checkout."""
-    try:
-        from importlib.metadata import version
-
-        return version("phasecal")
-    except Exception:
-        return "unknown"
-
-
 def output_planes(npix: int, axes: list[str], into: dict[str, np.ndarray] | None = None
                   ) -> dict[str, np.ndarray]:
     """(2, npix) output arrays (rows x, y): `into`'s (e.g. views of the maps file, whose rows
@@ -75,17 +66,6 @@ def chi2_tail(max_dof: int) -> np.ndarray:
         ratio = chi2_isf(1e-6, np.maximum(d, 1)) / np.maximum(d, 1)
     ratio[0] = np.inf
     return ratio
-
-
-def no_valid_message(counts: dict[str, int], npix: int) -> str:
-    """One line saying why no pixel could be decoded."""
-    worst = max((n, name) for name, n in counts.items() if name != "valid")[1]
-    if counts["no_screen"] == npix:
-        return (
-            "frames: no pixel sees the screen (the bright flat is nowhere brighter than "
-            "the dark flat beyond the noise): all-dark stack, display off or lens capped?"
-        )
-    return f"frames: no pixel could be decoded; most common reason: {worst} ({counts})"
 
 
 def linear_noise(noise: Any) -> tuple[float, float, float, float] | None:
