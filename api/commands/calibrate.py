@@ -6,8 +6,12 @@ import argparse
 import json
 
 from api.cli import UserError
-
-HELP = "fit a camera model (opencv5, opencv-rational, fisheye, raygrid, sgcc, ...) to maps"
+from api.progress import progress_bar
+from calibration.export import export_opencv_yaml, export_ros_yaml
+from calibration.fit.ransac import DegenerateError
+from calibration.fit.registry import MODEL_NAMES, PARAMETRIC
+from calibration.models.base import save_model
+from calibration.pipeline import calibrate_files
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,12 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from api.progress import progress_bar
-    from calibration.fit.ransac import DegenerateError
-    from calibration.fit.registry import MODEL_NAMES, PARAMETRIC
-    from calibration.models.base import save_model
-    from calibration.pipeline import calibrate_files
-
+    """Entry point for `phasecal calibrate`: fit, print the statistics, write the outputs."""
     if args.model not in MODEL_NAMES:
         raise UserError(f"--model: expected one of {', '.join(MODEL_NAMES)}, got {args.model!r}")
     if (args.export_opencv or args.export_ros) and args.model not in PARAMETRIC:
@@ -86,16 +85,13 @@ def run(args: argparse.Namespace) -> int:
     for warning in st.get("warnings", []):
         print(f"  warning: {warning}")
     if args.report:
+        # lazy: matplotlib takes about a second to import, only worth it when a plot is asked
         from calibration.report import write_residual_report
 
         write_residual_report(result, args.report)
     if args.export_opencv:
-        from calibration.export import export_opencv_yaml
-
         export_opencv_yaml(result.model, args.export_opencv)
     if args.export_ros:
-        from calibration.export import export_ros_yaml
-
         export_ros_yaml(result.model, args.export_ros)
     return 0
 

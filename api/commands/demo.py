@@ -1,8 +1,4 @@
-"""`phasecal demo`: full simulated acquisition, decoding and calibration (see `api.demo`).
-
-Only the arguments live here; the service stack is imported when the command runs, so
-`phasecal --help` stays fast.
-"""
+"""`phasecal demo`: full simulated acquisition, decoding and calibration (see `api.demo`)."""
 
 from __future__ import annotations
 
@@ -11,8 +7,10 @@ from pathlib import Path
 
 from api.cli import UserError
 from api.commands.calibrate import parse_options
+from api.demo import demo_rig_config, run_demo
+from api.rigs import load_default_config
+from calibration.fit.registry import model_spec
 
-HELP = "the whole flow on the simulated rig over HTTP: poses, calibrations, comparison table"
 DEFAULT_MODELS = ("opencv-rational", "sgcc")
 
 
@@ -36,10 +34,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point for `phasecal demo`: 0 when every calibration succeeded."""
-    from api.demo import demo_rig_config, run_demo
-    from api.rigs import load_default_config
-    from calibration.fit.registry import model_spec
-
     if args.poses < 3:
         raise ValueError(f"--poses {args.poses}: a calibration needs at least 3 poses")
     if args.rig is None:
