@@ -13,9 +13,8 @@ from calibration.compare import in_gauge, sgcc_gauge_transform
 from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.calibrate import calibrate_generic
 from calibration.fit.sgcc.problem import Problem
-from calibration.fit.sgcc.screen_terms import ScreenTrace
 from calibration.fit.sgcc.state import LMState
-from calibration.metrology.screen import ScreenModel
+from calibration.metrology.screen_trace import ScreenTrace
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import logmap
 from calibration.plan import ScreenGeometry
@@ -24,20 +23,6 @@ from hw_mocks.panel import PanelShape
 
 SCREEN = ScreenGeometry(1920, 1080, (0.2745, 0.2745))
 PARAMS = np.array([0.5, 0.3, 0.2, 1.5])
-
-
-def test_tracer_equals_the_parametric_screen_model() -> None:
-    """Feature-major tracer == calibration.metrology.screen.ScreenModel (points, Jacobians)."""
-    rng = np.random.default_rng(2)
-    o = np.column_stack([rng.uniform(0, 500, 50), rng.uniform(0, 300, 50),
-                         rng.uniform(-600, -100, 50)])
-    q = rng.uniform(-0.7, 0.7, (50, 2))
-    want, jac = ScreenModel(SCREEN, "fit", 1.52, PARAMS).trace(o, q)
-    pts, jo, jq, js = ScreenTrace.of(SCREEN, 1.52).trace(np, PARAMS, o.T, q.T)
-    np.testing.assert_allclose(pts.T, want, atol=1e-12)
-    np.testing.assert_allclose(jo.transpose(2, 0, 1), jac["o"], atol=1e-12)
-    np.testing.assert_allclose(jq.transpose(2, 0, 1), jac["q"], atol=1e-12)
-    np.testing.assert_allclose(js.transpose(2, 0, 1), jac["s"], atol=1e-12)
 
 
 def _problem(n_comp: int):
