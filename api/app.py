@@ -105,7 +105,8 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
 
     app.add_middleware(IdempotencyMiddleware, db_getter=lambda: services.db)
     app.add_middleware(NoSpaceMiddleware, space=services.space)  # also idempotency's writes
-    app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.max_upload_bytes,
+                       max_json_bytes=cfg.max_json_bytes)
     if cfg.token:
         app.add_middleware(TokenMiddleware, token=cfg.token)
     app.add_middleware(ServerTimingMiddleware)  # outermost: times everything above

@@ -95,8 +95,9 @@ RigConfigDocument = Annotated[dict[str, Any], Field(max_length=MAX_RIG_CONFIG_KE
 IdStr = Annotated[str, Field(max_length=MAX_ID_LENGTH)]
 
 
-def _strict(*examples: dict[str, Any]) -> ConfigDict:
-    """Config that rejects unknown fields and carries OpenAPI examples."""
+def strict_config(*examples: dict[str, Any]) -> ConfigDict:
+    """The model config of every request body: unknown fields are refused (422), and the
+    OpenAPI document carries `examples`."""
     return ConfigDict(extra="forbid", json_schema_extra={"examples": list(examples)})
 
 
@@ -172,7 +173,7 @@ class Rig(BaseModel):
 class CameraSettingsModel(BaseModel):
     """Camera settings to read or change."""
 
-    model_config = _strict(
+    model_config = strict_config(
         {"exposure_s": 0.01, "gain_db": 0.0, "pixel_format": "Mono8"}
     )
     exposure_s: Num | None = Field(default=None, gt=0, le=10)
@@ -183,7 +184,7 @@ class CameraSettingsModel(BaseModel):
 class ScreenPoseIn(BaseModel):
     """Where the simulated screen is: X_cam = R S + t; R from a rotation vector (Rodrigues)."""
 
-    model_config = _strict(
+    model_config = strict_config(
         {"rvec": [0.1, -0.05, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}
     )
     rvec: list[Annotated[Num, Field(ge=-10, le=10)]] = Field(
@@ -195,7 +196,7 @@ class ScreenPoseIn(BaseModel):
 class SessionCreate(BaseModel):
     """A session on a rig with a plan (given, or built from a preset for the rig's screen)."""
 
-    model_config = _strict(
+    model_config = strict_config(
         {"name": "lab-1", "preset": "fast"}
     )
     name: str = Field(default="", max_length=200)
@@ -221,7 +222,7 @@ class Session(BaseModel):
 class CaptureRequest(BaseModel):
     """Capture one pose; optionally move the simulated screen first."""
 
-    model_config = _strict(
+    model_config = strict_config(
         {"screen_pose": {"rvec": [0.1, 0.0, 0.0], "tvec_mm": [-130.0, -100.0, 320.0]}}
     )
     screen_pose: ScreenPoseIn | None = None
@@ -283,7 +284,7 @@ class CalibrationCreate(RootModel[per_model(_CalibrationFields, "CalibrationCrea
 class IntrinsicsCreate(BaseModel):
     """Quick closed-form intrinsics from a session's poses (docs/intrinsics.md)."""
 
-    model_config = _strict({"method": "rectangle", "source": "flats"},
+    model_config = strict_config({"method": "rectangle", "source": "flats"},
                            {"method": "rotation", "source": "maps",
                             "pose_ids": ["pose_0123456789abcdef"]})
     method: Literal["rectangle", "selfcal", "rotation"]
@@ -312,7 +313,7 @@ class Calibration(BaseModel):
 class ProjectRequest(BaseModel):
     """3D points in the model's camera frame, mm."""
 
-    model_config = _strict(
+    model_config = strict_config(
         {"points": [[0.0, 0.0, 1000.0], [100.0, 50.0, 800.0]]}
     )
     # fail_fast: one error for a bad row, not one per row (200,000 errors need ~300 MB)
@@ -328,7 +329,7 @@ class ProjectResponse(BaseModel):
 class UnprojectRequest(BaseModel):
     """Camera pixels (u, v)."""
 
-    model_config = _strict(
+    model_config = strict_config(
         {"pixels": [[320.0, 240.0], [10.5, 20.25]]}
     )
     pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS, fail_fast=True)

@@ -8,7 +8,6 @@ from typing import Any
 from urllib.parse import unquote_to_bytes
 
 from api.body_limits import BodyLimits, Refusal, shape_refusal, size_refusal
-from api.config import DEFAULT_MAX_JSON_BYTES
 from api.json_shape import JsonShape
 from api.problems import MEDIA_TYPE, problem_body
 
@@ -79,33 +78,18 @@ class BodyLimitMiddleware:
     JSON limit and, as it streams in, past a budget of JSON values, arrays/objects and
     nesting depth, so the app never parses a body whose objects would need many times its
     size in memory. Checked by Content-Length up front and on the bytes as they arrive.
+    `max_json_bytes` is PHASECAL_MAX_JSON_BYTES."""
 
-    `max_json_bytes` defaults to the app's `ServiceConfig.max_json_bytes` (read from
-    `app.state.services.config` on the first request), else `DEFAULT_MAX_JSON_BYTES`."""
-
-    def __init__(self, app: Any, max_bytes: int, max_json_bytes: int | None = None) -> None:
+    def __init__(self, app: Any, max_bytes: int, max_json_bytes: int) -> None:
         self.app = app
-        self.max_bytes = max_bytes
-        self.max_json_bytes = max_json_bytes
-        self.limits: BodyLimits | None = None
-
-    def body_limits(self, scope: Scope) -> BodyLimits:
-        """The limits, built once (the JSON limit may come from the app's configuration)."""
-        if self.limits is None:
-            json_bytes = self.max_json_bytes
-            if json_bytes is None:
-                services = getattr(getattr(scope.get("app"), "state", None), "services", None)
-                config = getattr(services, "config", None)
-                json_bytes = getattr(config, "max_json_bytes", DEFAULT_MAX_JSON_BYTES)
-            self.limits = BodyLimits(self.max_bytes, int(json_bytes))
-        return self.limits
+        self.limits = BodyLimits(max_bytes, max_json_bytes)
 
     async def __call__(self, scope: Scope, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         headers = dict(scope.get("headers", []))
-        budget = self.body_limits(scope).for_request(scope.get("path", ""),
+        budget = self.limits.for_request(scope.get("path", ""),
                                                      headers.get(b"content-type"))
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > budget.max_bytes):

@@ -21,7 +21,7 @@ from api.db import CalibrationRecord, PoseRecord
 from api.jobs.calibrations import BatchCalibrateJob, BatchEntry
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
-from api.schemas import _strict, per_model
+from api.schemas import IdStr, per_model, strict_config
 from api.services import Services, get_services
 from api.store import new_id
 from calibration.fit.registry import model_spec
@@ -48,11 +48,11 @@ class ModelSetting(RootModel[per_model(_SettingFields, "ModelSetting")]):  # typ
 class BatchCalibrationCreate(BaseModel):
     """Calibrate every ready pose of each session with each model setting."""
 
-    model_config = _strict(
+    model_config = strict_config(
         {"session_ids": ["ses_0123456789abcdef", "ses_fedcba9876543210"],
          "models": [{"model": "opencv-rational"}, {"model": "sgcc"}]}
     )
-    session_ids: list[str] = Field(min_length=1, max_length=MAX_BATCH_ITEMS)
+    session_ids: list[IdStr] = Field(min_length=1, max_length=MAX_BATCH_ITEMS)
     models: list[ModelSetting] = Field(min_length=1, max_length=50)
 
 

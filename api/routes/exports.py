@@ -13,7 +13,7 @@ from api.problems import Problem
 from api.routes.calibrations import fitted_model
 from api.routes.common import PROBLEM_RESPONSES
 from api.routes.points import json_rows, point_rows
-from api.schemas import MAX_POINTS, Coord, Num, _strict
+from api.schemas import MAX_ID_LENGTH, MAX_POINTS, Coord, Num, strict_config
 from api.services import Services, get_services
 from calibration.formats import (
     FILE_NAMES,
@@ -82,12 +82,16 @@ def export(
 class UndistortRequest(BaseModel):
     """Model pixels and the virtual pinhole they are mapped to (default: the model's K)."""
 
-    model_config = _strict({"pixels": [[320.0, 240.0]], "pinhole": [400.0, 400.0, 320.0, 240.0]})
-    pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS)
+    model_config = strict_config({"pixels": [[320.0, 240.0]],
+                                  "pinhole": [400.0, 400.0, 320.0, 240.0]})
+    # fail_fast: one error for a bad row, not one per row (200,000 errors need ~300 MB)
+    pixels: list[tuple[Coord, Coord]] = Field(max_length=MAX_POINTS, fail_fast=True)
     pinhole: tuple[Num, Num, Num, Num] | None = Field(
         None, description="FX, FY, CX, CY of the virtual pinhole")
-    rotation: list[Num] | None = Field(None, description="3 (Rodrigues) or 9 numbers")
-    align_to: str | None = Field(None, description="calibration id whose frame to use")
+    rotation: list[Num] | None = Field(None, max_length=9,
+                                       description="3 (Rodrigues) or 9 numbers")
+    align_to: str | None = Field(None, max_length=MAX_ID_LENGTH,
+                                 description="calibration id whose frame to use")
 
 
 class UndistortResponse(BaseModel):

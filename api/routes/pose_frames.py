@@ -32,7 +32,8 @@ class DecodeRequest(BaseModel):
         {"noise_dn": 1.5, "options": {"max_sigma_px": 0.5}}]})
     noise_dn: float | None = Field(None, gt=0, le=1e4, description="per-frame noise sigma "
                                    "in DN; default: estimated from the residuals")
-    options: dict[str, float] = Field(default_factory=dict, description="DecodeOptions "
+    options: dict[str, float] = Field(default_factory=dict, max_length=len(OPTION_NAMES),
+                                      description="DecodeOptions "
                                       f"fields and saturation_dn: {', '.join(OPTION_NAMES)}")
 
 
