@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 
@@ -34,18 +34,20 @@ def require_aravis() -> None:
 
 
 @contextlib.contextmanager
-def lossy_fake_camera(serial: str, lost_ratio: float) -> Iterator[None]:
-    """Aravis' own GigE Vision fake on 127.0.0.1 (its built-in test image) sending each
-    GVSP packet with probability 1 - `lost_ratio`, like a congested link. Aravis 0.8's
-    fake cannot resend, so every packet it drops loses its frame. The caller holds
+def lossy_fake_camera(serial: str) -> Iterator[Callable[[float], None]]:
+    """Aravis' own GigE Vision fake on 127.0.0.1 (its built-in test image); the function
+    it yields sets the share of GVSP packets the fake drops at random, like a congested
+    link. Aravis 0.8's fake cannot resend, so every packet it drops loses its frame. Set
+    it once the camera's stream runs: Aravis sizes packets with test packets when it
+    creates a first stream, and losing those leaves that stream deaf. The caller holds
     `fake_camera_lock()` and has stopped any other fake."""
     Aravis = aravis()
     gv = Aravis.GvFakeCamera.new("127.0.0.1", serial)
     if not gv.is_running():
         raise CameraError("Aravis fake camera on 127.0.0.1: not running (port 3956 in use?)")
-    gv.set_property("gvsp-lost-ratio", lost_ratio)
+    holder = [gv]  # the only reference: dropping it stops the fake and frees the port
+    del gv
     try:
-        yield
+        yield lambda ratio: holder[0].set_property("gvsp-lost-ratio", ratio)
     finally:
-        # the last reference: finalizing the fake joins its thread and frees the port
-        del gv
+        holder.clear()

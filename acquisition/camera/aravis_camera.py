@@ -117,6 +117,7 @@ class AravisCamera:
         self.stale_frames = 0
         self._outstanding = 0  # software triggers sent whose frames have not arrived yet
         self._deferred = 0  # software triggers held back until those frames arrive
+        self._voided = 0  # of the outstanding triggers, those sent before the last flush
         self._open()
         self._settings = self._read_settings()
 
@@ -273,7 +274,7 @@ class AravisCamera:
         except GLib.Error as exc:
             raise self._error("start", exc) from exc
         self._not_before = self._clock.now()
-        self._outstanding, self._deferred = 0, 0
+        self._outstanding, self._deferred, self._voided = 0, 0, 0
         self._running = True
 
     def _tune_stream(self, stream: Any) -> None:
@@ -342,12 +343,13 @@ class AravisCamera:
             raise self._error("software trigger", exc) from exc
         self._outstanding += 1
 
-    def _to_clock(self, device_ns: int, system_ns: int, popped: float) -> float:
+    def _to_clock(self, device_ns: int, system_ns: int, popped: float, popped_ns: int) -> float:
         """Device time -> clock time; `system_ns` (host wall time at reception) dates the
-        arrival even when the buffer waited in the queue before being popped."""
+        arrival even when the buffer waited in the queue before being popped (`popped` on
+        the clock, `popped_ns` on the wall clock, read just before it)."""
         arrived = popped
         if system_ns > 0:
-            arrived = popped - max(0.0, (time.time_ns() - system_ns) * 1e-9)
+            arrived = popped - max(0.0, (popped_ns - system_ns) * 1e-9)
         if device_ns <= 0:
             return arrived - self._settings.exposure_s
         self._offsets.append(arrived - device_ns * 1e-9)
@@ -361,14 +363,16 @@ class AravisCamera:
         while True:
             remaining = deadline - self._clock.now()
             if remaining <= 0:
-                self._outstanding, self._deferred = 0, 0  # lost triggers: start afresh
+                # lost triggers: start afresh
+                self._outstanding, self._deferred, self._voided = 0, 0, 0
                 self._check_alive()
                 stats = self.stream_statistics()
                 raise CameraTimeout(
                     f"Aravis camera {self.device}: no frame within {timeout_s:.3f} s "
                     f"(trigger mode {self._settings.trigger_mode}; so far "
                     f"{self.incomplete_buffers} incomplete buffers, {stats.missing_frames} "
-                    f"frames missing, {stats.missing_packets} packets missing)"
+                    f"frames missing, {stats.missing_packets} packets missing, "
+                    f"{self.stale_frames} stale frames dropped)"
                 )
             buf = self._stream.timeout_pop_buffer(max(1, int(min(remaining, 0.1) * 1e6)))
             if buf is None:
@@ -382,7 +386,16 @@ class AravisCamera:
     def _accept(self, buf: Any) -> Frame | None:
         """A popped buffer -> its frame; None if stale (or incomplete while free-running);
         `FrameLost` if it is a triggered frame that came back incomplete."""
+        # both clocks read now, wall time first: a delay between the readings can only
+        # date the arrival later (mapped times stay upper bounds); read after decoding,
+        # a loaded host's delay dated it early and made fresh frames look stale
+        popped_ns = time.time_ns()
         arrived = self._clock.now()
+        # frames answer the software triggers sent, in order: is a trigger still waiting
+        # for this one? (an incomplete buffer cannot tell by its time: a buffer whose
+        # leader packet was lost keeps the timestamp of the frame it held before)
+        awaited = self._outstanding > self._voided
+        self._voided = max(0, self._voided - 1)
         self._outstanding = max(0, self._outstanding - 1)  # stale or not, it answered one
         if self._deferred and not self._outstanding:
             self._deferred -= 1
@@ -391,21 +404,22 @@ class AravisCamera:
             status = buf.get_status()
             if status != self._Aravis.BufferStatus.SUCCESS:
                 self.incomplete_buffers += 1
-                if self._settings.trigger_mode == "free-running" or self._stale_incomplete(buf):
-                    return None  # free-running: the next frame is already on its way
+                mode = self._settings.trigger_mode
+                if mode == "free-running" or (mode == "software" and not awaited):
+                    return None  # the next frame is already on its way, or none is awaited
                 stats = self.stream_statistics()
                 resend = ("packet resend on" if self._resending else "packet resend off"
                           if not self._packet_resend else "the camera cannot resend")
-                fid = buf.get_frame_id()  # 0 when the frame's leader was lost as well
-                raise FrameLost(
-                    f"Aravis camera {self.device}: triggered frame {fid or '(id lost)'} "
-                    f"arrived incomplete ({status.value_nick}; so far {stats.missing_packets} "
-                    f"packets missing, {stats.resent_packets} resent, {resend}); trigger again"
+                raise FrameLost(  # (no frame id: the lost packet may be the leader holding it)
+                    f"Aravis camera {self.device}: a triggered frame arrived incomplete "
+                    f"({status.value_nick}; so far {stats.missing_packets} packets missing, "
+                    f"{stats.resent_packets} resent, {resend}); trigger again"
                 )
             w, h = buf.get_image_width(), buf.get_image_height()
             fmt = pixel_format(buf.get_image_pixel_format())
             image = decode_image(buf.get_data(), fmt, w, h, self._bayer)
-            t = self._to_clock(buf.get_timestamp(), buf.get_system_timestamp(), arrived)
+            t = self._to_clock(buf.get_timestamp(), buf.get_system_timestamp(), arrived,
+                               popped_ns)
             seq = buf.get_frame_id()
         finally:
             self._stream.push_buffer(buf)
@@ -413,16 +427,6 @@ class AravisCamera:
             self.stale_frames += 1
             return None
         return Frame(image, t, self._settings.exposure_s, int(seq))
-
-    def _stale_incomplete(self, buf: Any) -> bool:
-        """True when an incomplete buffer is dated (its leader arrived) before the last
-        trigger or flush: a frame nobody waits for, lost or not."""
-        device_ns = buf.get_timestamp()
-        if device_ns <= 0 or not self._offsets:
-            return False  # undated: count it as the awaited frame
-        stale = device_ns * 1e-9 + min(self._offsets) < self._not_before
-        self.stale_frames += int(stale)
-        return stale
 
     def flush(self) -> int:
         """Return every queued buffer to the pool; later frames start after this call."""
@@ -433,6 +437,7 @@ class AravisCamera:
             self._stream.push_buffer(buf)
             n += 1
         self._deferred = 0  # triggers asked for before the flush are void
+        self._voided = self._outstanding  # and so are the frames of those already sent
         self._not_before = max(self._not_before, self._clock.now())
         return n
 
