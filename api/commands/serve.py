@@ -4,15 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import signal
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
-from types import FrameType
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    import uvicorn
 
 HELP = "run the REST service (default 127.0.0.1:8000, simulated rig)"
 
@@ -39,52 +30,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "tcp://host:port (or PHASECAL_DASK)")
 
 
-#: the signals that stop the service in order (systemd's stop, kill, a terminal's Ctrl-C)
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 #: uvicorn's exit status when the server never started (port taken, failed startup)
 STARTUP_FAILURE = 3
 
 
-class StopSignals:
-    """SIGINT and SIGTERM ask `server` to stop in order, whenever they come.
-
-    uvicorn takes both signals over while it serves, then raises the one it caught again
-    to the handler it found: without this one that ended the process by SIGTERM (status
-    -15, skipping the interpreter's exit) or by a KeyboardInterrupt. Installed around the
-    whole run, this handler is what it finds, so an orderly stop exits 0; before uvicorn
-    took over (the app's startup) it asks the server to stop as soon as it has started.
-    """
-
-    def __init__(self, server: uvicorn.Server) -> None:
-        self.server = server
-        self.received: list[signal.Signals] = []
-
-    def __call__(self, sig: int, frame: FrameType | None) -> None:
-        name = signal.Signals(sig)
-        if name not in self.received:
-            self.received.append(name)
-        if not self.server.should_exit:
-            self.server.handle_exit(sig, frame)
-
-    @contextmanager
-    def installed(self) -> Iterator[None]:
-        """This handler for `STOP_SIGNALS` (main thread only), the previous ones after."""
-        if threading.current_thread() is not threading.main_thread():
-            yield
-            return
-        previous = {sig: signal.signal(sig, self) for sig in STOP_SIGNALS}
-        try:
-            yield
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-
-
 def run(args: argparse.Namespace) -> int:
-    import uvicorn  # (lazy: the other commands start without the web stack)
-
-    from api.app import create_app
+    from api.app import create_app  # (lazy: the other commands start without the web stack)
     from api.config import ServiceConfig, read_token_file
+    from api.serve_stop import serve
 
     token = read_token_file(args.token_file) if args.token_file else args.token
     config = ServiceConfig.from_env(host=args.host, port=args.port, rig=args.rig,
@@ -97,13 +50,11 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(config)
     print(f"phasecal: serving on http://{config.host}:{config.port} "
           f"(data {config.data_dir.resolve()}, rig {config.rig})", flush=True)
-    server = uvicorn.Server(uvicorn.Config(app, host=config.host, port=config.port,
-                                           log_level="warning"))
-    stops = StopSignals(server)
-    with stops.installed():
-        server.run()
+    # SIGTERM/SIGINT: jobs interrupted at once, then an orderly stop and exit 0 (serve_stop)
+    server = serve(app, config.host, config.port, on_stop=app.state.services.jobs.shutdown)
     if not server.started:
         return STARTUP_FAILURE
-    if stops.received:
-        print(f"phasecal: stopped on {', '.join(s.name for s in stops.received)}", flush=True)
+    if server.stop_signals:
+        print(f"phasecal: stopped on {', '.join(s.name for s in server.stop_signals)}",
+              flush=True)
     return 0

@@ -72,7 +72,8 @@ def start_serve(data: Path, log: Path) -> tuple[subprocess.Popen, str]:
 
 
 def start_capture(c: httpx.Client) -> dict:
-    """A capture on a simulated rig slow enough (4x supersampled) to be stopped midway."""
+    """A capture on a simulated rig slow enough (4x supersampled) to be stopped midway;
+    its job (with the rig's id added as `rig_id`)."""
     screen = ScreenGeometry(320, 240, (0.5, 0.5))
     cfg = demo_rig_config(320, 240, camera="mild_pinhole", screen=screen)
     cfg["camera"]["supersample"] = 4
@@ -81,7 +82,7 @@ def start_capture(c: httpx.Client) -> dict:
     pose = {"rvec": [0.0, 0.0, 0.0], "tvec_mm": [-80.0, -60.0, 250.0]}
     r = c.post(f"/sessions/{sess['id']}/poses", json={"screen_pose": pose})
     assert r.status_code == 202, r.text
-    return r.json()
+    return {**r.json(), "rig_id": rig["id"]}
 
 
 def wait_job(c: httpx.Client, job_id: str, cond, timeout_s: float = 180.0) -> dict:
@@ -149,6 +150,51 @@ def test_a_signal_mid_capture_stops_the_server_in_order(tmp_path: Path, case: st
             assert pose["status"] == "ready", pose
     finally:
         srv.stop()
+
+
+def test_open_streams_do_not_hold_the_stop(tmp_path: Path) -> None:
+    """A client following the job (SSE) and one watching the camera (MJPEG) while SIGTERM
+    comes: the job's stream ends with its `end` event, the preview ends, the server exits.
+    (uvicorn waited for every open connection before the app's shutdown: the server never
+    stopped while a preview was open.)"""
+    proc, url = start_serve(tmp_path / "data", tmp_path / "serve.log")
+    seen: dict[str, list[str]] = {"events": [], "preview": []}
+
+    def follow(path: str, key: str) -> None:
+        try:
+            with httpx.stream("GET", f"{url}{path}", timeout=120) as resp:
+                for line in resp.iter_lines():
+                    seen[key].append(line)
+        except httpx.HTTPError as exc:
+            seen[key].append(f"error {type(exc).__name__}")
+        seen[key].append("closed")
+
+    try:
+        with httpx.Client(base_url=url, timeout=60) as c:
+            job = start_capture(c)
+            wait_job(c, job["id"], lambda j: j["done"] >= 2 or j["status"] != "running")
+        readers = [threading.Thread(target=follow, args=(path, key), daemon=True) for path, key
+                   in ((f"/jobs/{job['id']}/events", "events"),
+                       (f"/rigs/{job['rig_id']}/camera/preview?fps=2", "preview"))]
+        for t in readers:
+            t.start()
+        deadline = time.monotonic() + 60
+        while not all(seen.values()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert all(seen.values()), seen  # both streams are open
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
+        for t in readers:
+            t.join(30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(30)
+    out = (tmp_path / "serve.log").read_text()
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out and "ERROR" not in out, out
+    assert "event: end" in seen["events"], seen["events"][-5:]
+    assert seen["preview"][-1] == "closed", seen["preview"][-3:]
 
 
 # -- the parts ------------------------------------------------------------------------------
