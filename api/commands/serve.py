@@ -51,8 +51,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"phasecal: serving on http://{config.host}:{config.port} "
           f"(data {config.data_dir.resolve()}, rig {config.rig})", flush=True)
     # SIGTERM/SIGINT: jobs interrupted at once, then an orderly stop and exit 0 (serve_stop)
-    server = serve(app, config.host, config.port, on_stop=app.state.services.jobs.shutdown)
-    if not server.started:
+    services = app.state.services
+    server = serve(app, config.host, config.port, on_stop=services.jobs.shutdown)
+    if not server.started:  # (e.g. the port is taken): uvicorn ran no app shutdown
+        services.close()
         return STARTUP_FAILURE
     if server.stop_signals:
         print(f"phasecal: stopped on {', '.join(s.name for s in server.stop_signals)}",
