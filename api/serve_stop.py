@@ -59,9 +59,14 @@ class StreamsEndOnStop:
         self.stopping: asyncio.Event | None = None
 
     def stop(self) -> None:
-        """Hang up on every started response (thread-safe; before any request: nothing)."""
-        if self.loop is not None and self.stopping is not None:
+        """Hang up on every started response (thread-safe; nothing before any request or
+        once the server's loop has ended)."""
+        if self.loop is None or self.stopping is None:
+            return
+        try:
             self.loop.call_soon_threadsafe(self.stopping.set)
+        except RuntimeError:  # the loop is closed: the server is done, no stream is open
+            pass
 
     async def __call__(self, scope: Message, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
