@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import httpx
@@ -10,6 +11,7 @@ import httpx
 from api.client import PhasecalClient
 from api.config import ServiceConfig
 from api.inprocess import running_service
+from api.stream_limits import EVENTS, stream_limiter
 from tests.api.test_api_session import small_rig
 
 
@@ -49,4 +51,24 @@ def test_sse_ids_and_resume_from_last_event_id(tmp_path: Path) -> None:
         # Once the job is over, a reconnect gets just the final state.
         with httpx.stream("GET", path, timeout=30, headers={"Last-Event-ID": str(last)}) as r:
             assert [e[:2] for e in _events(r)] == [("end", "end")]
+        client.close()
+
+
+def test_sse_client_that_hangs_up_frees_its_stream_slot(tmp_path: Path) -> None:
+    with running_service(ServiceConfig(data_dir=tmp_path / "data", executor="threads")) as (
+            url, app):
+        limiter = stream_limiter(app, EVENTS)
+        client = PhasecalClient(url)
+        rig = client.post("/rigs", {"name": "slow", "config": small_rig(slow=True)})
+        ses = client.post("/sessions", {"name": "sse", "rig_id": rig["id"], "preset": "fast"})
+        job = client.post(f"/sessions/{ses['id']}/poses", {})
+        with httpx.stream("GET", f"{url}/jobs/{job['id']}/events", timeout=120) as r:
+            assert _events(r, limit=1)
+            assert limiter.active() == 1
+        deadline = time.monotonic() + 5  # released at the hang-up, not at the job's end
+        while limiter.active() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert limiter.active() == 0
+        assert client.get(f"/jobs/{job['id']}")["status"] in ("queued", "running")
+        assert client.wait(job, timeout_s=300)["status"] == "succeeded"
         client.close()
