@@ -170,9 +170,13 @@ class GuardedStream(StreamingResponse):
                 finally:
                     tg.cancel_scope.cancel()
         finally:
-            with anyio.CancelScope(shield=True):
-                await self.chunks.aclose()  # type: ignore[attr-defined]
-            self.slot.release()
+            try:
+                close = getattr(self.chunks, "aclose", None)  # runs the generator's `finally`
+                if close is not None:
+                    with anyio.CancelScope(shield=True):
+                        await close()
+            finally:
+                self.slot.release()
 
     async def _watch_disconnect(self, receive: Any, scope: anyio.CancelScope) -> None:
         while (await receive())["type"] != "http.disconnect":
