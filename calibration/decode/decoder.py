@@ -68,8 +68,9 @@ _NOISE_SAMPLE = 1 << 19
 # one-off process spends more loading them than they save); public: a service worker
 # prepares its heap for the compiled path by the same rule (calibration.worker.tasks).
 COMPILED_MIN_PIXELS = 1 << 20
-# One-off decodes (decode_stack) of images this large load the compiled kernels (~0.7 s of
-# CPU once per process) even when no live capture has loaded them yet: they pay back.
+# One-off decodes (decode_stack, which reads it) of images this large load the compiled
+# kernels (~0.7 s of CPU once per process) even when no live capture has loaded them yet:
+# they pay back.
 ALWAYS_COMPILED_PIXELS = 1 << 21
 _KERNELS = ("calibration.decode.kernel_sums", "calibration.decode.accumulate_kernel")
 
