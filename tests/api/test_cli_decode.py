@@ -73,8 +73,8 @@ def test_npy_stack_decoded_into_the_laid_out_file(plan, tmp_path, monkeypatch, c
     from tests.calibration.test_maps_file import _same_npz
 
     if compiled:  # (the compiled whole-stack path of large images)
-        monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
-        monkeypatch.setattr(decoder_module, "_ALWAYS_COMPILED_PIXELS", 0)
+        monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
+        monkeypatch.setattr(decoder_module, "ALWAYS_COMPILED_PIXELS", 0)
     write_plan(plan, tmp_path / "plan.json")
     stack = _stack(plan)
     np.save(tmp_path / "frames.npy", stack)

@@ -94,7 +94,7 @@ def _data_offsets(path: Path) -> dict[str, int]:
 @pytest.mark.parametrize("compiled", [False, True])
 def test_decoder_writes_into_the_file_with_the_normal_paths_arrays(plan, stack, compiled,
                                                                    tmp_path, monkeypatch):
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0 if compiled else 1 << 40)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0 if compiled else 1 << 40)
     save_maps(_decoder(plan, stack).finish(dict(META)), tmp_path / "ref.npz")
     with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes()) as out:
         populate(out.mapped, 0, out.mapped.nbytes)
@@ -243,7 +243,7 @@ def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path
     """The live task (frames arriving in a frame store) gives the file np.load reads, equal
     to decoding the same frames in memory, unmapped only after the task returned (its ~0.03 s
     at 5 MP is not in the pose's ready time); with a cancel, nothing is left."""
-    monkeypatch.setattr(decoder_module, "_COMPILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     write_plan(plan, tmp_path / "plan.json")
     pose, staged = tmp_path / "pose", tmp_path / "staged"
     staged.mkdir()
@@ -305,7 +305,7 @@ def test_live_decode_task_takes_the_kernels_below_a_megapixel_only_when_asked(
     store.close()
     stream_decode_task(TaskContext("job_1"), str(tmp_path / "plan.json"), str(tmp_path / "pose"),
                        str(tmp_path / "maps.npz"), meta=dict(META), compiled=compiled)
-    assert bool(ranges) == compiled and H * W < decoder_module._COMPILED_MIN_PIXELS
+    assert bool(ranges) == compiled and H * W < decoder_module.COMPILED_MIN_PIXELS
     ref = StreamingDecoder(plan, (H, W), compiled=compiled)
     ref.prepare()
     ref.add_frames(list(range(stack.shape[0])), stack)
