@@ -17,7 +17,7 @@ from api.maps_durability import MapsSyncer, recover_pending
 from api.rigs import RigManager
 from api.storage import DiskSpace
 from api.store import DataStore
-from calibration.worker.executor import Executor, make_executor
+from api.worker.executor import Executor, make_executor
 
 log = logging.getLogger("phasecal.service")
 

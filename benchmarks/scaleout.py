@@ -7,7 +7,7 @@ Prints throughput of each executor, their ratio, and the scheduler overhead per 
 
 `--task fit` runs phasecal's fit (`calibration.fit.dispatch.calibrate`, model `--model`)
 on the stored maps and writes model.json; `--task service` runs the service's whole
-`calibration.worker.tasks.calibrate_task` (fit + exports); `--task opencv` runs a
+`api.worker.tasks.calibrate_task` (fit + exports); `--task opencv` runs a
 self-contained OpenCV pinhole calibration; `auto` picks fit when it is importable.
 """
 
@@ -35,12 +35,12 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from acquisition.patterns import build_plan  # noqa: E402
+from api.worker.dask_batch import BATCH_FORMAT, items_from_manifest, run_batch  # noqa: E402
+from api.worker.dask_executor import DaskExecutor, start_local_cluster  # noqa: E402
+from api.worker.executor import InProcessExecutor  # noqa: E402
 from calibration.maps import save_maps  # noqa: E402
 from calibration.plan import write_plan  # noqa: E402
 from calibration.progress import TaskContext  # noqa: E402
-from calibration.worker.dask_batch import BATCH_FORMAT, items_from_manifest, run_batch  # noqa: E402
-from calibration.worker.dask_executor import DaskExecutor, start_local_cluster  # noqa: E402
-from calibration.worker.executor import InProcessExecutor  # noqa: E402
 
 
 def opencv_calibrate_task(ctx: TaskContext, plan_path: str, maps_paths: list[str], model: str,
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     if kind == "auto":
         kind = "fit" if importlib.util.find_spec("calibration.fit.dispatch") else "opencv"
     if kind == "service":
-        from calibration.worker.tasks import calibrate_task as task
+        from api.worker.tasks import calibrate_task as task
     else:
         task = fit_task if kind == "fit" else opencv_calibrate_task
     model = "opencv-pinhole5" if kind == "opencv" else args.model

@@ -14,16 +14,16 @@ import sys
 from pathlib import Path
 
 from api.cli import UserError
-from calibration.atomic import write_json_atomic
-from calibration.fit.registry import model_spec
-from calibration.progress import TaskContext
-from calibration.worker import make_executor
-from calibration.worker.dask_batch import (
+from api.worker import make_executor
+from api.worker.dask_batch import (
     BATCH_FORMAT,
     items_from_manifest,
     read_manifest,
     run_batch,
 )
+from calibration.atomic import write_json_atomic
+from calibration.fit.registry import model_spec
+from calibration.progress import TaskContext
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

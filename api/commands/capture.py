@@ -14,9 +14,9 @@ from acquisition.rig import load_rig_config, open_rig, parse_rig_config
 from api.capture import capture_frames
 from api.cli import UserError
 from api.progress import progress_bar
+from api.worker.tasks import stream_decode_task
 from calibration.plan import read_plan
 from calibration.progress import TaskContext
-from calibration.worker.tasks import stream_decode_task
 from hw_mocks.rig import open_simulated_rig
 
 

@@ -11,9 +11,9 @@ from sqlalchemy.orm import Session
 
 from api.db import CalibrationRecord
 from api.jobs.model import Job, JobKind
+from api.worker.dask_batch import BatchItem, run_batch
+from api.worker.tasks import calibrate_task
 from calibration.progress import TaskContext
-from calibration.worker.dask_batch import BatchItem, run_batch
-from calibration.worker.tasks import calibrate_task
 
 if TYPE_CHECKING:
     from api.services import Services

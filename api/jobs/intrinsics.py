@@ -8,8 +8,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from api.jobs.model import Job, JobKind
+from api.worker.intrinsics_task import intrinsics_task
 from calibration.progress import TaskContext
-from calibration.worker.intrinsics_task import intrinsics_task
 
 if TYPE_CHECKING:
     from api.services import Services

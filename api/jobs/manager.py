@@ -27,8 +27,8 @@ from api.jobs.model import ACTIVE_JOB_STATES, Job, JobState, JobStatus
 from api.problems import Problem
 from api.storage import DiskSpace, is_no_space
 from api.store import new_id
+from api.worker.executor import Executor
 from calibration.progress import Cancelled, TaskContext
-from calibration.worker.executor import Executor
 
 log = logging.getLogger("phasecal.jobs")
 

@@ -16,10 +16,10 @@ from api.db import PoseRecord
 from api.jobs.model import STOPPED_STATES, Job, JobKind
 from api.maps_durability import mark_pending
 from api.storage import NO_SPACE, pose_bytes
+from api.worker.tasks import decode_task, stream_decode_task, warm_decode_task
 from calibration.decode.frame_store import FrameStore
 from calibration.plan import Plan
 from calibration.progress import TaskContext
-from calibration.worker.tasks import decode_task, stream_decode_task, warm_decode_task
 
 if TYPE_CHECKING:
     from api.services import Services

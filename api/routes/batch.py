@@ -2,7 +2,7 @@
 
 `POST /batches/calibrations` creates one calibration resource per (session, model setting),
 all tied to one job (`api.jobs.calibrations.BatchCalibrateJob`); the job runs them as
-sub-tasks (`calibration.worker.dask_batch`), so
+sub-tasks (`api.worker.dask_batch`), so
 on a Dask cluster they spread over the workers. Each calibration ends `succeeded` or
 `failed` with its own reason; cancelling the job cancels every one still running.
 """

@@ -35,7 +35,7 @@ def _plan_lock(final: Path) -> threading.Lock:
 def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, list[str]]:
     """Cached guidance for the session's current ready poses, computed on first request by
     the executor's worker (the fit takes seconds of CPU; the server paces live captures)."""
-    from calibration.worker.guidance_task import guidance_task
+    from api.worker.guidance_task import guidance_task
 
     with svc.db.session() as s:
         get_session(s, session_id)

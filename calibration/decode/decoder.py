@@ -66,7 +66,7 @@ _NOISE_PIECE = 1 << 14
 _NOISE_SAMPLE = 1 << 19
 # Images of at least this many pixels take the compiled kernels once loaded (below, a
 # one-off process spends more loading them than they save); public: a service worker
-# prepares its heap for the compiled path by the same rule (calibration.worker.tasks).
+# prepares its heap for the compiled path by the same rule (api.worker.tasks).
 COMPILED_MIN_PIXELS = 1 << 20
 # One-off decodes (decode_stack, which reads it) of images this large load the compiled
 # kernels (~0.7 s of CPU once per process) even when no live capture has loaded them yet:

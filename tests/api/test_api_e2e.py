@@ -33,7 +33,8 @@ def affine_truth() -> tuple[np.ndarray, np.ndarray]:
 
 
 def render(plan: Plan, rng: np.random.Generator, noise_dn: float = 1.0) -> np.ndarray:
-    """(F, H, W) uint8 frames of the plan through the affine camera (docs/formats.md, pattern plan)."""
+    """(F, H, W) uint8 frames of the plan through the affine camera (docs/formats.md, the
+    pattern plan)."""
     x, y = affine_truth()
     frames = []
     for f in plan.frames:

@@ -17,7 +17,7 @@ from api.db import Database, JobRecord, PoseRecord, SessionRecord
 from api.jobs import JobManager
 from api.problems import Problem
 from api.recovery import mark_interrupted
-from calibration.worker.executor import InProcessExecutor
+from api.worker.executor import InProcessExecutor
 from tests.api.test_api_session import screen_poses, small_rig
 from tests.api.test_api_units import FnJob
 

@@ -126,7 +126,7 @@ def _run_python(code: str, *args: str) -> subprocess.CompletedProcess:
 def test_an_unused_process_executor_stops_and_exits() -> None:
     """Workers spawned up front are stopped by shutdown() and at interpreter exit (they hung
     both when the pool's manager thread had never started)."""
-    code = ("from calibration.worker.executor import ProcessExecutor\n"
+    code = ("from api.worker.executor import ProcessExecutor\n"
             "ProcessExecutor().shutdown(wait=False)\n"
             "ProcessExecutor()\n")
     done = _run_python(code)

@@ -32,9 +32,9 @@ from api.demo import demo_rig_config
 from api.inprocess import free_port
 from api.jobs.manager import JobManager
 from api.services import Services
+from api.worker.executor import InProcessExecutor
 from calibration.plan import ScreenGeometry
 from calibration.progress import TaskContext
-from calibration.worker.executor import InProcessExecutor
 from tests.api.test_api_lifetime import alive, descendants, wait_gone
 from tests.api.test_api_units import FnJob
 from tests.api_server import ROOT, ServerProcess
@@ -273,7 +273,7 @@ def test_job_shutdown_interrupts_every_job_when_the_executor_cannot_cancel(
 
 DEAD_MANAGER = """
 import multiprocessing as mp, os, signal, threading
-from calibration.worker.executor import ProcessExecutor
+from api.worker.executor import ProcessExecutor
 from tests.api.test_api_shutdown import wait_for_cancel
 ex = ProcessExecutor(max_workers=1)
 running = threading.Event()
@@ -297,7 +297,7 @@ def test_a_process_executor_whose_processes_died_stops_quietly() -> None:
 
 STUCK_WORKER = """
 import multiprocessing as mp, threading, time
-from calibration.worker.executor import ProcessExecutor
+from api.worker.executor import ProcessExecutor
 from tests.api.test_api_shutdown import ignore_cancel
 ex = ProcessExecutor(max_workers=1)
 ex.stop_grace_s = 1.0
@@ -323,7 +323,7 @@ def test_shutdown_without_waiting_ends_a_worker_stuck_in_a_task() -> None:
 
 SIGNALLED_WORKERS = """
 import multiprocessing as mp, os, sys
-from calibration.worker.executor import ProcessExecutor
+from api.worker.executor import ProcessExecutor
 ex = ProcessExecutor(max_workers=1)
 children = mp.active_children()
 print(*[p.pid for p in children], flush=True)

@@ -19,8 +19,8 @@ from api.db import Database
 from api.jobs import Job, JobKind, JobManager
 from api.problems import Problem
 from api.store import DataStore, check_id, new_id
+from api.worker.executor import InProcessExecutor, make_executor
 from calibration.progress import Cancelled, TaskContext
-from calibration.worker.executor import InProcessExecutor, make_executor
 
 PLAN = {
     "format": "phasecal.plan/1",

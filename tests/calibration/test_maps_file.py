@@ -20,6 +20,8 @@ import pytest
 
 import calibration.decode.decoder as decoder_module
 from acquisition.patterns import build_plan
+from api.worker import tasks
+from api.worker.tasks import stream_decode_task
 from calibration import prefault
 from calibration.decode import DecodeError, StreamingDecoder
 from calibration.decode.frame_store import FrameStore
@@ -28,8 +30,6 @@ from calibration.maps_file import MapsFile
 from calibration.plan import write_plan
 from calibration.prefault import IdlePrefault, populate
 from calibration.progress import Cancelled, TaskContext
-from calibration.worker import tasks
-from calibration.worker.tasks import stream_decode_task
 from tests.calibration.decode.test_decode import H, W, render
 
 ROOT = Path(__file__).resolve().parents[2]
