@@ -14,7 +14,7 @@ from fastapi.staticfiles import StaticFiles
 
 from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
-from api.problems import install_handlers
+from api.problems import UnhandledErrorMiddleware, install_handlers
 from api.routes import (
     batch,
     calibrations,
@@ -109,6 +109,9 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                        max_json_bytes=cfg.max_json_bytes)
     if cfg.token:
         app.add_middleware(TokenMiddleware, token=cfg.token)
+    # around every middleware above: an error none of them answered is a 500 problem that
+    # keeps the connection (a full disk was answered 507 further in)
+    app.add_middleware(UnhandledErrorMiddleware)
     app.add_middleware(ServerTimingMiddleware)  # outermost: times everything above
     return app
 

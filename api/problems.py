@@ -14,6 +14,7 @@ PROBLEM_TYPE_BASE = "https://phasecal.dev/problems/"
 MEDIA_TYPE = "application/problem+json"
 
 log = logging.getLogger("phasecal.api")
+MAX_LISTED_ERRORS = 20  # a validation problem lists this many errors (and counts the rest)
 
 _TITLES = {
     400: "Bad request",
@@ -29,6 +30,7 @@ _TITLES = {
     429: "Too many requests",
     500: "Internal server error",
     503: "Service unavailable",
+    507: "Insufficient storage",
 }
 
 
@@ -113,13 +115,16 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        found = exc.errors()
         errors = [
             {"loc": [str(p) for p in e.get("loc", ())], "msg": str(e.get("msg", ""))}
-            for e in exc.errors()
+            for e in found[:MAX_LISTED_ERRORS]
         ]
         first = errors[0] if errors else {"loc": [], "msg": "invalid request"}
         detail = f"{'.'.join(first['loc'])}: {first['msg']}"
-        return problem_response(422, "validation-error", detail, request.url.path, errors=errors)
+        extra = {"errors_total": len(found)} if len(found) > MAX_LISTED_ERRORS else {}
+        return problem_response(422, "validation-error", detail, request.url.path, errors=errors,
+                                **extra)
 
     @app.exception_handler(PlanError)
     async def _plan(request: Request, exc: PlanError) -> JSONResponse:
@@ -143,13 +148,10 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        # Reached only for errors raised outside UnhandledErrorMiddleware (in middleware
-        # added after it); Starlette then re-raises and the server closes the connection.
+        # Reached only for errors raised outside UnhandledErrorMiddleware (which the app
+        # adds around its other middleware); Starlette then re-raises and the server closes
+        # the connection.
         return internal_error(request.method, request.url.path, exc)
-
-    # Added first, so it sits inside every middleware added later and right around the
-    # routes' own exception handling.
-    app.add_middleware(UnhandledErrorMiddleware)
 
 
 def internal_error(method: str, path: str, exc: BaseException) -> JSONResponse:

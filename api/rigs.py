@@ -6,6 +6,7 @@ settings changes (one camera, one screen).
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ if TYPE_CHECKING:
     from acquisition.protocols import SimulatorControls
     from acquisition.rig import Rig
 
+log = logging.getLogger("phasecal.rigs")
 DEFAULT_RIG_NAME = "default"
 
 
@@ -181,11 +183,14 @@ class RigManager:
         return h
 
     def close(self) -> None:
-        """Close every opened rig."""
+        """Close every opened rig (one that fails to close is logged, the others still are)."""
         with self._lock:
             handles, self._handles = list(self._handles.values()), {}
         for h in handles:
-            h.rig.close()
+            try:
+                h.rig.close()
+            except Exception:
+                log.exception("closing rig %s failed; closing the others", h.rig_id)
 
 
 def _open(rig_id: str, name: str, config: Any) -> Rig:

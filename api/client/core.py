@@ -26,13 +26,15 @@ import httpx
 
 from api.client import ops
 from api.client import types as t
-from api.client.errors import job_error, raise_for_problem
+from api.client.errors import ServiceError, job_error, raise_for_problem
 
 T = TypeVar("T")
 RETRY_STATUS = (502, 503, 504)
 BACKOFF_S = 0.2  # before retry k (0-based): BACKOFF_S * 2**k
 SSE_READ_TIMEOUT_S = 45.0  # the server sends a keepalive every 15 s
 JOB_POLL_S = 0.2  # between a dropped event stream and the next one
+TOO_MANY_STREAMS = 429  # the server's answer while its event streams are all taken
+STREAMS_BUSY_S = 2.0  # then the job is polled this often (the server's Retry-After)
 CHUNK = 1 << 20
 
 
@@ -232,16 +234,22 @@ def follow_job(job: str | t.Job | dict[str, Any], timeout_s: float,
                on_progress: Callable[[t.Job], None] | None, *, retries: int,
                timeout: httpx.Timeout) -> Steps[t.Job]:
     """The job's final state, from its event stream (`on_progress` gets every progress
-    event); a dropped stream is re-joined after looking at the job; `TimeoutError` once
+    event); a dropped stream is re-joined after looking at the job, and while the server has
+    too many streams open (429) the job is polled until one is free; `TimeoutError` once
     `timeout_s` has passed."""
     jid = ops.job_id(job)
     deadline = time.monotonic() + timeout_s
     while True:
+        busy = False
         try:
             stream = yield from open_events(jid, retries=retries, timeout=timeout)
             final = yield from closing(stream.response, until_end(stream, deadline, on_progress))
         except httpx.TransportError:
             final = None  # stream dropped: look at the job, then reconnect
+        except ServiceError as exc:
+            if exc.status != TOO_MANY_STREAMS:
+                raise
+            final, busy = None, True
         if final is not None:
             return final
         state = yield from perform(ops.get_job(jid), retries=retries)
@@ -249,7 +257,7 @@ def follow_job(job: str | t.Job | dict[str, Any], timeout_s: float,
             return state
         if time.monotonic() > deadline:
             raise TimeoutError(f"job {jid} still {state['status']} at the deadline")
-        yield Sleep(JOB_POLL_S)
+        yield Sleep(STREAMS_BUSY_S if busy else JOB_POLL_S)
 
 
 def until_end(stream: EventStream, deadline: float,

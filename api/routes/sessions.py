@@ -21,7 +21,7 @@ from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session, pose_to_dict
 from api.schemas import MAX_OFFSET, CaptureRequest, Pose, Session, SessionCreate
 from api.services import Services, get_services
-from api.store import check_id, new_id
+from api.store import new_id
 from calibration.maps import load_maps
 from calibration.plan import plan_from_dict
 
@@ -39,8 +39,7 @@ def _session_dict(rec: SessionRecord) -> dict[str, Any]:
 @router.post("/sessions", status_code=201, response_model=Session)
 def create_session(body: SessionCreate, svc: Svc) -> JSONResponse:
     """Create a session on a rig with a plan (given, or from a preset for the rig's screen)."""
-    rig_id = body.rig_id or svc.rigs.default_id
-    check_id(rig_id, "rig", "rig")
+    rig_id = svc.rigs.resolve(body.rig_id or "default")
     svc.rigs.record(rig_id)
     if body.plan is not None:
         if body.preset is not None:

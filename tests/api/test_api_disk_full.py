@@ -153,3 +153,22 @@ def test_no_space_is_recognised_however_it_is_raised() -> None:
     assert is_no_space(RuntimeError("OSError: [Errno 28] No space left on device"))  # a worker's
     assert not is_no_space(OSError(errno.EACCES, "Permission denied"))
     assert not is_no_space(ValueError("bad plan"))
+
+
+def test_a_request_that_meets_a_full_disk_gets_507_and_the_reserve_is_freed(tmp_path) -> None:
+    config = ServiceConfig(data_dir=tmp_path / "data", executor="threads",
+                           space_reserve_bytes=1 * MiB, min_free_bytes=1 * MiB)
+    app = create_app(config)
+
+    def full() -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    app.add_api_route("/test-full-disk", full, methods=["POST"])
+    with TestClient(app) as c:
+        assert (tmp_path / "data" / "space.reserve").is_file()
+        r = c.post("/test-full-disk")
+        assert r.status_code == 507 and r.headers["content-type"] == "application/problem+json"
+        body = r.json()
+        assert body["title"] == "Insufficient storage" and "no space left" in body["detail"]
+        assert not (tmp_path / "data" / "space.reserve").exists()  # the database may use it
+        assert c.get("/health").status_code == 200  # same connection, still served

@@ -248,6 +248,22 @@ def test_wait_rejoins_a_dropped_stream_after_looking_at_the_job(kind: str) -> No
     assert paths == ["/jobs/job_1/events", "/jobs/job_1"] * 2
 
 
+def test_wait_polls_the_job_while_the_server_has_no_stream_free(kind: str, monkeypatch) -> None:
+    monkeypatch.setattr(core, "STREAMS_BUSY_S", 0.01)
+    paths: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        paths.append(request.url.path)
+        if request.url.path.endswith("/events"):
+            return httpx.Response(429, headers={"Retry-After": "2"},
+                                  json={"status": 429, "detail": "too many streams"})
+        state = "running" if paths.count("/jobs/job_1") == 1 else "succeeded"
+        return httpx.Response(200, json=job(state))
+
+    assert Face(kind, handler).call("wait", "job_1")["status"] == "succeeded"
+    assert paths == ["/jobs/job_1/events", "/jobs/job_1"] * 2
+
+
 def test_wait_times_out(kind: str) -> None:
     def handler(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/events"):
