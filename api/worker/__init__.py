@@ -1,5 +1,5 @@
 """Runs heavy decode/calibration work on an executor: threads by default, Dask when configured."""
 
-from calibration.worker.executor import Executor, InProcessExecutor, make_executor
+from api.worker.executor import Executor, InProcessExecutor, make_executor
 
 __all__ = ["Executor", "InProcessExecutor", "make_executor"]

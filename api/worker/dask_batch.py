@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from api.worker.executor import Executor
 from calibration.progress import Cancelled, TaskContext
-from calibration.worker.executor import Executor
 
 BATCH_FORMAT = "phasecal.batch/1"
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -131,7 +131,7 @@ def read_manifest(path: str | Path, out_dir: str | Path) -> list[BatchItem]:
 
 
 def _default_task() -> Callable[..., dict[str, Any]]:
-    from calibration.worker.tasks import calibrate_task
+    from api.worker.tasks import calibrate_task
 
     return calibrate_task
 
@@ -145,7 +145,7 @@ def run_batch(
     """Run every item as a sub-task of job `ctx.job_id`; a JSON-able summary per item.
 
     `task_fn(ctx, plan_path, maps_paths, model, out_dir, options=..., heldout_paths=...)`
-    defaults to `calibration.worker.tasks.calibrate_task`. Raises `Cancelled` when the
+    defaults to `api.worker.tasks.calibrate_task`. Raises `Cancelled` when the
     batch was cancelled (after every running item stopped).
     """
     if not items:

@@ -1,11 +1,11 @@
 """The executor interface every heavy job of the service goes through.
 
 Task functions are module-level callables `fn(ctx: TaskContext, *args, **kwargs) -> dict`
-(see `calibration.worker.tasks`): they take file paths, write their outputs atomically
+(see `api.worker.tasks`): they take file paths, write their outputs atomically
 and return a small JSON-able summary, so they can run in a thread or on a Dask worker.
 `InProcessExecutor` runs them on a thread pool (NumPy/SciPy/OpenCV release the GIL);
 `make_executor("tcp://...")` returns the Dask-backed executor of
-`calibration.worker.dask_executor`.
+`api.worker.dask_executor`.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Protocol, runtime_checkable
 
+from api.worker.task_runner import TaskRunner, Ticket
 from calibration.progress import ProgressFn, TaskContext
-from calibration.worker.task_runner import TaskRunner, Ticket
 
 DASK_ENV = "PHASECAL_DASK"
 
@@ -136,7 +136,7 @@ class ProcessExecutor(TaskRunner):
         from concurrent.futures import ProcessPoolExecutor
         from multiprocessing.managers import SyncManager
 
-        from calibration.worker.lifetime import die_with_parent, guard_args
+        from api.worker.lifetime import die_with_parent, guard_args
 
         super().__init__()
         ctx = mp.get_context("spawn")
@@ -268,6 +268,6 @@ def make_executor(address: str | None = None) -> Executor:
             f"executor address {address!r}: expected 'tcp://host:port' of a Dask scheduler, "
             f"'processes', or unset {DASK_ENV} for the in-process threads"
         )
-    from calibration.worker.dask_executor import DaskExecutor
+    from api.worker.dask_executor import DaskExecutor
 
     return DaskExecutor(address)

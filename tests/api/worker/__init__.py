@@ -1,1 +1,1 @@
-"""Tests of `calibration.worker`."""
+"""Tests of `api.worker`."""

@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 
 from api.cli import main as cli_main
-from calibration.progress import Cancelled, TaskContext
-from calibration.worker.dask_batch import (
+from api.worker.dask_batch import (
     BatchError,
     items_from_manifest,
     read_manifest,
     run_batch,
 )
-from calibration.worker.dask_executor import DaskExecutor, start_local_cluster
-from calibration.worker.executor import InProcessExecutor
+from api.worker.dask_executor import DaskExecutor, start_local_cluster
+from api.worker.executor import InProcessExecutor
+from calibration.progress import Cancelled, TaskContext
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 

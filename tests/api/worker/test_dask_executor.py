@@ -15,10 +15,10 @@ import distributed
 import numpy as np
 import pytest
 
+from api.worker.dask_context import cancel_event_name
+from api.worker.dask_executor import DaskExecutor, WorkerLost
+from api.worker.executor import InProcessExecutor, make_executor
 from calibration.progress import Cancelled, TaskContext
-from calibration.worker.dask_context import cancel_event_name
-from calibration.worker.dask_executor import DaskExecutor, WorkerLost
-from calibration.worker.executor import InProcessExecutor, make_executor
 
 # Task functions below are defined in this test module, which workers cannot import.
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -84,7 +84,7 @@ def plain_add(a: int, b: int) -> int:
 @pytest.fixture(scope="module")
 def cluster():
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        from calibration.worker.dask_executor import start_local_cluster
+        from api.worker.dask_executor import start_local_cluster
 
         lc = start_local_cluster(2)
         try:

@@ -17,10 +17,10 @@ from fastapi.testclient import TestClient
 from acquisition.patterns import build_plan
 from api.app import create_app
 from api.config import ServiceConfig
+from api.worker.dask_executor import DaskExecutor, start_local_cluster
 from calibration.maps import load_maps
 from calibration.plan import CosineFrame, FlatFrame, Plan
-from calibration.worker.dask_executor import DaskExecutor, start_local_cluster
-from tests.calibration.worker.test_dask_batch import FIT_AGREE_PX, model_disagreement_px
+from tests.api.worker.test_dask_batch import FIT_AGREE_PX, model_disagreement_px
 
 H, W = 96, 128
 TERMINAL = ("succeeded", "failed", "cancelled", "interrupted")

@@ -11,9 +11,9 @@ from typing import Any
 
 import pytest
 
+from api.worker.executor import InProcessExecutor
+from api.worker.task_runner import TaskRunner, Ticket
 from calibration.progress import Cancelled, TaskContext
-from calibration.worker.executor import InProcessExecutor
-from calibration.worker.task_runner import TaskRunner, Ticket
 
 
 def _until_cancelled(ctx: TaskContext, started: threading.Event) -> dict[str, Any]:

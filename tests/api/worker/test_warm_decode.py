@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from calibration.worker.tasks import warm_decode_task
+from api.worker.tasks import warm_decode_task
 
 
 def test_warm_decode_task_loads_the_kernels_for_any_image_size() -> None:
