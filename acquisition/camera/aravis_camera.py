@@ -108,6 +108,9 @@ class AravisCamera:
         self._frame_retention_s = frame_retention_s
         self._stats_before = StreamStatistics()  # counts of the streams already released
         self._resending = False  # whether the current stream asks for resends
+        BufferStatus = self._Aravis.BufferStatus
+        self._not_sent = (BufferStatus.CLEARED, BufferStatus.ABORTED, BufferStatus.UNKNOWN,
+                          BufferStatus.FILLING)
         self._lost = threading.Event()
         self._offsets: collections.deque[float] = collections.deque(maxlen=OFFSET_WINDOW)
         self._not_before = -np.inf
@@ -391,6 +394,12 @@ class AravisCamera:
         # a loaded host's delay dated it early and made fresh frames look stale
         popped_ns = time.time_ns()
         arrived = self._clock.now()
+        status = buf.get_status()
+        if status in self._not_sent:  # never filled: Aravis gave back a buffer it could not
+            # use (a stray or unknown packet); no frame of the camera, no trigger answered
+            self.incomplete_buffers += 1
+            self._stream.push_buffer(buf)
+            return None
         # frames answer the software triggers sent, in order: is a trigger still waiting
         # for this one? (an incomplete buffer cannot tell by its time: a buffer whose
         # leader packet was lost keeps the timestamp of the frame it held before)
@@ -401,7 +410,6 @@ class AravisCamera:
             self._deferred -= 1
             self._send_trigger()
         try:
-            status = buf.get_status()
             if status != self._Aravis.BufferStatus.SUCCESS:
                 self.incomplete_buffers += 1
                 mode = self._settings.trigger_mode
