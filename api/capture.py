@@ -18,8 +18,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
+from acquisition.controller import capture_pose
 from acquisition.rig import Rig
 from calibration.atomic import write_json_atomic
 from calibration.decode.frame_store import FrameStore
@@ -65,8 +67,6 @@ def frames_path(pose_dir: Path) -> Path:
 
 def _import_legacy(store: FrameStore, pose_dir: Path) -> None:
     """Move a legacy PNG capture's frames into the store (then drop the PNGs)."""
-    import cv2
-
     folder = pose_dir / LEGACY_FRAMES
     for index in sorted(_legacy_indices(folder)):
         path = next(folder.glob(f"frame_{index:04d}.*"))
@@ -140,8 +140,6 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
                    on_frame: Any = None) -> dict[str, Any]:
     """Run the controller for the plan frames missing from the pose's store; raise on
     failure/cancel. `on_frame(store, index)` is called after each stored frame."""
-    from acquisition.controller import capture_pose
-
     total = len(plan.frames)
     store = FrameStore(pose_dir, total)
     if (pose_dir / LEGACY_FRAMES).is_dir():
@@ -167,7 +165,7 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
               "captured_at": sink.last_stored_at,  # the last frame, not the controller's end
               "controller_done_at": returned_at,  # after the integrity repeats and check
               "close_s": round(time.time() - returned_at, 4),
-              "recaptures": len(result.recaptures),
+              **result.counters(),
               "trigger_late_s": round(result.trigger_late_s, 4)}
     ctx.check_cancelled()
     status = result.status

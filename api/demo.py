@@ -19,17 +19,16 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import Any, TextIO
 
 import numpy as np
 
 from api.client import PhasecalClient, ServiceError
 from api.config import ServiceConfig
 from api.inprocess import running_service
+from calibration.maps import load_maps
 from calibration.plan import ScreenGeometry
-
-if TYPE_CHECKING:
-    from hw_mocks.truth import SimulatorTruth
+from hw_mocks.truth import SimulatorTruth
 
 
 @dataclass
@@ -114,8 +113,6 @@ def _print_links(links: list[tuple[str, str]], root: Path, out: TextIO) -> None:
 def _drive(client: PhasecalClient, root: Path, n_poses: int, rig_config: dict[str, Any],
            models: tuple[str, ...], preset: str, seed: int, options: dict[str, Any] | None,
            out: TextIO) -> list[DemoRow]:
-    from hw_mocks.truth import SimulatorTruth
-
     print(f"phasecal demo: service at {client.http.base_url}, data in {root / 'data'}", file=out)
     rig = client.create_rig("demo", rig_config)
     session = client.create_session("demo", rig_id=rig["id"], preset=preset)
@@ -174,8 +171,6 @@ def _export_mrcal(client: PhasecalClient, cal_id: str, model: str, root: Path) -
 def _covered_pixels(client: PhasecalClient, session_id: str, pose_ids: list[str],
                     stride: int = 8) -> np.ndarray:
     """Pixels (N, 2) on a grid where at least one pose decoded the screen."""
-    from calibration.maps import load_maps
-
     union = None
     for pid in pose_ids:
         path = Path(tempfile.mkdtemp(prefix="phasecal-maps-")) / f"{pid}.npz"

@@ -7,7 +7,7 @@ import io
 import numpy as np
 from matplotlib.colors import ListedColormap, LogNorm, Normalize
 
-from calibration.figures import one_at_a_time, subplots
+from calibration import one_at_a_time, subplots
 from calibration.maps import DecodedMaps
 
 PREVIEW_KINDS = ("x", "y", "sigma", "mask")

@@ -9,6 +9,12 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+
+from acquisition.errors import AcquisitionError, DeviceSettingsError
+from calibration import ModelError
+from calibration.maps import MapsError
+from calibration.plan import PlanError
 
 PROBLEM_TYPE_BASE = "https://phasecal.dev/problems/"
 MEDIA_TYPE = "application/problem+json"
@@ -76,8 +82,6 @@ def problem_response(status: int, slug: str, detail: str, instance: str | None =
 
 def _allowed_methods(request: Request) -> list[str]:
     """Every method some route accepts for this path (FastAPI has one route per method)."""
-    from starlette.routing import Match
-
     methods: set[str] = set()
     scope = dict(request.scope, method="GET")
     for route in request.app.router.routes:
@@ -89,11 +93,6 @@ def _allowed_methods(request: Request) -> list[str]:
 
 def install_handlers(app: FastAPI) -> None:
     """Route every error (ours, HTTP, validation, domain, unexpected) to problem+json."""
-    from acquisition.errors import AcquisitionError, DeviceSettingsError
-    from calibration.maps import MapsError
-    from calibration.models.base import ModelError
-    from calibration.plan import PlanError
-
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem) -> JSONResponse:
         return problem_response(exc.status, exc.slug, exc.detail, request.url.path,

@@ -14,11 +14,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from sqlalchemy import select
 
 from api.db import CalibrationRecord
 from api.problems import Problem
 from api.services import Services
 from api.store import check_id
+from calibration import gather, load_model, write_diff, write_report
+from calibration.maps import load_maps
+from calibration.plan import read_plan
 
 REPORT_DIR = "report"
 _locks: dict[str, threading.Lock] = {}
@@ -44,8 +48,6 @@ def succeeded(svc: Services, cal_id: str) -> CalibrationRecord:
 
 
 def _maps(svc: Services, pose_ids: list[str]) -> list[Any]:
-    from calibration.maps import load_maps
-
     out = []
     for pid in pose_ids:
         path = svc.store.file(pid, "maps.npz")
@@ -63,10 +65,6 @@ def report_dir(svc: Services, cal_id: str) -> Path:
     with _lock(cal_id):
         if (final / "report.html").is_file():
             return final
-        from calibration.models.base import load_model
-        from calibration.plan import read_plan
-        from calibration.report_data import gather
-        from calibration.report_html import write_report
 
         cal_dir = svc.store.dir_for(cal_id)
         model = load_model(cal_dir / "model.json")
@@ -86,8 +84,6 @@ def report_dir(svc: Services, cal_id: str) -> Path:
 
 def _siblings(svc: Services, rec: CalibrationRecord) -> list[tuple[str, str]]:
     """Other succeeded calibrations of the same session (id, model), for diff links."""
-    from sqlalchemy import select
-
     with svc.db.session() as s:
         rows = s.execute(select(CalibrationRecord.id, CalibrationRecord.model).where(
             CalibrationRecord.session_id == rec.session_id,
@@ -111,8 +107,6 @@ def diff_dir(svc: Services, cal_a: str, cal_b: str) -> Path:
     with _lock(f"{cal_a}/{cal_b}"):
         if (final / "diff.json").is_file():
             return final
-        from calibration.models.base import load_model
-        from calibration.report_html import write_diff
 
         ma = load_model(svc.store.file(cal_a, "model.json"))
         mb = load_model(svc.store.file(cal_b, "model.json"))

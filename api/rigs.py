@@ -13,11 +13,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import cv2
+import numpy as np
 from sqlalchemy import select
 
+from acquisition.errors import AcquisitionError
+from acquisition.rig import RigConfigError, load_rig_config, open_rig
+from acquisition.rig import parse_rig_config as parse_acquisition_rig_config
 from api.db import Database, RigRecord
 from api.problems import Problem
+from api.rig_policy import check_client_rig
 from api.store import check_id, new_id
+from hw_mocks.rig import open_simulated_rig
 
 if TYPE_CHECKING:
     from acquisition.protocols import SimulatorControls
@@ -47,8 +54,6 @@ class RigHandle:
         if sim is None:
             raise Problem(409, "not-simulated", f"rig {self.rig_id} is not simulated: move the "
                           "screen physically and capture without screen_pose")
-        import cv2
-        import numpy as np
 
         rot, _ = cv2.Rodrigues(np.asarray(screen_pose["rvec"], np.float64))
         sim.set_pose(rot, np.asarray(screen_pose["tvec_mm"], np.float64))
@@ -56,11 +61,8 @@ class RigHandle:
 
 def parse_rig_config(config: dict[str, Any], source: str = "rig config") -> Any:
     """Validate a rig config (the TOML/JSON fields) with `acquisition.rig`; 422 on error."""
-    from acquisition.rig import RigConfigError
-    from acquisition.rig import parse_rig_config as parse
-
     try:
-        return parse(config, source)
+        return parse_acquisition_rig_config(config, source)
     except RigConfigError as exc:
         raise Problem(422, "invalid-rig-config", str(exc)) from None
 
@@ -73,7 +75,6 @@ def load_default_config(spec: str) -> dict[str, Any]:
     """
     if spec == "simulated":
         return {"kind": "simulated"}
-    from acquisition.rig import load_rig_config
 
     path = Path(spec)
     if not path.is_file():
@@ -83,8 +84,6 @@ def load_default_config(spec: str) -> dict[str, Any]:
 
 def load_rigs_dir(folder: Path) -> dict[str, dict[str, Any]]:
     """Operator rigs of a folder: every `*.toml`/`*.json` file, named by its stem."""
-    from acquisition.rig import load_rig_config
-
     if not folder.is_dir():
         raise ValueError(f"--rigs-dir {folder}: no such folder")
     files = sorted(p for p in folder.iterdir() if p.suffix in (".toml", ".json"))
@@ -131,8 +130,6 @@ class RigManager:
         Rigs from a request may name only listed devices and recordings inside the data
         directory (`api.rig_policy`); operator rig names are reserved.
         """
-        from api.rig_policy import check_client_rig
-
         if name in self.operator_names:
             raise Problem(409, "conflict", f"rig name {name!r} is reserved for an operator rig "
                           "(serve --rig / --rigs-dir)")
@@ -172,7 +169,6 @@ class RigManager:
         rec = self.record(rig_id)
         parsed = parse_rig_config(rec.config, f"rig {rig_id}")
         if rec.name not in self.operator_names:  # stored by a client (maybe by an older version)
-            from api.rig_policy import check_client_rig
 
             parsed = check_client_rig(parsed, self.data_dir, aravis_ids=self.aravis_ids)
         rig = _open(rig_id, rec.name, parsed)
@@ -195,10 +191,6 @@ class RigManager:
 
 def _open(rig_id: str, name: str, config: Any) -> Rig:
     """Open a rig's devices; problems name the rig and say whether config or device failed."""
-    from acquisition.errors import AcquisitionError
-    from acquisition.rig import open_rig
-    from hw_mocks.rig import open_simulated_rig
-
     try:
         return open_rig(config, simulator=open_simulated_rig)
     except (ValueError, TypeError, KeyError) as exc:

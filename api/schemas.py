@@ -8,7 +8,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, RootModel, cr
 
 from api.jobs.model import JobKind as JobKindEnum
 from api.jobs.model import JobStatus as JobStatusEnum
-from calibration.fit.registry import MODEL_NAMES, MODELS
+from calibration import MODEL_NAMES, MODELS
 
 ModelName = Literal[MODEL_NAMES]  # type: ignore[valid-type]  # from the model registry
 # the job vocabulary of api.jobs.model, as plain string enums in the OpenAPI document

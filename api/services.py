@@ -9,11 +9,13 @@ from dataclasses import dataclass, field
 
 from fastapi import Request
 
+from api.capture import stored_indices
 from api.config import ServiceConfig
 from api.db import Database
 from api.jobs.manager import JobManager
 from api.live_preview import LivePreview
 from api.maps_durability import MapsSyncer, recover_pending
+from api.recovery import mark_interrupted
 from api.rigs import RigManager
 from api.storage import DiskSpace
 from api.store import DataStore
@@ -60,8 +62,6 @@ class Services:
     def recover(self) -> None:
         """Jobs left active by a previous process become interrupted, and so do their targets;
         their staged outputs are removed."""
-        from api.recovery import mark_interrupted
-
         stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         reason = f"interrupted: the server stopped while this job was active (restart at {stamp})"
         ids = self.jobs.recover(reason)
@@ -71,8 +71,6 @@ class Services:
 
     def frames_on_disk(self, pose_id: str) -> int:
         """How many plan frames of a captured pose are stored (what a resume keeps)."""
-        from api.capture import stored_indices
-
         return len(stored_indices(self.store.dir_for(pose_id, create=False)))
 
     def close(self) -> None:

@@ -1,11 +1,15 @@
-"""Reliability of the REST service: bad inputs, kill -9 mid-fit, concurrent clients.
+"""Reliability of the REST service: bad inputs, kill -9 mid-fit, concurrent clients, and
+the ordinary faults of a lab server: huge JSON bodies, slow preview clients, SIGTERM and
+SIGINT, a full disk.
 
 Drives `phasecal serve` subprocesses (default executor: worker processes) over HTTP and
 prints what was tried, how many times, and the outcome: server errors (5xx), files
 outside the data directory touched, orphaned processes after kill -9, finished poses lost
-at restart, duplicate jobs from simultaneous requests. Fuzzing is `tests/api/test_api_schema.py`.
+at restart, duplicate jobs from simultaneous requests; then one line per fault case (each
+case's own table is in its module: reliability_bodies, _streams, _shutdown, _disk).
+Fuzzing is `tests/api/test_api_schema.py`. The full-disk case mounts a tmpfs (root).
 
-    .venv/bin/python benchmarks/reliability.py [--kills 3] [--concurrent 10]
+    .venv/bin/python benchmarks/reliability.py [--kills 3] [--concurrent 10] [--quick]
 """
 
 from __future__ import annotations
@@ -15,12 +19,12 @@ import hashlib
 import io
 import os
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
@@ -31,7 +35,11 @@ sys.path.insert(0, str(ROOT))
 
 from acquisition.patterns import build_plan  # noqa: E402
 from api.demo import demo_rig_config  # noqa: E402
-from api.inprocess import free_port  # noqa: E402
+from benchmarks.reliability_bodies import run_body_cases  # noqa: E402
+from benchmarks.reliability_disk import run_disk_case  # noqa: E402
+from benchmarks.reliability_shutdown import run_shutdown_cases  # noqa: E402
+from benchmarks.reliability_streams import run_stream_cases  # noqa: E402
+from benchmarks.serve_process import start_serve  # noqa: E402
 from calibration.plan import ScreenGeometry  # noqa: E402
 from hw_mocks.cameras import mild_pinhole  # noqa: E402
 from hw_mocks.poses import random_poses  # noqa: E402
@@ -59,22 +67,9 @@ class Server:
         self.data, self.proc, self.url = data, None, ""
 
     def start(self) -> Tolerant:
-        port = free_port()
-        env = dict(os.environ, PHASECAL_DATA_DIR=str(self.data),
-                   PHASECAL_MAX_UPLOAD_BYTES=str(MAX_UPLOAD))
-        env.pop("PHASECAL_DASK", None)
-        self.proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port",
-                                      str(port)], cwd=ROOT, env=env,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        self.url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            try:
-                if httpx.get(f"{self.url}/health", timeout=2).status_code == 200:
-                    return Tolerant(base_url=self.url, timeout=120)
-            except httpx.TransportError:
-                time.sleep(0.1)
-        raise RuntimeError("server did not start")
+        self.proc, self.url = start_serve(
+            self.data, env={"PHASECAL_MAX_UPLOAD_BYTES": str(MAX_UPLOAD)})
+        return Tolerant(base_url=self.url, timeout=120)
 
     def children(self) -> set[int]:
         found, todo = set(), [self.proc.pid]
@@ -252,10 +247,37 @@ def concurrent_resumes(c: httpx.Client, n: int) -> tuple[int, int]:
     return codes.count(202), len(started)
 
 
+def held(cases: list[dict[str, Any]]) -> str:
+    """How many of a fault's cases held (None: not run, e.g. without root)."""
+    ran = [c for c in cases if c.get("held") is not None]
+    skipped = f", {len(cases) - len(ran)} not run" if len(ran) < len(cases) else ""
+    return f"{sum(bool(c['held']) for c in ran)} of {len(ran)} held{skipped}"
+
+
+def fault_rows(srv: Server, quick: bool) -> list[tuple[str, int, str]]:
+    """The ordinary faults, one line each: huge JSON bodies and slow preview clients on the
+    running server, SIGTERM/SIGINT and a full disk on servers of their own."""
+    rows = []
+    bodies = run_body_cases(srv.url, srv.proc.pid)
+    rows.append(("50 MB / near-limit JSON bodies of every shape", len(bodies), held(bodies)))
+    streams = run_stream_cases(srv.url, clients=50 if quick else 200)
+    worst = max(r["p99_ms"] for r in streams)
+    rows.append((f"{streams[0]['clients']} preview clients hang up, 8 fps values",
+                 len(streams), f"{held(streams)}; worst p99 of other routes {worst:.0f} ms"))
+    stops = run_shutdown_cases()
+    rows.append(("SIGTERM / SIGINT mid-capture (server, group)", len(stops),
+                 f"{held(stops)}; exit codes {sorted({r['exit code'] for r in stops})}"))
+    disk = run_disk_case()
+    rows.append(("capture until a tmpfs is full, DELETE, resume", len(disk),
+                 f"{held(disk)}; {disk[0]['outcome']}"))
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kills", type=int, default=3)
     ap.add_argument("--concurrent", type=int, default=10)
+    ap.add_argument("--quick", action="store_true", help="50 preview clients instead of 200")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory(prefix="phasecal-reliability-") as tmp:
@@ -289,6 +311,7 @@ def main() -> int:
                 set(after) ^ set(before))
             rows.append(("files outside the data directory touched", len(before),
                          f"{touched} touched"))
+            rows += fault_rows(srv, args.quick)
             stats = kill_rounds(srv, c, sid, args.kills)
             rows.append(("kill -9 of serve during an sGCC fit", stats["kills"],
                          ", ".join(f"{v} {k}" for k, v in stats.items() if k != "kills")))

@@ -24,10 +24,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import select
 import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -41,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from acquisition.patterns import PRESETS, build_plan  # noqa: E402
 from api.config import DEFAULT_MAX_JSON_BYTES  # noqa: E402
-from api.inprocess import free_port  # noqa: E402
+from benchmarks.serve_process import start_serve  # noqa: E402
 
 ATTACK_BYTES = 50 << 20
 NEAR_LIMIT_BYTES = DEFAULT_MAX_JSON_BYTES - (64 << 10)
@@ -205,32 +203,6 @@ def run_body_cases(base_url: str, server_pid: int, cases: list[Case] | None = No
     return rows
 
 
-def start_server(data_dir: Path, env: dict[str, str] | None = None
-                 ) -> tuple[subprocess.Popen, str]:
-    """`python -m api.cli serve` on a free loopback port (threads executor); (process, URL)."""
-    port = free_port()
-    proc_env = dict(os.environ, **(env or {}))
-    proc_env.pop("PHASECAL_DASK", None)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--data-dir",
-         str(data_dir), "--executor", "threads"],
-        cwd=ROOT, env=proc_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"phasecal serve exited with {proc.returncode}")
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=2) as sock:
-                sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
-                if sock.recv(64).startswith(b"HTTP/1.1 200"):
-                    return proc, url
-        except OSError:
-            time.sleep(0.2)
-    proc.kill()
-    raise RuntimeError("phasecal serve did not start")
-
-
 def print_table(rows: list[dict]) -> None:
     """The rows as an aligned text table."""
     print(f"{'shape':44s} {'bytes':>10s} {'status':>6s} {'seconds':>8s} {'RSS +MB':>8s}  held")
@@ -244,7 +216,7 @@ def main() -> int:
     ap.add_argument("--attack-mb", type=float, default=ATTACK_BYTES / 2**20)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="phasecal-bodies-") as tmp:
-        proc, url = start_server(Path(tmp) / "data")
+        proc, url = start_serve(Path(tmp) / "data", executor="threads")
         try:
             rows = run_body_cases(url, proc.pid,
                                   body_cases(int(args.attack_mb * 2**20)) + legitimate_cases())

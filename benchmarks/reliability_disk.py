@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from acquisition.patterns import build_plan  # noqa: E402
 from api.demo import demo_rig_config  # noqa: E402
-from api.inprocess import free_port  # noqa: E402
+from benchmarks.serve_process import start_serve  # noqa: E402
 
 MiB = 1 << 20
 SCREEN = build_plan(320, 240, 0.5, preset="fast").screen
@@ -162,22 +162,10 @@ def run_disk_case(size_mib: int = 48) -> list[dict[str, Any]]:
         proc = None
         try:
             data = disk / "data"
-            port = free_port()
-            env = dict(os.environ, PHASECAL_DATA_DIR=str(data),
-                       PHASECAL_SPACE_RESERVE_BYTES=str(2 * MiB),
-                       PHASECAL_MIN_FREE_BYTES=str(1 * MiB))
-            env.pop("PHASECAL_DASK", None)
-            proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port",
-                                     str(port)], cwd=ROOT, env=env,
-                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            with Recorder(base_url=f"http://127.0.0.1:{port}", timeout=120) as c:
-                deadline = time.monotonic() + 120
-                while time.monotonic() < deadline:
-                    try:
-                        if httpx.get(f"{c.base_url}/health", timeout=2).status_code == 200:
-                            break
-                    except httpx.TransportError:
-                        time.sleep(0.1)
+            env = {"PHASECAL_SPACE_RESERVE_BYTES": str(2 * MiB),
+                   "PHASECAL_MIN_FREE_BYTES": str(1 * MiB)}
+            proc, url = start_serve(data, env=env)
+            with Recorder(base_url=url, timeout=120) as c:
                 facts = scenario(c, disk, data)
                 errors = [s for s in c.codes if s >= 500 and s != 507]
         finally:

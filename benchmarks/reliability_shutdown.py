@@ -18,7 +18,6 @@ from __future__ import annotations
 import os
 import signal
 import sqlite3
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from api.demo import demo_rig_config  # noqa: E402
-from api.inprocess import free_port  # noqa: E402
+from benchmarks.serve_process import start_serve  # noqa: E402
 from calibration.plan import ScreenGeometry  # noqa: E402
 
 #: label -> (signal, sent to the server's whole process group)
@@ -70,28 +69,6 @@ def running(pids: set[int]) -> set[int]:
     return out
 
 
-def start_server(data: Path, log: Path) -> tuple[subprocess.Popen, str]:
-    """`python -m api.cli serve` in a session of its own (its pid is its process group's
-    id) on a free loopback port; waits for /health."""
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if k not in ("PHASECAL_DASK", "PHASECAL_DATA_DIR")}
-    with open(log, "wb") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port", str(port),
-                                 "--data-dir", str(data)], cwd=ROOT, env=env, stdout=out,
-                                stderr=subprocess.STDOUT, start_new_session=True)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        try:
-            if httpx.get(f"{url}/health", timeout=2).status_code == 200:
-                return proc, url
-        except httpx.TransportError:
-            time.sleep(0.1)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait(30)
-    raise RuntimeError(f"server did not start: {log.read_text()[-2000:]}")
-
-
 def capture_midway(url: str) -> dict[str, Any]:
     """Start a capture on a slow simulated rig (4x supersampled rendering) and return its
     job once `FRAMES_BEFORE_SIGNAL` frames are in."""
@@ -122,7 +99,7 @@ def stored(db_path: Path, table: str, ident: str) -> tuple[str | None, str | Non
 def shutdown_case(label: str, sig: signal.Signals, group: bool, tmp: Path) -> dict[str, Any]:
     """One signal to a server mid-capture: what an operator would check afterwards."""
     data, log = tmp / "data", tmp / "serve.log"
-    proc, url = start_server(data, log)
+    proc, url = start_serve(data, log=log, new_session=True)
     try:
         job = capture_midway(url)
         children = descendants(proc.pid)

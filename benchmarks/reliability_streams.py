@@ -40,8 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from api.inprocess import free_port  # noqa: E402
 from api.routes.preview import MAX_FPS, MIN_FPS  # noqa: E402
+from benchmarks.serve_process import start_serve  # noqa: E402
 
 CLIENTS = 200
 #: allowed: the bounds and a middle value; disallowed: below, far below, zero, above
@@ -163,27 +163,6 @@ def run_stream_cases(base_url: str, clients: int = CLIENTS,
     return [run_case(base_url, fps, clients) for fps in fps_cases]
 
 
-def start_server(data_dir: Path, log_path: Path) -> tuple[subprocess.Popen, str]:
-    """`python -m api.cli serve` (simulated rig) on a free port; (process, base URL)."""
-    port = free_port()
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port", str(port),
-                                 "--data-dir", str(data_dir)], cwd=ROOT, stdout=log,
-                                stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"the server exited ({proc.returncode}); see {log_path}")
-        try:
-            if httpx.get(f"{url}/health", timeout=2).status_code == 200:
-                return proc, url
-        except httpx.TransportError:
-            time.sleep(0.1)
-    proc.kill()
-    raise RuntimeError("the server did not start")
-
-
 def print_table(rows: list[dict[str, Any]]) -> None:
     print(f"{'fps':>8} {'clients':>7} {'statuses':<28} {'probes':>6} {'p99 ms':>7} "
           f"{'max ms':>7} {'crowd s':>7}  held")
@@ -208,7 +187,7 @@ def main() -> int:
         print(json.dumps({"statuses": seen, "start": start, "end": time.perf_counter()}))
         return 0
     with tempfile.TemporaryDirectory(prefix="phasecal-streams-") as tmp:
-        proc, url = start_server(Path(tmp) / "data", Path(tmp) / "server.log")
+        proc, url = start_serve(Path(tmp) / "data", log=Path(tmp) / "server.log")
         try:
             quiet = quiet_p99_ms(url)
             rows = run_stream_cases(url, args.clients)

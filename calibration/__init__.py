@@ -1,1 +1,89 @@
-"""Pure numerics: decoding, camera models, fitting, evaluation; no hardware, no HTTP."""
+"""Pure numerics: decoding, camera models, fitting, evaluation; no hardware, no HTTP.
+
+The library's front door: the service (`api`), the CLI and the benchmarks take the numerics
+from here (`from calibration import decode_frames, load_model, ...`), so the modules behind
+it can move without touching them. The file formats every layer shares are modules of their
+own and are imported directly: `calibration.plan`, `calibration.maps`,
+`calibration.maps_file`, `calibration.decode.frame_store`, `calibration.atomic`,
+`calibration.progress`, `calibration.extras`, `calibration.prefault`, `calibration.readahead`.
+
+Names load lazily (PEP 562): a command that needs one function does not import the
+decoder's kernels or matplotlib with it.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    # decode: frames of one pose -> per-pixel screen points with uncertainty
+    "DecodeError": "decode",
+    "DecodeOptions": "decode",
+    "StreamingDecoder": "decode",
+    "read_frames": "decode",
+    "decode_frames": "pipeline",
+    "COMPILED_MIN_PIXELS": "decode.decoder",
+    "warm_up": "decode.kernel_warm",
+    "retain_freed_memory": "decode.heap",
+    "warm_heap": "decode.heap",
+    "holds_pixels": "decode.sums_cache",
+    # fit through the registry
+    "MODELS": "fit.registry",
+    "MODEL_NAMES": "fit.registry",
+    "PARAMETRIC": "fit.registry",
+    "model_spec": "fit.registry",
+    "DegenerateError": "fit.ransac",
+    "calibrate_files": "pipeline",
+    "write_model_folder": "pipeline",
+    "intrinsics_from_images": "fit.classic.quick",
+    "intrinsics_from_maps": "fit.classic.quick",
+    "read_white_flat": "fit.classic.quick",
+    "white_flat_index": "fit.classic.quick",
+    # models
+    "CameraModel": "models.base",
+    "ModelError": "models.base",
+    "load_model": "models.base",
+    "save_model": "models.base",
+    "OpenCV5Model": "models.parametric",
+    # evaluate and guide
+    "plan_next_pose": "guidance",
+    "session_points": "guidance",
+    # export
+    "ExportOptions": "formats",
+    "FILE_NAMES": "formats",
+    "MEDIA_TYPES": "formats",
+    "export_bytes": "formats",
+    "export_model": "formats",
+    "load_model_any": "formats",
+    "parse_pinhole": "formats",
+    "parse_rotation": "formats",
+    "undistort_pixels": "formats",
+    "export_opencv_yaml": "export",
+    "export_ros_yaml": "export",
+    # reports and figures
+    "gather": "report_data",
+    "write_report": "report_html",
+    "write_diff": "report_html",
+    "write_residual_report": "report",
+    "count_png": "report_plots",
+    "guidance_png": "report_plots",
+    "one_at_a_time": "figures",
+    "subplots": "figures",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    """Load a public name from its module on first use (PEP 562)."""
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'calibration' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"calibration.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -21,8 +21,8 @@ from api.worker.dask_batch import (
     read_manifest,
     run_batch,
 )
+from calibration import model_spec
 from calibration.atomic import write_json_atomic
-from calibration.fit.registry import model_spec
 from calibration.progress import TaskContext
 
 

@@ -7,11 +7,15 @@ import json
 
 from api.cli import UserError
 from api.progress import progress_bar
-from calibration.export import export_opencv_yaml, export_ros_yaml
-from calibration.fit.ransac import DegenerateError
-from calibration.fit.registry import MODEL_NAMES, PARAMETRIC
-from calibration.models.base import save_model
-from calibration.pipeline import calibrate_files
+from calibration import (
+    MODEL_NAMES,
+    PARAMETRIC,
+    DegenerateError,
+    calibrate_files,
+    export_opencv_yaml,
+    export_ros_yaml,
+    save_model,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -86,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"  warning: {warning}")
     if args.report:
         # lazy: matplotlib takes about a second to import, only worth it when a plot is asked
-        from calibration.report import write_residual_report
+        from calibration import write_residual_report
 
         write_residual_report(result, args.report)
     if args.export_opencv:

@@ -104,9 +104,8 @@ def _decode(args: argparse.Namespace, stages: _Stages, out: Any, ahead: Any) -> 
     # lazy: the decoder and its kernels load while the stack streams in
     import numpy as np
 
-    from calibration.decode import DecodeOptions
+    from calibration import DecodeOptions, decode_frames
     from calibration.maps import save_maps
-    from calibration.pipeline import decode_frames
     from calibration.plan import read_plan
 
     stages.lap("imports")

@@ -9,7 +9,7 @@ from api.cli import UserError
 from api.commands.calibrate import parse_options
 from api.demo import demo_rig_config, run_demo
 from api.rigs import load_default_config
-from calibration.fit.registry import model_spec
+from calibration import model_spec
 
 DEFAULT_MODELS = ("opencv-rational", "sgcc")
 

@@ -8,9 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from api.cli import UserError
-from calibration.formats import load_model_any
+from calibration import load_model_any, write_diff
 from calibration.maps import load_maps
-from calibration.report_html import write_diff
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

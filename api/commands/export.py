@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from api.cli import UserError
-from calibration.formats import (
+from calibration import (
     ExportOptions,
     export_model,
     load_model_any,

@@ -9,15 +9,15 @@ import cv2
 import numpy as np
 
 from api.cli import UserError
-from calibration.fit import DegenerateError
-from calibration.fit.classic.quick import (
+from calibration import (
+    DegenerateError,
+    OpenCV5Model,
     intrinsics_from_images,
     intrinsics_from_maps,
     read_white_flat,
+    save_model,
 )
 from calibration.maps import load_maps
-from calibration.models.base import save_model
-from calibration.models.parametric import OpenCV5Model
 from calibration.plan import read_plan
 
 

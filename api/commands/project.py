@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 
 from api.commands.unproject import load_array
-from calibration.models.base import load_model
+from calibration import load_model
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -6,11 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
+from calibration import gather, load_model, write_report
 from calibration.maps import load_maps
-from calibration.models.base import load_model
 from calibration.plan import read_plan
-from calibration.report_data import gather
-from calibration.report_html import write_report
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 
 from api.commands.export import options_from_args
 from api.commands.unproject import load_array
-from calibration.formats import load_model_any, undistort_pixels
+from calibration import load_model_any, undistort_pixels
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from api.cli import UserError
-from calibration.models.base import load_model
+from calibration import load_model
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -24,7 +24,7 @@ from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import IdStr, per_model, strict_config
 from api.services import Services, get_services
 from api.store import new_id
-from calibration.fit.registry import model_spec
+from calibration import model_spec
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

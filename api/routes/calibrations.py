@@ -26,8 +26,7 @@ from api.schemas import (
 )
 from api.services import Services, get_services
 from api.store import check_id, new_id
-from calibration.fit.registry import model_spec
-from calibration.models.base import CameraModel, load_model
+from calibration import CameraModel, load_model, model_spec
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

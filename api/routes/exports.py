@@ -15,16 +15,16 @@ from api.routes.common import PROBLEM_RESPONSES
 from api.routes.points import json_rows, point_rows
 from api.schemas import MAX_ID_LENGTH, MAX_POINTS, Coord, Num, strict_config
 from api.services import Services, get_services
-from calibration.formats import (
+from calibration import (
     FILE_NAMES,
     MEDIA_TYPES,
     ExportOptions,
+    ModelError,
     export_bytes,
     parse_pinhole,
     parse_rotation,
     undistort_pixels,
 )
-from calibration.models.base import ModelError
 
 router = APIRouter(tags=["calibrations"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

@@ -9,6 +9,7 @@ import threading
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 from fastapi import APIRouter, Depends, Query
 from fastapi.responses import Response
 from sqlalchemy import select
@@ -17,6 +18,9 @@ from api.db import PoseRecord
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, get_session
 from api.services import Services, get_services
+from api.worker.guidance_task import guidance_task
+from calibration import count_png
+from calibration.maps import load_maps
 
 router = APIRouter(tags=["guidance"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
@@ -35,8 +39,6 @@ def _plan_lock(final: Path) -> threading.Lock:
 def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, list[str]]:
     """Cached guidance for the session's current ready poses, computed on first request by
     the executor's worker (the fit takes seconds of CPU; the server paces live captures)."""
-    from api.worker.guidance_task import guidance_task
-
     with svc.db.session() as s:
         get_session(s, session_id)
         ids = list(s.scalars(select(PoseRecord.id).where(
@@ -91,11 +93,6 @@ def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational")
             responses={200: {"content": {"image/png": {}}}})
 def coverage_image(session_id: str, svc: Svc) -> Response:
     """How many of the session's decoded poses saw each camera pixel (a colour bar counts)."""
-    import numpy as np
-
-    from calibration.maps import load_maps
-    from calibration.report_plots import count_png
-
     with svc.db.session() as s:
         get_session(s, session_id)
         ids = list(s.scalars(select(PoseRecord.id).where(

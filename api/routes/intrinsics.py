@@ -17,8 +17,8 @@ from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
 from api.schemas import IntrinsicsCreate
 from api.services import Services, get_services
 from api.store import check_id
+from calibration import white_flat_index
 from calibration.decode.frame_store import FrameStore
-from calibration.fit.classic.quick import white_flat_index
 from calibration.plan import plan_from_dict
 
 router = APIRouter(tags=["intrinsics"], responses=PROBLEM_RESPONSES)

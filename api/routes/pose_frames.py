@@ -6,6 +6,8 @@ import zipfile
 from pathlib import Path
 from typing import Annotated, Literal
 
+import cv2
+import numpy as np
 from fastapi import APIRouter, BackgroundTasks, Depends, Query
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
@@ -16,6 +18,7 @@ from api.jobs.poses import RedecodeJob
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session
 from api.services import Services, get_services
+from calibration import read_frames
 from calibration.plan import plan_from_dict
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
@@ -81,11 +84,6 @@ def redecode_pose(session_id: str, pose_id: str, svc: Svc,
 def export_frames(session_id: str, pose_id: str, svc: Svc, background: BackgroundTasks,
                   format: Annotated[Literal["png", "tiff"], Query()] = "png") -> FileResponse:
     """The pose's frames as frame_NNNN.png (or .tif) images in a zip (docs/formats.md folder)."""
-    import cv2
-    import numpy as np
-
-    from calibration.decode import read_frames
-
     _, path, _ = _frames_of(svc, session_id, pose_id)
     source = read_frames(path)
     if source.dtype == np.float32 and format == "png":

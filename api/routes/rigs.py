@@ -9,6 +9,7 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 from sqlalchemy import select
 
+from acquisition.discovery import list_devices as discover
 from api.db import RigRecord
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES
@@ -33,8 +34,6 @@ def list_devices(svc: Svc) -> list[dict[str, Any]]:
     `--aravis-address` cameras are probed instead. Rigs created over REST may name only
     devices listed here (and recordings inside the data directory).
     """
-    from acquisition.discovery import list_devices as discover
-
     found = discover(aravis_addresses=list(svc.config.aravis_addresses))
     return [dataclasses.asdict(d) for d in found]
 

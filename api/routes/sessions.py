@@ -12,6 +12,7 @@ from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy import func, select
 
+from acquisition.patterns import build_plan
 from api.db import PoseRecord, SessionRecord
 from api.frames_upload import store_images, store_npy
 from api.jobs.poses import CaptureJob, ImportDecodeJob, PoseJob
@@ -46,7 +47,6 @@ def create_session(body: SessionCreate, svc: Svc) -> JSONResponse:
             raise Problem(422, "validation-error", "give either plan or preset, not both")
         plan = plan_from_dict(body.plan, "plan")
     else:
-        from acquisition.patterns import build_plan
 
         screen = svc.rigs.handle(rig_id).rig.screen
         plan = build_plan(screen.width_px, screen.height_px, list(screen.pitch_mm),

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from api.worker.executor import Executor
+from api.worker.tasks import calibrate_task
 from calibration.progress import Cancelled, TaskContext
 
 BATCH_FORMAT = "phasecal.batch/1"
@@ -131,8 +132,6 @@ def read_manifest(path: str | Path, out_dir: str | Path) -> list[BatchItem]:
 
 
 def _default_task() -> Callable[..., dict[str, Any]]:
-    from api.worker.tasks import calibrate_task
-
     return calibrate_task
 
 

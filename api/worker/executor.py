@@ -11,13 +11,17 @@ and return a small JSON-able summary, so they can run in a thread or on a Dask w
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
 import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from multiprocessing.connection import wait as wait_ready
+from multiprocessing.managers import SyncManager
 from typing import Any, Protocol, runtime_checkable
 
+from api.worker.lifetime import die_with_parent, guard_args
 from api.worker.task_runner import TaskRunner, Ticket
 from calibration.progress import ProgressFn, TaskContext
 
@@ -132,12 +136,6 @@ class ProcessExecutor(TaskRunner):
     stop_grace_s = 5.0
 
     def __init__(self, max_workers: int | None = None) -> None:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-        from multiprocessing.managers import SyncManager
-
-        from api.worker.lifetime import die_with_parent, guard_args
-
         super().__init__()
         ctx = mp.get_context("spawn")
         workers = max_workers or max(1, min(2, os.cpu_count() or 1))
@@ -206,8 +204,6 @@ class ProcessExecutor(TaskRunner):
     def _end_workers(self, grace_s: float) -> None:
         """Wait up to `grace_s` for the workers to exit; kill those still running (the pool's
         own thread reaps them)."""
-        from multiprocessing.connection import wait as wait_ready
-
         running = {}
         for p in self._workers:
             try:
@@ -268,6 +264,6 @@ def make_executor(address: str | None = None) -> Executor:
             f"executor address {address!r}: expected 'tcp://host:port' of a Dask scheduler, "
             f"'processes', or unset {DASK_ENV} for the in-process threads"
         )
-    from api.worker.dask_executor import DaskExecutor
+    from api.worker.dask_executor import DaskExecutor  # lazy: the optional dask extra
 
     return DaskExecutor(address)

@@ -7,17 +7,16 @@ import json
 from pathlib import Path
 from typing import Any
 
+from calibration import guidance_png, plan_next_pose, session_points
+from calibration.maps import load_maps
+from calibration.plan import read_plan
+
 
 def guidance_task(plan_path: str, maps_paths: list[str], model: str, out_dir: str,
                   header: dict[str, Any]) -> None:
     """Fit `model` to the poses' maps, plan the next pose and write `next-pose.json`
     (`header` plus the suggestion) and `next-pose.png` into `out_dir`; ValueError when the
     poses do not support a fit."""
-    from calibration.guidance import plan_next_pose, session_points
-    from calibration.maps import load_maps
-    from calibration.plan import read_plan
-    from calibration.report_plots import guidance_png
-
     plan = read_plan(plan_path)
     maps = [load_maps(p) for p in maps_paths]
     h, w = maps[0].shape

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from typing import Any
 
+from calibration import (
+    intrinsics_from_images,
+    intrinsics_from_maps,
+    read_white_flat,
+)
 from calibration.atomic import write_json_atomic
+from calibration.maps import load_maps
+from calibration.plan import read_plan
 from calibration.progress import TaskContext
 
 
@@ -14,14 +21,6 @@ def intrinsics_task(
 ) -> dict[str, Any]:
     """Read each pose's white flat frame (`source="flats"`, paths: frame stacks/folders) or
     decoded maps (`source="maps"`), estimate K by `method`, write JSON to `out_path`."""
-    from calibration.fit.classic.quick import (
-        intrinsics_from_images,
-        intrinsics_from_maps,
-        read_white_flat,
-    )
-    from calibration.maps import load_maps
-    from calibration.plan import read_plan
-
     plan = read_plan(plan_path)
     total = len(paths) + 1
     inputs = []

@@ -12,13 +12,28 @@ from typing import Any
 
 import numpy as np
 
+from calibration import (
+    COMPILED_MIN_PIXELS,
+    DecodeOptions,
+    StreamingDecoder,
+    calibrate_files,
+    decode_frames,
+    holds_pixels,
+    retain_freed_memory,
+    warm_heap,
+    warm_up,
+    write_model_folder,
+)
+from calibration.decode.frame_store import FrameStore
+from calibration.maps import save_maps
+from calibration.maps_file import MapsFile
+from calibration.plan import read_plan
+from calibration.prefault import IdlePrefault
 from calibration.progress import Cancelled, TaskContext
 
 
 def _decoder_setup(options: dict[str, Any] | None) -> tuple[Any, Any]:
     """(DecodeOptions, saturation_dn) from a JSON-able options dict (None: defaults)."""
-    from calibration.decode import DecodeOptions
-
     opts = dict(options or {})
     saturation = opts.pop("saturation_dn", None)
     try:
@@ -54,12 +69,9 @@ def _keep_heap(pixels: int) -> None:
     """A worker keeps the heap memory its decodes free (`calibration.decode.heap`): no
     first-touch page faults of the finish's temporaries after the last frame; for images
     the compiled kernels decode, also faulted in now (once per worker)."""
-    from calibration.decode import heap
-    from calibration.decode.decoder import COMPILED_MIN_PIXELS
-
-    heap.retain_freed_memory()
+    retain_freed_memory()
     if pixels >= COMPILED_MIN_PIXELS:
-        heap.warm_heap()
+        warm_heap()
 
 
 def decode_task(
@@ -78,10 +90,6 @@ def decode_task(
     with `noise_sigma_dn(mean)`), or None to estimate it from the fit residuals.
     `options`: `DecodeOptions` fields and `saturation_dn`.
     """
-    from calibration.maps import save_maps
-    from calibration.pipeline import decode_frames
-    from calibration.plan import read_plan
-
     t0 = time.perf_counter()
     opts, saturation = _decoder_setup(options)
     maps = decode_frames(read_plan(plan_path), frames_path, noise=noise, saturation_dn=saturation,
@@ -115,12 +123,6 @@ def stream_decode_task(
     ~3x faster; a one-off process would load them during the capture). Timings (wall, and CPU
     seconds of this process: all its threads) and the share of the maps file's pages faulted
     in ahead by the last frame (`prefaulted`) in the summary."""
-    from calibration.decode import StreamingDecoder
-    from calibration.decode.frame_store import FrameStore
-    from calibration.maps_file import MapsFile
-    from calibration.plan import read_plan
-    from calibration.prefault import IdlePrefault
-
     plan = read_plan(plan_path)
     opts, saturation = _decoder_setup(options)
     total = len(plan.frames)
@@ -184,15 +186,10 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
     than by the worker's first pose after its last frame. At normal CPU priority: a task at
     idle priority is starved by any busy process, and the decode tasks queued behind it
     with it (seen: poses ready 20-75 s late under load)."""
-    from calibration.decode import sums_cache
-    from calibration.decode.kernel_warm import warm_up
-
     warm_up()
     _keep_heap(pixels)
     if (plan_path is not None and shape is not None
-            and not sums_cache.holds_pixels(int(shape[0]) * int(shape[1]))):
-        from calibration.decode import StreamingDecoder
-        from calibration.plan import read_plan
+            and not holds_pixels(int(shape[0]) * int(shape[1]))):
 
         decoder = StreamingDecoder(read_plan(plan_path), tuple(shape), noise=noise,
                                    compiled=True)
@@ -211,8 +208,6 @@ def calibrate_task(
     heldout_paths: list[str] | None = None,
 ) -> dict[str, Any]:
     """Fit `model` to the maps of several poses; write model.json, result.json and exports."""
-    from calibration.pipeline import calibrate_files, write_model_folder
-
     held = list(heldout_paths or [])
     result = calibrate_files(plan_path, [*maps_paths, *held], model, options=options,
                              heldout=list(range(len(maps_paths), len(maps_paths) + len(held))),

@@ -3,6 +3,7 @@ captures), cached per pose set, with clear problems when it cannot be planned.""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -12,6 +13,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.config import ServiceConfig
+from api.worker import guidance_task
 from tests.api.test_api_uploads import PLAN, good_maps
 
 
@@ -71,14 +73,12 @@ def test_next_pose_is_planned_by_the_executor_once(service, monkeypatch) -> None
 
 
 def test_a_plan_that_fails_is_a_problem_and_leaves_no_scratch(in_threads, monkeypatch) -> None:
-    import calibration.guidance
-
     client, _, sid, data = in_threads
 
     def fails(*args, **kwargs):
         raise ValueError("the poses are too similar to plan from")
 
-    monkeypatch.setattr(calibration.guidance, "plan_next_pose", fails)
+    monkeypatch.setattr(guidance_task, "plan_next_pose", fails)
     before = set((data / "tmp").iterdir())
     r = client.get(f"/sessions/{sid}/next-pose", params={"model": "fisheye"})
     assert r.status_code == 422 and r.headers["content-type"].startswith(
@@ -98,18 +98,14 @@ def test_plans_of_different_sessions_are_computed_at_the_same_time(tmp_path, mon
     """Each cached plan has its own lock: a session's plan does not wait for another's (both
     plans here wait for each other inside the fit: one global lock would deadlock them until
     the barrier's timeout)."""
-    import threading
-
-    import calibration.guidance
-
     barrier = threading.Barrier(2, timeout=60)
-    plan = calibration.guidance.plan_next_pose
+    plan = guidance_task.plan_next_pose
 
     def together(*args, **kwargs):
         barrier.wait()
         return plan(*args, **kwargs)
 
-    monkeypatch.setattr(calibration.guidance, "plan_next_pose", together)
+    monkeypatch.setattr(guidance_task, "plan_next_pose", together)
     with _service(tmp_path / "data", "threads") as (client, _svc, sid, _):
         other = client.post("/sessions", json={"plan": PLAN.to_dict()}).json()["id"]
         for k in range(3):

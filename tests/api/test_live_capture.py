@@ -97,6 +97,7 @@ def test_preview_idle_and_during_capture_and_stored_pose_tools(service) -> None:
     assert final["status"] == "succeeded", final["error"]  # the preview did not disturb it
     assert final["result"]["capture"]["captured"] == sess["frame_count"]
     assert final["result"]["capture"]["trigger_late_s"] >= 0.0  # (real clock: some lateness)
+    assert final["result"]["capture"]["lost_frames"] == 0  # (the simulated link loses none)
     pose = c.get(final["resource"]).json()
     assert pose["status"] == "ready"
     pose_dir = data / "poses" / pose["id"]

@@ -118,23 +118,23 @@ def test_a_flagged_pose_stays_flagged_when_its_lost_maps_are_decoded_again(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The integrity check cannot be repeated after the pose; its verdict is kept with the
     frames, so resuming a flagged pose whose maps were lost gives a flagged pose again."""
-    import acquisition.controller as controller
+    import api.capture as capture
     from api.capture import VERDICT
 
-    real = controller.capture_pose
+    real = capture.capture_pose
 
     def moved(*args, **kwargs):  # the check of this capture found the screen moved
         return dataclasses.replace(real(*args, **kwargs), status="flagged",
                                    reason="camera or screen moved")
 
-    monkeypatch.setattr(controller, "capture_pose", moved)
+    monkeypatch.setattr(capture, "capture_pose", moved)
     data = tmp_path / "data"
     with TestClient(_app(data)) as c:
         final = _capture_one(c)
         assert c.get(final["resource"]).json()["status"] == "flagged"
         maps = c.get(f"{final['resource']}/maps.npz").content
         c.app.state.services.maps_sync.drain()
-    monkeypatch.setattr(controller, "capture_pose", real)  # a resume captures nothing anyway
+    monkeypatch.setattr(capture, "capture_pose", real)  # a resume captures nothing anyway
     pose_dir = _crash_state(data, final["resource"], "truncated", maps)
     assert (pose_dir / VERDICT).is_file()
     with TestClient(_app(data)) as c:
