@@ -32,7 +32,6 @@ from typing import Any
 import numpy as np
 
 from acquisition.clock import Clock
-from acquisition.controller_phase import rephase
 from acquisition.errors import AcquisitionError, CameraDisconnected, CameraTimeout, FrameLost
 from acquisition.integrity import IntegrityReport, compare_references, reference_indices
 from acquisition.pattern_cache import cache_for
@@ -148,6 +147,45 @@ class _Runner:
         raise _Failed(f"camera disconnected and {self.opts.max_reconnects} reconnect attempts "
                       f"failed: {last}")
 
+    def rephase(self, index: int) -> None:
+        """Free-running: restart the stream until its frames fall inside pattern windows.
+
+        With a camera frame period that is a whole number of refresh periods, the offset x
+        of the camera's exposure starts past a pattern's on-time is fixed modulo P. One
+        pattern per camera frame needs x <= P - 2m - e; otherwise every pattern waits a
+        refresh more (1.5x-2x the vsync floor). Stream start sets the phase, so restart at a
+        start time chosen to put x in the middle of the window, using the start-to-frame
+        delay measured on the previous restart. Best effort: faults leave the phase as is.
+        """
+        p, m, e = self.period, self.opts.margin_s, self.settings.exposure_s
+        ratio = self.frame_period / p
+        window = p - 2 * m - e
+        if abs(ratio - round(ratio)) > 1e-3 or window <= 0:
+            return  # the phase drifts anyway, or no exposure fits a refresh
+        try:
+            delay: float | None = None
+            for attempt in range(self.opts.rephase_attempts + 1):
+                flip = self.show(index)
+                self.camera.flush()
+                fr = self.camera.grab(self.opts.grab_timeout_s)
+                self.last_seq, self.fr_ref = fr.sequence, (fr.timestamp_s, fr.sequence)
+                x = (fr.timestamp_s - (flip + self.lat + p + m)) % p
+                if x <= window or attempt == self.opts.rephase_attempts:
+                    return
+                self.camera.stop()
+                if delay is not None:
+                    # next start whose first frame lands mid-window on the vsync grid
+                    target = flip + self.lat + p + m + window / 2 - delay
+                    now = self.clock.now()
+                    self.clock.sleep_until(target + math.ceil((now - target) / p) * p)
+                started = self.clock.now()
+                self.camera.start()
+                first = self.camera.grab(self.opts.grab_timeout_s)
+                delay = (first.timestamp_s - started) % self.frame_period
+                self.last_seq, self.fr_ref = first.sequence, (first.timestamp_s, first.sequence)
+        except (CameraTimeout, CameraDisconnected):
+            self.last_seq, self.fr_ref = -1, None  # run() recovers from faults itself
+
     # -- one pattern ------------------------------------------------------------------
     def predicted_end(self, on: float) -> float:
         """Predicted end of the exposures of a pattern fully visible from `on`."""
@@ -231,7 +269,7 @@ class _Runner:
         m = self.opts.margin_s
         order = list(order)  # torn patterns are appended to be shown again
         if not self.triggered and self.opts.rephase_attempts > 0 and order:
-            rephase(self, order[0])
+            self.rephase(order[0])
         attempts: dict[int, int] = {}
         pos = 0  # next position of `order` to show
         done = 0  # positions accepted

@@ -9,12 +9,12 @@ from dataclasses import dataclass, field
 
 from fastapi import Request
 
-from api.capture import stored_indices
 from api.config import ServiceConfig
 from api.db import Database
 from api.jobs.manager import JobManager
 from api.live_preview import LivePreview
 from api.maps_durability import MapsSyncer, recover_pending
+from api.pose_path import stored_indices
 from api.recovery import mark_interrupted
 from api.rigs import RigManager
 from api.storage import DiskSpace

@@ -4,17 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import threading
 import time
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 from acquisition.rig import load_rig_config, open_rig, parse_rig_config
-from api.capture import capture_frames
 from api.cli import UserError
+from api.pose_path import ThreadDecode, capture_live
 from api.progress import progress_bar
-from api.worker.tasks import stream_decode_task
 from calibration.plan import read_plan
 from calibration.progress import TaskContext
 from hw_mocks.rig import open_simulated_rig
@@ -52,39 +50,21 @@ def run(args: argparse.Namespace) -> int:
                             f"{plan.screen.height_px} px differs from the rig's display "
                             f"{screen.width_px}x{screen.height_px} px")
         (pose_dir / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
-        cancel = threading.Event()
-        ctx = TaskContext("capture", bar, cancel)
-        decoded: dict[str, Any] = {}
-
-        def decode() -> None:
-            try:
-                decoded["result"] = stream_decode_task(
-                    TaskContext("decode", None, cancel), str(pose_dir / "plan.json"),
-                    str(pose_dir), str(pose_dir / "maps.npz"), noise=args.noise_dn,
-                    meta={"camera": rig.camera.info.name})
-            except BaseException as exc:  # reported by the main thread
-                decoded["error"] = exc
-
-        worker = threading.Thread(target=decode, name="phasecal-decode")
-        worker.start()
+        decode = ThreadDecode(pose_dir / "plan.json", pose_dir, pose_dir / "maps.npz",
+                              noise=args.noise_dn, meta={"camera": rig.camera.info.name})
         try:
-            cap = capture_frames(ctx, rig, plan, pose_dir)
+            cap = capture_live(TaskContext("capture", bar), rig, plan, pose_dir, decode)
             last_frame = time.perf_counter()
-        except BaseException:
-            cancel.set()
-            raise
         finally:
             bars.close()
-            if cancel.is_set():
-                worker.join()
-        worker.join()
-        if "error" in decoded:
-            raise UserError(f"decode: {decoded['error']}")
+        try:
+            res = decode.result()
+        except Exception as exc:
+            raise UserError(f"decode: {exc}") from exc
         ready = time.perf_counter() - last_frame
     finally:
         bars.close()
         rig.close()
-    res = decoded["result"]
     total = res["width"] * res["height"]
     timing = (f"; {cap['recaptures']} torn frames shown again, latest trigger "
               f"{1e3 * cap['trigger_late_s']:.1f} ms late") if "recaptures" in cap else ""

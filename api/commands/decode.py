@@ -92,9 +92,9 @@ def run(args: argparse.Namespace) -> int:
     out = _laid_out(args)
     if out is None:
         return _decode(args, stages, None, None)
-    from calibration.prefault import IdlePrefault  # lazy: imports NumPy (see _laid_out)
+    from calibration.maps_file import prefaulted  # lazy: imports NumPy (see _laid_out)
 
-    with out, IdlePrefault([out.mapped]) as ahead:
+    with prefaulted(out) as ahead:
         return _decode(args, stages, out, ahead)
 
 

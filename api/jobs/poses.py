@@ -11,12 +11,12 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy.orm import Session
 
-from api.capture import capture_frames, stored_indices
 from api.db import PoseRecord
 from api.jobs.model import STOPPED_STATES, Job, JobKind
 from api.maps_durability import mark_pending
+from api.pose_path import ExecutorDecode, capture_live, stored_indices
 from api.storage import NO_SPACE, pose_bytes
-from api.worker.tasks import decode_task, stream_decode_task, warm_decode_task
+from api.worker.tasks import decode_task, warm_decode_task
 from calibration.decode.frame_store import FrameStore
 from calibration.plan import Plan
 from calibration.progress import TaskContext
@@ -121,25 +121,22 @@ class CaptureJob(PoseJob):
                     handle.move_screen(self.screen_pose)
                 # simulated rigs decode like real ones: the noise is the client's noise_dn
                 # or is estimated from the residuals (never the simulator's own model)
-                fut = svc.executor.run_task(
-                    stream_decode_task, str(plan_path), str(pose_dir), str(staged / "maps.npz"),
-                    job_id=ctx.job_id, on_progress=ctx.progress, noise=self.noise_dn, meta=meta,
-                    durable=False, compiled=True)  # (long-lived workers: kernels at any size)
+                decode = ExecutorDecode(
+                    svc.executor, ctx, plan_path, pose_dir, staged / "maps.npz",
+                    noise=self.noise_dn, meta=meta, durable=False,
+                    compiled=True)  # (long-lived workers: kernels at any size)
                 # another worker loads the compiled decoder and, once, this camera's sums
                 # now, not while a later pose's frames arrive
                 info = handle.rig.camera.info
                 svc.executor.submit(warm_decode_task, info.width * info.height, str(plan_path),
                                     (info.height, info.width), self.noise_dn)
                 try:
-                    cap = capture_frames(ctx, handle.rig, plan, pose_dir,
-                                         on_frame=svc.preview.publisher(self.rig_id))
-                except BaseException:
-                    svc.executor.cancel(ctx.job_id)  # the worker stops following the store
-                    raise
+                    cap = capture_live(ctx, handle.rig, plan, pose_dir, decode,
+                                       on_frame=svc.preview.publisher(self.rig_id))
                 finally:
                     svc.preview.capture_ended(self.rig_id)
             set_pose_status(svc, self.pose_id, "decoding")
-            dec = fut.result()
+            dec = decode.result()
             ctx.check_cancelled()
             decoded_at = time.time()
             # the worker wrote the maps without fsync: ready now, durable in the background

@@ -12,9 +12,9 @@ from fastapi import APIRouter, BackgroundTasks, Depends, Query
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.capture import frames_path, stored_indices
 from api.db import PoseRecord
 from api.jobs.poses import RedecodeJob
+from api.pose_path import frames_path, stored_indices
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session
 from api.services import Services, get_services

@@ -26,9 +26,8 @@ from calibration import (
 )
 from calibration.decode.frame_store import FrameStore
 from calibration.maps import save_maps
-from calibration.maps_file import MapsFile
+from calibration.maps_file import MapsFile, prefaulted
 from calibration.plan import read_plan
-from calibration.prefault import IdlePrefault
 from calibration.progress import Cancelled, TaskContext
 
 
@@ -135,8 +134,8 @@ def stream_decode_task(
     # priority while frames arrive (first-touch page faults: ~0.5 CPU s at 5 MP on a VM).
     # (Not the frames' pages: an idle thread holding a page or ext4 lock of frames.npy could
     # hold up the server's frame copies.)
-    with MapsFile(out_path, store.shape, plan.axes()) as out, IdlePrefault(
-            [out.mapped]) as ahead:
+    out = MapsFile(out_path, store.shape, plan.axes())
+    with prefaulted(out) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts, compiled=compiled)
         decoder.prepare()
@@ -156,7 +155,7 @@ def stream_decode_task(
         caught_up_at = time.time()  # wall clock: the capture side reports its last frame's
         t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
         ahead.stop()  # the decoder faults in what is left, if anything
-        prefaulted = ahead.done / ahead.total
+        share_prefaulted = ahead.done / ahead.total
         ctx.progress(total, total, "unwrap")
         c0 = time.process_time()
         maps = decoder.finish(dict(meta or {}), into=out.outputs())
@@ -167,7 +166,7 @@ def stream_decode_task(
                "finish_s": round(t1 - t0, 3), "finish_cpu_s": round(c1 - c0, 3),
                "write_s": round(time.perf_counter() - t1, 3),
                "write_cpu_s": round(time.process_time() - c1, 3),
-               "prefaulted": round(prefaulted, 3)}
+               "prefaulted": round(share_prefaulted, 3)}
     _drop_later(maps)  # (unmapped after the summary is on its way)
     del maps
     return summary

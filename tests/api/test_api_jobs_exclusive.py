@@ -11,10 +11,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from api.capture import stored_indices
 from api.config import ServiceConfig
 from api.db import Database, JobRecord, PoseRecord, SessionRecord
 from api.jobs import JobManager
+from api.pose_path import stored_indices
 from api.problems import Problem
 from api.recovery import mark_interrupted
 from api.worker.executor import InProcessExecutor

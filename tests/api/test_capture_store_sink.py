@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from api.capture import StoreSink
+from api.pose_path import StoreSink
 from calibration.decode import DecodeError
 from calibration.decode.frame_store import FrameStore
 from calibration.progress import TaskContext

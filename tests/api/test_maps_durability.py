@@ -118,8 +118,8 @@ def test_a_flagged_pose_stays_flagged_when_its_lost_maps_are_decoded_again(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The integrity check cannot be repeated after the pose; its verdict is kept with the
     frames, so resuming a flagged pose whose maps were lost gives a flagged pose again."""
-    import api.capture as capture
-    from api.capture import VERDICT
+    import api.pose_path as capture
+    from api.pose_path import VERDICT
 
     real = capture.capture_pose
 

@@ -1,11 +1,20 @@
-"""Capture a pose on a rig into its raw frame store (resumable) while a worker decodes it.
+"""The live pose path, in one place: frames from the controller -> the pose's frame store ->
+the streaming decode -> maps -> pose ready. `phasecal serve` (a capture job) and
+`phasecal capture` both run `capture_live`; `phasecal decode` and a re-decode read a
+finished store with the same decoder.
 
-Each accepted frame is copied into the pose's `FrameStore` (`frames.npy` + `frames.done`,
-memory-mapped: no encoding or fsync on the capture loop); the decode worker follows the
-store and folds frames in as they arrive, so the pose is ready shortly after its last
-frame. A capture cut off by a cancel, an error or a restart resumes at the missing frames.
-Poses captured by earlier versions as `frames/frame_NNNN.png` are moved into the store
-when resumed.
+    controller (acquisition.controller.capture_pose)
+        -> StoreSink: each accepted frame copied into the FrameStore (frames.npy +
+           frames.done, memory-mapped: no encoding or fsync on the capture loop)
+        -> LiveDecode: `api.worker.tasks.stream_decode_task` follows the store and folds
+           frames in as they arrive (on the service's executor, or a thread of the CLI)
+        -> maps.npz laid out before the first frame, written by the decoder's finish
+        -> the pose is ready shortly after its last frame
+
+One camera's pose is one run of this path: a rig with several cameras runs it once per
+camera. A capture cut off by a cancel, an error or a restart resumes at the missing
+frames. Poses captured by earlier versions as `frames/frame_NNNN.png` are moved into the
+store when resumed.
 """
 
 from __future__ import annotations
@@ -16,13 +25,15 @@ import re
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
 from acquisition.controller import capture_pose
 from acquisition.rig import Rig
+from api.worker.executor import Executor
+from api.worker.tasks import stream_decode_task
 from calibration.atomic import write_json_atomic
 from calibration.decode.frame_store import FrameStore
 from calibration.plan import Plan
@@ -182,3 +193,76 @@ def capture_frames(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path,
     if verdict:
         out["flagged"] = verdict
     return out
+
+
+class LiveDecode(Protocol):
+    """The streaming decode of one pose's frame store, running beside its capture."""
+
+    def stop(self) -> None:
+        """The capture failed: stop following the store (and wait for it to let go)."""
+
+    def result(self) -> dict[str, Any]:
+        """The decode's summary once every plan frame was folded in (raises its error)."""
+
+
+class ThreadDecode:
+    """`stream_decode_task` on a thread of this process (`phasecal capture`)."""
+
+    def __init__(self, plan_path: Path, pose_dir: Path, out_path: Path,
+                 **task_kwargs: Any) -> None:
+        self.cancel = threading.Event()
+        self.outcome: dict[str, Any] = {}
+        self.thread = threading.Thread(
+            target=self.run, args=(plan_path, pose_dir, out_path, task_kwargs),
+            name="phasecal-decode")
+        self.thread.start()
+
+    def run(self, plan_path: Path, pose_dir: Path, out_path: Path,
+            task_kwargs: dict[str, Any]) -> None:
+        """The thread: the decode's summary or its error, kept for `result`."""
+        try:
+            self.outcome["result"] = stream_decode_task(
+                TaskContext("decode", None, self.cancel), str(plan_path), str(pose_dir),
+                str(out_path), **task_kwargs)
+        except BaseException as exc:  # raised by `result`, on the caller's thread
+            self.outcome["error"] = exc
+
+    def stop(self) -> None:
+        self.cancel.set()
+        self.thread.join()
+
+    def result(self) -> dict[str, Any]:
+        self.thread.join()
+        if "error" in self.outcome:
+            raise self.outcome["error"]
+        return self.outcome["result"]
+
+
+class ExecutorDecode:
+    """`stream_decode_task` on the service's executor (a worker process), as part of the
+    capture job `ctx`: the job's cancel reaches it and its progress is the job's."""
+
+    def __init__(self, executor: Executor, ctx: TaskContext, plan_path: Path, pose_dir: Path,
+                 out_path: Path, **task_kwargs: Any) -> None:
+        self.executor, self.job_id = executor, ctx.job_id
+        self.future = executor.run_task(stream_decode_task, str(plan_path), str(pose_dir),
+                                        str(out_path), job_id=ctx.job_id,
+                                        on_progress=ctx.progress, **task_kwargs)
+
+    def stop(self) -> None:
+        self.executor.cancel(self.job_id)  # the worker stops following the store
+
+    def result(self) -> dict[str, Any]:
+        return self.future.result()
+
+
+def capture_live(ctx: TaskContext, rig: Rig, plan: Plan, pose_dir: Path, decode: LiveDecode,
+                 on_frame: Any = None) -> dict[str, Any]:
+    """Capture one camera's pose into its frame store while `decode` (started by the caller,
+    before the first frame) follows the store; the capture's report. The decode is stopped
+    when the capture fails; the maps come from `decode.result()`."""
+    try:
+        return capture_frames(ctx, rig, plan, pose_dir, on_frame=on_frame)
+    except BaseException:
+        decode.stop()
+        raise
