@@ -124,10 +124,6 @@ class LivePreview:
             return data
         return await self.run(self.jpeg, handle)
 
-    def close(self) -> None:
-        """Stop the preview threads (a grab in progress finishes first)."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
-
     def _fresh(self, handle: Any) -> bytes:
         live = self._live.get(handle.rig_id)
         if live is not None:

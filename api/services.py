@@ -83,7 +83,6 @@ class Services:
             ("stopping the jobs", self.jobs.shutdown),
             ("making maps durable", self.maps_sync.drain),
             ("stopping the executor", lambda: self.executor.shutdown(wait=False)),
-            ("stopping the preview threads", self.preview.close),
             ("closing the rigs", self.rigs.close),
             ("closing the database", self.db.close),
         )

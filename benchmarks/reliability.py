@@ -39,7 +39,7 @@ from benchmarks.reliability_bodies import run_body_cases  # noqa: E402
 from benchmarks.reliability_disk import run_disk_case  # noqa: E402
 from benchmarks.reliability_shutdown import run_shutdown_cases  # noqa: E402
 from benchmarks.reliability_streams import run_stream_cases  # noqa: E402
-from benchmarks.serve_process import start_serve  # noqa: E402
+from benchmarks.serve_process import descendants, running, start_serve  # noqa: E402
 from calibration.plan import ScreenGeometry  # noqa: E402
 from hw_mocks.cameras import mild_pinhole  # noqa: E402
 from hw_mocks.poses import random_poses  # noqa: E402
@@ -72,27 +72,7 @@ class Server:
         return Tolerant(base_url=self.url, timeout=120)
 
     def children(self) -> set[int]:
-        found, todo = set(), [self.proc.pid]
-        while todo:
-            for task in Path(f"/proc/{todo.pop()}/task").glob("*"):
-                try:
-                    kids = {int(k) for k in (task / "children").read_text().split()}
-                except OSError:
-                    continue
-                todo += list(kids - found)
-                found |= kids
-        return found
-
-
-def alive(pids: set[int]) -> set[int]:
-    out = set()
-    for p in pids:
-        try:
-            if Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
-                out.add(p)
-        except OSError:
-            pass
-    return out
+        return descendants(self.proc.pid)
 
 
 def maps_bytes(seed: int, size: tuple[int, int] = (160, 120), **override) -> bytes:
@@ -197,9 +177,9 @@ def kill_rounds(srv: Server, c: httpx.Client, sid: str, rounds: int) -> dict[str
         srv.proc.wait(30)
         stats["kills"] += 1
         deadline = time.monotonic() + 10
-        while alive(kids) and time.monotonic() < deadline:
+        while running(kids) and time.monotonic() < deadline:
             time.sleep(0.1)
-        left = alive(kids)
+        left = running(kids)
         stats["orphans"] += len(left)
         for p in left:
             os.kill(p, signal.SIGKILL)
@@ -321,7 +301,7 @@ def main() -> int:
                 srv.proc.terminate()
                 srv.proc.wait(60)
             time.sleep(2)
-            rows.append(("graceful stop", 1, f"{len(alive(kids))} processes left"))
+            rows.append(("graceful stop", 1, f"{len(running(kids))} processes left"))
     print(f"\nreliability (cpus {os.cpu_count()}, load {os.getloadavg()[0]:.1f})")
     print(f"{'what was tried':<46} {'n':>4}  outcome")
     for what, n, outcome in rows:

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from api.demo import demo_rig_config  # noqa: E402
-from benchmarks.serve_process import start_serve  # noqa: E402
+from benchmarks.serve_process import descendants, running, start_serve  # noqa: E402
 from calibration.plan import ScreenGeometry  # noqa: E402
 
 #: label -> (signal, sent to the server's whole process group)
@@ -40,33 +40,6 @@ CASES: dict[str, tuple[signal.Signals, bool]] = {
     "SIGINT to the process group (Ctrl-C)": (signal.SIGINT, True),
 }
 FRAMES_BEFORE_SIGNAL = 3
-
-
-def descendants(pid: int) -> set[int]:
-    """Every live process below `pid` (from /proc/<pid>/task/*/children)."""
-    found: set[int] = set()
-    todo = [pid]
-    while todo:
-        for task in Path(f"/proc/{todo.pop()}/task").glob("*"):
-            try:
-                kids = {int(k) for k in (task / "children").read_text().split()}
-            except OSError:
-                continue
-            todo += list(kids - found)
-            found |= kids
-    return found
-
-
-def running(pids: set[int]) -> set[int]:
-    """The pids that still run (zombies count as gone)."""
-    out = set()
-    for p in pids:
-        try:
-            if Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
-                out.add(p)
-        except OSError:
-            pass
-    return out
 
 
 def capture_midway(url: str) -> dict[str, Any]:

@@ -49,3 +49,30 @@ def start_serve(data_dir: Path, *, log: Path | None = None, env: dict[str, str] 
         proc.wait(30)
     tail = log.read_text()[-2000:] if log is not None and log.is_file() else ""
     raise RuntimeError(f"phasecal serve did not start (exit {proc.returncode}) {tail}")
+
+
+def descendants(pid: int) -> set[int]:
+    """Every live process below `pid` (from /proc/<pid>/task/*/children)."""
+    found: set[int] = set()
+    todo = [pid]
+    while todo:
+        for task in Path(f"/proc/{todo.pop()}/task").glob("*"):
+            try:
+                kids = {int(k) for k in (task / "children").read_text().split()}
+            except OSError:
+                continue
+            todo += list(kids - found)
+            found |= kids
+    return found
+
+
+def running(pids: set[int]) -> set[int]:
+    """The pids that still run (zombies count as gone)."""
+    out = set()
+    for p in pids:
+        try:
+            if Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+                out.add(p)
+        except OSError:
+            pass
+    return out

@@ -27,8 +27,8 @@ from benchmarks.reliability_bodies import (
     body_cases,
     legitimate_cases,
     run_body_cases,
-    start_server,
 )
+from benchmarks.serve_process import start_serve
 from tests.api.test_api_uploads import PLAN, good_maps
 
 UNKNOWN_CAL = "/calibrations/cal_0000000000000000"
@@ -232,7 +232,7 @@ def test_server_memory_stays_bounded_for_50_mb_bodies(tmp_path: Path) -> None:
     """In a real `phasecal serve` process: 50 MB bodies of every shape (declared and
     chunked) and bodies just under the JSON limit are refused with at most 100 MB of RSS
     growth (it was 1.3 GB for 50 MB of `[{},...]`); the largest valid ones still pass."""
-    proc, url = start_server(tmp_path / "data")
+    proc, url = start_serve(tmp_path / "data", executor="threads")
     try:
         rows = run_body_cases(url, proc.pid, body_cases() + legitimate_cases())
     finally:
