@@ -133,11 +133,15 @@ def shape_refusal(budget: BodyBudget, shape: JsonShape) -> Refusal | None:
                        f"JSON request body nests arrays/objects more than {budget.max_depth} "
                        "levels deep")
     for count, limit, what in ((shape.values, budget.max_values, "values"),
-                               (shape.containers, budget.max_containers, "arrays/objects"),
-                               (shape.objects, budget.max_objects, "objects"),
-                               (shape.strings, budget.max_strings, "strings (keys included)")):
-        if count > limit:
+                               (shape.containers, budget.max_containers, "arrays/objects")):
+        if count > limit:  # too much to parse: the body is too large for what it holds
             return Refusal(413, "too-large",
+                           f"JSON request body holds more than {limit} {what}, the most this "
+                           f"route takes ({budget.why})")
+    for count, limit, what in ((shape.objects, budget.max_objects, "objects"),
+                               (shape.strings, budget.max_strings, "strings (keys included)")):
+        if count > limit:  # a route of numbers sent other kinds of values: invalid content
+            return Refusal(422, "validation-error",
                            f"JSON request body holds more than {limit} {what}, the most this "
                            f"route takes ({budget.why})")
     return None

@@ -81,6 +81,7 @@ _FORGET = "__forget__"
 MANAGER_GONE = (OSError, EOFError)
 
 log = logging.getLogger("phasecal.worker")
+KILL_WAIT_S = 5.0  # how long a shutdown waits for the workers it killed to be gone
 
 
 class _RemoteContext(TaskContext):
@@ -217,6 +218,8 @@ class ProcessExecutor(TaskRunner):
         for p in running.values():
             log.warning("worker process %s did not stop within %.0f s: killed", p.pid, grace_s)
             p.kill()
+        if running:  # gone when this returns (a SIGKILL takes a moment on a loaded machine)
+            wait_ready(list(running), KILL_WAIT_S)
 
     def _forward(self) -> None:
         """Deliver progress in order; a job's callback is dropped after its last report."""

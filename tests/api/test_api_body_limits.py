@@ -98,10 +98,10 @@ def test_point_routes_take_rows_of_numbers(client: TestClient) -> None:
     path = f"{UNKNOWN_CAL}/project"
     objects = b'{"points": [' + b",".join(b'{"%040d": 0.5}' % i for i in range(1000)) + b"]}"
     assert "objects" in _problem(client.post(path, content=objects, headers=JSON),
-                                 413)["detail"]
+                                 422)["detail"]
     strings = json.dumps({"points": [["a" * 40, "b", "c"]] * 1000})
     assert "strings" in _problem(client.post(path, content=strings, headers=JSON),
-                                 413)["detail"]
+                                 422)["detail"]
     bad_rows = json.dumps({"points": [[False, 0, 1]] * MAX_POINTS})
     body = _problem(client.post(path, content=bad_rows, headers=JSON), 422)
     assert len(body["errors"]) == 1 and body["errors"][0]["loc"][:3] == ["body", "points", "0"]
