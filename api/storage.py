@@ -55,20 +55,16 @@ def is_no_space(exc: BaseException | None) -> bool:
     return False
 
 
-def frame_bytes_per_pixel(bit_depth: int, averaged: bool = False) -> int:
-    """Bytes a stored frame takes per pixel: uint8 up to 8 bits, uint16 above, float32 when
-    the controller averages several exposures."""
-    if averaged:
-        return 4
+def frame_bytes_per_pixel(bit_depth: int) -> int:
+    """Bytes a stored frame takes per pixel: uint8 up to 8 bits, uint16 above (the service's
+    controller stores single exposures)."""
     return 1 if bit_depth <= 8 else 2
 
 
-def pose_bytes(frames: int, width: int, height: int, bit_depth: int,
-               averaged: bool = False) -> int:
+def pose_bytes(frames: int, width: int, height: int, bit_depth: int) -> int:
     """Disk a captured pose needs: its raw frame store and its decoded maps."""
     pixels = width * height
-    return frames * pixels * frame_bytes_per_pixel(bit_depth, averaged) \
-        + pixels * MAPS_BYTES_PER_PIXEL
+    return frames * pixels * frame_bytes_per_pixel(bit_depth) + pixels * MAPS_BYTES_PER_PIXEL
 
 
 def mib(n: float) -> str:
