@@ -141,7 +141,10 @@ def test_async_client_and_task_cancellation(server, client, session, poses):
             cal = await ac.get_calibration(job["resource"].rsplit("/", 1)[-1])
             slow = _slow_capture(client)
             task = asyncio.create_task(ac.wait(slow, timeout_s=300))
-            await asyncio.sleep(1.0)
+            # cancelled while it follows the job (the slow capture takes ~1.5 s when idle:
+            # a fixed wait of 1 s could see it finish first on a fast machine)
+            await asyncio.sleep(0.2)
+            assert (await ac.get_job(slow["id"]))["status"] in ("queued", "running")
             task.cancel()
             with pytest.raises(asyncio.CancelledError):
                 await task
