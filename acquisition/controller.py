@@ -48,8 +48,8 @@ from acquisition.setup import pose_latency
 from acquisition.sinks import FrameSink
 from acquisition.stream_statistics import ReportsStreamStatistics, StreamStatistics
 from acquisition.usb.trigger_box import TriggerSink
-from calibration.plan import Plan
-from calibration.progress import Cancel, Cancelled, Progress, is_cancelled
+from calibration.shared.plan import Plan
+from calibration.shared.progress import Cancel, Cancelled, Progress, is_cancelled
 
 SHOW_LEAD = 0.75  # refresh periods before its vsync a show is called (blocks until then)
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.plan import CosineFrame, FlatFrame, Plan
+from calibration.shared.plan import CosineFrame, FlatFrame, Plan
 
 MAX_COMPARED = 1 << 18  # pixels compared at most (a regular grid on larger images)
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.patterns import DisplayResponse, render_frame
-from calibration.plan import Plan
+from calibration.shared.plan import Plan
 
 MAX_BYTES = 256 << 20
 _caches: weakref.WeakKeyDictionary[Any, PatternCache] = weakref.WeakKeyDictionary()

@@ -1,6 +1,6 @@
 """Build pattern plans (presets and full control) and render plan frames to display codes.
 
-The plan data model and its validation live in `calibration.plan` (the decoder reads
+The plan data model and its validation live in `calibration.shared.plan` (the decoder reads
 plans too); this module chooses periods and turns linear-light frames into device codes.
 """
 
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.plan import (
+from calibration.shared.plan import (
     CosineFrame,
     FlatFrame,
     Plan,

@@ -30,7 +30,7 @@ from acquisition.clock import Clock, RealClock
 from acquisition.patterns import DisplayResponse
 from acquisition.protocols import Camera, CameraSettings, Display, SimulatorControls
 from acquisition.usb.trigger_box import TriggerSink
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 RIG_FORMAT = "phasecal.rig/1"
 

@@ -26,8 +26,8 @@ import numpy as np
 from api.client import PhasecalClient, ServiceError
 from api.config import ServiceConfig
 from api.inprocess import running_service
-from calibration.maps import load_maps
-from calibration.plan import ScreenGeometry
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.truth import SimulatorTruth
 
 

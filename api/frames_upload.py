@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from api.problems import Problem
-from calibration.plan import Plan
+from calibration.shared.plan import Plan
 
 IMAGE_RE = re.compile(r"^frame_(\d{4,6})\.(png|tif|tiff)$", re.IGNORECASE)
 NPY_DTYPES = (np.uint8, np.uint16, np.float32)

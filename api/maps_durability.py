@@ -25,7 +25,7 @@ from pathlib import Path
 from sqlalchemy import select
 
 from api.db import Database, PoseRecord
-from calibration.atomic import fsync_path
+from calibration.shared.atomic import fsync_path
 
 PENDING = "maps.pending"
 MAPS = "maps.npz"

@@ -14,8 +14,8 @@ import zipfile
 import numpy as np
 
 from api.problems import Problem
-from calibration.maps import DecodedMaps, MapsError, load_maps
-from calibration.plan import Plan
+from calibration.shared.maps import DecodedMaps, MapsError, load_maps
+from calibration.shared.plan import Plan
 
 DTYPES = {
     "x": np.float64, "y": np.float64, "sigma_x": np.float32, "sigma_y": np.float32,

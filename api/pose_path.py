@@ -34,10 +34,10 @@ from acquisition.controller import capture_pose
 from acquisition.rig import Rig
 from api.worker.executor import Executor
 from api.worker.tasks import stream_decode_task
-from calibration.atomic import write_json_atomic
-from calibration.decode.frame_store import FrameStore
-from calibration.plan import Plan
-from calibration.progress import TaskContext
+from calibration.shared.atomic import write_json_atomic
+from calibration.shared.frame_store import FrameStore
+from calibration.shared.plan import Plan
+from calibration.shared.progress import TaskContext
 
 FRAME_RE = re.compile(r"^frame_(\d{4,6})\.(png|tif|tiff)$")
 LEGACY_FRAMES = "frames"  # folder of PNG frames written before the frame store

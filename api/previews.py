@@ -8,7 +8,7 @@ import numpy as np
 from matplotlib.colors import ListedColormap, LogNorm, Normalize
 
 from calibration import one_at_a_time, subplots
-from calibration.maps import DecodedMaps
+from calibration.shared.maps import DecodedMaps
 
 PREVIEW_KINDS = ("x", "y", "sigma", "mask")
 _LABELS = {"x": "decoded screen x (screen px)", "y": "decoded screen y (screen px)",

@@ -13,8 +13,8 @@ from starlette.routing import Match
 
 from acquisition.errors import AcquisitionError, DeviceSettingsError
 from calibration import ModelError
-from calibration.maps import MapsError
-from calibration.plan import PlanError
+from calibration.shared.maps import MapsError
+from calibration.shared.plan import PlanError
 
 PROBLEM_TYPE_BASE = "https://phasecal.dev/problems/"
 MEDIA_TYPE = "application/problem+json"

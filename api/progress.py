@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
-from calibration.progress import ProgressFn
+from calibration.shared.progress import ProgressFn
 
 
 @contextmanager

@@ -21,8 +21,8 @@ from api.problems import Problem
 from api.services import Services
 from api.store import check_id
 from calibration import gather, load_model, write_diff, write_report
-from calibration.maps import load_maps
-from calibration.plan import read_plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import read_plan
 
 REPORT_DIR = "report"
 _locks: dict[str, threading.Lock] = {}

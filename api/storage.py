@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from api.problems import MEDIA_TYPE, Problem, problem_body
-from calibration.atomic import allocate
+from calibration.shared.atomic import allocate
 
 log = logging.getLogger("phasecal.storage")
 

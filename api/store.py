@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from api.problems import Problem
-from calibration.atomic import write_bytes_atomic
+from calibration.shared.atomic import write_bytes_atomic
 
 ID_RE = re.compile(r"^(rig|ses|pose|cal|job)_[0-9a-f]{16}$")
 KIND_DIRS = {"ses": "sessions", "pose": "poses", "cal": "calibrations", "rig": "rigs"}

@@ -22,7 +22,7 @@ import numpy as np
 from acquisition.controller import ControllerOptions, capture_pose
 from acquisition.patterns import build_plan
 from acquisition.sinks import MemoryFrameStore
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.rig import SimulatedRig
 

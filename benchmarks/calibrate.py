@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from calibration.fit.dispatch import calibrate
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole, wide_fisheye
 from hw_mocks.poses import random_poses
 from hw_mocks.synthetic import synthetic_maps

@@ -26,9 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from acquisition.patterns import build_plan
 from api.worker.guidance_task import guidance_task
-from calibration.maps import save_maps
 from calibration.pipeline import calibrate_files
-from calibration.plan import write_plan
+from calibration.shared.maps import save_maps
+from calibration.shared.plan import write_plan
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.poses import random_poses
 from hw_mocks.synthetic import synthetic_maps

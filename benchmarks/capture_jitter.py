@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import acquisition.controller as controller
 import acquisition.pattern_cache as pattern_cache
 from acquisition.patterns import build_plan
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.clock import VirtualClock
 from hw_mocks.rig import SimulatedRig

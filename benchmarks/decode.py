@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from acquisition.patterns import build_plan
 from calibration.decode import StreamingDecoder, decode_stack
 from calibration.decode.noise import NoiseModel
-from calibration.plan import Plan, plan_from_dict
+from calibration.shared.plan import Plan, plan_from_dict
 
 H, W = 2048, 2448
 # (name, black border, partly clipped) of the stacks decoded
@@ -173,7 +173,7 @@ def run_cupy(plan: Plan, stack: np.ndarray, repeats: int) -> list[tuple[str, flo
 _FRESH = """import sys, time
 t0 = time.perf_counter()
 from calibration.decode import decode_stack, read_frames
-from calibration.plan import read_plan
+from calibration.shared.plan import read_plan
 decode_stack(read_plan(sys.argv[1]), read_frames(sys.argv[2]))
 print(time.perf_counter() - t0)
 """
@@ -188,7 +188,7 @@ def cli_vs_library(plan: Plan, stack: np.ndarray) -> tuple[float, float, float, 
     import tempfile
 
     from calibration.decode import read_frames
-    from calibration.plan import write_plan
+    from calibration.shared.plan import write_plan
 
     def children_cpu() -> float:
         r = resource.getrusage(resource.RUSAGE_CHILDREN)

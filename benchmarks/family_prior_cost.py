@@ -29,8 +29,8 @@ import numpy as np
 import calibration.fit.sgcc.calibrate as sgcc_calibrate
 import calibration.metrology.family_prior as family_prior
 from calibration.fit.dispatch import calibrate
-from calibration.maps import DecodedMaps, load_maps
-from calibration.plan import ScreenGeometry
+from calibration.shared.maps import DecodedMaps, load_maps
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import synthetic
 from hw_mocks.poses import random_poses
 from hw_mocks.truth import SimulatorTruth

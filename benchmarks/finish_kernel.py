@@ -38,7 +38,7 @@ import calibration.decode.kernel_sums as kernel_sums  # noqa: E402
 from calibration.decode import StreamingDecoder  # noqa: E402
 from calibration.decode.kernel_clipped import linear_line  # noqa: E402
 from calibration.decode.kernel_sets import MODE_OWN  # noqa: E402
-from calibration.plan import read_plan  # noqa: E402
+from calibration.shared.plan import read_plan  # noqa: E402
 
 KERNEL_FILES = ("kernel.py", "kernel_sums.py", "kernel_sets.py", "kernel_unwrap.py",
                 "kernel_clipped.py", "vecmath.py", "kernel_cache.py")

@@ -21,7 +21,7 @@ import numpy as np
 from calibration.compare import ray_angle_difference
 from calibration.fit.dispatch import calibrate
 from calibration.fit.registry import PARAMETRIC
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 
 SCREEN = ScreenGeometry(1920, 1080, (0.2745, 0.2745))

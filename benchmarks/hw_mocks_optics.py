@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from acquisition.patterns import frame_linear
-from calibration.plan import CosineFrame, FlatFrame, Plan, ScreenGeometry
+from calibration.shared.plan import CosineFrame, FlatFrame, Plan, ScreenGeometry
 from hw_mocks.cameras import mild_pinhole, smooth_noncentral, wide_fisheye
 from hw_mocks.optics import OpticalSetup
 from hw_mocks.poses import random_poses

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from calibration.compare import ray_angle_difference
 from calibration.fit.dispatch import calibrate
 from calibration.fit.registry import PARAMETRIC
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 
 SCREEN = ScreenGeometry(1920, 1080, (0.2745, 0.2745))

@@ -42,7 +42,7 @@ from calibration.fit.correspondences import PointSet, point_set
 from calibration.fit.dispatch import calibrate
 from calibration.metrology.refine import fit_parametric_dense
 from calibration.models.parametric import PARAMETRIC_MODELS
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 from hw_mocks.panel import PanelShape
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from calibration.compare import ray_angle_difference
 from calibration.fit.dispatch import calibrate
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 
 

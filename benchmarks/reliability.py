@@ -40,7 +40,7 @@ from benchmarks.reliability_disk import run_disk_case  # noqa: E402
 from benchmarks.reliability_shutdown import run_shutdown_cases  # noqa: E402
 from benchmarks.reliability_streams import run_stream_cases  # noqa: E402
 from benchmarks.serve_process import descendants, running, start_serve  # noqa: E402
-from calibration.plan import ScreenGeometry  # noqa: E402
+from calibration.shared.plan import ScreenGeometry  # noqa: E402
 from hw_mocks.cameras import mild_pinhole  # noqa: E402
 from hw_mocks.poses import random_poses  # noqa: E402
 from hw_mocks.synthetic import synthetic_maps  # noqa: E402

@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 from api.demo import demo_rig_config  # noqa: E402
 from benchmarks.serve_process import descendants, running, start_serve  # noqa: E402
-from calibration.plan import ScreenGeometry  # noqa: E402
+from calibration.shared.plan import ScreenGeometry  # noqa: E402
 
 #: label -> (signal, sent to the server's whole process group)
 CASES: dict[str, tuple[signal.Signals, bool]] = {

@@ -38,9 +38,9 @@ from acquisition.patterns import build_plan  # noqa: E402
 from api.worker.dask_batch import BATCH_FORMAT, items_from_manifest, run_batch  # noqa: E402
 from api.worker.dask_executor import DaskExecutor, start_local_cluster  # noqa: E402
 from api.worker.executor import InProcessExecutor  # noqa: E402
-from calibration.maps import save_maps  # noqa: E402
-from calibration.plan import write_plan  # noqa: E402
-from calibration.progress import TaskContext  # noqa: E402
+from calibration.shared.maps import save_maps  # noqa: E402
+from calibration.shared.plan import write_plan  # noqa: E402
+from calibration.shared.progress import TaskContext  # noqa: E402
 
 
 def opencv_calibrate_task(ctx: TaskContext, plan_path: str, maps_paths: list[str], model: str,
@@ -49,8 +49,8 @@ def opencv_calibrate_task(ctx: TaskContext, plan_path: str, maps_paths: list[str
     """Pinhole + 5 distortion coefficients with cv2.calibrateCamera from stored maps."""
     import cv2
 
-    from calibration.maps import load_maps
-    from calibration.plan import read_plan
+    from calibration.shared.maps import load_maps
+    from calibration.shared.plan import read_plan
 
     cv2.setNumThreads(1)
     plan = read_plan(plan_path)
@@ -80,9 +80,9 @@ def fit_task(ctx: TaskContext, plan_path: str, maps_paths: list[str], model: str
              heldout_paths: list[str] | None = None) -> dict[str, Any]:
     """phasecal's own fit of `model` to the stored maps; model.json written atomically."""
     from calibration.fit.dispatch import calibrate
-    from calibration.maps import load_maps
     from calibration.models.base import save_model
-    from calibration.plan import read_plan
+    from calibration.shared.maps import load_maps
+    from calibration.shared.plan import read_plan
 
     maps = [load_maps(p) for p in maps_paths]
     result = calibrate(maps, read_plan(plan_path).screen, model, options=options,

@@ -194,7 +194,7 @@ def library_finish(data: Path, row: dict) -> dict:
     import numpy as np
 
     from calibration.decode import StreamingDecoder
-    from calibration.plan import read_plan
+    from calibration.shared.plan import read_plan
 
     plan = read_plan(data / "sessions" / row["session"] / "plan.json")
     frames = np.load(data / "poses" / row["pose"] / "frames.npy", mmap_mode="r")

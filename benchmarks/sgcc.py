@@ -42,7 +42,7 @@ import numpy as np
 from calibration.compare import in_gauge, sgcc_gauge_transform, whitened_coefficient_errors
 from calibration.fit.sgcc.calibrate import calibrate_generic
 from calibration.models.sgcc import logmap
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 from hw_mocks.panel import PanelShape
 

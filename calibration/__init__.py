@@ -2,10 +2,10 @@
 
 The library's front door: the service (`api`), the CLI and the benchmarks take the numerics
 from here (`from calibration import decode_frames, load_model, ...`), so the modules behind
-it can move without touching them. The file formats every layer shares are modules of their
-own and are imported directly: `calibration.plan`, `calibration.maps`,
-`calibration.maps_file`, `calibration.decode.frame_store`, `calibration.atomic`,
-`calibration.progress`, `calibration.extras`, `calibration.prefault`, `calibration.readahead`.
+it can move without touching them. What every layer shares, the file formats and the job
+plumbing (plan, maps, frame store, atomic writer, progress), is `calibration.shared`, and
+is imported directly, as are `calibration.extras`, `calibration.prefault` and
+`calibration.readahead`.
 
 Names load lazily (PEP 562): a command that needs one function does not import the
 decoder's kernels or matplotlib with it.

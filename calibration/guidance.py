@@ -24,7 +24,7 @@ import numpy as np
 
 from calibration.fit.correspondences import PointSet
 from calibration.models.base import CameraModel
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from calibration.uncertainty import (
     covariance,
     direction_jacobian,

@@ -7,12 +7,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from calibration.atomic import atomic_path, write_json_atomic
 from calibration.decode import DecodeError, DecodeOptions, decode_stack, read_frames
-from calibration.maps import DecodedMaps, load_maps
 from calibration.models.base import ModelError, jsonable, save_model
-from calibration.plan import Plan, read_plan
-from calibration.progress import CancelCheck, ProgressFn, check_cancelled
+from calibration.shared.atomic import atomic_path, write_json_atomic
+from calibration.shared.maps import DecodedMaps, load_maps
+from calibration.shared.plan import Plan, read_plan
+from calibration.shared.progress import CancelCheck, ProgressFn, check_cancelled
 
 if TYPE_CHECKING:  # the fit stack (pydantic, scipy) stays out of `phasecal decode`'s imports
     from calibration.fit.result import CalibrationResult
@@ -29,7 +29,7 @@ def decode_frames(
 
     `noise`: per-frame camera noise sigma in DN, a noise model, or None to estimate it;
     `prepare`: load the compiled finish kernel first (worth it in long-lived workers);
-    `into`: the arrays to decode into (`calibration.maps_file.MapsFile.outputs`)."""
+    `into`: the arrays to decode into (`calibration.shared.maps_file.MapsFile.outputs`)."""
     source = read_frames(frames_path)
     if source.count != len(plan.frames):
         raise DecodeError(f"{frames_path}: {source.count} frames, but the plan has "

@@ -14,9 +14,9 @@ import numpy as np
 
 from calibration.evaluate import pose_residuals, screen_jacobian, summarize
 from calibration.fit.correspondences import PointSet, point_set, subsample
-from calibration.maps import DecodedMaps
 from calibration.models.base import CameraModel
-from calibration.plan import ScreenGeometry
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
 from calibration.uncertainty import model_ray_sigma, sensor_grid
 
 # Points per pose evaluated for the report (spread evenly over the image).

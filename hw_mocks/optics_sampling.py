@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 
 def gaussian_kernel(sigma: float) -> np.ndarray:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 # Fixed-point iterations for the ray-panel intersection (slopes << 1 converge in a few).
 _MAX_ITERS = 50

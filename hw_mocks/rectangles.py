@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.optics import OpticalSetup
 from hw_mocks.poses import fill_distance_mm, look_at_pose, rotation_about, rotation_only_poses

@@ -17,7 +17,7 @@ from acquisition.clock import Clock, RealClock
 from acquisition.errors import DeviceSettingsError
 from acquisition.protocols import CameraSettings
 from acquisition.rig import Rig, RigConfig
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.camera import CameraFaults, SimulatedCamera
 from hw_mocks.cameras import TruthCamera, make_truth_camera
 from hw_mocks.clock import VirtualClock

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.panel import PanelShape
 

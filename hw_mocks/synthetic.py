@@ -7,8 +7,8 @@ from typing import Any
 import numpy as np
 
 from acquisition.patterns import DisplayResponse, render_frame
-from calibration.maps import MAPS_FORMAT, DecodedMaps
-from calibration.plan import Plan, ScreenGeometry
+from calibration.shared.maps import MAPS_FORMAT, DecodedMaps
+from calibration.shared.plan import Plan, ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.optics import OpticalSetup
 from hw_mocks.panel import PanelShape

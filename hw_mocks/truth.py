@@ -15,8 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.maps import DecodedMaps
-from calibration.plan import ScreenGeometry
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.poses import random_poses
 from hw_mocks.rig import SimulatedRig

@@ -18,7 +18,7 @@ import numpy as np
 from api.client import PhasecalClient
 from api.demo import demo_rig_config
 from api.inprocess import free_port
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.poses import random_poses
 

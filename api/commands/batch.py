@@ -22,8 +22,8 @@ from api.worker.dask_batch import (
     run_batch,
 )
 from calibration import model_spec
-from calibration.atomic import write_json_atomic
-from calibration.progress import TaskContext
+from calibration.shared.atomic import write_json_atomic
+from calibration.shared.progress import TaskContext
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -13,8 +13,8 @@ from acquisition.rig import load_rig_config, open_rig, parse_rig_config
 from api.cli import UserError
 from api.pose_path import ThreadDecode, capture_live
 from api.progress import progress_bar
-from calibration.plan import read_plan
-from calibration.progress import TaskContext
+from calibration.shared.plan import read_plan
+from calibration.shared.progress import TaskContext
 from hw_mocks.rig import open_simulated_rig
 
 

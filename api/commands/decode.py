@@ -67,8 +67,8 @@ def _laid_out(args: argparse.Namespace) -> Any:
     # lazy: NumPy and the maps writer load while the stack streams in (prefetch in `run`)
     import numpy as np
 
-    from calibration.maps_file import MapsFile
-    from calibration.plan import read_plan
+    from calibration.shared.maps_file import MapsFile
+    from calibration.shared.plan import read_plan
 
     if not str(args.frames).endswith(".npy") or os.name != "posix":
         return None  # (Windows cannot rename a file that is still mapped)
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     out = _laid_out(args)
     if out is None:
         return _decode(args, stages, None, None)
-    from calibration.maps_file import prefaulted  # lazy: imports NumPy (see _laid_out)
+    from calibration.shared.maps_file import prefaulted  # lazy: imports NumPy (see _laid_out)
 
     with prefaulted(out) as ahead:
         return _decode(args, stages, out, ahead)
@@ -105,8 +105,8 @@ def _decode(args: argparse.Namespace, stages: _Stages, out: Any, ahead: Any) -> 
     import numpy as np
 
     from calibration import DecodeOptions, decode_frames
-    from calibration.maps import save_maps
-    from calibration.plan import read_plan
+    from calibration.shared.maps import save_maps
+    from calibration.shared.plan import read_plan
 
     stages.lap("imports")
     plan = read_plan(args.plan)

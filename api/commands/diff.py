@@ -9,7 +9,7 @@ import numpy as np
 
 from api.cli import UserError
 from calibration import load_model_any, write_diff
-from calibration.maps import load_maps
+from calibration.shared.maps import load_maps
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -17,8 +17,8 @@ from calibration import (
     read_white_flat,
     save_model,
 )
-from calibration.maps import load_maps
-from calibration.plan import read_plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import read_plan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

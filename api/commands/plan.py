@@ -6,7 +6,7 @@ import argparse
 
 from acquisition.patterns import PRESETS, build_plan
 from api.cli import UserError
-from calibration.plan import write_plan
+from calibration.shared.plan import write_plan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -7,8 +7,8 @@ import json
 from pathlib import Path
 
 from calibration import gather, load_model, write_report
-from calibration.maps import load_maps
-from calibration.plan import read_plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import read_plan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -13,7 +13,7 @@ from api.db import CalibrationRecord
 from api.jobs.model import Job, JobKind
 from api.worker.dask_batch import BatchItem, run_batch
 from api.worker.tasks import calibrate_task
-from calibration.progress import TaskContext
+from calibration.shared.progress import TaskContext
 
 if TYPE_CHECKING:
     from api.services import Services

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from api.jobs.model import Job, JobKind
 from api.worker.intrinsics_task import intrinsics_task
-from calibration.progress import TaskContext
+from calibration.shared.progress import TaskContext
 
 if TYPE_CHECKING:
     from api.services import Services

@@ -28,7 +28,7 @@ from api.problems import Problem
 from api.storage import DiskSpace, is_no_space
 from api.store import new_id
 from api.worker.executor import Executor
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.progress import Cancelled, TaskContext
 
 log = logging.getLogger("phasecal.jobs")
 

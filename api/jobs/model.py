@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 from sqlalchemy.orm import Session
 
 from api.db import JobRecord
-from calibration.progress import TaskContext
+from calibration.shared.progress import TaskContext
 
 
 class JobStatus(StrEnum):

@@ -17,9 +17,9 @@ from api.maps_durability import mark_pending
 from api.pose_path import ExecutorDecode, capture_live, stored_indices
 from api.storage import NO_SPACE, pose_bytes
 from api.worker.tasks import decode_task, warm_decode_task
-from calibration.decode.frame_store import FrameStore
-from calibration.plan import Plan
-from calibration.progress import TaskContext
+from calibration.shared.frame_store import FrameStore
+from calibration.shared.plan import Plan
+from calibration.shared.progress import TaskContext
 
 if TYPE_CHECKING:
     from api.services import Services

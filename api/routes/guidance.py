@@ -20,7 +20,7 @@ from api.routes.common import PROBLEM_RESPONSES, get_session
 from api.services import Services, get_services
 from api.worker.guidance_task import guidance_task
 from calibration import count_png
-from calibration.maps import load_maps
+from calibration.shared.maps import load_maps
 
 router = APIRouter(tags=["guidance"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

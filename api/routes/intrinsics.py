@@ -18,8 +18,8 @@ from api.schemas import IntrinsicsCreate
 from api.services import Services, get_services
 from api.store import check_id
 from calibration import white_flat_index
-from calibration.decode.frame_store import FrameStore
-from calibration.plan import plan_from_dict
+from calibration.shared.frame_store import FrameStore
+from calibration.shared.plan import plan_from_dict
 
 router = APIRouter(tags=["intrinsics"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

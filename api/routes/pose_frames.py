@@ -19,7 +19,7 @@ from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session
 from api.services import Services, get_services
 from calibration import read_frames
-from calibration.plan import plan_from_dict
+from calibration.shared.plan import plan_from_dict
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

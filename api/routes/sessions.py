@@ -23,8 +23,8 @@ from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session
 from api.schemas import MAX_OFFSET, CaptureRequest, Pose, Session, SessionCreate
 from api.services import Services, get_services
 from api.store import new_id
-from calibration.maps import load_maps
-from calibration.plan import plan_from_dict
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import plan_from_dict
 
 router = APIRouter(tags=["sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]

@@ -27,7 +27,7 @@ from typing import Any
 
 from api.worker.executor import Executor
 from api.worker.tasks import calibrate_task
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.progress import Cancelled, TaskContext
 
 BATCH_FORMAT = "phasecal.batch/1"
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")

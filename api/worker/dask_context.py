@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from calibration.progress import TaskContext
+from calibration.shared.progress import TaskContext
 
 PROGRESS_TOPIC = "phasecal-progress"
 

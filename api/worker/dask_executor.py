@@ -26,7 +26,7 @@ from typing import Any
 from api.worker.dask_context import PROGRESS_TOPIC, cancel_event_name, run_in_worker
 from api.worker.task_runner import TaskRunner, Ticket
 from calibration.extras import require
-from calibration.progress import Cancelled
+from calibration.shared.progress import Cancelled
 
 LOCAL_PREFIX = "local"
 DEFAULT_MAX_ARG_BYTES = 1 << 20

@@ -23,7 +23,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from api.worker.lifetime import die_with_parent, guard_args
 from api.worker.task_runner import TaskRunner, Ticket
-from calibration.progress import ProgressFn, TaskContext
+from calibration.shared.progress import ProgressFn, TaskContext
 
 DASK_ENV = "PHASECAL_DASK"
 

@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from calibration import guidance_png, plan_next_pose, session_points
-from calibration.maps import load_maps
-from calibration.plan import read_plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import read_plan
 
 
 def guidance_task(plan_path: str, maps_paths: list[str], model: str, out_dir: str,

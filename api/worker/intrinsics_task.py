@@ -9,10 +9,10 @@ from calibration import (
     intrinsics_from_maps,
     read_white_flat,
 )
-from calibration.atomic import write_json_atomic
-from calibration.maps import load_maps
-from calibration.plan import read_plan
-from calibration.progress import TaskContext
+from calibration.shared.atomic import write_json_atomic
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import read_plan
+from calibration.shared.progress import TaskContext
 
 
 def intrinsics_task(

@@ -14,7 +14,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from calibration.progress import ProgressFn
+from calibration.shared.progress import ProgressFn
 
 
 class Flag(Protocol):

@@ -24,11 +24,11 @@ from calibration import (
     warm_up,
     write_model_folder,
 )
-from calibration.decode.frame_store import FrameStore
-from calibration.maps import save_maps
-from calibration.maps_file import MapsFile, prefaulted
-from calibration.plan import read_plan
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.frame_store import FrameStore
+from calibration.shared.maps import save_maps
+from calibration.shared.maps_file import MapsFile, prefaulted
+from calibration.shared.plan import read_plan
+from calibration.shared.progress import Cancelled, TaskContext
 
 
 def _decoder_setup(options: dict[str, Any] | None) -> tuple[Any, Any]:

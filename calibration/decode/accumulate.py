@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.plan import CosineFrame, FlatFrame, Plan
+from calibration.shared.plan import CosineFrame, FlatFrame, Plan
 
 try:  # OpenCV's fused SIMD kernels accumulate uint8/uint16 into float32 without temporaries.
     import cv2

@@ -21,7 +21,7 @@ from calibration.decode.options import DecodeOptions
 from calibration.decode.phase import SetFit
 from calibration.decode.unwrap import fuse_axis
 from calibration.decode.validity import AxisChecks, classify
-from calibration.plan import Plan
+from calibration.shared.plan import Plan
 
 # Periods finer than the coarsest enter the fusion and the blur fit only above this
 # modulation SNR: below it the phase noise is no longer Gaussian (the linearized sigma lies).

@@ -52,8 +52,8 @@ from calibration.decode.noise import (
 from calibration.decode.options import DecodeOptions
 from calibration.decode.phase import SetFit, fit_set
 from calibration.decode.validity import hide_invalid, hide_screen_edges
-from calibration.maps import MAPS_FORMAT, DecodedMaps
-from calibration.plan import Plan
+from calibration.shared.maps import MAPS_FORMAT, DecodedMaps
+from calibration.shared.plan import Plan
 
 if TYPE_CHECKING:  # (a numba module: loaded only with the compiled path)
     from calibration.decode.kernel_clipped import PatternTables
@@ -201,7 +201,7 @@ class StreamingDecoder:
     def finish(self, meta: dict[str, Any] | None = None,
                into: dict[str, np.ndarray] | None = None) -> DecodedMaps:
         """Decode the accumulated frames into `DecodedMaps` (`DecodeError` if unusable), into
-        the arrays `into` if given (`calibration.maps_file.MapsFile.outputs`)."""
+        the arrays `into` if given (`calibration.shared.maps_file.MapsFile.outputs`)."""
         acc = self._acc
         missing = acc.missing
         if missing:

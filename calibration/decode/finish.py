@@ -19,7 +19,7 @@ from calibration.decode.axes import MIN_PERIOD_SNR, chi2_limits
 from calibration.decode.batch import ChunkSums
 from calibration.decode.noise import MIN_SPAN_DN, LinearVariance, NoiseModel, NoiseSource
 from calibration.decode.options import DecodeOptions
-from calibration.plan import Plan
+from calibration.shared.plan import Plan
 
 if TYPE_CHECKING:  # (a numba module: loaded only with the compiled path)
     from calibration.decode.kernel_clipped import PatternTables

@@ -12,9 +12,9 @@ from calibration.decode.decoder import ALWAYS_COMPILED_PIXELS, StreamingDecoder
 from calibration.decode.frames_io import FrameSource
 from calibration.decode.noise import NoiseModel, NoiseSource
 from calibration.decode.options import DecodeOptions
-from calibration.maps import DecodedMaps
-from calibration.plan import Plan
-from calibration.progress import CancelCheck, Cancelled, ProgressFn
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import Plan
+from calibration.shared.progress import CancelCheck, Cancelled, ProgressFn
 
 
 def _whole(frames: Any) -> np.ndarray | None:

@@ -7,9 +7,9 @@ from typing import Any
 
 from calibration.fit.registry import model_spec
 from calibration.fit.result import CalibrationResult
-from calibration.maps import DecodedMaps
-from calibration.plan import ScreenGeometry
-from calibration.progress import CancelCheck, ProgressFn
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
+from calibration.shared.progress import CancelCheck, ProgressFn
 
 
 def calibrate(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from calibration.maps import DecodedMaps
+from calibration.shared.maps import DecodedMaps
 
 MIN_TRAINING_POSES = 3
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.maps import DecodedMaps
-from calibration.plan import ScreenGeometry
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
 
 
 @dataclass

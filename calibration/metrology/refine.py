@@ -23,7 +23,7 @@ from calibration.fit.result import PoseEstimate
 from calibration.metrology.lm import DenseFit, fit_dense, flat_equivalent
 from calibration.metrology.screen import ScreenModel
 from calibration.models.parametric import PinholeFamily
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 OWN_KEYS = ("points", "screen", "glass_index")
 

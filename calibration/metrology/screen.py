@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.metrology.screen_trace import ScreenTrace
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 SCREEN_MODES = ("flat", "fit")
 PARAM_NAMES = ("bow_x_mm", "bow_y_mm", "twist_mm", "glass_mm")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 N_SCREEN = 4  # bow_x, bow_y, twist, glass thickness (mm)
 FIXED_POINT_ITERS = 30

@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from calibration.atomic import write_text_atomic
+from calibration.shared.atomic import write_text_atomic
 
 MODEL_FORMAT = "phasecal.model/1"
 

@@ -10,7 +10,7 @@ from acquisition.controller import capture_pose
 from acquisition.patterns import build_plan
 from acquisition.setup import measure_display_response
 from calibration.decode import StreamingDecoder
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.rig import SimulatedRig
 

@@ -12,7 +12,7 @@ from acquisition.patterns import build_plan
 from acquisition.setup import choose_exposure, measure_display_response, measure_latency
 from acquisition.sinks import MemoryFrameStore
 from acquisition.stream_statistics import StreamStatistics
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.camera import CameraFaults
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.rig import SimulatedRig

@@ -9,7 +9,7 @@ import acquisition.pattern_cache as pc
 from acquisition.controller import ControllerOptions, capture_pose
 from acquisition.patterns import build_plan, render_frame
 from acquisition.sinks import MemoryFrameStore
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.rig import SimulatedRig
 

@@ -18,8 +18,8 @@ import pytest
 
 from acquisition.patterns import build_plan
 from api.client import PhasecalClient
-from calibration.maps import load_maps
-from calibration.plan import CosineFrame, FlatFrame, Plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import CosineFrame, FlatFrame, Plan
 from tests.api_server import ServerProcess
 
 H, W = 120, 160

@@ -15,9 +15,9 @@ import pytest
 
 from api.client import PhasecalClient, ServiceError
 from api.demo import demo_rig_config
-from calibration.maps import load_maps
 from calibration.models.base import model_from_dict
-from calibration.plan import ScreenGeometry
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.poses import random_poses
 from tests.api_server import ServerProcess

@@ -33,8 +33,8 @@ from api.inprocess import free_port
 from api.jobs.manager import JobManager
 from api.services import Services
 from api.worker.executor import InProcessExecutor
-from calibration.plan import ScreenGeometry
-from calibration.progress import TaskContext
+from calibration.shared.plan import ScreenGeometry
+from calibration.shared.progress import TaskContext
 from tests.api.test_api_lifetime import alive, descendants, wait_gone
 from tests.api.test_api_units import FnJob
 from tests.api_server import ROOT, ServerProcess

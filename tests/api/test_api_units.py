@@ -20,7 +20,7 @@ from api.jobs import Job, JobKind, JobManager
 from api.problems import Problem
 from api.store import DataStore, check_id, new_id
 from api.worker.executor import InProcessExecutor, make_executor
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.progress import Cancelled, TaskContext
 
 PLAN = {
     "format": "phasecal.plan/1",

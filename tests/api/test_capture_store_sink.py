@@ -9,8 +9,8 @@ import pytest
 
 from api.pose_path import StoreSink
 from calibration.decode import DecodeError
-from calibration.decode.frame_store import FrameStore
-from calibration.progress import TaskContext
+from calibration.shared.frame_store import FrameStore
+from calibration.shared.progress import TaskContext
 
 
 def test_frames_handed_over_are_all_stored_once_close_returns(tmp_path: Path) -> None:

@@ -11,10 +11,10 @@ from acquisition.patterns import build_plan
 from api.cli import UserError, main
 from api.commands.calibrate import parse_options
 from calibration.export import read_opencv_yaml
-from calibration.maps import save_maps
 from calibration.models.base import save_model
 from calibration.models.parametric import OpenCV5Model
-from calibration.plan import write_plan
+from calibration.shared.maps import save_maps
+from calibration.shared.plan import write_plan
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.poses import random_poses
 from hw_mocks.synthetic import synthetic_maps

@@ -15,8 +15,8 @@ import pytest
 from acquisition.patterns import build_plan
 from api.cli import main as cli_main
 from calibration.decode import read_frames
-from calibration.maps import load_maps
-from calibration.plan import Plan, write_plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import Plan, write_plan
 from tests.calibration.test_npz_store import disk_full_on_write
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -69,7 +69,7 @@ def test_npy_stack_decoded_into_the_laid_out_file(plan, tmp_path, monkeypatch, c
     imports: every member equal to the library's decode written by `save_maps`."""
     import calibration.decode.decoder as decoder_module
     from calibration.decode import decode_stack
-    from calibration.maps import save_maps
+    from calibration.shared.maps import save_maps
     from tests.calibration.test_maps_file import _same_npz
 
     if compiled:  # (the compiled whole-stack path of large images)

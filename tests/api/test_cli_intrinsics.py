@@ -12,9 +12,9 @@ import pytest
 from acquisition.patterns import build_plan
 from api.cli import main
 from calibration.fit.classic.quick import white_flat_index
-from calibration.maps import save_maps
 from calibration.models.base import load_model
-from calibration.plan import write_plan
+from calibration.shared.maps import save_maps
+from calibration.shared.plan import write_plan
 from hw_mocks.cameras import PinholeCamera
 from hw_mocks.poses import random_poses, rotation_only_poses
 from hw_mocks.rectangles import (

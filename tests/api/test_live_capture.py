@@ -22,15 +22,15 @@ from api.cli import main as cli_main
 from api.config import ServiceConfig
 from api.demo import demo_rig_config
 from calibration.decode import DecodeError, read_frames
-from calibration.decode.frame_store import FrameStore
-from calibration.maps import load_maps
+from calibration.shared.frame_store import FrameStore
+from calibration.shared.maps import load_maps
 from hw_mocks.truth import SimulatorTruth
 from tests.api.test_api_session import SCREEN, screen_poses, small_rig
 
 KILLED_WRITER = """
 import os, signal, sys
 import numpy as np
-from calibration.decode.frame_store import FrameStore
+from calibration.shared.frame_store import FrameStore
 store = FrameStore(sys.argv[1], 10, flush_interval_s=0.05)
 for i in (0, 3, 5, 6):
     store.add(i, np.full((4, 6), 10 * i + 1, np.uint16))

@@ -20,7 +20,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from api.config import ServiceConfig
 from api.maps_durability import PENDING, intact_maps
-from calibration.maps import load_maps
+from calibration.shared.maps import load_maps
 from tests.api.test_api_session import screen_poses, small_rig
 
 

@@ -23,9 +23,9 @@ from api.inprocess import running_service
 from calibration.evaluate import pose_residuals
 from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.result import PoseEstimate
-from calibration.maps import load_maps
 from calibration.models.base import model_from_dict
-from calibration.plan import plan_from_dict
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import plan_from_dict
 from tests.api.test_api_session import screen_poses, small_rig
 
 EXPECTED = ("histogram.png", "radial.png", "uncertainty.png", "coverage.png", "pose_00.png",

@@ -29,7 +29,7 @@ from calibration.formats import (
 from calibration.models.base import ModelError, save_model
 from calibration.models.parametric import FisheyeModel, OpenCV5Model, OpenCVRationalModel
 from calibration.mrcal_io import project_splined, read_cameramodel
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 
 K = np.array([[500.0, 0, 330.5], [0, 505.0, 245.25], [0, 0, 1]])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from calibration.maps import MAPS_FORMAT, DecodedMaps, MapsError, load_maps, save_maps
+from calibration.shared.maps import MAPS_FORMAT, DecodedMaps, MapsError, load_maps, save_maps
 
 
 def _maps(h=4, w=5):

@@ -24,12 +24,12 @@ from api.worker import tasks
 from api.worker.tasks import stream_decode_task
 from calibration import prefault
 from calibration.decode import DecodeError, StreamingDecoder
-from calibration.decode.frame_store import FrameStore
-from calibration.maps import load_maps, save_maps
-from calibration.maps_file import MapsFile
-from calibration.plan import write_plan
 from calibration.prefault import IdlePrefault, populate
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.frame_store import FrameStore
+from calibration.shared.maps import load_maps, save_maps
+from calibration.shared.maps_file import MapsFile
+from calibration.shared.plan import write_plan
+from calibration.shared.progress import Cancelled, TaskContext
 from tests.calibration.decode.test_decode import H, W, render
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -219,7 +219,7 @@ def test_prefault_thread_runs_at_idle_priority_until_stopped(plan, tmp_path, mon
 def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
     script = textwrap.dedent(f"""
         import time
-        from calibration.maps_file import MapsFile
+        from calibration.shared.maps_file import MapsFile
         from calibration.prefault import populate
         out = MapsFile({str(tmp_path / "maps.npz")!r}, (64, 80), ["x", "y"])
         populate(out.mapped, 0, out.mapped.nbytes)

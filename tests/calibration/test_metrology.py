@@ -15,7 +15,7 @@ from calibration.metrology.lm import _Problem
 from calibration.metrology.refine import fit_parametric_dense
 from calibration.metrology.screen import ScreenModel
 from calibration.models.parametric import FisheyeModel, OpenCV5Model, OpenCVRationalModel
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 from hw_mocks.panel import PanelShape
 

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from calibration.fit.sgcc.screen_terms import panel_ray_terms, rays_in_screen_frame
 from calibration.metrology.screen import ScreenModel
 from calibration.metrology.screen_trace import ScreenTrace
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 SCREEN = ScreenGeometry(1920, 1080, (0.2745, 0.2745))
 

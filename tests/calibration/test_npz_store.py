@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from calibration import npz_store
-from calibration.npz_store import write_npz_stored
+from calibration.shared.npz_store import write_npz_stored
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -110,7 +110,7 @@ def test_killed_writer_never_leaves_a_partial_file_at_the_destination(tmp_path):
     script = textwrap.dedent(f"""
         import os, sys, time
         import numpy as np
-        from calibration.npz_store import write_npz_stored
+        from calibration.shared.npz_store import write_npz_stored
         real = os.pwrite
         def slow(fd, data, offset):
             n = real(fd, data, offset)

@@ -8,7 +8,7 @@ import pytest
 
 from acquisition.patterns import DisplayResponse, build_plan, choose_periods, render_frame
 from api.cli import main
-from calibration.plan import PlanError, plan_from_dict, read_plan, write_plan
+from calibration.shared.plan import PlanError, plan_from_dict, read_plan, write_plan
 
 
 def test_default_plan_periods_cover_screen_and_ratio_bounded():

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from acquisition.patterns import DisplayResponse, build_plan
-from calibration.maps import load_maps
-from calibration.plan import CosineFrame, Plan, ScreenGeometry
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import CosineFrame, Plan, ScreenGeometry
 from hw_mocks.cameras import (
     EquidistantFisheye,
     NonCentralCamera,

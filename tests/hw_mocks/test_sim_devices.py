@@ -8,7 +8,7 @@ import pytest
 from acquisition.conformance import check_camera, check_display
 from acquisition.errors import CameraDisconnected, CameraTimeout, DeviceSettingsError
 from acquisition.protocols import CameraSettings
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.camera import CameraFaults
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.clock import VirtualClock

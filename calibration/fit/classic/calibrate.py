@@ -12,9 +12,9 @@ from calibration.evaluate import attach_residuals, heldout_errors, summarize
 from calibration.fit.classic.options import MIN_POSES, ParametricOptions
 from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.result import CalibrationResult
-from calibration.maps import DecodedMaps
-from calibration.plan import ScreenGeometry
-from calibration.progress import CancelCheck, Cancelled, ProgressFn
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
+from calibration.shared.progress import CancelCheck, Cancelled, ProgressFn
 
 MIN_VALID_PIXELS = 100
 

@@ -23,7 +23,7 @@ from calibration.fit.correspondences import PointSet, subsample
 from calibration.fit.ransac import DegenerateError
 from calibration.fit.result import PoseEstimate
 from calibration.models.parametric import PARAMETRIC_MODELS, PinholeFamily
-from calibration.progress import ProgressFn
+from calibration.shared.progress import ProgressFn
 
 # A fit whose fx (or cx, relative to the image width) is this uncertain is degenerate.
 _MAX_REL_STD = 0.01

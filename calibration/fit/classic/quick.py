@@ -25,9 +25,9 @@ from calibration.fit.classic.rotation import interview_homographies, rotation_es
 from calibration.fit.classic.selfcal import selfcal_intrinsics
 from calibration.fit.correspondences import PointSet, point_set, subsample
 from calibration.fit.ransac import DegenerateError
-from calibration.maps import DecodedMaps
 from calibration.models.blas_threads import single_thread_blas
-from calibration.plan import FlatFrame, Plan, ScreenGeometry
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import FlatFrame, Plan, ScreenGeometry
 
 METHODS = ("rectangle", "selfcal", "rotation")
 _MAP_POINTS = 3000

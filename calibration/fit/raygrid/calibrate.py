@@ -41,11 +41,11 @@ from calibration.fit.raygrid.solve import (
 from calibration.fit.registry import model_spec
 from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sgcc.initial import initial_state, pose_from_model
-from calibration.maps import DecodedMaps
 from calibration.models.bspline import SplineGrid
 from calibration.models.raygrid import RayGridModel, default_grid_step
-from calibration.plan import ScreenGeometry
-from calibration.progress import CancelCheck, Cancelled, ProgressFn
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
+from calibration.shared.progress import CancelCheck, Cancelled, ProgressFn
 
 
 def _heldout(

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.maps import DecodedMaps
 from calibration.models.raygrid import RayGridModel
-from calibration.plan import ScreenGeometry
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
 
 _CHUNK = 65536
 _POSE_GN_STEPS = 3

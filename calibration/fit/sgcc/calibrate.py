@@ -50,14 +50,14 @@ from calibration.fit.sgcc.screen_terms import (
 )
 from calibration.fit.sgcc.state import LMOptions, LMResult, LMState
 from calibration.fit.sgcc.statistics import fit_statistics
-from calibration.maps import DecodedMaps
 from calibration.metrology.family_prior import PRIOR_WEIGHT, choose_family
 from calibration.metrology.screen import ScreenModel
 from calibration.models.bspline import SplineGrid
 from calibration.models.heap import retained_heap
 from calibration.models.sgcc import SGCCBase
-from calibration.plan import ScreenGeometry
-from calibration.progress import CancelCheck, ProgressFn
+from calibration.shared.maps import DecodedMaps
+from calibration.shared.plan import ScreenGeometry
+from calibration.shared.progress import CancelCheck, ProgressFn
 
 _FEW_VIEWS = 0.1  # warn when more of the seen pixels than this have fewer than 3 views
 _MESH_HINT_RATIO = 1.1  # noise-floor ratio above which a finer mesh is suggested
@@ -207,7 +207,7 @@ def calibrate_generic(
     """Fit an sGCC model to the poses not in `heldout` (indices); held-out poses are validated.
 
     `progress(done, total, message)` is called once per LM iteration; `cancelled()`
-    returning True aborts with `calibration.progress.Cancelled`.
+    returning True aborts with `calibration.shared.progress.Cancelled`.
     """
     spec = model_spec(model)
     if spec.family != "sgcc":

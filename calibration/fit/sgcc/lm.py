@@ -42,7 +42,7 @@ from calibration.models.bspline import (
     SplineGrid,
     second_differences,
 )
-from calibration.progress import CancelCheck, Cancelled, ProgressFn
+from calibration.shared.progress import CancelCheck, Cancelled, ProgressFn
 
 if TYPE_CHECKING:
     from calibration.fit.sgcc.device import DeviceProblem

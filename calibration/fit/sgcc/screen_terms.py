@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from calibration.metrology.screen import ScreenModel
 from calibration.metrology.screen_trace import N_SCREEN, ScreenTrace
 from calibration.models.sgcc import expmap_jacobian_rows, expmap_rows
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 
 
 def _cross(a: Any, b: Any) -> Any:

@@ -24,7 +24,7 @@ from api.worker.dask_batch import (
 )
 from api.worker.dask_executor import DaskExecutor, start_local_cluster
 from api.worker.executor import InProcessExecutor
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.progress import Cancelled, TaskContext
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
@@ -208,8 +208,8 @@ def test_cli_rejects_mixed_arguments(tmp_path, capsys):
 
 def test_cli_batch_on_local_cluster_matches_in_process(tmp_path, capsys):
     from acquisition.patterns import build_plan
-    from calibration.maps import save_maps
-    from calibration.plan import write_plan
+    from calibration.shared.maps import save_maps
+    from calibration.shared.plan import write_plan
     from hw_mocks.cameras import mild_pinhole
     from hw_mocks.poses import random_poses
     from hw_mocks.synthetic import synthetic_maps

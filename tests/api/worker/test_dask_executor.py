@@ -18,7 +18,7 @@ import pytest
 from api.worker.dask_context import cancel_event_name
 from api.worker.dask_executor import DaskExecutor, WorkerLost
 from api.worker.executor import InProcessExecutor, make_executor
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.progress import Cancelled, TaskContext
 
 # Task functions below are defined in this test module, which workers cannot import.
 cloudpickle.register_pickle_by_value(sys.modules[__name__])

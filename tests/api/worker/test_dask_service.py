@@ -18,8 +18,8 @@ from acquisition.patterns import build_plan
 from api.app import create_app
 from api.config import ServiceConfig
 from api.worker.dask_executor import DaskExecutor, start_local_cluster
-from calibration.maps import load_maps
-from calibration.plan import CosineFrame, FlatFrame, Plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import CosineFrame, FlatFrame, Plan
 from tests.api.worker.test_dask_batch import FIT_AGREE_PX, model_disagreement_px
 
 H, W = 96, 128
@@ -99,7 +99,7 @@ def test_decode_job_on_cluster_matches_in_process(cluster, plan, tmp_path):
 
 
 def test_batch_endpoint_on_cluster_matches_in_process(cluster, tmp_path):
-    from calibration.maps import save_maps
+    from calibration.shared.maps import save_maps
     from hw_mocks.cameras import mild_pinhole
     from hw_mocks.poses import random_poses
     from hw_mocks.synthetic import synthetic_maps

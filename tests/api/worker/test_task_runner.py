@@ -13,7 +13,7 @@ import pytest
 
 from api.worker.executor import InProcessExecutor
 from api.worker.task_runner import TaskRunner, Ticket
-from calibration.progress import Cancelled, TaskContext
+from calibration.shared.progress import Cancelled, TaskContext
 
 
 def _until_cancelled(ctx: TaskContext, started: threading.Event) -> dict[str, Any]:

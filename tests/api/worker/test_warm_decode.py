@@ -18,7 +18,7 @@ def test_warm_decode_task_primes_the_sums_of_the_coming_decodes(tmp_path) -> Non
     sums, so this worker's first pose reuses them (no first-touch faults during its capture)."""
     from acquisition.patterns import build_plan
     from calibration.decode import StreamingDecoder, sums_cache
-    from calibration.plan import write_plan
+    from calibration.shared.plan import write_plan
 
     plan = build_plan(1920, 1080, 0.2745)
     write_plan(plan, tmp_path / "plan.json")
@@ -42,7 +42,7 @@ def test_warm_decode_task_keeps_the_sums_a_worker_already_holds(tmp_path) -> Non
 
     from acquisition.patterns import build_plan
     from calibration.decode import sums_cache
-    from calibration.plan import write_plan
+    from calibration.shared.plan import write_plan
 
     write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
     held = np.full((3, 48 * 64), 7.0)
@@ -62,7 +62,7 @@ def test_warm_decode_task_replaces_another_cameras_sums(tmp_path) -> None:
 
     from acquisition.patterns import build_plan
     from calibration.decode import sums_cache
-    from calibration.plan import write_plan
+    from calibration.shared.plan import write_plan
 
     write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
     sums_cache.keep([np.full((3, 16 * 12), 7.0)])

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from acquisition.patterns import frame_linear
-from calibration.plan import CosineFrame, Plan
+from calibration.shared.plan import CosineFrame, Plan
 
 
 @dataclass(frozen=True)

@@ -17,8 +17,8 @@ from calibration.decode import (
     StreamingDecoder,
     decode_stack,
 )
-from calibration.maps import load_maps
-from calibration.plan import FlatFrame, Plan, write_plan
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import FlatFrame, Plan, write_plan
 
 H, W = 192, 256
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.decode import frame_store
-from calibration.decode.frame_store import FrameStore
+from calibration.shared import frame_store
+from calibration.shared.frame_store import FrameStore
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ from acquisition.patterns import build_plan
 from calibration.decode import DecodeOptions, StreamingDecoder
 from calibration.decode.kernel_warm import warm_up
 from calibration.decode.ptc_fit import LinearVariance
-from calibration.plan import FlatFrame
+from calibration.shared.plan import FlatFrame
 from tests.calibration.decode.test_decode import H, W, render
 
 KEYS = ("x", "y", "sigma_x", "sigma_y", "mask", "modulation_x", "modulation_y", "blur_x",

@@ -16,7 +16,7 @@ from calibration.fit.classic.zhang import pose_from_homography, zhang_intrinsics
 from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.ransac import DegenerateError
 from calibration.models.parametric import OpenCV5Model
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import PinholeCamera, mild_pinhole
 from hw_mocks.poses import random_poses, rotation_only_poses
 from hw_mocks.synthetic import synthetic_maps

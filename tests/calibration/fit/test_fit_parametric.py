@@ -7,8 +7,8 @@ import pytest
 
 from calibration.fit.dispatch import calibrate
 from calibration.fit.ransac import DegenerateError
-from calibration.plan import ScreenGeometry
 from calibration.report import write_residual_report
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import PinholeCamera, mild_pinhole, wide_fisheye
 from hw_mocks.poses import look_at_pose, random_poses
 from hw_mocks.synthetic import synthetic_maps
@@ -126,7 +126,7 @@ def test_degenerate_views_rejected() -> None:
 
 
 def test_cancel_and_progress(pinhole_fit) -> None:
-    from calibration.progress import Cancelled
+    from calibration.shared.progress import Cancelled
 
     _, maps, _, _ = pinhole_fit
     with pytest.raises(Cancelled, match="cancelled"):

@@ -19,10 +19,10 @@ from acquisition.patterns import build_plan
 from api.cli import main
 from calibration.compare import in_gauge, ray_angle_difference, sgcc_gauge_transform
 from calibration.fit.dispatch import calibrate
-from calibration.maps import save_maps
 from calibration.models.base import load_model, model_from_dict
 from calibration.models.raygrid import RayGridModel
-from calibration.plan import ScreenGeometry, write_plan
+from calibration.shared.maps import save_maps
+from calibration.shared.plan import ScreenGeometry, write_plan
 from hw_mocks import cameras, poses, synthetic
 
 W, H = 160, 120
@@ -254,7 +254,7 @@ def test_cli_calibrate_raygrid(pinhole_fit, tmp_path, capsys):
 
 
 def test_progress_and_cancellation(pinhole_fit):
-    from calibration.progress import Cancelled
+    from calibration.shared.progress import Cancelled
 
     _, maps, _ = pinhole_fit
     seen = []

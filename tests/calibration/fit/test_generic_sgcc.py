@@ -20,7 +20,7 @@ from calibration.models.base import model_from_dict
 from calibration.models.blas_threads import single_thread_blas
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import logmap
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 
 W, H = 160, 120
@@ -337,7 +337,7 @@ def test_sgcc_on_150_degree_fisheye_within_1p5x_of_fisheye_model():
 
 
 def test_progress_and_cancellation(pinhole_fit):
-    from calibration.progress import Cancelled
+    from calibration.shared.progress import Cancelled
 
     _, maps, _ = pinhole_fit
     seen = []

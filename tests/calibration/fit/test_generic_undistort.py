@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calibration.fit.sgcc.calibrate import calibrate_generic
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from calibration.undistort import best_opencv_model, rectify_maps, undistort_points
 from hw_mocks import cameras, poses, synthetic
 

@@ -17,7 +17,7 @@ from calibration.fit.sgcc.initial import initial_state
 from calibration.fit.sgcc.problem import Problem
 from calibration.fit.sgcc.robust import block_weights
 from calibration.models.bspline import SplineGrid
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 
 W, H = 160, 120

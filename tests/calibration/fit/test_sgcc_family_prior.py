@@ -11,7 +11,7 @@ from calibration.fit.observations import PoseObs
 from calibration.fit.sgcc.calibrate import calibrate_generic
 from calibration.metrology.family_prior import grid_subset, screen_stride
 from calibration.metrology.refine import fit_parametric_dense
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 from hw_mocks.fisheye_camera import wide_fisheye
 

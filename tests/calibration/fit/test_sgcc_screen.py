@@ -17,7 +17,7 @@ from calibration.fit.sgcc.state import LMState
 from calibration.metrology.screen_trace import ScreenTrace
 from calibration.models.bspline import SplineGrid
 from calibration.models.sgcc import logmap
-from calibration.plan import ScreenGeometry
+from calibration.shared.plan import ScreenGeometry
 from hw_mocks import cameras, poses, synthetic
 from hw_mocks.panel import PanelShape
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from isal.isal_zlib import crc32
 
-from calibration.atomic import atomic_path, fsync_path
+from calibration.shared.atomic import atomic_path, fsync_path
 
 _SYNC_FILE_RANGE_WRITE = 2  # <fcntl.h>: start writeback of the range's dirty pages, no wait
 _LIMIT = zipfile.ZIP64_LIMIT  # fields above this go in zip64 extras (as zipfile does)

@@ -27,8 +27,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calibration.atomic import fsync_path
-from calibration.npz_store import (
+from calibration.prefault import IdlePrefault
+from calibration.shared.atomic import fsync_path
+from calibration.shared.npz_store import (
     NpyMember,
     central_directory,
     lay_out,
@@ -38,10 +39,9 @@ from calibration.npz_store import (
     npy_member,
     pwrite_all,
 )
-from calibration.prefault import IdlePrefault
 
 if TYPE_CHECKING:
-    from calibration.maps import DecodedMaps
+    from calibration.shared.maps import DecodedMaps
 
 _PAGE = mmap.PAGESIZE
 # the decoder's (2, npix) output planes and the members of their rows x, y

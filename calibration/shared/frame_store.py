@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from calibration.atomic import allocate, fsync_path
 from calibration.decode.accumulate import ACCEPTED_DTYPES, DecodeError
+from calibration.shared.atomic import allocate, fsync_path
 
 FRAMES_NAME = "frames.npy"
 DONE_NAME = "frames.done"

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from calibration.atomic import write_json_atomic
+from calibration.shared.atomic import write_json_atomic
 
 PLAN_FORMAT = "phasecal.plan/1"
 

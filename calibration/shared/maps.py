@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from calibration.atomic import atomic_file
-from calibration.npz_store import write_npz_stored
+from calibration.shared.atomic import atomic_file
+from calibration.shared.npz_store import write_npz_stored
 
 MAPS_FORMAT = "phasecal.maps/1"
 
