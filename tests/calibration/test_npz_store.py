@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration import npz_store
+from calibration.shared import npz_store
 from calibration.shared.npz_store import write_npz_stored
 
 ROOT = Path(__file__).resolve().parents[2]
