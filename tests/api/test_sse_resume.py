@@ -34,7 +34,10 @@ def test_sse_ids_and_resume_from_last_event_id(tmp_path: Path) -> None:
     with running_service(ServiceConfig(data_dir=tmp_path / "data")) as (url, _):
         client = PhasecalClient(url)
         rig = client.post("/rigs", {"name": "slow", "config": small_rig(slow=True)})
-        ses = client.post("/sessions", {"name": "sse", "rig_id": rig["id"], "preset": "fast"})
+        # (74 frames on the slow rig: the job outlives the hang-up by seconds, where the 38 of
+        # "fast" took ~1.5 s and could end first on a quick machine)
+        ses = client.post("/sessions", {"name": "sse", "rig_id": rig["id"],
+                                        "preset": "precise"})
         job = client.post(f"/sessions/{ses['id']}/poses", {})
         path = f"{url}/jobs/{job['id']}/events"
         with httpx.stream("GET", path, timeout=120) as r:
@@ -60,7 +63,10 @@ def test_sse_client_that_hangs_up_frees_its_stream_slot(tmp_path: Path) -> None:
         limiter = stream_limiter(app, EVENTS)
         client = PhasecalClient(url)
         rig = client.post("/rigs", {"name": "slow", "config": small_rig(slow=True)})
-        ses = client.post("/sessions", {"name": "sse", "rig_id": rig["id"], "preset": "fast"})
+        # (74 frames on the slow rig: the job outlives the hang-up by seconds, where the 38 of
+        # "fast" took ~1.5 s and could end first on a quick machine)
+        ses = client.post("/sessions", {"name": "sse", "rig_id": rig["id"],
+                                        "preset": "precise"})
         job = client.post(f"/sessions/{ses['id']}/poses", {})
         with httpx.stream("GET", f"{url}/jobs/{job['id']}/events", timeout=120) as r:
             assert _events(r, limit=1)
