@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.clock import Clock
-from acquisition.errors import AcquisitionError
+from acquisition.errors import AcquisitionError, FrameLost
 from acquisition.patterns import DisplayResponse
 from acquisition.protocols import Camera, CameraSettings, Display, Frame
 from acquisition.rig import Rig
@@ -39,6 +39,11 @@ class ExposureResult:
     level_dn: float
     fraction_of_max: float
     iterations: int
+
+
+#: Frames a link may lose in one `grab_after` before it gives up: each lost one is triggered
+#: again, and more than this means the link, not a packet, is the problem.
+MAX_LOST_FRAMES = 3
 
 
 def _codes(display: Display, level: int) -> np.ndarray:
@@ -68,8 +73,16 @@ def grab_after(camera: Camera, clock: Clock, settings: CameraSettings, on: float
     for _ in range(count if triggered else 0):
         _fire(camera, settings, trigger_box)
     frames: list[Frame] = []
+    lost = 0
     while len(frames) < count:
-        fr = camera.grab(timeout_s)
+        try:
+            fr = camera.grab(timeout_s)
+        except FrameLost:  # that trigger's frame is gone on the link: trigger once more
+            lost += 1
+            if lost > MAX_LOST_FRAMES:
+                raise
+            _fire(camera, settings, trigger_box)
+            continue
         if fr.timestamp_s >= on:
             frames.append(fr)
     return frames
@@ -208,7 +221,7 @@ def _sample_at(camera: Camera, clock: Clock, settings: CameraSettings, flip: flo
         return _sample_switch(camera, clock, settings, flip, span_s, trigger_box)
     clock.sleep_until(at)
     _fire(camera, settings, trigger_box)
-    return [camera.grab(1.0)]
+    return _grab_unless_lost(camera)
 
 
 def _sample_switch(camera: Camera, clock: Clock, settings: CameraSettings, flip: float,
@@ -228,8 +241,17 @@ def _sample_switch(camera: Camera, clock: Clock, settings: CameraSettings, flip:
     for k in range(n):
         clock.sleep_until(flip + k * step)
         _fire(camera, settings, trigger_box)
-        frames.append(camera.grab(1.0))
+        frames.extend(_grab_unless_lost(camera))
     return frames
+
+
+def _grab_unless_lost(camera: Camera) -> list[Frame]:
+    """The frame of the trigger just fired, or none when the link lost it: a sample of the
+    switch is taken at one moment, so a lost one cannot be re-taken and the fit uses the rest."""
+    try:
+        return [camera.grab(1.0)]
+    except FrameLost:
+        return []
 
 
 def _max_dn(settings: CameraSettings, camera: Camera) -> int:

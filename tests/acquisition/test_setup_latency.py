@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from acquisition.controller import capture_pose
-from acquisition.errors import AcquisitionError
+from acquisition.errors import AcquisitionError, FrameLost
 from acquisition.setup import decided_latency, measure_latency
 from acquisition.sinks import MemoryFrameStore
 
@@ -109,3 +109,30 @@ def test_capture_on_a_slow_host_pairs_every_pattern_with_its_own_frame():
     assert res.latency_s == pytest.approx(2 / 60)
     assert sorted(res.frames) == list(range(len(PLAN.frames)))
     assert mis_synced(r, res) == []
+
+
+def lossy_link(r, every: int) -> None:
+    """Every `every`-th triggered frame is lost on the link (its packets not recovered):
+    the camera consumed the trigger and reports `FrameLost`, as the Aravis backend does."""
+    grab = r.camera.grab
+    calls = {"n": 0}
+
+    def lossy(timeout_s: float):
+        frame = grab(timeout_s)
+        calls["n"] += 1
+        if calls["n"] % every == 0:
+            raise FrameLost("frame 0 lost on the link: 3 packets missing")
+        return frame
+
+    r.camera.grab = lossy
+
+
+def test_frames_lost_on_the_link_are_triggered_again_and_the_latency_holds():
+    """Before: the first `FrameLost` ended the latency measurement (and `phasecal check`)."""
+    r = make_rig(2)
+    settings = r.with_settings(exposure_s=EXPOSURE_S)
+    assert settings.trigger_mode != "free-running"
+    lossy_link(r, every=7)
+    res = measure_latency(r.display, r.camera, r.clock, settings)
+    assert res.periods == 2 and res.violations == 0 and res.undecided == ()
+    assert res.observations < 3 * 35  # the lost sweep frames are missing, not invented
