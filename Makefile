@@ -19,8 +19,11 @@ $(STAMP): pyproject.toml constraints.txt scripts/install-system-deps.sh
 # The decoder's numba kernels, compiled into their cache once per checkout (~2 CPU min; a
 # second or so when cached, recompiled when a kernel's source changed): neither the first live
 # capture of `phasecal serve` nor the tests' servers compile them while a pose waits.
+# OpenCV's sample chessboard images (real data of the passive-target tests) are extracted
+# into data/opencv-samples/ once.
 setup: $(STAMP)
 	$(PY) -m calibration.decode.kernel_warm
+	bash scripts/fetch-opencv-samples.sh
 
 demo: setup
 	$(VENV)/bin/phasecal demo
