@@ -160,6 +160,20 @@ def internal_error(method: str, path: str, exc: BaseException) -> JSONResponse:
                             f"internal error ({type(exc).__name__}); see the server log", path)
 
 
+class StartTracking:
+    """An ASGI `send` that remembers whether the response has started: before that, an error
+    can still be answered with a problem; after it, only the connection can be cut."""
+
+    def __init__(self, send: Any) -> None:
+        self.send = send
+        self.started = False
+
+    async def __call__(self, message: dict[str, Any]) -> None:
+        if message["type"] == "http.response.start":
+            self.started = True
+        await self.send(message)
+
+
 class UnhandledErrorMiddleware:
     """Answers an error no handler took with a 500 problem and keeps the connection usable.
 
@@ -176,18 +190,11 @@ class UnhandledErrorMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
-
-        async def tracked(message: dict[str, Any]) -> None:
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-            await send(message)
-
+        tracked = StartTracking(send)
         try:
             await self.app(scope, receive, tracked)
         except Exception as exc:
-            if started:
+            if tracked.started:
                 raise
             response = internal_error(scope.get("method", ""), scope.get("path", ""), exc)
             await response(scope, receive, send)

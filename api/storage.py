@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from api.problems import MEDIA_TYPE, Problem, problem_body
+from api.problems import MEDIA_TYPE, Problem, StartTracking, problem_body
 from calibration.shared.atomic import allocate
 
 log = logging.getLogger("phasecal.storage")
@@ -231,22 +231,15 @@ class NoSpaceMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
-
-        async def tracking_send(msg: dict[str, Any]) -> None:
-            nonlocal started
-            if msg["type"] == "http.response.start":
-                started = True
-            await send(msg)
-
+        tracked = StartTracking(send)
         try:
-            await self.app(scope, receive, tracking_send)
+            await self.app(scope, receive, tracked)
         except Exception as exc:
             if not is_no_space(exc):
                 raise
             self.space.release()
             log.warning("no space left on %s %s: %s", scope.get("method"), scope.get("path"), exc)
-            if started:  # the answer went out; what failed after it was bookkeeping
+            if tracked.started:  # the answer went out; what failed after it was bookkeeping
                 return
             body = json.dumps(problem_body(
                 507, "insufficient-storage",
