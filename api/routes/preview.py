@@ -16,7 +16,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
-from api.live_preview import LivePreview
+from api.live_preview import LivePreview, PreviewImage
 from api.problems import Problem
 from api.rigs import RigHandle
 from api.routes.common import PROBLEM_RESPONSES, TOO_MANY_STREAMS
@@ -29,6 +29,8 @@ BOUNDARY = "phasecal-frame"
 MEDIA_TYPE = f"multipart/x-mixed-replace; boundary={BOUNDARY}"
 MIN_FPS = 0.2  # slower previews are snapshots: poll preview.jpg
 MAX_FPS = 10.0  # the shared JPEG is renewed at most every 0.1 s
+SOURCE_HEADER = "Phasecal-Preview-Source"  # idle | capture
+LEVEL_HEADER = "Phasecal-Preview-Level"  # 99th-percentile pixel / full scale, 0..1
 
 
 def _handle(svc: Services, rig_id: str) -> RigHandle:
@@ -43,13 +45,13 @@ def _part(data: bytes) -> bytes:
             f"Content-Length: {len(data)}\r\n\r\n").encode() + data + b"\r\n"
 
 
-async def _parts(preview: LivePreview, handle: RigHandle, first: bytes, fps: float,
+async def _parts(preview: LivePreview, handle: RigHandle, first: PreviewImage, fps: float,
                  frames: int | None) -> AsyncIterator[bytes]:
     """MJPEG parts at `fps`, paced from each frame's start; waits hold no thread."""
     data, sent, period = first, 0, 1.0 / fps
     due = time.monotonic()
     while True:
-        yield _part(data)
+        yield _part(data.jpeg)
         sent += 1
         if frames is not None and sent >= frames:
             return
@@ -65,11 +67,16 @@ async def _parts(preview: LivePreview, handle: RigHandle, first: bytes, fps: flo
 @router.get("/rigs/{rig_id}/camera/preview.jpg", response_class=Response,
             responses={200: {"content": {"image/jpeg": {}}}})
 async def preview_jpeg(rig_id: str, request: Request) -> Response:
-    """One JPEG of the rig's camera (the newest captured frame during a capture)."""
+    """One JPEG of the rig's camera (the newest captured frame during a capture), scaled
+    by the camera's full scale. Headers say where the frame came from (`idle` or `capture`)
+    and its brightness (99th-percentile pixel over full scale), so a client can tell a dark,
+    idle camera from a lit pattern."""
     svc: Services = request.app.state.services
     handle = await svc.preview.run(_handle, svc, rig_id)
-    data = await svc.preview.jpeg_async(handle)
-    return Response(data, media_type="image/jpeg", headers={"Cache-Control": "no-store"})
+    shot = await svc.preview.jpeg_async(handle)
+    return Response(shot.jpeg, media_type="image/jpeg", headers={
+        "Cache-Control": "no-store", SOURCE_HEADER: shot.source,
+        LEVEL_HEADER: f"{shot.level:.4f}"})
 
 
 @router.get("/rigs/{rig_id}/camera/preview", response_class=StreamingResponse,
