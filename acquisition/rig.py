@@ -1,16 +1,18 @@
 """Rig configuration (TOML or JSON -> `RigConfig`) and opening a rig's devices.
 
-A rig is one display, one camera, the screen geometry (pixel pitch in mm), the camera
-settings to start from and optionally a USB trigger box. `kind = "hardware"` opens real
-backends; `kind = "simulated"` (the default) is opened by the `SimulatorFactory` the caller
-passes (`hw_mocks.rig.open_simulated_rig`, wired in by `api`), so real code never imports
-the simulator.
+A rig is one display, one camera or several named ones (`cameras = [{name = "left", ...}]`,
+any mix of backends, captured in sync on the one screen), the screen geometry (pixel pitch in
+mm), the camera settings to start from and optionally a USB trigger box. `kind = "hardware"`
+opens real backends; `kind = "simulated"` (the default) is opened by the `SimulatorFactory`
+the caller passes (`hw_mocks.rig.open_simulated_rig`, wired in by `api`), so real code never
+imports the simulator.
 See docs/hardware.md and docs/rigs/*.toml for examples.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,6 +35,8 @@ from acquisition.usb.trigger_box import TriggerSink
 from calibration.shared.plan import ScreenGeometry
 
 RIG_FORMAT = "phasecal.rig/1"
+DEFAULT_CAMERA = "cam0"  # the name of a one-camera rig's camera (`camera = {...}`)
+CAMERA_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$")  # also a folder name
 
 
 class RigConfigError(ValueError):
@@ -132,6 +136,7 @@ DisplayConfig = Annotated[FramebufferConfig | SdlConfig | SimulatedPart,
                           Field(discriminator="backend")]
 CameraConfig = Annotated[OpenCvConfig | AravisConfig | SimulatedPart,
                          Field(discriminator="backend")]
+AnyCamera = OpenCvConfig | AravisConfig | SimulatedPart
 
 
 class SettingsConfig(_Strict):
@@ -148,6 +153,31 @@ class SettingsConfig(_Strict):
         """As the protocol's `CameraSettings`."""
         return CameraSettings(self.exposure_s, self.gain_db, self.pixel_format,
                               self.trigger_mode, self.frame_rate_hz, dict(self.extra))
+
+
+class NamedCamera(BaseModel):
+    """What a camera of a several-camera rig has besides its backend: its name (a folder
+    and query name) and, optionally, its own settings (default: the rig's)."""
+
+    name: str = Field(pattern=CAMERA_NAME_RE.pattern,
+                      description="letters, digits, '_' and '-', at most 32")
+    settings: SettingsConfig | None = None
+
+
+class NamedOpenCvCamera(OpenCvConfig, NamedCamera):
+    """An OpenCV camera of a several-camera rig."""
+
+
+class NamedAravisCamera(AravisConfig, NamedCamera):
+    """An Aravis camera of a several-camera rig."""
+
+
+class NamedSimulatedCamera(SimulatedPart, NamedCamera):
+    """A simulated camera of a several-camera rig (`extrinsics` places it, see hw_mocks)."""
+
+
+NamedCameraConfig = Annotated[NamedOpenCvCamera | NamedAravisCamera | NamedSimulatedCamera,
+                              Field(discriminator="backend")]
 
 
 class TriggerBoxConfig(_Strict):
@@ -171,7 +201,8 @@ class RigConfig(_Strict):
     clock: Literal["virtual", "real"] | None = None
     screen: ScreenConfig = Field(default_factory=ScreenConfig)
     display: DisplayConfig = Field(default_factory=SimulatedPart)
-    camera: CameraConfig = Field(default_factory=SimulatedPart)
+    camera: CameraConfig | None = None  # one camera (the default: a simulated one) ...
+    cameras: list[NamedCameraConfig] | None = Field(default=None, min_length=1, max_length=16)
     settings: SettingsConfig | None = None
     trigger_box: TriggerBoxConfig | None = None
     panel: PanelConfig | None = None  # simulated rigs: a shaped panel behind cover glass
@@ -180,20 +211,47 @@ class RigConfig(_Strict):
     @classmethod
     def _default_backends(cls, data: Any) -> Any:
         """Simulated rigs may omit `backend`; hardware rigs must name theirs."""
-        if isinstance(data, dict) and data.get("kind", "simulated") == "simulated":
-            data = dict(data)
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        if data.get("camera") is None and data.get("cameras") is None:
+            data["camera"] = {"backend": "simulated"}  # one camera, simulated by default
+        if data.get("kind", "simulated") == "simulated":
+            def simulated(part: Any) -> Any:
+                return {**part, "backend": "simulated"} \
+                    if isinstance(part, dict) and "backend" not in part else part
             for part in ("display", "camera"):
-                if isinstance(data.get(part), dict) and "backend" not in data[part]:
-                    data[part] = {**data[part], "backend": "simulated"}
+                if part in data:
+                    data[part] = simulated(data[part])
+            if isinstance(data.get("cameras"), list):
+                data["cameras"] = [simulated(c) for c in data["cameras"]]
         return data
+
+    def camera_entries(self) -> list[tuple[str, AnyCamera, SettingsConfig | None]]:
+        """(name, config, own settings or None) of every camera, the reference first; a
+        one-camera rig's camera is named `DEFAULT_CAMERA`."""
+        if self.cameras is None:
+            assert self.camera is not None
+            return [(DEFAULT_CAMERA, self.camera, None)]
+        return [(c.name, c, c.settings) for c in self.cameras]
 
     @model_validator(mode="after")
     def _consistent(self) -> RigConfig:
-        sim = {p for p in ("display", "camera") if getattr(self, p).backend == "simulated"}
+        if self.camera is not None and self.cameras is not None:
+            raise ValueError("give camera (one camera) or cameras (several), not both")
+        names = [name for name, _, _ in self.camera_entries()]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"cameras: duplicate camera name(s) {twice}; each camera needs "
+                             "its own name")
+        parts = [("display", self.display)] + [
+            (f"camera {name!r}" if self.cameras is not None else "camera", cfg)
+            for name, cfg, _ in self.camera_entries()]
+        sim = [p for p, cfg in parts if cfg.backend == "simulated"]
         if self.kind == "hardware" and sim:
-            raise ValueError(f"kind 'hardware' needs real backends; {sorted(sim)} simulated")
-        if self.kind == "simulated" and len(sim) != 2:
-            raise ValueError("kind 'simulated' uses the simulated display and camera; set "
+            raise ValueError(f"kind 'hardware' needs real backends; {sim} simulated")
+        if self.kind == "simulated" and len(sim) != len(parts):
+            raise ValueError("kind 'simulated' uses the simulated display and cameras; set "
                              "kind = 'hardware' to use real backends")
         if self.kind == "hardware" and self.panel is not None:
             raise ValueError("panel describes a simulated screen; a real monitor's shape and "
@@ -237,7 +295,11 @@ def load_rig_config(path: str | Path) -> RigConfig:
 class Rig:
     """An opened rig, the only thing the acquisition controller takes: devices on one clock,
     the screen, the camera settings to use, and what was measured on it once (flip-to-panel
-    latency, display response) so later poses reuse it."""
+    latency, display response) so later poses reuse it.
+
+    `camera` and `settings` are the reference camera's (a one-camera rig's only camera);
+    `cameras` holds every camera by name, the reference first, and `camera_settings` the
+    settings of the others (`settings_for`)."""
 
     display: Display
     camera: Camera
@@ -249,14 +311,36 @@ class Rig:
     simulated: SimulatorControls | None = None  # simulator-only controls; None on real rigs
     display_response: DisplayResponse | None = None  # gamma LUT (`measure_display_response`)
     latency_s: float | None = None  # flip-to-panel latency, measured on first capture
+    cameras: dict[str, Camera] = field(default_factory=dict)  # {} -> {DEFAULT_CAMERA: camera}
+    camera_settings: dict[str, CameraSettings] = field(default_factory=dict)
     _closed: bool = field(default=False, repr=False)
 
+    def __post_init__(self) -> None:
+        """A rig assembled with one camera names it `DEFAULT_CAMERA`."""
+        if not self.cameras:
+            self.cameras = {DEFAULT_CAMERA: self.camera}
+        elif next(iter(self.cameras.values())) is not self.camera:
+            raise ValueError("Rig: `camera` must be the first (reference) of `cameras`")
+
+    @property
+    def reference(self) -> str:
+        """The reference camera's name (extrinsics of the others are relative to it)."""
+        return next(iter(self.cameras))
+
+    def settings_for(self, name: str) -> CameraSettings:
+        """The settings a camera captures with: its own, else the rig's."""
+        if name not in self.cameras:
+            raise KeyError(f"camera {name!r}: the rig has {list(self.cameras)}")
+        if name == self.reference:
+            return self.settings
+        return self.camera_settings.get(name, self.settings)
+
     def close(self) -> None:
-        """Close the camera, the display and the trigger box (once)."""
+        """Close the cameras, the display and the trigger box (once)."""
         if self._closed:
             return
         self._closed = True
-        for part in (self.camera, self.display, self.trigger):
+        for part in (*self.cameras.values(), self.display, self.trigger):
             if part is not None:
                 part.close()
 
@@ -316,7 +400,7 @@ def _check_extras(config: RigConfig) -> None:
     needed = []
     if getattr(config.display, "backend", None) == "sdl":
         needed.append("sdl")
-    if getattr(config.camera, "backend", None) == "aravis":
+    if any(cfg.backend == "aravis" for _, cfg, _ in config.camera_entries()):
         needed.append("aravis")
     if config.trigger_box is not None:
         needed.append("usb")
@@ -341,8 +425,10 @@ def open_rig(config: RigConfig, clock: Clock | None = None, *,
     try:
         display = open_display(config.display, clock)  # type: ignore[arg-type]
         opened.append(display)
-        camera = open_camera(config.camera, clock)  # type: ignore[arg-type]
-        opened.append(camera)
+        cameras: dict[str, Camera] = {}
+        for name, cfg, _ in config.camera_entries():
+            cameras[name] = open_camera(cfg, clock)  # type: ignore[arg-type]
+            opened.append(cameras[name])
         trigger = None
         if config.trigger_box is not None:
             from acquisition.usb.trigger_box import UsbTriggerBox
@@ -360,7 +446,13 @@ def open_rig(config: RigConfig, clock: Clock | None = None, *,
                 f"is {info.width_px}x{info.height_px}"
             )
         settings = config.settings.to_settings() if config.settings else CameraSettings()
-        return Rig(display, camera, clock, settings, screen, config=config, trigger=trigger)
+        own = {name: st.to_settings() for name, _, st in config.camera_entries()[1:]
+               if st is not None}
+        first = config.camera_entries()[0]
+        if first[2] is not None:
+            settings = first[2].to_settings()
+        return Rig(display, next(iter(cameras.values())), clock, settings, screen,
+                   config=config, trigger=trigger, cameras=cameras, camera_settings=own)
     except BaseException:
         for part in reversed(opened):
             part.close()

@@ -1,5 +1,8 @@
 """What a rig created over REST may name: listed devices and recordings in the data directory.
 
+Each camera of a several-camera rig is checked as a one-camera rig's camera is; errors
+name it by its place (`config.cameras.1.source`).
+
 A request body must never make the server open or write an arbitrary path (a framebuffer
 "device" that is an ordinary file would be overwritten with pattern pixels). Rigs with
 other devices or paths come only from files the operator gives the server
@@ -9,6 +12,7 @@ other devices or paths come only from files the operator gives the server
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -70,23 +74,35 @@ MAX_SUPERSAMPLE = 8
 MAX_SCREEN_PX = 16384
 
 
+def _camera_fields(config: Any) -> list[tuple[str, Any]]:
+    """(field prefix as a request names it, camera config) of every camera of a rig."""
+    if config.cameras is None:
+        return [("config.camera", config.camera)]
+    return [(f"config.cameras.{i}", cam) for i, cam in enumerate(config.cameras)]
+
+
 def _check_simulated_size(config: Any) -> None:
     """Bound what a simulated rig from a request allocates when it renders (memory)."""
-    cam = config.camera.model_dump()
-    values = {"config.camera.width": cam.get("width", 160),
-              "config.camera.height": cam.get("height", 120),
-              "config.camera.supersample": cam.get("supersample", 2),
-              "config.screen.width_px": config.screen.width_px or 1,
-              "config.screen.height_px": config.screen.height_px or 1}
+    for prefix, camera in _camera_fields(config):
+        _check_simulated_camera(prefix, camera.model_dump(), config.screen)
+
+
+def _check_simulated_camera(prefix: str, cam: dict[str, Any], screen: Any) -> None:
+    """One simulated camera's sensor and rendering within the limits."""
+    values = {f"{prefix}.width": cam.get("width", 160),
+              f"{prefix}.height": cam.get("height", 120),
+              f"{prefix}.supersample": cam.get("supersample", 2),
+              "config.screen.width_px": screen.width_px or 1,
+              "config.screen.height_px": screen.height_px or 1}
     for field, v in values.items():
         if not isinstance(v, int) or isinstance(v, bool) or v < 1:
             raise Problem(422, "invalid-rig-config", f"{field}: expected a positive integer, "
                           f"got {v!r}", field=field)
-    w, h = values["config.camera.width"], values["config.camera.height"]
-    s = values["config.camera.supersample"]
-    limits = ((w * h <= MAX_SIM_PIXELS, "config.camera.width",
+    w, h = values[f"{prefix}.width"], values[f"{prefix}.height"]
+    s = values[f"{prefix}.supersample"]
+    limits = ((w * h <= MAX_SIM_PIXELS, f"{prefix}.width",
                f"{w}x{h} px exceeds {MAX_SIM_PIXELS} pixels"),
-              (s <= MAX_SUPERSAMPLE, "config.camera.supersample", f"{s} exceeds {MAX_SUPERSAMPLE}"),
+              (s <= MAX_SUPERSAMPLE, f"{prefix}.supersample", f"{s} exceeds {MAX_SUPERSAMPLE}"),
               (max(values["config.screen.width_px"], values["config.screen.height_px"])
                <= MAX_SCREEN_PX, "config.screen.width_px", f"exceeds {MAX_SCREEN_PX} px"))
     for ok, field, detail in limits:
@@ -114,7 +130,7 @@ def check_client_rig(config: Any, data_dir: Path, *, dev_root: Path = Path("/dev
             listed = listed_devices(dev_root, sysfs_root, aravis_ids)
         return device in listed
 
-    display, camera = config.display, config.camera
+    display = config.display
     if display.backend == "framebuffer":
         if display.sysfs_root is not None:
             raise _refuse("config.display.sysfs_root", f"a sysfs folder cannot be set over "
@@ -126,17 +142,28 @@ def check_client_rig(config: Any, data_dir: Path, *, dev_root: Path = Path("/dev
         if not SDL_DRIVER_RE.match(display.video_driver):
             raise _refuse("config.display.video_driver",
                           f"{display.video_driver!r} is not an SDL video driver name")
+    checked = [_checked_camera(prefix, camera, data_dir, dev_root, is_listed)
+               for prefix, camera in _camera_fields(config)]
+    if config.cameras is None:
+        return config.model_copy(update={"camera": checked[0]})
+    return config.model_copy(update={"cameras": checked})
+
+
+def _checked_camera(prefix: str, camera: Any, data_dir: Path, dev_root: Path,
+                    is_listed: Callable[[str], bool]) -> Any:
+    """One camera of a client's rig: a listed device or a recording inside the data
+    directory (returned with its path made absolute)."""
     if camera.backend == "opencv":
         src = camera.source
         device = str(dev_root / f"video{src}") if isinstance(src, int) else src
         if not is_listed(device):
             if isinstance(src, int):
-                raise _refuse("config.camera.source", f"camera index {src} ({device}) is not "
+                raise _refuse(f"{prefix}.source", f"camera index {src} ({device}) is not "
                               "listed by GET /devices")
-            src = recording_in_data_dir(src, data_dir, "config.camera.source")
+            src = recording_in_data_dir(src, data_dir, f"{prefix}.source")
             camera = camera.model_copy(update={"source": src})
     elif camera.backend == "aravis" and not is_listed(camera.device):
-        raise _refuse("config.camera.device", f"{camera.device!r} is not an Aravis device "
+        raise _refuse(f"{prefix}.device", f"{camera.device!r} is not an Aravis device "
                       "listed by GET /devices (the operator lists addresses with serve "
                       f"--aravis-address); {OPERATOR_ONLY}")
-    return config.model_copy(update={"camera": camera})
+    return camera

@@ -247,6 +247,11 @@ class SimulatedCamera:
         self._closed, self._running, self._connected = True, False, False
 
     # -- simulation controls ----------------------------------------------------------
+    @property
+    def triggers_fired(self) -> int:
+        """Software triggers received so far (`CameraFaults` counts triggers from 1)."""
+        return self._triggers
+
     def at_frame(self, n: int, action: Callable[[], None]) -> None:
         """Run `action` just before the n-th frame delivered from now on (1-based) renders."""
         self._events.append((self.delivered + n, action))

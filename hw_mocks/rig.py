@@ -1,22 +1,24 @@
 """A whole simulated rig: display + optics + sensor + camera on one clock, with ground truth.
 
-Built from a few settings (or a `phasecal.rig/1` config dict). The screen pose can be
+Built from a few settings (or a `phasecal.rig/1` config dict), with one camera or several
+(`cameras`: each its own lens, resolution, timing and place, `CameraMount`). The screen pose can be
 changed between poses (`set_pose`); ambient light, gain drift and panel brightness can
 be changed at any time, also mid-sequence via `at_frame`, to test integrity checks.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from acquisition.clock import Clock, RealClock
 from acquisition.errors import DeviceSettingsError
 from acquisition.protocols import CameraSettings
-from acquisition.rig import Rig, RigConfig
+from acquisition.rig import DEFAULT_CAMERA, Rig, RigConfig
 from calibration.shared.plan import ScreenGeometry
 from hw_mocks.camera import CameraFaults, SimulatedCamera
 from hw_mocks.cameras import TruthCamera, make_truth_camera
@@ -34,10 +36,58 @@ _OPTICS_KEYS = {"blur_sigma_screen_px", "vignetting", "irradiance_scale", "ambie
 _SENSOR_KEYS = {"bit_depth", "full_well_e", "read_noise_e", "black_level_dn"}
 _CAMERA_KEYS = {"trigger_modes", "default_frame_rate_hz", "max_frame_rate_hz", "buffer_depth",
                 "timestamp_jitter_s", "trigger_latency_s", "readout_s", "seed", "replay"}
+_FAULT_KEYS = {"lost_triggers"}  # triggers (1-based) whose frame arrives incomplete
+_MOUNT_KEYS = {"extrinsics"}  # several cameras: {rvec, t_mm}, reference frame -> this camera's
+BASELINE_FRACTION = 0.15  # default spacing of a rig's cameras, times the screen distance
+
+
+@dataclass
+class CameraMount:
+    """One simulated camera of a rig and where it sits: X_cam = R @ X_ref + t (mm), the
+    reference camera's frame mapped into this camera's (the reference has identity)."""
+
+    name: str
+    truth_camera: TruthCamera
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    optics: dict[str, Any] = field(default_factory=dict)
+    sensor: dict[str, Any] = field(default_factory=dict)
+    camera: dict[str, Any] = field(default_factory=dict)  # SimulatedCamera keyword arguments
+    settings: CameraSettings | None = None  # None: the rig's (or the sensor's default)
+    faults: CameraFaults | None = None
+
+    def screen_pose(self, reference_pose: ScreenPose) -> ScreenPose:
+        """The screen seen from this camera, given where it is in the reference frame."""
+        return ScreenPose(self.rotation @ reference_pose.rotation,
+                          self.rotation @ reference_pose.translation + self.translation_mm)
+
+
+def looking_at(centre_mm: np.ndarray, target_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a camera at `centre_mm` of the reference frame looking at `target_mm`, its
+    x axis kept level (perpendicular to the reference y axis)."""
+    z = np.asarray(target_mm, float) - np.asarray(centre_mm, float)
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    rot = np.stack([x, np.cross(z, x), z])
+    return rot, -rot @ np.asarray(centre_mm, float)
+
+
+def default_mount_centre(k: int, distance_mm: float) -> np.ndarray:
+    """Where the k-th additional camera (k >= 1) sits by default: right, left, below,
+    above the reference, then further out, `BASELINE_FRACTION` of the screen distance apart."""
+    step = BASELINE_FRACTION * distance_mm * (1 + (k - 1) // 4)
+    axis, sign = [(0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)][(k - 1) % 4]
+    centre = np.zeros(3)
+    centre[axis] = sign * step
+    return centre
 
 
 class SimulatedRig:
-    """Simulated display and camera sharing a clock; the screen pose is settable."""
+    """Simulated display and cameras sharing a clock; the screen pose is settable.
+
+    The first camera is the reference: screen poses are given in its frame, and each other
+    camera (`others`) sees the screen through its `CameraMount`."""
 
     def __init__(
         self,
@@ -52,6 +102,8 @@ class SimulatedRig:
         camera: dict[str, Any] | None = None,
         settings: CameraSettings | None = None,
         faults: CameraFaults | None = None,
+        name: str = DEFAULT_CAMERA,
+        others: Sequence[CameraMount] = (),
     ) -> None:
         self.clock: Clock = clock if clock is not None else VirtualClock()
         self.truth_camera = truth_camera
@@ -60,17 +112,34 @@ class SimulatedRig:
             pose = look_at_pose(screen, distance_mm=fill_distance_mm(truth_camera, screen, 0.9))
         self.display = SimulatedDisplay(screen.width_px, screen.height_px, self.clock,
                                         **(display or {}))
-        self._optics_params = {"supersample": 1, **(optics or {})}
-        setup = OpticalSetup(truth_camera, pose, screen, **self._optics_params)
-        self.sensor = SensorModel(**(sensor or {}))
-        self.camera = SimulatedCamera(self.display, setup, self.sensor, self.clock,
-                                      faults=faults, **(camera or {}))
-        default_format = "Mono8" if self.sensor.bit_depth == 8 else "Mono12"
-        self.camera_settings = settings or CameraSettings(
-            exposure_s=0.02, pixel_format=default_format, trigger_mode="software")
+        self.mounts = {name: CameraMount(name, truth_camera, optics=optics or {},
+                                         sensor=sensor or {}, camera=camera or {},
+                                         settings=settings, faults=faults)}
+        for mount in others:
+            if mount.name in self.mounts:
+                raise ValueError(f"cameras: duplicate camera name {mount.name!r}")
+            self.mounts[mount.name] = mount
+        self.cameras: dict[str, SimulatedCamera] = {}
+        all_settings: dict[str, CameraSettings] = {}
+        for k, mount in enumerate(self.mounts.values()):
+            setup = OpticalSetup(mount.truth_camera, mount.screen_pose(pose), screen,
+                                 **{"supersample": 1, **mount.optics})
+            sensor_model = SensorModel(**mount.sensor)
+            params = {"name": f"simulated camera {mount.name}", "serial": f"SIM{k + 1:04d}",
+                      **({"seed": k} if k else {}), **mount.camera}
+            self.cameras[mount.name] = SimulatedCamera(self.display, setup, sensor_model,
+                                                       self.clock, faults=mount.faults,
+                                                       **params)
+            default_format = "Mono8" if sensor_model.bit_depth == 8 else "Mono12"
+            all_settings[mount.name] = mount.settings or settings or CameraSettings(
+                exposure_s=0.02, pixel_format=default_format, trigger_mode="software")
+        self.camera = self.cameras[name]
+        self.sensor = self.camera.base_sensor
+        self.camera_settings = all_settings[name]
         # what the controller takes: these devices, with this simulator's controls
         self.rig = Rig(self.display, self.camera, self.clock, self.camera_settings, screen,
-                       simulated=self)
+                       simulated=self, cameras=dict(self.cameras),
+                       camera_settings={n: st for n, st in all_settings.items() if n != name})
 
     @classmethod
     def from_config(cls, config: dict[str, Any], clock: Clock | None = None) -> SimulatedRig:
@@ -82,62 +151,121 @@ class SimulatedRig:
         pitch = (float(pitch), float(pitch)) if np.isscalar(pitch) else tuple(map(float, pitch))
         screen = ScreenGeometry(int(width), int(height), pitch)
         disp = {k: v for k, v in (config.get("display") or {}).items() if k != "backend"}
-        cam = {k: v for k, v in (config.get("camera") or {}).items() if k != "backend"}
         _reject_unknown("display", disp, _DISPLAY_KEYS)
-        model = cam.pop("model", "mild_pinhole")
-        w, h = int(cam.pop("width", 160)), int(cam.pop("height", 120))
-        optics = {k: cam.pop(k) for k in list(cam) if k in _OPTICS_KEYS}
-        if config.get("panel"):  # a shaped panel behind cover glass (PanelShape fields)
-            optics["panel"] = PanelShape(**config["panel"])
-        sensor = {k: cam.pop(k) for k in list(cam) if k in _SENSOR_KEYS}
-        _reject_unknown("camera", cam, _CAMERA_KEYS)
-        if "trigger_modes" in cam:
-            cam["trigger_modes"] = tuple(cam["trigger_modes"])
         if clock is None:
             clock = RealClock() if config.get("clock") == "real" else VirtualClock()
         st = config.get("settings")
-        settings = CameraSettings(**{**st, "extra": dict(st.get("extra") or {})}) if st else None
-        return cls(make_truth_camera(model, w, h), screen, clock=clock, display=disp,
-                   optics=optics, sensor=sensor, camera=cam, settings=settings)
+        settings = _settings(st) if st else None
+        entries = config.get("cameras") or [{**(config.get("camera") or {}),
+                                             "name": DEFAULT_CAMERA}]
+        panel = PanelShape(**config["panel"]) if config.get("panel") else None
+        mounts = [_mount(entry, panel) for entry in entries]
+        first = mounts[0]
+        pose = look_at_pose(screen, distance_mm=fill_distance_mm(first.truth_camera, screen, 0.9))
+        distance = float(np.linalg.norm(pose.translation + pose.rotation @ _screen_centre(screen)))
+        target = np.array([0.0, 0.0, distance])
+        for k, (mount, entry) in enumerate(zip(mounts[1:], entries[1:], strict=True), start=1):
+            if "extrinsics" not in entry:
+                mount.rotation, mount.translation_mm = looking_at(
+                    default_mount_centre(k, distance), target)
+        return cls(first.truth_camera, screen, clock=clock, pose=pose, display=disp,
+                   optics=first.optics, sensor=first.sensor, camera=first.camera,
+                   settings=first.settings or settings, faults=first.faults, name=first.name,
+                   others=[replace(m, settings=m.settings or settings) for m in mounts[1:]])
 
     # -- ground truth and changes between/within poses ---------------------------------
     @property
     def optics(self) -> OpticalSetup:
-        """The optical setup the camera renders with now."""
+        """The optical setup the reference camera renders with now."""
         return self.camera.optics
 
     @property
     def pose(self) -> ScreenPose:
-        """Where the screen is now."""
+        """Where the screen is now (in the reference camera's frame)."""
         return self.camera.optics.pose
 
+    def truth_camera_of(self, name: str) -> TruthCamera:
+        """A camera's true model, by name."""
+        return self.mounts[name].truth_camera
+
     def set_pose(self, rotation: np.ndarray, translation_mm: np.ndarray) -> None:
-        """Move the screen: X_cam = R S + t (takes effect for the next rendered frame)."""
+        """Move the screen: X_ref = R S + t (takes effect for the next rendered frame)."""
         pose = ScreenPose(np.asarray(rotation, np.float64), np.asarray(translation_mm, np.float64))
-        old = self.camera.optics
-        self.camera.optics = OpticalSetup(self.truth_camera, pose, self.screen,
-                                          **{**self._optics_params, "ambient": old.ambient})
+        for name, cam in self.cameras.items():
+            mount = self.mounts[name]
+            cam.optics = OpticalSetup(mount.truth_camera, mount.screen_pose(pose), self.screen,
+                                      **{"supersample": 1, **mount.optics,
+                                         "ambient": cam.optics.ambient})
 
     def set_ambient(self, electrons_per_s: float) -> None:
-        """Change constant stray light (flicker/room light injection)."""
-        self.camera.optics.ambient = float(electrons_per_s)
-        self._optics_params["ambient"] = float(electrons_per_s)
+        """Change constant stray light (flicker/room light injection), seen by every camera."""
+        for name, cam in self.cameras.items():
+            cam.optics.ambient = float(electrons_per_s)
+            self.mounts[name].optics["ambient"] = float(electrons_per_s)
 
     def set_gain_drift(self, drift_db: float) -> None:
-        """Add `drift_db` to the camera's gain (auto-gain/auto-exposure drift injection)."""
-        self.camera.gain_drift_db = float(drift_db)
+        """Add `drift_db` to every camera's gain (auto-gain/auto-exposure drift injection)."""
+        for cam in self.cameras.values():
+            cam.gain_drift_db = float(drift_db)
 
     def at_frame(self, n: int, action: Callable[[], None]) -> None:
-        """Run `action` before the n-th frame delivered from now on is rendered."""
+        """Run `action` before the reference camera's n-th frame delivered from now on."""
         self.camera.at_frame(n, action)
 
-    def truth(self) -> dict[str, Any]:
-        """Optical ground truth of the current pose (screen point per pixel, visibility, ...)."""
-        return self.camera.optics.truth()
+    def drop_frame(self, camera: str, n: int) -> None:
+        """The n-th trigger of `camera` from now on (1-based) delivers an incomplete frame, as
+        a lost packet on a GigE link does (`FrameLost`)."""
+        cam = self.cameras[camera]
+        cam.faults.lost_triggers = cam.faults.lost_triggers | {cam.triggers_fired + n}
+
+    def truth(self, camera: str | None = None) -> dict[str, Any]:
+        """Optical ground truth of the current pose (screen point per pixel, visibility, ...)
+        for one camera (default: the reference)."""
+        return self.cameras[camera or self.rig.reference].optics.truth()
 
     def with_settings(self, **changes: Any) -> CameraSettings:
         """The rig's default camera settings with some fields changed."""
         return replace(self.camera_settings, **changes)
+
+
+def _screen_centre(screen: ScreenGeometry) -> np.ndarray:
+    """The screen's centre in its own frame (mm)."""
+    return np.array([(screen.width_px - 1) / 2 * screen.pitch_mm[0],
+                     (screen.height_px - 1) / 2 * screen.pitch_mm[1], 0.0])
+
+
+def _settings(data: dict[str, Any]) -> CameraSettings:
+    """Camera settings from a config section."""
+    return CameraSettings(**{**data, "extra": dict(data.get("extra") or {})})
+
+
+def _mount(entry: dict[str, Any], panel: PanelShape | None) -> CameraMount:
+    """One simulated camera of a config (`camera` or an entry of `cameras`)."""
+    cam = {k: v for k, v in entry.items() if k not in ("backend", "name", "settings")}
+    label = "camera" if entry.get("name") == DEFAULT_CAMERA else f"camera {entry.get('name')!r}"
+    model = cam.pop("model", "mild_pinhole")
+    w, h = int(cam.pop("width", 160)), int(cam.pop("height", 120))
+    optics = {k: cam.pop(k) for k in list(cam) if k in _OPTICS_KEYS}
+    if panel is not None:  # a shaped panel behind cover glass (PanelShape fields)
+        optics["panel"] = panel
+    sensor = {k: cam.pop(k) for k in list(cam) if k in _SENSOR_KEYS}
+    lost = cam.pop("lost_triggers", None)
+    extrinsics = cam.pop("extrinsics", None)
+    _reject_unknown(label, cam, _CAMERA_KEYS | _FAULT_KEYS | _MOUNT_KEYS)
+    if "trigger_modes" in cam:
+        cam["trigger_modes"] = tuple(cam["trigger_modes"])
+    mount = CameraMount(str(entry.get("name") or DEFAULT_CAMERA),
+                        make_truth_camera(model, w, h), optics=optics, sensor=sensor,
+                        camera=cam, settings=_settings(entry["settings"])
+                        if entry.get("settings") else None,
+                        faults=CameraFaults(lost_triggers=frozenset(int(n) for n in lost))
+                        if lost else None)
+    if extrinsics is not None:
+        rvec = np.asarray(extrinsics.get("rvec", (0.0, 0.0, 0.0)), np.float64).reshape(3, 1)
+        mount.rotation = cv2.Rodrigues(rvec)[0]
+        mount.translation_mm = np.asarray(extrinsics.get("t_mm", (0.0, 0.0, 0.0)),
+                                          np.float64).reshape(3)
+    return mount
 
 
 def _reject_unknown(part: str, params: dict[str, Any], allowed: set[str]) -> None:

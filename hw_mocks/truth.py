@@ -48,6 +48,21 @@ class SimulatorTruth:
         return self.sim.truth_camera
 
     @property
+    def camera_names(self) -> list[str]:
+        """The rig's cameras by name, the reference first."""
+        return list(self.sim.cameras)
+
+    def camera_of(self, name: str) -> TruthCamera:
+        """One camera's true model (several-camera rigs)."""
+        return self.sim.truth_camera_of(name)
+
+    def extrinsics(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t_mm) of a camera: X_cam = R @ X_ref + t, the reference camera's frame mapped
+        into that camera's (identity and zeros for the reference)."""
+        mount = self.sim.mounts[name]
+        return mount.rotation.copy(), mount.translation_mm.copy()
+
+    @property
     def screen(self) -> ScreenGeometry:
         """The simulated screen."""
         return self.sim.screen
@@ -58,24 +73,25 @@ class SimulatorTruth:
         poses = random_poses(self.camera, self.screen, n, np.random.default_rng(seed))
         return [screen_pose_dict(p) for p in poses]
 
-    def screen_points(self, screen_pose: dict[str, Any] | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
-        """True screen px (x, y) seen by each pixel centre (NaN: none) with the screen at
-        `screen_pose` (REST form; None: the rig's starting pose)."""
+    def screen_points(self, screen_pose: dict[str, Any] | None = None,
+                      camera: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """True screen px (x, y) seen by each pixel centre of `camera` (default: the
+        reference; NaN: none) with the screen at `screen_pose` (REST form, in the reference
+        camera's frame; None: the rig's starting pose)."""
         if screen_pose is None:
             rot, tvec = self.start.rotation, self.start.translation
         else:
             rot, _ = cv2.Rodrigues(np.asarray(screen_pose["rvec"], np.float64))
             tvec = np.asarray(screen_pose["tvec_mm"], np.float64)
         self.sim.set_pose(rot, tvec)
-        truth = self.sim.truth()
+        truth = self.sim.truth(camera)
         return truth["x_true"], truth["y_true"]
 
-    def normalized_errors(self, maps: DecodedMaps, screen_pose: dict[str, Any] | None = None
-                          ) -> np.ndarray:
-        """(decoded - true) / decoded sigma over the valid pixels, x then y: N(0, 1) iff the
-        decoder's sigmas are honest."""
-        x_true, y_true = self.screen_points(screen_pose)
+    def normalized_errors(self, maps: DecodedMaps, screen_pose: dict[str, Any] | None = None,
+                          camera: str | None = None) -> np.ndarray:
+        """(decoded - true) / decoded sigma over the valid pixels of `camera`'s maps, x then
+        y: N(0, 1) iff the decoder's sigmas are honest."""
+        x_true, y_true = self.screen_points(screen_pose, camera)
         return np.concatenate([((maps.x - x_true) / maps.sigma_x)[maps.mask],
                                ((maps.y - y_true) / maps.sigma_y)[maps.mask]])
 

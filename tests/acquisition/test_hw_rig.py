@@ -251,3 +251,96 @@ def test_simulated_rig_with_a_shaped_panel_behind_glass(tmp_path: Path) -> None:
                           "display": {"backend": "sdl"},
                           "camera": {"backend": "aravis", "device": "x"},
                           "panel": {"glass_mm": 1.0}})
+
+
+def _two_camera_toml(fb: Path, first: str, second: str) -> str:
+    """The hardware rig above with its camera replaced by two named ones."""
+    one = _hardware_toml(fb, first)
+    head = one[:one.index("[camera]")]
+    return head + f"""
+[[cameras]]
+name = "left"
+backend = "opencv"
+source = "{first}"
+[[cameras]]
+name = "right"
+backend = "opencv"
+source = "{second}"
+[cameras.settings]
+exposure_s = 0.008
+pixel_format = "Mono16"
+trigger_mode = "software"
+[settings]
+exposure_s = 0.005
+pixel_format = "Mono16"
+trigger_mode = "software"
+"""
+
+
+def test_open_a_two_camera_rig_of_different_sizes(tmp_path: Path, fb_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    small = rng.integers(0, 65535, (2, 6, 8)).astype(np.uint16)
+    large = rng.integers(0, 65535, (2, 10, 12)).astype(np.uint16)
+    cfg_file = tmp_path / "rig.toml"
+    cfg_file.write_text(_two_camera_toml(fb_path, write_sequence(tmp_path / "a", small),
+                                         write_sequence(tmp_path / "b", large)))
+    cfg = load_rig_config(cfg_file)
+    assert [name for name, _, _ in cfg.camera_entries()] == ["left", "right"]
+    rig = open_rig(cfg, simulator=open_simulated_rig)
+    try:
+        assert list(rig.cameras) == ["left", "right"] and rig.reference == "left"
+        assert rig.camera is rig.cameras["left"]
+        assert rig.settings_for("left").exposure_s == 0.005
+        assert rig.settings_for("right").exposure_s == 0.008
+        sizes = {n: (c.info.width, c.info.height) for n, c in rig.cameras.items()}
+        assert sizes == {"left": (8, 6), "right": (12, 10)}
+    finally:
+        rig.close()
+
+
+def test_mixed_backends_parse_and_a_one_camera_rig_keeps_its_form() -> None:
+    cfg = parse_rig_config({"kind": "hardware", "screen": {"pitch_mm": 0.2},
+                            "display": {"backend": "sdl"},
+                            "cameras": [{"name": "a", "backend": "opencv", "source": 1},
+                                        {"name": "b", "backend": "aravis", "device": "x"}]})
+    assert [c.backend for _, c, _ in cfg.camera_entries()] == ["opencv", "aravis"]
+    assert parse_rig_config(cfg.model_dump(mode="json")) == cfg  # stored and read back
+    one = parse_rig_config({"camera": {"width": 64}})
+    assert one.cameras is None and one.camera_entries()[0][0] == "cam0"
+
+
+@pytest.mark.parametrize("cameras, message", [
+    ([{"name": "a"}, {"name": "a"}], r"duplicate camera name\(s\) \['a'\]"),
+    ([{"name": "a", "backend": "webcam"}], "cameras.0: Input tag 'webcam'"),
+    ([], "cameras: List should have at least 1 item"),
+    ([{"name": "a b"}], "cameras.0.simulated.name: String should match"),
+    ([{"width": 64}], "cameras.0.simulated.name: Field required"),
+])
+def test_invalid_camera_lists_name_the_field(cameras, message) -> None:
+    with pytest.raises(RigConfigError, match=message):
+        parse_rig_config({"cameras": cameras})
+    with pytest.raises(RigConfigError, match=r"give camera .* or cameras .*, not both"):
+        parse_rig_config({"camera": {}, "cameras": [{"name": "a"}]})
+    with pytest.raises(RigConfigError, match="kind 'hardware' needs real backends; "
+                       "\\[\"camera 'b'\"\\] simulated"):
+        parse_rig_config({"kind": "hardware", "screen": {"pitch_mm": 0.2},
+                          "display": {"backend": "sdl"},
+                          "cameras": [{"name": "a", "backend": "opencv"},
+                                      {"name": "b", "backend": "simulated"}]})
+
+
+def test_simulated_rig_with_cameras_placed_around_the_reference() -> None:
+    rig = open_simulated_rig(parse_rig_config({"cameras": [
+        {"name": "ref"}, {"name": "wide", "model": "wide_fisheye", "width": 96, "height": 80,
+                          "trigger_latency_s": 5e-4, "timestamp_jitter_s": 1e-4},
+        {"name": "fixed", "extrinsics": {"rvec": [0, 0.1, 0], "t_mm": [-20, 0, 0]}}]}))
+    sim = rig.simulated
+    assert list(rig.cameras) == ["ref", "wide", "fixed"]
+    assert (rig.cameras["wide"].info.width, rig.cameras["wide"].info.height) == (96, 80)
+    np.testing.assert_allclose(sim.mounts["ref"].rotation, np.eye(3))
+    np.testing.assert_allclose(sim.mounts["fixed"].translation_mm, [-20, 0, 0])
+    wide = sim.mounts["wide"]
+    assert np.linalg.norm(wide.translation_mm) > 1  # placed beside the reference, by default
+    np.testing.assert_allclose(wide.rotation @ wide.rotation.T, np.eye(3), atol=1e-12)
+    seen = {n: np.isfinite(sim.truth(n)["x_true"]).mean() for n in rig.cameras}
+    assert min(seen.values()) > 0.05, seen  # every camera sees the screen from where it is
