@@ -6,6 +6,7 @@ import argparse
 import json
 
 from api.cli import UserError
+from api.commands.calibrate_rig import add_rig_arguments, rig_requested, run_rig
 from api.progress import progress_bar
 from calibration import (
     MODEL_NAMES,
@@ -21,7 +22,9 @@ from calibration import (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plan", required=True, help="pattern plan (phasecal.plan/1 JSON)")
     p.add_argument("--maps", required=True, nargs="+", help="decoded maps, one .npz per pose")
-    p.add_argument("--model", required=True, help="model name, e.g. opencv5")
+    p.add_argument("--model", required=True, action="append",
+                   help="model name, e.g. opencv5; a rig (CAMERA/VIEW= inputs): NAME for every "
+                        "camera and/or CAMERA=NAME, repeatable")
     p.add_argument("-o", "--output", required=True, help="output model.json")
     p.add_argument("--heldout", type=int, nargs="+", default=[], metavar="POSE",
                    help="pose indices (0-based, --maps order) left out of the fit and validated")
@@ -34,10 +37,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", help="write a residual plot PNG here")
     p.add_argument("--export-opencv", metavar="YAML", help="also write OpenCV FileStorage YAML")
     p.add_argument("--export-ros", metavar="YAML", help="also write ROS camera_info YAML")
+    add_rig_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point for `phasecal calibrate`: fit, print the statistics, write the outputs."""
+    if rig_requested(args):
+        return run_rig(args, parse_options(args.option))
+    if len(args.model) > 1:
+        raise UserError("--model: given more than once; several models are for a rig (inputs "
+                        "named CAMERA/VIEW=PATH)")
+    args.model = args.model[0]
     if args.model not in MODEL_NAMES:
         raise UserError(f"--model: expected one of {', '.join(MODEL_NAMES)}, got {args.model!r}")
     if (args.export_opencv or args.export_ros) and args.model not in PARAMETRIC:
