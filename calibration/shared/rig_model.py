@@ -69,7 +69,7 @@ class RigModel:
     stats: dict[str, Any] = field(default_factory=dict)
 
     def camera(self, name: str) -> RigCamera:
-        """The camera called `name`; KeyError-free: ValueError listing the rig's cameras."""
+        """The camera called `name`; RigModelError listing the rig's cameras otherwise."""
         if name not in self.cameras:
             raise RigModelError(f"camera: expected one of {sorted(self.cameras)}, got {name!r}")
         return self.cameras[name]
@@ -110,7 +110,10 @@ def _camera_from_dict(name: str, data: Any, source: str) -> RigCamera:
     where = f"{source}: cameras.{name}"
     if not isinstance(data, dict) or "model" not in data or "extrinsics" not in data:
         raise RigModelError(f"{where}: expected an object with model and extrinsics")
-    model = model_from_dict(data["model"], source=f"{where}.model")
+    try:
+        model = model_from_dict(data["model"], source=f"{where}.model")
+    except ModelError as exc:
+        raise RigModelError(str(exc)) from None
     ext = data["extrinsics"]
     if not isinstance(ext, dict):
         raise RigModelError(f"{where}.extrinsics: expected an object with R, t_mm, covariance")

@@ -72,7 +72,7 @@ def _block(inp: RigInput, start: CameraStart, to_camera: Transform,
     return maps_ray_block(inp.camera, inp.view, start.model, pts)
 
 
-def _heldout_block(inp: RigInput, model: CameraModel, screen: ScreenGeometry | None,
+def heldout_block(inp: RigInput, model: CameraModel, screen: ScreenGeometry | None,
                    max_points: int, estimated_sigma: float | None) -> Block:
     """A held-out input's block through the fitted model: decoded maps as rays (their miss on
     the screen in mm needs no pose to weight it), observations in pixels."""
@@ -231,7 +231,7 @@ def calibrate_rig(
         extr_now = {c: problem.extrinsic(x, c) for c in cameras}
         scored = []
         for view in held:
-            hb = [_heldout_block(i, models_now[i.camera], screen, opts.max_points_per_view,
+            hb = [heldout_block(i, models_now[i.camera], screen, opts.max_points_per_view,
                                  estimated.get(i.camera))
                   for i in inputs if i.view == view]
             scored.append(score_view(view, hb, models_now, extr_now, order))

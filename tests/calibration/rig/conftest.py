@@ -1,0 +1,47 @@
+"""Simulated rigs shared by the rig tests: cameras at known relative poses (hw_mocks truth)
+and the fits of them, each fitted once per test session."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from calibration.fit.rig.calibrate import calibrate_rig
+from calibration.fit.rig.inputs import RigInput
+from calibration.fit.rig.result import RigResult
+from calibration.shared.plan import ScreenGeometry
+from hw_mocks.cameras import mild_pinhole
+from hw_mocks.rig_truth import RigTruth, camera_at, shared_views, view_maps
+
+SCREEN = ScreenGeometry(640, 400, (0.5, 0.5))
+
+
+@dataclass
+class SimulatedRigFit:
+    truth: RigTruth
+    inputs: list[RigInput]
+    result: RigResult
+
+
+def two_pinholes() -> RigTruth:
+    """Two 320x240 pinholes 150 mm apart, toed in by 6 degrees."""
+    ra, ta = camera_at((0.0, 0.0, 0.0))
+    rb, tb = camera_at((150.0, 0.0, 0.0), yaw_deg=-6.0)
+    return RigTruth({"A": mild_pinhole(320, 240), "B": mild_pinhole(320, 240)},
+                    {"A": ra, "B": rb}, {"A": ta, "B": tb})
+
+
+@pytest.fixture(scope="session")
+def stereo_maps_fit() -> SimulatedRigFit:
+    """Two cameras, 7 shared views of decoded maps (the last one held out), fitted as opencv5."""
+    rng = np.random.default_rng(5)
+    truth = two_pinholes()
+    inputs = []
+    for k, (group, view) in enumerate(shared_views(truth, SCREEN, [("A", "B")], 7, rng)):
+        inputs += [RigInput(c, f"v{k}", maps=view_maps(truth, c, view, SCREEN, sigma_px=0.05,
+                                                       rng=rng)) for c in group]
+    result = calibrate_rig(inputs, "opencv5", SCREEN, options={"max_points_per_view": 600},
+                           heldout_views=["v6"])
+    return SimulatedRigFit(truth, inputs, result)
