@@ -38,6 +38,7 @@ class Recapture:
 
     index: int
     reason: str
+    camera: str = ""  # the camera whose frame it was (a rig's camera name)
 
 
 @dataclass(frozen=True)
@@ -73,13 +74,39 @@ class PoseCapture:
     lost_frames: int = 0
     # the camera's transfer counters over this pose, when the camera offers them
     stream: StreamStatistics | None = None
+    # each camera's own result by name, the reference first (one entry for one camera)
+    cameras: dict[str, PoseCapture] = field(default_factory=dict)
+
+    @classmethod
+    def combined(cls, per_camera: dict[str, PoseCapture]) -> PoseCapture:
+        """A pose of several cameras from their results (which share status, unless a
+        camera's integrity check flagged it): accepted are the plan frames every camera
+        has, the frames' timing is the reference's, the counters are summed."""
+        results = list(per_camera.values())
+        first = results[0]
+        flagged = {n: r for n, r in per_camera.items() if r.status == "flagged"}
+        status, reason = first.status, first.reason
+        if status == "complete" and flagged:
+            status = "flagged"
+            reason = "; ".join(f"camera {n!r}: {r.reason}" for n, r in flagged.items())
+        everywhere = set.intersection(*(set(r.accepted) for r in results))
+        integrity = next((r.integrity for r in flagged.values()), first.integrity)
+        return cls(status, reason, first.total, [i for i in first.accepted if i in everywhere],
+                   first.frames, [c for r in results for c in r.recaptures],
+                   sum(r.stale_dropped for r in results), sum(r.reconnects for r in results),
+                   first.latency_s, first.started_s, max(r.finished_s for r in results),
+                   integrity, first.trigger_late_s, sum(r.lost_frames for r in results),
+                   None, dict(per_camera))
 
     def counters(self) -> dict[str, Any]:
-        """Recapture and transfer counts for a capture report (JSON-ready)."""
+        """Recapture and transfer counts for a capture report (JSON-ready), with each
+        camera's on a rig of several."""
         out: dict[str, Any] = {"recaptures": len(self.recaptures),
                                "lost_frames": self.lost_frames}
         if self.stream is not None:
             out["stream"] = self.stream.as_dict()
+        if len(self.cameras) > 1:
+            out["cameras"] = {n: r.counters() for n, r in self.cameras.items()}
         return out
 
     @property
