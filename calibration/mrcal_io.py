@@ -162,12 +162,15 @@ def fit_splined(model: CameraModel, nx: int = DEFAULT_NX) -> dict[str, Any]:
 
 
 def cameramodel_text(model: CameraModel, *, approximate: bool = False,
-                     nx: int = DEFAULT_NX) -> tuple[str, dict[str, Any]]:
+                     nx: int = DEFAULT_NX, extrinsics: np.ndarray | None = None
+                     ) -> tuple[str, dict[str, Any]]:
     """(.cameramodel text, info) for a model: exact for the OpenCV family, else a spline fit.
 
     info: `lensmodel`, `exact` and for the spline fit its `residual` (px). Generic central
     models are always fitted; the fisheye model only with `approximate` (there is no exact
-    mrcal form and the fit must be asked for knowingly).
+    mrcal form and the fit must be asked for knowingly). `extrinsics`: mrcal's rt_fromref
+    (rotation vector rad, t mm; X_cam = R X_ref + t) of a rig's camera; default: the camera
+    frame is the reference.
     """
     info: dict[str, Any]
     if isinstance(model, OpenCV5Model | OpenCVRationalModel):
@@ -187,11 +190,16 @@ def cameramodel_text(model: CameraModel, *, approximate: bool = False,
                   f"{r['max_px']:.4g} px over {r['n_pixels']} pixels\n")
     vals = ", ".join(repr(float(v)) for v in intr)
     w, h = model.image_size
+    if extrinsics is None:
+        rt_note, rt = "the camera frame is the reference", "0.0, 0.0, 0.0, 0.0, 0.0, 0.0"
+    else:
+        rt_note = "rotation vector (rad) and translation (mm) from the rig's reference frame"
+        rt = ", ".join(repr(float(v)) for v in np.asarray(extrinsics, dtype=np.float64))
     text = (f"{header}{{\n    'lensmodel':  '{name}',\n"
             f"    # intrinsics are fx,fy,cx,cy,distortion0,distortion1,....\n"
             f"    'intrinsics': [ {vals} ],\n"
-            f"    # extrinsics are rt_fromref: the camera frame is the reference\n"
-            f"    'extrinsics': [ 0.0, 0.0, 0.0, 0.0, 0.0, 0.0 ],\n"
+            f"    # extrinsics are rt_fromref: {rt_note}\n"
+            f"    'extrinsics': [ {rt} ],\n"
             f"    'imagersize': [ {w}, {h} ],\n}}\n")
     return text, info
 
@@ -204,6 +212,11 @@ _FROM_MRCAL = {"LENSMODEL_PINHOLE": (OpenCV5Model, 0), "LENSMODEL_OPENCV4": (Ope
 
 def read_cameramodel(path: str | Path) -> PinholeFamily:
     """An OpenCV-family phasecal model from a .cameramodel file (intrinsics; extrinsics ignored)."""
+    return read_cameramodel_with_extrinsics(path)[0]
+
+
+def read_cameramodel_with_extrinsics(path: str | Path) -> tuple[PinholeFamily, np.ndarray]:
+    """(model, rt_fromref (6,): rotation vector rad, t mm) of a .cameramodel file."""
     p = Path(path)
     try:
         data = ast.literal_eval(p.read_text(encoding="utf-8"))
@@ -227,4 +240,7 @@ def read_cameramodel(path: str | Path) -> PinholeFamily:
     k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     model = cls((int(size[0]), int(size[1])), k, np.asarray(intr[4:], dtype=np.float64))
     model.stats = {"source": str(p), "lensmodel": name}
-    return model
+    rt = data.get("extrinsics", [0.0] * 6)
+    if not (isinstance(rt, list | tuple) and len(rt) == 6):
+        raise ModelError(f"{p}: extrinsics: expected 6 numbers (rt_fromref)")
+    return model, np.asarray(rt, dtype=np.float64)
