@@ -1,4 +1,5 @@
-"""Export pinhole-family models: OpenCV FileStorage YAML (cv2.FileStorage) and ROS camera_info.
+"""Export pinhole-family models: OpenCV FileStorage YAML (cv2.FileStorage) and ROS camera_info;
+for a rig, a camera pair as cv2.stereoCalibrate's terms and the cameras' poses as ROS transforms.
 
 Both are exact or refused: a model with terms the format cannot carry raises `ModelError`
 naming them (never silently truncated).
@@ -11,9 +12,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calibration.models.base import CameraModel, ModelError
 from calibration.models.parametric import PinholeFamily
+from calibration.shared.rig_model import RigModel
 
 _ROS_MODELS = {"opencv5": "plumb_bob", "opencv-rational": "rational_polynomial",
                "fisheye": "equidistant"}
@@ -121,3 +124,70 @@ def ros_camera_info_yaml(model: CameraModel, camera_name: str = "camera") -> str
 def export_ros_yaml(model: CameraModel, path: str | Path, camera_name: str = "camera") -> None:
     """Write ROS camera_info YAML."""
     Path(path).write_text(ros_camera_info_yaml(model, camera_name), encoding="utf-8")
+
+
+def _stereo_pair(rig: RigModel, first: str, second: str) -> tuple[PinholeFamily, PinholeFamily]:
+    """The two cameras' OpenCV-family models, or ModelError naming what cannot be carried."""
+    if first == second:
+        raise ModelError(f"cameras: expected two different cameras, got {first!r} twice")
+    models = []
+    for name in (first, second):
+        m = rig.camera(name).model
+        if not isinstance(m, PinholeFamily):
+            raise ModelError(f"opencv-stereo: camera {name} is a {m.type_name!r} model, which "
+                             f"OpenCV cannot carry; export supports {sorted(_ROS_MODELS)}")
+        models.append(m)
+    kinds = {m.type_name == "fisheye" for m in models}
+    if len(kinds) > 1:
+        raise ModelError("opencv-stereo: one fisheye and one pinhole camera have no common "
+                         "OpenCV stereo model (cv2.stereoRectify or cv2.fisheye.stereoRectify); "
+                         "use format stereo-remap for rectification maps")
+    return models[0], models[1]
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def opencv_stereo_text(rig: RigModel, first: str, second: str) -> str:
+    """FileStorage YAML of a camera pair in cv2.stereoCalibrate's terms: K1, D1, K2, D2, R, T
+    (X2 = R X1 + T, mm), E, F, image_size_1/2 and each camera's model_type (fisheye: D are
+    cv2.fisheye's k1..k4)."""
+    m1, m2 = _stereo_pair(rig, first, second)
+    rot, t = rig.relative(first, second)
+    e = _skew(t) @ rot
+    f = np.linalg.inv(m2.camera_matrix).T @ e @ np.linalg.inv(m1.camera_matrix)
+    fs = cv2.FileStorage("out.yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    fs.write("camera_1", first)
+    fs.write("camera_2", second)
+    fs.write("model_type_1", m1.type_name)
+    fs.write("model_type_2", m2.type_name)
+    fs.write("image_size_1", np.array(m1.image_size, dtype=np.int32).reshape(1, 2))
+    fs.write("image_size_2", np.array(m2.image_size, dtype=np.int32).reshape(1, 2))
+    fs.write("K1", m1.camera_matrix)
+    fs.write("D1", m1.dist.reshape(1, -1))
+    fs.write("K2", m2.camera_matrix)
+    fs.write("D2", m2.dist.reshape(1, -1))
+    fs.write("R", rot)
+    fs.write("T", t.reshape(3, 1))
+    fs.write("E", e)
+    fs.write("F", f / f[2, 2] if abs(f[2, 2]) > 1e-300 else f)
+    return fs.releaseAndGetString()
+
+
+def ros_rig_transforms_yaml(rig: RigModel) -> str:
+    """Each other camera's pose in the reference camera's optical frame, as tf2 static transforms
+    (parent = reference, child = camera; translation in metres, rotation as x, y, z, w)."""
+    lines = [f"reference: {rig.reference}", "transforms:"]
+    for name, cam in rig.cameras.items():
+        if name == rig.reference:
+            continue
+        if not _ROS_NAME.match(name):
+            raise ModelError(f"camera name {name!r}: ROS frame names need letters, digits, '_'")
+        rot_c2r = cam.rotation.T  # camera axes in the reference frame
+        pos = -rot_c2r @ cam.translation / 1000.0
+        q = Rotation.from_matrix(rot_c2r).as_quat()
+        lines += [f"  - parent_frame: {rig.reference}_optical", f"    child_frame: {name}_optical",
+                  f"    translation: [{', '.join(repr(float(v)) for v in pos)}]",
+                  f"    rotation: [{', '.join(repr(float(v)) for v in q)}]"]
+    return "\n".join(lines) + "\n"

@@ -108,3 +108,48 @@ def best_opencv_model(
         "residual_px": r,
         "rms_px": float(np.sqrt(np.mean(r**2))),
     }
+
+
+def _center_focal_px(model: CameraModel) -> float:
+    """The focal length (px) of a pinhole with the model's pixel angle at its image center."""
+    w, h = model.image_size
+    c = np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 1, (h - 1) / 2]])
+    _, d = model.unproject(c)
+    return 1.0 / float(np.arccos(np.clip(d[0] @ d[1], -1.0, 1.0)))
+
+
+def stereo_rectify(model1: CameraModel, model2: CameraModel, rotation: np.ndarray,
+                   translation: np.ndarray, *, size: tuple[int, int] | None = None,
+                   alpha: float = 0.0) -> dict[str, Any]:
+    """Rectification of a camera pair (X2 = R X1 + T): R1, R2, P1, P2, Q as cv2.stereoRectify
+    gives them, and float32 cv2.remap maps (H, W) for each camera.
+
+    Two OpenCV pinhole models (opencv5, opencv-rational) go through cv2.stereoRectify and
+    cv2.initUndistortRectifyMap exactly. Any other pair (fisheye, generic): the rectifying
+    rotations come from the same cv2.stereoRectify on a distortion-free virtual pinhole with
+    the models' focal length at the image center, and the maps unproject each rectified
+    pixel through the model (`rectify_maps`). `alpha` as in cv2.stereoRectify."""
+    size = tuple(int(v) for v in (size or model1.image_size))
+    rot = np.asarray(rotation, dtype=np.float64)
+    t = np.asarray(translation, dtype=np.float64).reshape(3, 1)
+    opencv = all(m.type_name in _OPENCV_DIST_SIZES for m in (model1, model2))
+    if opencv:
+        k1, d1 = model1.camera_matrix, model1.dist  # type: ignore[attr-defined]
+        k2, d2 = model2.camera_matrix, model2.dist  # type: ignore[attr-defined]
+    else:
+        f = min(_center_focal_px(model1), _center_focal_px(model2))
+        k1 = k2 = np.array([[f, 0.0, (size[0] - 1) / 2], [0.0, f, (size[1] - 1) / 2],
+                            [0.0, 0.0, 1.0]])
+        d1 = d2 = np.zeros(5)
+    r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(k1, d1, k2, d2, size, rot, t,
+                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
+    out: dict[str, Any] = {"R1": r1, "R2": r2, "P1": p1, "P2": p2, "Q": q, "image_size": size,
+                           "method": "opencv" if opencv else "unprojected"}
+    for i, (model, k, d, r, p) in enumerate(((model1, k1, d1, r1, p1),
+                                             (model2, k2, d2, r2, p2)), start=1):
+        if opencv:
+            mx, my = cv2.initUndistortRectifyMap(k, d, r, p[:3, :3], size, cv2.CV_32FC1)
+        else:
+            mx, my = rectify_maps(model, p[:3, :3], size, rotation=r)
+        out[f"map{i}_x"], out[f"map{i}_y"] = mx, my
+    return out
