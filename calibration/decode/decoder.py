@@ -68,11 +68,22 @@ _NOISE_SAMPLE = 1 << 19
 # one-off process spends more loading them than they save); public: a service worker
 # prepares its heap for the compiled path by the same rule (api.worker.tasks).
 COMPILED_MIN_PIXELS = 1 << 20
-# One-off decodes (decode_stack, which reads it) of images this large load the compiled
-# kernels (~0.7 s of CPU once per process) even when no live capture has loaded them yet:
-# they pay back.
-ALWAYS_COMPILED_PIXELS = 1 << 21
+# One-off decodes (decode_stack: `one_shot_compiled`) of images this large load the compiled
+# kernels (~0.15 CPU s once per process, numba's start included) even when no live capture
+# has loaded them yet: they pay back (with the noise given: 1280x1024 0.33 CPU s against
+# 0.58 for NumPy; 640x480 0.25-0.36 against 0.17-0.24).
+ALWAYS_COMPILED_PIXELS = 1 << 20
+# With the noise estimated from the residuals numba is loaded anyway (the photon-transfer
+# line's kernels), and the compiled decode pays back from small images on (320x240: 0.27
+# CPU s against 0.31; 1280x1024: 0.53 against 1.6).
+RESIDUAL_COMPILED_PIXELS = 1 << 16
 _KERNELS = ("calibration.decode.kernel_sums", "calibration.decode.accumulate_kernel")
+
+
+def one_shot_compiled(pixels: int, noise: object) -> bool:
+    """Whether a one-off decode of `pixels`-pixel frames (noise model `noise`, None: from the
+    residuals) loads the compiled kernels rather than taking the NumPy path."""
+    return pixels >= (RESIDUAL_COMPILED_PIXELS if noise is None else ALWAYS_COMPILED_PIXELS)
 
 
 def _software_version() -> str:

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from calibration.decode.accumulate import DecodeError
-from calibration.decode.decoder import ALWAYS_COMPILED_PIXELS, StreamingDecoder
+from calibration.decode.decoder import StreamingDecoder, one_shot_compiled
 from calibration.decode.frames_io import FrameSource
 from calibration.decode.noise import NoiseModel, NoiseSource
 from calibration.decode.options import DecodeOptions
@@ -41,8 +41,9 @@ def decode_stack(
     """The one decode loop: frames in plan order (an (F, H, W) stack, a `FrameSource` or any
     sized iterable of 2-D frames) to maps; progress per frame, `Cancelled` between frames.
 
-    A whole NumPy stack of >= 2 Mpixel frames (any size with `prepare`: a long-lived process
-    loads the kernels once) is decoded range by range with the compiled kernels
+    A whole NumPy stack (large enough for the kernels to pay back their loading,
+    `one_shot_compiled`; any size with `prepare`: a long-lived process loads them once) is
+    decoded range by range with the compiled kernels
     (`StreamingDecoder.finish_stack`). `into`: the arrays to decode into
     (`StreamingDecoder.finish`)."""
     count = len(frames)
@@ -51,11 +52,11 @@ def decode_stack(
                           "(frame i must be captured while plan frame i was shown)")
     whole = _whole(frames)
     if whole is not None and whole.shape[0] == count:
+        kernels = prepare or one_shot_compiled(whole.shape[1] * whole.shape[2], noise)
         dec = StreamingDecoder(plan, tuple(whole.shape[1:]), noise=noise,
                                saturation_dn=saturation_dn, options=options, xp=xp,
-                               compiled=prepare)
-        npix = whole.shape[1] * whole.shape[2]
-        if dec.uses_kernels and (prepare or npix >= ALWAYS_COMPILED_PIXELS):
+                               compiled=kernels)
+        if dec.uses_kernels and kernels:
             # the kernels' modules; numba loads the machine code of the argument types
             # this stack needs at their first call (cheaper than warming every variant)
             import calibration.decode.accumulate_kernel
