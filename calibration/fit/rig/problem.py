@@ -181,6 +181,7 @@ class RigProblem:
         jn = jac / scale
         try:
             cov = np.linalg.inv(jn.T @ jn) / np.outer(scale, scale) * chi2
+            cov = 0.5 * (cov + cov.T)
         except np.linalg.LinAlgError:
             cov = np.full((self.size, self.size), np.inf)
         return cov, chi2
