@@ -138,6 +138,9 @@ def rig_from_dict(data: Any, source: str = "rig") -> RigModel:
     if data.get("format") != RIG_FORMAT:
         raise RigModelError(f"{source}: format: expected {RIG_FORMAT!r}, got "
                             f"{data.get('format')!r}")
+    if "reference" not in data and ("display" in data or "kind" in data):
+        raise RigModelError(f"{source}: an acquisition rig config (devices and settings), not "
+                            "a calibrated rig model (reference, cameras with extrinsics)")
     cams = data.get("cameras")
     if not isinstance(cams, dict) or len(cams) < 2:
         raise RigModelError(f"{source}: cameras: expected an object with >= 2 cameras")
@@ -155,8 +158,9 @@ def rig_from_dict(data: Any, source: str = "rig") -> RigModel:
 
 
 def is_rig_document(data: Any) -> bool:
-    """Whether parsed JSON claims to be a rig model (then `rig_from_dict` checks it)."""
-    return isinstance(data, dict) and data.get("format") == RIG_FORMAT
+    """Whether parsed JSON claims to be a rig model (then `rig_from_dict` checks it). The
+    acquisition rig config carries the same format string; it has no `reference`."""
+    return isinstance(data, dict) and data.get("format") == RIG_FORMAT and "reference" in data
 
 
 def load_rig(path: str | Path) -> RigModel:
