@@ -68,6 +68,15 @@ _EXPORTS = {
     # evaluate and guide
     "plan_next_pose": "guidance",
     "session_points": "guidance",
+    "NominalCamera": "guidance_start",
+    "nominal_camera": "guidance_start",
+    "starting_poses": "guidance_start",
+    "ObservedPose": "guidance_variety",
+    "observe": "guidance_variety",
+    "pose_variety": "guidance_variety",
+    "captured_by": "guidance_variety",
+    "ray_sigma_map": "uncertainty",
+    "worst_ray_sigma": "uncertainty",
     # export
     "ExportOptions": "formats",
     "FILE_NAMES": "formats",
@@ -86,7 +95,7 @@ _EXPORTS = {
     "write_diff": "report_html",
     "write_residual_report": "report",
     "count_png": "report_plots",
-    "guidance_png": "report_plots",
+    "guidance_png": "guidance_plot",
     "one_at_a_time": "figures",
     "subplots": "figures",
 }

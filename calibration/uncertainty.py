@@ -6,6 +6,12 @@ gives the normal matrix; the poses are marginalized out (Schur complement), so t
 covariance is `inv(sum_j A_j - B_j C_j^-1 B_j^T)`, the same weighting as `param_std`. A
 pixel's ray sigma is `sqrt(trace(J_d cov J_d^T))`, J_d the derivative of its unit ray
 direction over the model parameters (numerical, central differences).
+
+"The worst predicted ray sigma" of a model and its poses is one figure, `worst_ray_sigma`,
+read by the report and by pose guidance alike: the largest ray sigma on the
+`RAY_SIGMA_GRID` sensor grid among the pixels whose ray is within `MAX_FIELD_ANGLE_DEG` of
+the optical axis (where a whole screen can be shown at all), each training pose counted with
+at most `RAY_SIGMA_POINTS_PER_POSE` points.
 """
 
 from __future__ import annotations
@@ -14,10 +20,13 @@ import cv2
 import numpy as np
 
 from calibration.evaluate import screen_jacobian
-from calibration.fit.correspondences import PointSet
+from calibration.fit.correspondences import PointSet, subsample
 from calibration.models.base import CameraModel
 
 _POSE_PARAMS = 6
+RAY_SIGMA_GRID = (48, 36)  # (nx, ny) sensor grid of the ray-sigma map
+RAY_SIGMA_POINTS_PER_POSE = 800  # points per training pose counted in the information
+MAX_FIELD_ANGLE_DEG = 70.0  # the worst sigma is taken over pixels this close to the axis
 
 
 def sensor_grid(image_size: tuple[int, int], nx: int = 40, ny: int = 30) -> np.ndarray:
@@ -145,3 +154,53 @@ def model_ray_sigma(model: CameraModel, pixels: np.ndarray,
                 f"parametric Fisher information ({len(free)} model parameters, "
                 f"{len(poses)} poses marginalized)")
     return np.full(len(pixels), np.nan), "not available for this model"
+
+
+def reachable(model: CameraModel, pixels: np.ndarray,
+              max_angle_deg: float = MAX_FIELD_ANGLE_DEG) -> np.ndarray:
+    """(N,) pixels whose ray is within `max_angle_deg` of the optical axis: where a whole
+    screen can be seen at all (a wide-angle lens's corners near 90 degrees never see one)."""
+    _, d = model.unproject(pixels)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(d).all(axis=1) & (d[:, 2] >= np.cos(np.radians(max_angle_deg)))
+
+
+def worst_ray_sigma(model: CameraModel, pixels: np.ndarray, sigma: np.ndarray) -> float:
+    """The worst predicted ray sigma (rad): the largest `sigma` at `pixels` within
+    `MAX_FIELD_ANGLE_DEG` of the axis (nan when none is finite there)."""
+    vals = sigma[reachable(model, pixels) & np.isfinite(sigma)]
+    return float(vals.max()) if vals.size else float("nan")
+
+
+def ray_sigma_map(model: CameraModel, poses: list[tuple[np.ndarray, np.ndarray]],
+                  points: list[PointSet], param_std: dict[str, float] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, str]:
+    """The predicted ray-sigma map of a fit: (`RAY_SIGMA_GRID` pixels (N, 2), sigma (N,) rad,
+    how it was obtained), each training pose's `points` counted with at most
+    `RAY_SIGMA_POINTS_PER_POSE` of them; `worst_ray_sigma` reads its figure."""
+    grid = sensor_grid(model.image_size, *RAY_SIGMA_GRID)
+    small = [subsample(p, RAY_SIGMA_POINTS_PER_POSE) for p in points]
+    sigma, method = model_ray_sigma(model, grid, poses, small, param_std)
+    return grid, sigma, method
+
+
+def radial_pole_margin(model: CameraModel) -> float:
+    """How far a rational radial factor `(1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + ...)`
+    stays from 0/0 over the image: the smaller of its numerator's and denominator's least
+    magnitude for radii up to the image's corners (inf for other models).
+
+    Its six coefficients are nearly redundant (a common factor cancels), so a fit can land
+    where both nearly vanish inside the image; the rays there are still fitted, but a
+    first-order ray sigma is not meaningful near that pair (it can read 1e7 urad where the
+    ray is right to 1e2).
+    """
+    if getattr(model, "type_name", "") != "opencv-rational":
+        return float("inf")
+    k = np.asarray(model.dist, np.float64)
+    grid = sensor_grid(model.image_size, 9, 7)
+    x = (grid[:, 0] - model.cx) / model.fx
+    y = (grid[:, 1] - model.cy) / model.fy
+    r2 = np.linspace(0.0, 1.2 * float(np.max(x * x + y * y)), 400)
+    num = 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
+    den = 1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7]))
+    return float(min(np.abs(num).min(), np.abs(den).min()))

@@ -1,4 +1,5 @@
-"""Pose guidance: the predicted ray uncertainty of a session and the next pose to capture."""
+"""Pose guidance: a starting set of poses, whether the captured poses are varied enough, the
+predicted ray uncertainty of a session and the next pose to capture."""
 
 from __future__ import annotations
 
@@ -11,21 +12,37 @@ from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy import select
 
-from api.db import PoseRecord
+from api.db import PoseRecord, SessionRecord
+from api.jobs.intrinsics import RESULT as INTRINSICS_RESULT
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, get_session
 from api.services import Services, get_services
-from api.worker.guidance_task import guidance_task
-from calibration import count_png
+from api.worker.guidance_task import guidance_task, observe_task
+from calibration import (
+    MODELS,
+    NominalCamera,
+    ObservedPose,
+    captured_by,
+    count_png,
+    nominal_camera,
+    pose_variety,
+    starting_poses,
+)
 from calibration.shared.maps import load_maps
+from calibration.shared.plan import plan_from_dict
 
 router = APIRouter(tags=["guidance"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
 Model = Annotated[str, Query(description="parametric model the prediction uses",
                              pattern="^(opencv5|opencv-rational|fisheye)$")]
+Hfov = Annotated[float | None, Query(
+    gt=5, le=150, description="the camera's nominal horizontal field of view (deg), used "
+    "until the session has quick intrinsics (POST /sessions/{id}/intrinsics)")]
+PLAN_VERSION = 2  # part of every cache key: a changed planner never serves an older plan
+_IMMUTABLE = "private, max-age=31536000, immutable"  # a keyed URL's content never changes
 _locks: dict[str, threading.Lock] = {}  # one per cached plan: a plan is computed once, while
 _locks_guard = threading.Lock()  # other sessions' (and models') plans go on at the same time
 
@@ -36,22 +53,90 @@ def _plan_lock(final: Path) -> threading.Lock:
         return _locks.setdefault(str(final), threading.Lock())
 
 
-def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, list[str]]:
-    """Cached guidance for the session's current ready poses, computed on first request by
-    the executor's worker (the fit takes seconds of CPU; the server paces live captures)."""
+def _ready_poses(svc: Services, session_id: str) -> tuple[SessionRecord, list[PoseRecord]]:
+    """The session and its ready poses in capture order (404 if no such session)."""
     with svc.db.session() as s:
-        get_session(s, session_id)
-        ids = list(s.scalars(select(PoseRecord.id).where(
+        sess = get_session(s, session_id)
+        poses = list(s.scalars(select(PoseRecord).where(
             PoseRecord.session_id == session_id, PoseRecord.status == "ready")
             .order_by(PoseRecord.index)))
-    if len(ids) < 3:
-        raise Problem(409, "not-enough-poses", f"session {session_id}: guidance needs >= 3 ready "
-                      f"poses to fit a model (has {len(ids)}); capture varied, tilted poses first")
-    key = hashlib.sha1(json.dumps([model, *ids]).encode()).hexdigest()[:16]
+        s.expunge_all()
+    return sess, poses
+
+
+def _camera(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
+            hfov_deg: float | None) -> NominalCamera:
+    """The session camera's nominal pinhole: its quick intrinsics when measured, else the
+    given (or default) field of view over the rig camera's (or a pose's) image size."""
+    size = None
+    if sess.rig_id is not None:
+        info = svc.rigs.handle(sess.rig_id).rig.camera.info
+        size = (int(info.width), int(info.height))
+    elif poses and poses[0].width and poses[0].height:
+        size = (int(poses[0].width), int(poses[0].height))
+    if size is None:
+        raise Problem(409, "no-camera", f"session {sess.id} has no rig and no decoded pose: "
+                      "the camera's image size is unknown")
+    measured = svc.store.dir_for(sess.id) / INTRINSICS_RESULT
+    try:
+        if hfov_deg is None and measured.is_file():
+            k = json.loads(measured.read_text())["camera_matrix"]
+            return nominal_camera(size, np.asarray(k), source="the session's quick intrinsics")
+        return nominal_camera(size, hfov_deg=hfov_deg)
+    except ValueError as exc:
+        raise Problem(422, "validation-error", str(exc)) from None
+
+
+def _observed(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
+              camera: NominalCamera) -> list[tuple[str, ObservedPose]]:
+    """Each ready pose's outline and normal, computed once by the executor and cached."""
+    k = camera.model.camera_matrix
+    tag = hashlib.sha1(np.round(k, 6).tobytes()).hexdigest()[:12]
+    folder = svc.store.dir_for(sess.id) / "guidance" / "poses"
+    plan_path = str(svc.store.dir_for(sess.id) / "plan.json")
+    found: dict[str, ObservedPose] = {}
+    pending = {}
+    for p in poses:
+        cached = folder / f"{p.id}-{tag}.json"
+        if cached.is_file():
+            found[p.id] = ObservedPose.from_json(json.loads(cached.read_text()))
+        else:
+            pending[p.id] = svc.executor.submit(observe_task, plan_path,
+                                                str(svc.store.file(p.id, "maps.npz")), k.tolist())
+    for pid, fut in pending.items():
+        try:
+            data = fut.result()
+        except ValueError:
+            continue  # too few valid points to tell: neither a duplicate nor variety
+        folder.mkdir(parents=True, exist_ok=True)
+        svc.store.write_bytes(folder / f"{pid}-{tag}.json", json.dumps(data).encode())
+        found[pid] = ObservedPose.from_json(data)
+    return [(p.id, found[p.id]) for p in poses if p.id in found]
+
+
+def _variety(svc: Services, session_id: str, hfov_deg: float | None) -> dict[str, Any]:
+    sess, poses = _ready_poses(svc, session_id)
+    camera = _camera(svc, sess, poses, hfov_deg) if poses else None
+    observed = _observed(svc, sess, poses, camera) if camera else []
+    size = camera.model.image_size if camera else (1, 1)
+    return pose_variety(observed, size, {m: s.min_poses for m, s in MODELS.items()})
+
+
+def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, str]:
+    """Cached guidance for the session's current ready poses and its cache key, computed on
+    first request by the executor's worker (the fit takes seconds of CPU; the server paces
+    live captures)."""
+    variety = _variety(svc, session_id, None)
+    _, poses = _ready_poses(svc, session_id)
+    ids = [p.id for p in poses]
+    if not variety["ready_for_guidance"]:
+        raise Problem(409, "not-enough-poses", f"session {session_id}: guidance needs >= 3 "
+                      f"varied ready poses ({len(ids)} ready): {variety['reason']}")
+    key = hashlib.sha1(json.dumps([PLAN_VERSION, model, *ids]).encode()).hexdigest()[:16]
     final = svc.store.dir_for(session_id) / "guidance" / key
     with _plan_lock(final):
         if (final / "next-pose.json").is_file():
-            return final, ids
+            return final, key
         tmp = svc.store.temp_dir()
         header = {"session_id": session_id, "model": model, "poses_used": ids}
         try:
@@ -66,27 +151,78 @@ def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, lis
             raise
         final.parent.mkdir(parents=True, exist_ok=True)
         svc.store.replace_dir(tmp, final)
-    return final, ids
+    return final, key
 
 
 @router.get("/sessions/{session_id}/next-pose")
-def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational") -> dict[str, Any]:
+def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational") -> JSONResponse:
     """The screen pose that most reduces the worst predicted ray uncertainty over the sensor,
-    planned from the session's own ready poses (>= 3): `screen_pose` (rvec rad, tvec_mm) for
-    `POST /sessions/{id}/poses` on a simulated or robotic rig, the placement in words
-    (distance, tilt, where its centre appears), and the predicted worst 1-sigma now and after."""
-    folder, _ = _guidance_dir(svc, session_id, model)
+    planned from the session's own varied ready poses (>= 3; 409 with the reason otherwise):
+    `screen_pose` (rvec rad, tvec_mm) for `POST /sessions/{id}/poses` on a simulated or
+    robotic rig, `placement` in words, `outline_px` (the screen's corners in camera pixels),
+    the predicted worst 1-sigma now and after, `helps` and `advice` (whether any pose still
+    helps), and `image`, the URL of its picture (it changes whenever the plan does)."""
+    folder, key = _guidance_dir(svc, session_id, model)
     out = json.loads((folder / "next-pose.json").read_text())
-    out["image"] = f"/sessions/{session_id}/next-pose.png?model={model}"
-    return out
+    out["image"] = f"/sessions/{session_id}/next-pose.png?model={model}&key={key}"
+    out["key"] = key
+    return JSONResponse(out, headers={"Cache-Control": "no-cache", "ETag": f'"{key}"'})
 
 
 @router.get("/sessions/{session_id}/next-pose.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}})
-def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational") -> Response:
+def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational",
+                    key: Annotated[str | None, Query(
+                        pattern="^[0-9a-f]{16}$",
+                        description="the plan's key from GET next-pose: that plan's picture, "
+                                    "cacheable for good; without it, the current plan's")] = None
+                    ) -> Response:
     """Predicted ray-uncertainty maps now and after the suggested pose, with its outline."""
-    folder, _ = _guidance_dir(svc, session_id, model)
-    return Response((folder / "next-pose.png").read_bytes(), media_type="image/png")
+    if key is not None:
+        with svc.db.session() as s:
+            get_session(s, session_id)
+        path = svc.store.dir_for(session_id) / "guidance" / key / "next-pose.png"
+        if not path.is_file():
+            raise Problem(404, "not-found", f"session {session_id} has no next-pose plan with "
+                          f"key {key}; GET /sessions/{session_id}/next-pose for the current one")
+        return Response(path.read_bytes(), media_type="image/png",
+                        headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{key}"'})
+    folder, current = _guidance_dir(svc, session_id, model)
+    return Response((folder / "next-pose.png").read_bytes(), media_type="image/png",
+                    headers={"Cache-Control": "no-cache", "ETag": f'"{current}"'})
+
+
+@router.get("/sessions/{session_id}/starting-poses")
+def starting_poses_route(session_id: str, svc: Svc,
+                         count: Annotated[int, Query(ge=1, le=12, description="poses to plan")
+                                          ] = 5,
+                         hfov_deg: Hfov = None) -> JSONResponse:
+    """A varied starting set planned from the rig's camera and screen alone (works with no
+    pose yet): each item has `screen_pose` (rvec rad, tvec_mm, as `PUT /rigs/{id}/screen-pose`
+    takes it), `placement` in words, `outline_px` (the screen's 4 corners in camera pixels,
+    corner (0, 0) first) and `captured_by` (a ready pose that already matches it, or null);
+    `camera` says which nominal pinhole the prediction assumed."""
+    sess, poses = _ready_poses(svc, session_id)
+    camera = _camera(svc, sess, poses, hfov_deg)
+    screen = plan_from_dict(sess.plan).screen
+    size = camera.model.image_size
+    try:
+        planned = starting_poses(camera, screen, count)
+    except ValueError as exc:
+        raise Problem(422, "guidance-failed", f"session {session_id}: {exc}") from None
+    observed = _observed(svc, sess, poses, camera)
+    items = [{**p.to_json(size), "captured_by": captured_by(p, observed, size)}
+             for p in planned]
+    return JSONResponse({"session_id": session_id, "camera": camera.to_json(), "poses": items},
+                        headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/sessions/{session_id}/pose-variety")
+def pose_variety_route(session_id: str, svc: Svc, hfov_deg: Hfov = None) -> JSONResponse:
+    """Whether the ready poses are varied enough (no fit): `ready_for_guidance`,
+    `ready_for_calibration` per model, `reason` in words and `duplicates` (each pose that
+    repeats an earlier one: `pose_id`, `repeats`, `similarity` 0..1)."""
+    return JSONResponse(_variety(svc, session_id, hfov_deg), headers={"Cache-Control": "no-cache"})
 
 
 @router.get("/sessions/{session_id}/coverage.png", response_class=Response,
@@ -102,4 +238,4 @@ def coverage_image(session_id: str, svc: Svc) -> Response:
         raise Problem(409, "not-enough-poses", f"session {session_id} has no decoded poses yet")
     counts = np.sum([load_maps(svc.store.file(p, "maps.npz")).mask for p in ids], axis=0)
     return Response(count_png(counts, f"sensor coverage by {len(ids)} poses"),
-                    media_type="image/png")
+                    media_type="image/png", headers={"Cache-Control": "no-cache"})

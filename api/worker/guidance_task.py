@@ -1,5 +1,6 @@
-"""Executor task: the next-pose suggestion of a session (fit, prediction, image), written
-by a worker so that the server process that paces captures never runs the fit."""
+"""Executor tasks of pose guidance, run by a worker so that the server process that paces
+captures never runs a fit or reads a pose's whole maps: the next-pose suggestion (fit,
+prediction, image) and one pose's outline for the variety check."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-from calibration import guidance_png, plan_next_pose, session_points
+import numpy as np
+
+from calibration import guidance_png, observe, plan_next_pose, session_points
 from calibration.shared.maps import load_maps
 from calibration.shared.plan import read_plan
 
@@ -23,6 +26,14 @@ def guidance_task(plan_path: str, maps_paths: list[str], model: str, out_dir: st
     sug, _ = plan_next_pose(session_points(maps, plan.screen), (w, h), plan.screen, model)
     out = Path(out_dir)
     (out / "next-pose.json").write_text(json.dumps({**header, **sug.to_json()}))
-    guidance_png(sug.map_before, sug.map_after, sug.outline_px, (w, h),
-                 f"next pose: {sug.distance_mm:.0f} mm, tilt {sug.tilt_deg:.0f} deg "
-                 f"towards {sug.tilt_azimuth_deg:.0f} deg", out / "next-pose.png")
+    p = sug.placement
+    guidance_png(sug.map_before, sug.map_after, p.border_px, (w, h),
+                 f"next pose ({model}): {p.words((w, h))}", out / "next-pose.png")
+
+
+def observe_task(plan_path: str, maps_path: str, camera_matrix: list[list[float]]
+                 ) -> dict[str, Any]:
+    """One pose's outline and screen normal (`calibration.observe`) as JSON; ValueError when
+    its maps have too few valid points."""
+    plan = read_plan(plan_path)
+    return observe(load_maps(maps_path), plan.screen, np.asarray(camera_matrix)).to_json()

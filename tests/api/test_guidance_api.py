@@ -1,5 +1,6 @@
-"""GET next-pose: computed by the executor's worker (not in the server that paces
-captures), cached per pose set, with clear problems when it cannot be planned."""
+"""Pose guidance over REST: next-pose computed by the executor's worker (not in the server
+that paces captures), cached per pose set under a key its picture URL carries, with clear
+problems when it cannot be planned; starting poses with no pose yet; the variety check."""
 
 from __future__ import annotations
 
@@ -8,13 +9,20 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.config import ServiceConfig
 from api.worker import guidance_task
+from calibration.guidance_start import nominal_camera, starting_poses
+from hw_mocks.cameras import mild_pinhole
+from hw_mocks.scene import ScreenPose
+from hw_mocks.synthetic import synthetic_maps
 from tests.api.test_api_uploads import PLAN, good_maps
+
+SIZE = (160, 120)  # the default simulated rig's camera, as the imported maps
 
 
 @contextmanager
@@ -62,14 +70,24 @@ def test_next_pose_is_planned_by_the_executor_once(service, monkeypatch) -> None
     names = _submissions(monkeypatch, svc)
     first = client.get(f"/sessions/{sid}/next-pose", params={"model": "opencv5"})
     assert first.status_code == 200, first.text
-    assert names == ["guidance_task"]
+    assert names == ["observe_task"] * 3 + ["guidance_task"]
     body = first.json()
     assert body["session_id"] == sid and body["model"] == "opencv5"
     assert len(body["poses_used"]) == 3 and len(body["screen_pose"]["rvec"]) == 3
+    corners = np.array(body["outline_px"])
+    assert corners.shape == (4, 2) and np.all((corners >= 0) & (corners < SIZE))
+    assert body["placement"] and isinstance(body["helps"], bool) and body["advice"]
+    assert body["image"].endswith(f"&key={body['key']}")
     image = client.get(body["image"])
     assert image.headers["content-type"] == "image/png" and image.content[:4] == b"\x89PNG"
+    assert "immutable" in image.headers["cache-control"]
+    current = client.get(f"/sessions/{sid}/next-pose.png", params={"model": "opencv5"})
+    assert current.content == image.content and current.headers["cache-control"] == "no-cache"
     again = client.get(f"/sessions/{sid}/next-pose", params={"model": "opencv5"})
-    assert again.json() == body and names == ["guidance_task"]  # served from the cache
+    assert again.json() == body and names == ["observe_task"] * 3 + ["guidance_task"]
+    assert again.headers["cache-control"] == "no-cache"
+    stale = client.get(f"/sessions/{sid}/next-pose.png", params={"key": "0" * 16})
+    assert stale.status_code == 404 and "next-pose" in stale.json()["detail"]
 
 
 def test_a_plan_that_fails_is_a_problem_and_leaves_no_scratch(in_threads, monkeypatch) -> None:
@@ -91,7 +109,7 @@ def test_fewer_than_three_poses_is_a_conflict(service) -> None:
     client, _, _, _ = service
     sess = client.post("/sessions", json={"plan": PLAN.to_dict()}).json()
     r = client.get(f"/sessions/{sess['id']}/next-pose")
-    assert r.status_code == 409 and "3 ready" in r.json()["detail"]
+    assert r.status_code == 409 and ">= 3 distinct" in r.json()["detail"]
 
 
 def test_plans_of_different_sessions_are_computed_at_the_same_time(tmp_path, monkeypatch) -> None:
@@ -124,3 +142,68 @@ def test_plans_of_different_sessions_are_computed_at_the_same_time(tmp_path, mon
         for t in threads:
             t.join()
     assert results == {sid: 200, other: 200} and not barrier.broken
+
+
+def _import(client: TestClient, sid: str, maps) -> str:
+    r = client.post(f"/sessions/{sid}/poses/import-maps",
+                    files={"file": ("m.npz", maps.to_npz_bytes())})
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def test_starting_poses_need_no_pose_and_know_the_ones_taken(in_threads) -> None:
+    client, _, _, _ = in_threads
+    sid = client.post("/sessions", json={"plan": PLAN.to_dict()}).json()["id"]
+    r = client.get(f"/sessions/{sid}/starting-poses", params={"count": 4})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["camera"]["image_size"] == list(SIZE) and "60 deg" in body["camera"]["assumed"]
+    assert len(body["poses"]) == 4 and all(p["captured_by"] is None for p in body["poses"])
+    for p in body["poses"]:
+        corners = np.array(p["outline_px"])
+        assert corners.shape == (4, 2) and np.all((corners >= 0) & (corners < SIZE))
+        assert "mm from the camera" in p["placement"] and len(p["screen_pose"]["tvec_mm"]) == 3
+    # the simulated camera captures the second suggestion: that item names the pose
+    camera = nominal_camera(SIZE)
+    second = starting_poses(camera, PLAN.screen, 4)[1]
+    maps, _ = synthetic_maps(mild_pinhole(*SIZE), ScreenPose(second.rotation,
+                                                              second.translation),
+                             PLAN.screen, sigma_px=0.05, rng=np.random.default_rng(3))
+    maps.meta["plan_digest"] = PLAN.digest()
+    pose_id = _import(client, sid, maps)
+    after = client.get(f"/sessions/{sid}/starting-poses", params={"count": 4}).json()
+    assert [p["captured_by"] for p in after["poses"]] == [None, pose_id, None, None]
+
+
+def test_starting_poses_reject_bad_parameters_by_name(in_threads) -> None:
+    client, _, sid, _ = in_threads
+    for params, field in (({"count": 0}, "count"), ({"hfov_deg": 200}, "hfov_deg")):
+        r = client.get(f"/sessions/{sid}/starting-poses", params=params)
+        assert r.status_code == 422 and field in r.text
+    assert client.get("/sessions/ses_0000000000000000/starting-poses").status_code == 404
+
+
+def test_repeated_poses_are_named_and_guidance_says_why_it_waits(in_threads) -> None:
+    client, _, _, _ = in_threads
+    sid = client.post("/sessions", json={"plan": PLAN.to_dict()}).json()["id"]
+    empty = client.get(f"/sessions/{sid}/pose-variety").json()
+    assert empty["ready_for_guidance"] is False and empty["duplicates"] == []
+    maps = good_maps(40, size=SIZE)
+    ids = [_import(client, sid, maps) for _ in range(3)]
+    v = client.get(f"/sessions/{sid}/pose-variety")
+    assert v.status_code == 200 and v.headers["cache-control"] == "no-cache"
+    body = v.json()
+    assert body["ready_for_guidance"] is False
+    assert not any(body["ready_for_calibration"].values())
+    assert [(d["pose_id"], d["repeats"]) for d in body["duplicates"]] == [
+        (ids[1], ids[0]), (ids[2], ids[0])]
+    assert all(d["similarity"] > 0.9 for d in body["duplicates"])
+    r = client.get(f"/sessions/{sid}/next-pose")
+    assert r.status_code == 409 and "repeat" in r.json()["detail"]
+
+
+def test_varied_poses_are_ready(service) -> None:
+    client, _, sid, _ = service
+    body = client.get(f"/sessions/{sid}/pose-variety").json()
+    assert body["ready_for_guidance"] is True and body["duplicates"] == []
+    assert body["ready_for_calibration"]["opencv5"] is True
