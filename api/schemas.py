@@ -232,6 +232,17 @@ class CaptureRequest(BaseModel):
     )
 
 
+class PoseCamera(BaseModel):
+    """One camera of a pose captured on a rig of several cameras."""
+
+    name: str
+    status: PoseStatus
+    valid_pixels: int | None = None
+    width: int | None = None
+    height: int | None = None
+    error: str | None = None
+
+
 class Pose(BaseModel):
     """One pose of a session."""
 
@@ -248,6 +259,9 @@ class Pose(BaseModel):
     screen_pose: dict[str, Any] | None
     error: str | None
     created_at: float
+    cameras: list[PoseCamera] | None = Field(
+        None, description="a rig of several cameras: each one's maps (GET .../maps.npz"
+        "?camera=NAME), the reference first; null for one camera")
 
 
 class _CalibrationFields(BaseModel):

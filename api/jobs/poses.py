@@ -14,9 +14,21 @@ from sqlalchemy.orm import Session
 from api.db import PoseRecord
 from api.jobs.model import STOPPED_STATES, Job, JobKind
 from api.maps_durability import mark_pending
-from api.pose_path import ExecutorDecode, capture_live, stored_indices
+from api.pose_path import (
+    CAMERA_SUMMARY,
+    ExecutorDecode,
+    ExecutorRigDecode,
+    camera_dirs,
+    capture_live,
+    capture_rig_live,
+    pose_camera_names,
+    stored_indices,
+    write_camera_names,
+)
+from api.rigs import RigHandle
 from api.storage import NO_SPACE, pose_bytes
 from api.worker.tasks import decode_task, warm_decode_task
+from calibration.shared.atomic import write_json_atomic
 from calibration.shared.frame_store import FrameStore
 from calibration.shared.plan import Plan
 from calibration.shared.progress import TaskContext
@@ -97,15 +109,24 @@ class CaptureJob(PoseJob):
         self.frames_dir = self.svc.store.dir_for(self.pose_id, create=False)
 
     def bytes_needed(self) -> int:
-        """Disk the capture will take: the frame store (allocated whole at the first frame,
-        so a resume needs none) and the maps, for the rig's camera as configured now."""
-        info = self.svc.rigs.handle(self.rig_id).rig.camera.info
-        need = pose_bytes(len(self.plan.frames), info.width, info.height, info.bit_depth)
-        if self.frames_dir is not None and FrameStore(self.frames_dir).exists():
-            need = pose_bytes(0, info.width, info.height, info.bit_depth)
+        """Disk the capture will take: the frame stores (allocated whole at the first frame,
+        so a resume needs none) and the maps, for the rig's cameras as configured now."""
+        rig = self.svc.rigs.handle(self.rig_id).rig
+        several = len(rig.cameras) > 1
+        need = 0
+        for name, camera in rig.cameras.items():
+            info = camera.info
+            folder = self.frames_dir if not several or self.frames_dir is None \
+                else camera_dirs(self.frames_dir, [name])[name]
+            stored = folder is not None and FrameStore(folder).exists()
+            need += pose_bytes(0 if stored else len(self.plan.frames), info.width, info.height,
+                               info.bit_depth)
         return need
 
     def run(self, ctx: TaskContext) -> dict[str, Any]:
+        handle = self.svc.rigs.handle(self.rig_id)
+        if len(handle.rig.cameras) > 1:
+            return self.run_cameras(ctx, handle)
         svc, plan = self.svc, self.plan
         pose_dir = svc.store.dir_for(self.pose_id)
         plan_path = svc.store.dir_for(self.session_id or "") / "plan.json"
@@ -146,6 +167,58 @@ class CaptureJob(PoseJob):
             svc.maps_sync.submit(pose_dir)
             dec["commit_s"] = round(time.time() - decoded_at, 4)
             dec["decoded_at"] = decoded_at  # the server has the worker's result
+        return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
+
+    def run_cameras(self, ctx: TaskContext, handle: RigHandle) -> dict[str, Any]:
+        """A pose of a several-camera rig: every camera captured in sync into its own
+        folder (`cameras/<name>/`), each decoded live; the maps are fsynced by the decode
+        before they are committed (the pose is ready with every camera's maps durable)."""
+        svc, plan, rig = self.svc, self.plan, handle.rig
+        pose_dir = svc.store.dir_for(self.pose_id)
+        plan_path = svc.store.dir_for(self.session_id or "") / "plan.json"
+        names = list(rig.cameras)
+        before = pose_camera_names(pose_dir)
+        if before and before != names:
+            raise RuntimeError(f"the pose was captured with cameras {before}; the rig now has "
+                               f"{names}: capture a new pose")
+        write_camera_names(pose_dir, names)
+        dirs = camera_dirs(pose_dir, names)
+        ctx.progress(0, len(plan.frames) * len(names), "waiting for rig")
+        with svc.store.staging(ctx.job_id) as staged:
+            outs = {name: staged / name / "maps.npz" for name in names}
+            for out in outs.values():
+                out.parent.mkdir(exist_ok=True)
+            with handle.lock:
+                ctx.check_cancelled()
+                set_pose_status(svc, self.pose_id, "capturing")
+                if self.screen_pose is not None:
+                    handle.move_screen(self.screen_pose)
+                metas = {name: {"pose_id": self.pose_id, "session_id": self.session_id,
+                                "plan_digest": plan.digest(), "camera": cam.info.name,
+                                "camera_name": name}
+                         for name, cam in rig.cameras.items()}
+                decode = ExecutorRigDecode(
+                    svc.executor, ctx, plan_path,
+                    {name: (dirs[name], outs[name]) for name in names}, metas,
+                    noise=self.noise_dn, durable=True, compiled=True)
+                try:
+                    cap = capture_rig_live(ctx, rig, plan, dirs, decode,
+                                           on_frame=svc.preview.publisher(self.rig_id))
+                finally:
+                    svc.preview.capture_ended(self.rig_id)
+            set_pose_status(svc, self.pose_id, "decoding")
+            decs = decode.result()
+            ctx.check_cancelled()
+            decoded_at = time.time()
+            for name in names:
+                svc.store.commit(outs[name].parent, ["maps.npz"], dirs[name])
+                write_json_atomic(dirs[name] / CAMERA_SUMMARY,
+                                  {k: decs[name].get(k) for k in
+                                   ("valid_pixels", "width", "height")})
+        reference = decs[names[0]]
+        dec = {"valid_pixels": reference.get("valid_pixels"), "width": reference.get("width"),
+               "height": reference.get("height"), "cameras": decs,
+               "commit_s": round(time.time() - decoded_at, 4), "decoded_at": decoded_at}
         return {"capture": cap, "decode": dec, "frames": len(stored_indices(pose_dir))}
 
 

@@ -17,6 +17,7 @@ from api.db import PoseRecord, SessionRecord
 from api.frames_upload import store_images, store_npy
 from api.jobs.poses import CaptureJob, ImportDecodeJob, PoseJob
 from api.maps_upload import validated_maps
+from api.pose_path import camera_maps_path, pose_cameras
 from api.previews import PREVIEW_KINDS, preview_png
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session, pose_to_dict
@@ -220,39 +221,60 @@ def list_poses(session_id: str, svc: Svc) -> list[dict[str, Any]]:
         get_session(s, session_id)
         recs = s.scalars(select(PoseRecord).where(PoseRecord.session_id == session_id)
                          .order_by(PoseRecord.index)).all()
-        return [pose_to_dict(p) for p in recs]
+        return [_pose_dict(svc, p) for p in recs]
+
+
+def _pose_dict(svc: Services, rec: PoseRecord) -> dict[str, Any]:
+    """A pose as API data, with each camera of a several-camera pose."""
+    cameras = pose_cameras(svc.store.dir_for(rec.id, create=False), rec.status, rec.error)
+    return {**pose_to_dict(rec), "cameras": cameras}
 
 
 @router.get("/sessions/{session_id}/poses/{pose_id}", response_model=Pose)
 def read_pose(session_id: str, pose_id: str, svc: Svc) -> dict[str, Any]:
-    """One pose."""
+    """One pose (a several-camera pose lists its cameras and each one's status)."""
     with svc.db.session() as s:
-        return pose_to_dict(get_pose(s, session_id, pose_id))
+        return _pose_dict(svc, get_pose(s, session_id, pose_id))
 
 
-def _ready_maps_path(svc: Services, session_id: str, pose_id: str) -> Path:
+CameraQuery = Annotated[str | None, Query(
+    pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$",
+    description="the camera of a pose captured on several cameras (see the pose's cameras)")]
+
+
+def _ready_maps_path(svc: Services, session_id: str, pose_id: str,
+                     camera: str | None = None) -> Path:
     with svc.db.session() as s:
         pose = get_pose(s, session_id, pose_id)
-        if pose.status not in ("ready", "flagged"):
-            raise Problem(409, "not-ready", f"pose {pose_id} is {pose.status}; maps exist once "
-                          "it is ready")
-    return svc.store.file(pose_id, "maps.npz")
+        status = pose.status
+    try:
+        path = camera_maps_path(svc.store.dir_for(pose_id, create=False), camera)
+    except ValueError as exc:
+        raise Problem(422, "validation-error", str(exc), field="camera") from None
+    if status not in ("ready", "flagged"):
+        raise Problem(409, "not-ready", f"pose {pose_id} is {status}; maps exist once "
+                      "it is ready")
+    return path
 
 
 @router.get("/sessions/{session_id}/poses/{pose_id}/maps.npz", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}}}})
-def download_maps(session_id: str, pose_id: str, svc: Svc) -> Response:
-    """Decoded maps (phasecal.maps/1 NPZ)."""
-    path = _ready_maps_path(svc, session_id, pose_id)
+def download_maps(session_id: str, pose_id: str, svc: Svc,
+                  camera: CameraQuery = None) -> Response:
+    """Decoded maps (phasecal.maps/1 NPZ); of one camera (`camera`) on a several-camera
+    pose."""
+    path = _ready_maps_path(svc, session_id, pose_id, camera)
+    name = pose_id if camera is None else f"{pose_id}-{camera}"
     return Response(path.read_bytes(), media_type="application/octet-stream",
-                    headers={"Content-Disposition": f'attachment; filename="{pose_id}.npz"'})
+                    headers={"Content-Disposition": f'attachment; filename="{name}.npz"'})
 
 
 @router.get("/sessions/{session_id}/poses/{pose_id}/preview/{kind}.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}})
-def preview(session_id: str, pose_id: str, kind: str, svc: Svc) -> Response:
-    """PNG preview of the x, y, sigma or mask map."""
+def preview(session_id: str, pose_id: str, kind: str, svc: Svc,
+            camera: CameraQuery = None) -> Response:
+    """PNG preview of the x, y, sigma or mask map (of one camera on a several-camera pose)."""
     if kind not in PREVIEW_KINDS:
         raise Problem(404, "not-found", f"preview {kind!r}: expected one of {list(PREVIEW_KINDS)}")
-    maps = load_maps(_ready_maps_path(svc, session_id, pose_id))
+    maps = load_maps(_ready_maps_path(svc, session_id, pose_id, camera))
     return Response(preview_png(maps, kind), media_type="image/png")

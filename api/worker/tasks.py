@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -172,6 +173,55 @@ def stream_decode_task(
     return summary
 
 
+class CameraDecodeContext(TaskContext):
+    """One camera's decode inside a several-camera task: it stops when the job is cancelled
+    or another camera's decode failed (`stop`), and reports its progress through the job's."""
+
+    def __init__(self, job: TaskContext, stop: threading.Event) -> None:
+        super().__init__(job.job_id, job.progress, stop)
+        self.job = job
+
+    def cancelled(self) -> bool:
+        return self.job.cancelled() or super().cancelled()
+
+
+def stream_decode_rig_task(
+    ctx: TaskContext,
+    plan_path: str,
+    cameras: dict[str, tuple[str, str, dict[str, Any]]],
+    **task_kwargs: Any,
+) -> dict[str, dict[str, Any]]:
+    """`stream_decode_task` for every camera of a several-camera pose at once: `cameras`
+    maps a name to (store folder, maps path, meta). One thread per camera in this worker
+    (the decoder's kernels release the GIL, so the cameras' decodes share the cores), so a
+    pose of more cameras than the pool has workers still decodes every camera while it is
+    captured. The first failure stops the other cameras' decodes and is raised; the
+    summaries by camera name otherwise."""
+    stop = threading.Event()
+
+    def one(name: str) -> dict[str, Any]:
+        store_dir, out_path, meta = cameras[name]
+        try:
+            return stream_decode_task(CameraDecodeContext(ctx, stop), plan_path, store_dir,
+                                      out_path, meta=meta, **task_kwargs)
+        except BaseException:
+            stop.set()
+            raise
+
+    with ThreadPoolExecutor(max_workers=len(cameras), thread_name_prefix="camera-decode") as pool:
+        futures = {name: pool.submit(one, name) for name in cameras}
+        outcomes: dict[str, dict[str, Any]] = {}
+        errors: list[BaseException] = []
+        for name, fut in futures.items():
+            try:
+                outcomes[name] = fut.result()
+            except BaseException as exc:
+                errors.append(exc)
+    if errors:  # the failure itself, not the cancels it caused
+        raise next((e for e in errors if not isinstance(e, Cancelled)), errors[0])
+    return outcomes
+
+
 def warm_decode_task(pixels: int, plan_path: str | None = None,
                      shape: tuple[int, int] | None = None, noise: Any = None) -> None:
     """Load the decoder's compiled kernels in this worker (~1.4 CPU s once per process; live
@@ -218,4 +268,5 @@ def calibrate_task(
     return summary
 
 
-__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_task", "warm_decode_task"]
+__all__ = ["Cancelled", "calibrate_task", "decode_task", "stream_decode_rig_task",
+           "stream_decode_task", "warm_decode_task"]

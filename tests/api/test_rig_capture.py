@@ -1,0 +1,133 @@
+"""A rig of several cameras through the service: configs over REST, a pose captured on three
+simulated cameras in sync (one camera's maps per camera, each checked against that camera's
+truth), a camera dropping a frame, and the per-camera maps and status of a pose."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.config import ServiceConfig
+from calibration.shared.maps import load_maps
+from hw_mocks.truth import SimulatorTruth
+
+SCREEN = {"width_px": 320, "height_px": 240, "pitch_mm": [0.5, 0.5]}
+
+
+def three_camera_rig(**right: object) -> dict:
+    """Three simulated cameras: different sizes, lenses and timing, placed around one."""
+    return {"kind": "simulated", "screen": SCREEN, "cameras": [
+        {"name": "left", "model": "mild_pinhole", "width": 96, "height": 72},
+        {"name": "right", "model": "mild_pinhole", "width": 112, "height": 84,
+         "trigger_latency_s": 1e-3, "timestamp_jitter_s": 3e-4, **right},
+        {"name": "top", "model": "smooth_noncentral", "width": 80, "height": 60,
+         "timestamp_jitter_s": 1e-4},
+    ]}
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory):
+    data = tmp_path_factory.mktemp("rig") / "data"
+    with TestClient(create_app(ServiceConfig(data_dir=data, executor="threads"))) as c:
+        yield c, data
+
+
+def _finished(c: TestClient, job_id: str, timeout_s: float = 300) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = c.get(f"/jobs/{job_id}").json()
+        if job["status"] not in ("queued", "running"):
+            return job
+        time.sleep(0.02)
+    raise AssertionError(f"job {job_id} did not finish")
+
+
+def _capture(c: TestClient, config: dict, name: str) -> tuple[dict, dict]:
+    rig = c.post("/rigs", json={"name": name, "config": config})
+    assert rig.status_code == 201, rig.text
+    sess = c.post("/sessions", json={"rig_id": rig.json()["id"], "preset": "fast"}).json()
+    job = _finished(c, c.post(f"/sessions/{sess['id']}/poses", json={}).json()["id"])
+    assert job["status"] == "succeeded", job["error"]
+    return job, c.get(job["resource"]).json()
+
+
+def test_rig_configs_over_rest_are_validated(service) -> None:
+    c, _ = service
+    rig = c.post("/rigs", json={"name": "trio", "config": three_camera_rig()})
+    assert rig.status_code == 201, rig.text
+    stored = c.get(f"/rigs/{rig.json()['id']}").json()["config"]
+    assert [cam["name"] for cam in stored["cameras"]] == ["left", "right", "top"]
+    assert stored["camera"] is None
+    twice = three_camera_rig()
+    twice["cameras"][2]["name"] = "left"
+    bad = c.post("/rigs", json={"name": "twice", "config": twice})
+    assert bad.status_code == 422 and "duplicate camera name(s) ['left']" in bad.json()["detail"]
+    webcam = three_camera_rig()
+    webcam["cameras"][1]["backend"] = "webcam"
+    bad = c.post("/rigs", json={"name": "webcam", "config": webcam})
+    assert bad.status_code == 422 and "cameras.1" in bad.json()["detail"]
+    huge = three_camera_rig(width=8192, height=8192)
+    bad = c.post("/rigs", json={"name": "huge", "config": huge})
+    assert bad.status_code == 422 and bad.json()["field"] == "config.cameras.1.width"
+
+
+def test_three_cameras_give_three_maps_matching_each_cameras_truth(service) -> None:
+    c, data = service
+    config = three_camera_rig()
+    job, pose = _capture(c, config, "sync")
+    cap = job["result"]["capture"]
+    assert cap["recaptures"] == 0 and set(cap["cameras"]) == {"left", "right", "top"}
+    assert [cam["name"] for cam in pose["cameras"]] == ["left", "right", "top"]
+    assert all(cam["status"] == "ready" for cam in pose["cameras"]), pose["cameras"]
+    truth = SimulatorTruth.from_config(config)
+    for cam in pose["cameras"]:
+        info = next(cc for cc in config["cameras"] if cc["name"] == cam["name"])
+        assert (cam["width"], cam["height"]) == (info["width"], info["height"])
+        r = c.get(f"{job['resource']}/maps.npz", params={"camera": cam["name"]})
+        assert r.status_code == 200
+        maps = load_maps(r.content)
+        assert maps.shape == (info["height"], info["width"])
+        assert maps.meta["camera_name"] == cam["name"] and maps.valid_count() == cam["valid_pixels"]
+        x_true, _ = truth.screen_points(None, cam["name"])
+        assert maps.mask.sum() > 0.5 * np.isfinite(x_true).sum(), cam["name"]
+        assert np.median(np.abs((maps.x - x_true)[maps.mask])) < 0.2  # screen px
+        errors = truth.normalized_errors(maps, None, cam["name"])
+        assert 0.5 < np.std(errors) < 2.0, cam["name"]  # each camera's own truth, not another's
+        assert (data / "poses" / pose["id"] / "cameras" / cam["name"] / "maps.npz").is_file()
+    png = c.get(f"{job['resource']}/preview/x.png", params={"camera": "top"})
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    missing = c.get(f"{job['resource']}/maps.npz")
+    assert missing.status_code == 422 and missing.json()["field"] == "camera"
+    assert "['left', 'right', 'top']" in missing.json()["detail"]
+    unknown = c.get(f"{job['resource']}/maps.npz", params={"camera": "back"})
+    assert unknown.status_code == 422 and "'back' is not a camera" in unknown.json()["detail"]
+
+
+def test_a_camera_dropping_a_frame_gets_its_pattern_shown_again(service) -> None:
+    c, _ = service
+    job, pose = _capture(c, three_camera_rig(lost_triggers=[6]), "drop")
+    cap = job["result"]["capture"]
+    assert cap["recaptures"] == 1 and cap["lost_frames"] == 1
+    assert cap["cameras"]["right"]["lost_frames"] == 1
+    assert cap["cameras"]["left"]["recaptures"] == 0
+    assert pose["status"] == "ready" and pose["frames_done"] == cap["captured"]
+    for cam in pose["cameras"]:
+        assert cam["status"] == "ready" and cam["valid_pixels"] > 0
+
+
+def test_a_one_camera_pose_keeps_its_layout(service, tmp_path: Path) -> None:
+    c, data = service
+    config = {"kind": "simulated", "screen": SCREEN,
+              "camera": {"model": "mild_pinhole", "width": 64, "height": 48}}
+    job, pose = _capture(c, config, "single")
+    assert pose["cameras"] is None and pose["status"] == "ready"
+    pose_dir = data / "poses" / pose["id"]
+    assert (pose_dir / "maps.npz").is_file() and not (pose_dir / "cameras").exists()
+    assert c.get(f"{job['resource']}/maps.npz").status_code == 200
+    wrong = c.get(f"{job['resource']}/maps.npz", params={"camera": "cam0"})
+    assert wrong.status_code == 422 and "leave camera out" in wrong.json()["detail"]
