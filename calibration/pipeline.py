@@ -11,6 +11,7 @@ from calibration.decode import DecodeError, DecodeOptions, decode_stack, read_fr
 from calibration.models.base import ModelError, jsonable, save_model
 from calibration.shared.atomic import atomic_path, write_json_atomic
 from calibration.shared.maps import DecodedMaps, load_maps
+from calibration.shared.observations import load_observations
 from calibration.shared.plan import Plan, read_plan
 from calibration.shared.progress import CancelCheck, ProgressFn, check_cancelled
 
@@ -57,6 +58,27 @@ def calibrate_files(
             progress(i + 1, len(maps_paths), "load")
     return calibrate(maps, plan.screen, model, options=options, heldout=heldout,
                      progress=progress, cancelled=cancelled)
+
+
+def calibrate_observation_files(
+    paths: list[str], model: str, *, options: dict[str, Any] | None = None,
+    cross_validate: int = 0, progress: ProgressFn | None = None,
+    cancelled: CancelCheck | None = None,
+) -> CalibrationResult:
+    """Fit `model` to target observation files (`phasecal.observations/1`), each its own view
+    of one camera; `cross_validate` >= 2 also fits that many disjoint view sets and compares
+    them."""
+    from calibration.fit.sparse.calibrate import calibrate_observations
+
+    views = []
+    for i, p in enumerate(paths):
+        check_cancelled(cancelled, "calibration")
+        views.append(load_observations(p))
+        if progress is not None:
+            progress(i + 1, len(paths), "load")
+    return calibrate_observations(views, model, options=options,
+                                  cross_validate_folds=cross_validate, progress=progress,
+                                  cancelled=cancelled)
 
 
 def write_model_folder(

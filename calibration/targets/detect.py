@@ -1,8 +1,8 @@
 """Find a board's corners in an image and turn them into one `phasecal.observations/1` view.
 
-Chessboards go through `cv2.findChessboardCornersSB` (sub-pixel by its own accuracy mode),
-then the classic `cv2.findChessboardCorners` with `cv2.cornerSubPix` where it fails (the whole
-board must be seen: without markers a partial view has no unique corner
+Chessboards go through `cv2.findChessboardCornersSB` (the classic
+`cv2.findChessboardCorners` where it fails), then `cv2.cornerSubPix` (the whole board must be
+seen: without markers a partial view has no unique corner
 numbering); each corner's weight comes from OpenCV's edge-sharpness profiles around it
 (a blurrier edge locates a corner less well). ChArUco boards go through
 `cv2.aruco.CharucoDetector` (markers name the corners, so partial views count), with
@@ -23,7 +23,7 @@ from calibration.targets.board import TargetSpec
 MIN_CHARUCO_CORNERS = 6  # a homography and some margin: fewer cannot fix a pose
 WEIGHT_RANGE = (0.2, 5.0)  # sharpness weights are clipped here: one odd profile is not a vote
 _SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
-_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
 
 
 class ImageError(ValueError):
@@ -97,28 +97,57 @@ def _chessboard(gray: np.ndarray, spec: TargetSpec) -> tuple[np.ndarray | None, 
     if not found:  # the exhaustive search costs several times more: only when needed
         found, corners = cv2.findChessboardCornersSB(
             gray, pattern, _SB_FLAGS | cv2.CALIB_CB_EXHAUSTIVE)
-    if found:
-        return corners.reshape(-1, 2).astype(np.float64), "findChessboardCornersSB"
-    # The classic detector finds some boards the sector-based one misses (strong
-    # perspective, glare); its corners are refined to sub-pixel here.
-    found, corners = cv2.findChessboardCorners(
-        gray, pattern, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    detector = "findChessboardCornersSB"
+    if not found:
+        # The classic detector finds some boards the sector-based one misses (strong
+        # perspective, glare).
+        detector = "findChessboardCorners"
+        found, corners = cv2.findChessboardCorners(
+            gray, pattern, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
     if not found:
         return None, (f"no complete {spec.cols}x{spec.rows} inner-corner chessboard found "
                       "(all corners must be in view)")
-    spacing = _grid_spacing(corners.reshape(-1, 2), spec)
-    half = int(np.clip(spacing / 4, 2, 11))
-    corners = cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), _SUBPIX_CRITERIA)
-    return corners.reshape(-1, 2).astype(np.float64), "findChessboardCorners+cornerSubPix"
+    return refine(gray, spec, corners.reshape(-1, 2)), detector + "+cornerSubPix"
 
 
-def _grid_spacing(corners: np.ndarray, spec: TargetSpec) -> float:
-    """Median distance (px) between neighbouring corners of the grid."""
+def refine(gray: np.ndarray, spec: TargetSpec, corners: np.ndarray) -> np.ndarray:
+    """Sub-pixel corners by `cv2.cornerSubPix` over a window of a quarter of the shortest
+    corner spacing (wide enough to average the edges, short of the neighbouring corners)."""
+    half = int(np.clip(round(0.25 * _grid_spacing(corners, spec, 5.0)), 2, 10))
+    c32 = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 1, 2)
+    out = cv2.cornerSubPix(gray, c32, (half, half), (-1, -1), _SUBPIX_CRITERIA)
+    return out.reshape(-1, 2).astype(np.float64)
+
+
+def _cell_mean(gray: np.ndarray, quad: np.ndarray) -> float:
+    """Mean gray level inside the middle of a cell given by its four corners."""
+    centre = quad.mean(axis=0)
+    inner = (centre + 0.5 * (quad - centre)).astype(np.int32)
+    mask = np.zeros(gray.shape, np.uint8)
+    cv2.fillConvexPoly(mask, inner, 1)
+    return float(gray[mask > 0].mean()) if mask.any() else float("nan")
+
+
+def canonical_order(gray: np.ndarray, spec: TargetSpec, corners: np.ndarray) -> np.ndarray:
+    """Corners numbered so that the cell between corners 0, 1, COLS and COLS+1 is black
+    (the detectors may start from either end). Only a board with COLS + ROWS odd tells its
+    ends apart (its two end cells differ in colour); a symmetric one keeps the order found."""
+    cols, rows = spec.corner_grid
+    if (cols + rows) % 2 == 0:
+        return corners
+    grid = corners.reshape(rows, cols, 2)
+    first = _cell_mean(gray, grid[[0, 0, 1, 1], [0, 1, 1, 0]])
+    last = _cell_mean(gray, grid[[-1, -1, -2, -2], [-1, -2, -2, -1]])
+    return corners[::-1].copy() if first > last else corners
+
+
+def _grid_spacing(corners: np.ndarray, spec: TargetSpec, percentile: float = 50.0) -> float:
+    """A percentile (default the median) of the distances (px) between neighbouring corners."""
     cols, rows = spec.corner_grid
     grid = corners.reshape(rows, cols, 2)
-    return float(np.median(np.concatenate([
+    return float(np.percentile(np.concatenate([
         np.linalg.norm(np.diff(grid, axis=1), axis=2).ravel(),
-        np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel()])))
+        np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel()]), percentile))
 
 
 def _charuco(gray: np.ndarray, spec: TargetSpec) -> tuple[np.ndarray | None, np.ndarray, str]:
@@ -146,7 +175,7 @@ def detect_image(gray: np.ndarray, spec: TargetSpec, *, source: str = "image",
         corners, detector = _chessboard(gray, spec)
         if corners is None:
             return Detection(source, None, detector)
-        xy[:] = corners
+        xy[:] = canonical_order(gray, spec, corners)
         weight = corner_weights(gray, spec, corners)
     else:
         corners, ids, reason = _charuco(gray, spec)
