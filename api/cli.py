@@ -27,6 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                            "POSE_DIR"),
     "calibrate": ("calibrate", "fit a camera model (opencv5, opencv-rational, fisheye, raygrid, "
                                "sgcc, ...) to maps"),
+    "detect": ("detect", "find chessboard / ChArUco corners in images: one observations NPZ "
+                         "per image (phasecal.observations/1)"),
     "report": ("report", "calibration report (report.html + PNGs) from a model.json and the "
                          "poses' maps"),
     "diff": ("diff", "difference of two models' rays (after the best rotation): diff.png + "
