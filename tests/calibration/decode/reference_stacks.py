@@ -34,13 +34,15 @@ def reference_plan() -> Plan:
 
 
 def black_dn(partly: bool) -> float:
+    """The stacks' black level (DN)."""
     return 6.0 if partly else 20.0
 
 
-def reference_stack(plan: Plan, border: bool, partly: bool, seed: int = 7) -> np.ndarray:
-    """uint8 (F, H, W) frames; `partly`: a brightness rising across the image that clips
-    the brightest steps of about a third of the pixels."""
-    h, w = SHAPE
+def reference_stack(plan: Plan, border: bool, partly: bool, seed: int = 7,
+                    shape: tuple[int, int] = SHAPE) -> np.ndarray:
+    """uint8 (F, H, W) frames of `shape`; `partly`: a brightness rising across the image that
+    clips the brightest steps of about a third of the pixels."""
+    h, w = shape
     u = (np.arange(w, dtype=np.float32) * (FULL[1] / w))[None, :]
     v = (np.arange(h, dtype=np.float32) * (FULL[0] / h))[:, None]
     x = 0.75 * u + 0.05 * v

@@ -41,3 +41,28 @@ def test_compiled_decode_matches_reference_maps(name: str, reference) -> None:
     for plane in FLOAT_PLANES:
         np.testing.assert_allclose(getattr(maps, plane), reference[f"{name}/{plane}"],
                                    rtol=RTOL, atol=0.0, equal_nan=True, err_msg=plane)
+
+
+def test_one_shot_decodes_take_the_kernels_where_they_pay_back(monkeypatch) -> None:
+    """A one-off decode (no `prepare`) of a 256x256 stack with the noise from the residuals
+    runs the compiled whole-stack finish (numba is loaded for the noise line anyway); with
+    the noise given, images below 1 Mpixel keep the NumPy path."""
+    import calibration.decode.decoder as decoder_module
+
+    assert decoder_module.one_shot_compiled(256 * 256, None)
+    assert not decoder_module.one_shot_compiled(640 * 480, 1.0)
+    assert decoder_module.one_shot_compiled(1280 * 1024, 1.0)
+    whole = []
+    finish_stack = decoder_module.StreamingDecoder.finish_stack
+
+    def recorded(self, *args, **kwargs):
+        whole.append(self.compiled_now)
+        return finish_stack(self, *args, **kwargs)
+
+    monkeypatch.setattr(decoder_module.StreamingDecoder, "finish_stack", recorded)
+    plan = reference_plan()
+    stack = reference_stack(plan, False, False, shape=(256, 256))
+    maps = decode_stack(plan, stack)
+    assert whole == [True] and maps.meta["decoder"]["noise"] == "residual"
+    decode_stack(plan, stack, noise=reference_noise(False))
+    assert whole == [True]  # the NumPy path: no whole-stack finish
