@@ -364,6 +364,31 @@ class ThreadDecode:
         return self.outcome["result"]
 
 
+class ThreadRigDecode(ThreadDecode):
+    """`stream_decode_rig_task` on a thread of this process (`phasecal capture` on a rig of
+    several cameras): `cameras` maps a name to (store folder, maps path, meta)."""
+
+    def __init__(self, plan_path: Path, cameras: dict[str, tuple[Path, Path, dict[str, Any]]],
+                 **task_kwargs: Any) -> None:
+        self.cancel = threading.Event()
+        self.outcome: dict[str, Any] = {}
+        jobs = {name: (str(store), str(out), meta)
+                for name, (store, out, meta) in cameras.items()}
+        self.thread = threading.Thread(target=self.run_cameras,
+                                       args=(plan_path, jobs, task_kwargs),
+                                       name="phasecal-decode")
+        self.thread.start()
+
+    def run_cameras(self, plan_path: Path, jobs: dict[str, tuple[str, str, dict[str, Any]]],
+                    task_kwargs: dict[str, Any]) -> None:
+        """The thread: every camera's decode summary or the first error, kept for `result`."""
+        try:
+            self.outcome["result"] = stream_decode_rig_task(
+                TaskContext("decode", None, self.cancel), str(plan_path), jobs, **task_kwargs)
+        except BaseException as exc:  # raised by `result`, on the caller's thread
+            self.outcome["error"] = exc
+
+
 class ExecutorDecode:
     """`stream_decode_task` on the service's executor (a worker process), as part of the
     capture job `ctx`: the job's cancel reaches it and its progress is the job's."""

@@ -4,6 +4,7 @@ truth), a camera dropping a frame, and the per-camera maps and status of a pose.
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -11,9 +12,20 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from acquisition.patterns import build_plan
+from acquisition.rig import open_rig, parse_rig_config
 from api.app import create_app
 from api.config import ServiceConfig
+from api.pose_path import (
+    ThreadRigDecode,
+    camera_dirs,
+    capture_rig_live,
+    stored_indices,
+    write_camera_names,
+)
 from calibration.shared.maps import load_maps
+from calibration.shared.progress import TaskContext
+from hw_mocks.rig import open_simulated_rig
 from hw_mocks.truth import SimulatorTruth
 
 SCREEN = {"width_px": 320, "height_px": 240, "pitch_mm": [0.5, 0.5]}
@@ -131,3 +143,30 @@ def test_a_one_camera_pose_keeps_its_layout(service, tmp_path: Path) -> None:
     assert c.get(f"{job['resource']}/maps.npz").status_code == 200
     wrong = c.get(f"{job['resource']}/maps.npz", params={"camera": "cam0"})
     assert wrong.status_code == 422 and "leave camera out" in wrong.json()["detail"]
+
+
+def test_capture_on_several_cameras_outside_the_service_and_resume(tmp_path: Path) -> None:
+    """The live pose path for `phasecal capture`: every camera into its folder's store while
+    a thread decodes them all; a second run finds every frame stored and captures none."""
+    rig = open_rig(parse_rig_config(three_camera_rig()), simulator=open_simulated_rig)
+    plan = build_plan(320, 240, [0.5, 0.5], preset="fast")
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps(plan.to_dict()))
+    names = list(rig.cameras)
+    write_camera_names(tmp_path, names)
+    dirs = camera_dirs(tmp_path, names)
+    try:
+        for run in range(2):
+            decode = ThreadRigDecode(plan_path, {n: (dirs[n], dirs[n] / "maps.npz",
+                                                     {"camera_name": n}) for n in names})
+            cap = capture_rig_live(TaskContext("capture"), rig, plan, dirs, decode)
+            result = decode.result()
+            assert cap["captured"] == (len(plan.frames) if run == 0 else 0)
+            assert set(result) == set(names)
+    finally:
+        rig.close()
+    assert stored_indices(tmp_path) == set(range(len(plan.frames)))
+    for name in names:
+        maps = load_maps(dirs[name] / "maps.npz")
+        info = rig.cameras[name].info
+        assert maps.shape == (info.height, info.width) and maps.valid_count() > 0
