@@ -6,6 +6,7 @@ import argparse
 import json
 
 from api.cli import UserError
+from api.commands.calibrate_observations import run_observations
 from api.commands.calibrate_rig import add_rig_arguments, rig_requested, run_rig
 from api.progress import progress_bar
 from calibration import (
@@ -20,8 +21,15 @@ from calibration import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--plan", required=True, help="pattern plan (phasecal.plan/1 JSON)")
-    p.add_argument("--maps", required=True, nargs="+", help="decoded maps, one .npz per pose")
+    p.add_argument("--plan", help="pattern plan (phasecal.plan/1 JSON); needed with --maps")
+    p.add_argument("--maps", nargs="+", metavar="[CAMERA/VIEW=]PATH",
+                   help="decoded maps, one .npz per pose")
+    p.add_argument("--observations", nargs="+", metavar="[CAMERA/VIEW=]PATH",
+                   help="target observations (phasecal.observations/1, e.g. from `phasecal "
+                        "detect`), one .npz per view; parametric models")
+    p.add_argument("--cross-validate", type=int, default=0, metavar="N",
+                   help="observations: also fit N (>= 2) disjoint sets of the views and compare "
+                        "their projections with the difference their uncertainties predict")
     p.add_argument("--model", required=True, action="append",
                    help="model name, e.g. opencv5; a rig (CAMERA/VIEW= inputs): NAME for every "
                         "camera and/or CAMERA=NAME, repeatable")
@@ -42,12 +50,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point for `phasecal calibrate`: fit, print the statistics, write the outputs."""
-    if rig_requested(args):
+    form = input_form(args)
+    if form == "rig":
         return run_rig(args, parse_options(args.option))
     if len(args.model) > 1:
         raise UserError("--model: given more than once; several models are for a rig (inputs "
                         "named CAMERA/VIEW=PATH)")
     args.model = args.model[0]
+    if form == "observations":
+        return run_observations(args, parse_options(args.option))
     if args.model not in MODEL_NAMES:
         raise UserError(f"--model: expected one of {', '.join(MODEL_NAMES)}, got {args.model!r}")
     if (args.export_opencv or args.export_ros) and args.model not in PARAMETRIC:
@@ -108,6 +119,24 @@ def run(args: argparse.Namespace) -> int:
     if args.export_ros:
         export_ros_yaml(result.model, args.export_ros)
     return 0
+
+
+def input_form(args: argparse.Namespace) -> str:
+    """Which calibration the inputs ask for: "rig" (CAMERA/VIEW= prefixes), "observations"
+    or "maps" (one camera, each file its own view); UserError for a combination that is
+    neither."""
+    if not args.maps and not args.observations:
+        raise UserError("inputs: give --maps (with --plan) or --observations")
+    if rig_requested(args):
+        return "rig"
+    if args.maps and args.observations:
+        raise UserError("inputs: --maps and --observations together need CAMERA/VIEW= "
+                        "prefixes (a rig); one camera takes one kind")
+    if args.cross_validate and not args.observations:
+        raise UserError("--cross-validate: applies to --observations")
+    if args.maps and not args.plan:
+        raise UserError("--plan: needed with --maps (the screen the maps are in)")
+    return "observations" if args.observations else "maps"
 
 
 def parse_options(pairs: list[str]) -> dict[str, object]:
