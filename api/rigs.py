@@ -1,7 +1,7 @@
 """Rigs of the service: records in SQLite, opened lazily through `acquisition.rig`.
 
 A rig is opened once per process and shared; its lock serializes captures and
-settings changes (one camera, one screen).
+settings changes (one screen, and one camera or several captured together).
 """
 
 from __future__ import annotations
