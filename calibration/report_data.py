@@ -7,7 +7,7 @@ same page for the same files, today or a year later.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -21,6 +21,31 @@ from calibration.uncertainty import model_ray_sigma, sensor_grid
 
 # Points per pose evaluated for the report (spread evenly over the image).
 REPORT_POINTS_PER_POSE = 6000
+SIGMA_GRID = (48, 36)  # (nx, ny) sensor samples of the ray-sigma map
+COVERAGE_CELLS = (16, 12)  # (nx, ny) coverage cells of models without their own mesh
+
+
+@dataclass
+class ReportHeader:
+    """Who and what a report is about, as its first lines say it."""
+
+    title: str
+    session: str = "not given"
+    rig: str = "not given"
+    cameras: str = "not given"
+    date: str = "not given"  # when the calibration was made
+    software: str = "not given"  # the software and version that drew the report
+    poses_used: list[str] = field(default_factory=list)
+    heldout: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Download:
+    """A file the report offers: a label, its address, and a note (exactness, or why not)."""
+
+    label: str
+    href: str | None  # None: not available for this model (the note says why)
+    note: str = ""
 
 
 @dataclass
@@ -29,6 +54,8 @@ class PoseView:
 
     label: str
     heldout: bool
+    rotation: np.ndarray  # (3, 3) screen-to-camera, fitted (training) or PnP (held-out)
+    translation: np.ndarray  # (3,) mm
     pixels: np.ndarray  # (N, 2)
     residuals: np.ndarray  # (N, 2) projected - observed, camera px
     expected_cov: np.ndarray  # (N, 2, 2) decoded screen sigma pushed to camera px
@@ -48,6 +75,8 @@ class ReportData:
     grid_shape: tuple[int, int]  # (ny, nx)
     ray_sigma: np.ndarray  # (N,) rad
     ray_sigma_method: str
+    screen: ScreenGeometry
+    train_points: list[PointSet]  # the subsampled points the ray-sigma map was computed from
 
 
 def _pose_view(model: CameraModel, rotation: np.ndarray, translation: np.ndarray,
@@ -57,8 +86,8 @@ def _pose_view(model: CameraModel, rotation: np.ndarray, translation: np.ndarray
     cov = np.einsum("nij,nj,nkj->nik", jac, pts.sigma_px**2, jac)
     keys = ("rms_px", "expected_rms_px", "rms_screen_px", "expected_rms_screen_px",
             "noise_floor_ratio", "n_points", "outlier_fraction")
-    return PoseView(label, heldout, pts.pixels, st["residuals"], cov, st["inliers"],
-                    {k: st[k] for k in keys})
+    return PoseView(label, heldout, np.asarray(rotation, float), np.asarray(translation, float),
+                    pts.pixels, st["residuals"], cov, st["inliers"], {k: st[k] for k in keys})
 
 
 @dataclass
@@ -100,12 +129,60 @@ def gather(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
     stats = dict(result.get("stats") or {})
     if "rms_px" not in stats:
         stats.update(summarize([v.stats for v in views if not v.heldout]))
-    nx, ny = 48, 36
+    nx, ny = SIGMA_GRID
     grid = sensor_grid(model.image_size, nx, ny)
     small = [subsample(p, 800) for p in train_pts]
     sigma, method = model_ray_sigma(model, grid, rt, small, stats.get("param_std"))
     return ReportData(model, stats, views, [m.mask for m in (*maps, *heldout_maps)], grid,
-                      (ny, nx), sigma, method)
+                      (ny, nx), sigma, method, screen, small)
+
+
+def fit_ray_sigma(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
+                  screen: ScreenGeometry) -> tuple[np.ndarray, np.ndarray, str]:
+    """The ray-sigma map of a stored fit on the report's sensor grid: (grid (N, 2), sigma (N,)
+    rad, how it was obtained). Only the training poses count (held-out ones add nothing)."""
+    from calibration.fit.classic.pnp import estimate_pose
+
+    fitted = result.get("poses") or []
+    if fitted and len(fitted) != len(maps):
+        raise ValueError(f"result.json: {len(fitted)} fitted poses but {len(maps)} training maps")
+    rng = np.random.default_rng(0)
+    rt, small = [], []
+    for i, m in enumerate(maps):
+        pts = subsample(point_set(m, screen), 800)
+        if fitted:
+            rt.append((np.asarray(fitted[i]["rotation"], float),
+                       np.asarray(fitted[i]["translation_mm"], float)))
+        else:
+            r, t, _ = estimate_pose(model, pts, rng)
+            rt.append((r, t))
+        small.append(pts)
+    grid = sensor_grid(model.image_size, *SIGMA_GRID)
+    sigma, method = model_ray_sigma(model, grid, rt, small,
+                                    (result.get("stats") or {}).get("param_std"))
+    return grid, sigma, method
+
+
+def coverage_counts(data: ReportData) -> tuple[np.ndarray, str]:
+    """Observations (pixels x training poses) per coverage cell, (ny, nx), and the cells'
+    name: an sGCC model's own spline cells, else a 16 x 12 grid. The coverage plot and the
+    report's words about empty cells both read this."""
+    w, h = data.model.image_size
+    grid = getattr(data.model, "grid", None)
+    nx, ny = tuple(grid.cells) if grid is not None else COVERAGE_CELLS
+    train = [m for m, v in zip(data.coverage_masks, data.poses, strict=True) if not v.heldout]
+    views = np.sum(train, axis=0)
+    vv, uu = np.nonzero(views > 0)
+    counts = np.zeros((ny, nx))
+    np.add.at(counts, (np.minimum(vv * ny // h, ny - 1), np.minimum(uu * nx // w, nx - 1)),
+              views[vv, uu])
+    return counts, ("spline cells" if grid is not None else "cells")
+
+
+def poses_per_pixel(data: ReportData) -> np.ndarray:
+    """(H, W) number of training poses that decoded each pixel."""
+    return np.sum([m for m, v in zip(data.coverage_masks, data.poses, strict=True)
+                   if not v.heldout], axis=0)
 
 
 def whitened(view: PoseView) -> np.ndarray:
@@ -116,4 +193,5 @@ def whitened(view: PoseView) -> np.ndarray:
     return r / sig
 
 
-__all__ = ["PoseView", "ReportData", "gather", "whitened"]
+__all__ = ["Download", "PoseView", "ReportData", "ReportHeader", "coverage_counts",
+           "fit_ray_sigma", "gather", "poses_per_pixel", "whitened"]

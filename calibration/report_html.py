@@ -1,29 +1,47 @@
-"""The calibration report: one self-describing HTML page and the PNGs behind it, and the
-model-versus-model difference map. Pages link images by relative name only."""
+"""The calibration report: one HTML page that opens with its verdict, and the PNGs behind it.
+
+The page links images by relative name only; `self_contained` turns it into one file with
+the images inlined, for mailing or archiving with the model.
+"""
 
 from __future__ import annotations
 
+import base64
 import html
-import json
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from calibration import report_plots
-from calibration.compare import ray_angle_difference
-from calibration.models.base import CameraModel
-from calibration.report_data import ReportData
+from calibration.report_data import Download, ReportData, ReportHeader, coverage_counts
+from calibration.report_verdict import GLOSSARY, PARAM_SIGMA_FRACTION, Verdict
 
 REPORT_PAGE = "report.html"
-_STYLE = """body{font-family:system-ui,sans-serif;margin:1.5em;max-width:1100px;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #ccc;padding:3px 8px;
-text-align:right}th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}
-img{max-width:100%;border:1px solid #ddd;margin:.3em 0}.bad{color:#b00;font-weight:bold}
-.ok{color:#070;font-weight:bold}figcaption{font-size:.9em;color:#555;margin-bottom:1.2em}"""
+# Where the links to related pages go: a served report lists the calibrations of its
+# session as they are when it is opened, not as they were when it was drawn.
+COMPARE_MARKER = "<!-- compare -->"
+STYLE = """body{font-family:system-ui,sans-serif;margin:1.5em auto;max-width:1100px;color:#222;
+padding:0 1em}table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #ccc;
+padding:3px 8px;text-align:right;vertical-align:top}th{background:#f3f3f3}
+td:first-child,th:first-child{text-align:left}
+table.checks td,table.checks th,table.header td{text-align:left}
+img{max-width:100%;height:auto;border:1px solid #ddd;margin:.3em 0}
+.fail{color:#b00;font-weight:bold}.warn{color:#a60;font-weight:bold}.pass{color:#070;
+font-weight:bold}.badge{font-size:1.3em;padding:.2em .6em;border-radius:4px;border:2px solid}
+.explain{font-size:.9em;color:#444;margin:.2em 0 1em}figcaption{font-size:.9em;color:#555;
+margin-bottom:1.2em}dt{font-weight:bold}dd{margin:0 0 .5em 1.5em}
+.scroll{overflow-x:auto}
+@media (max-width:900px){body{margin:.5em}td,th{padding:2px 4px;font-size:.9em}}
+@media print{@page{size:A4;margin:12mm}body{max-width:none;margin:0;padding:0;font-size:10pt}
+figure,table,img,.verdict{break-inside:avoid;page-break-inside:avoid}
+img{max-width:100%;max-height:250mm}h2{break-after:avoid;page-break-after:avoid}
+a{color:inherit;text-decoration:none}.scroll{overflow:visible}}"""
 
 
-def _fmt(value: Any, spec: str = ".4g") -> str:
+def fmt(value: Any, spec: str = ".4g") -> str:
+    """A table cell: numbers to `spec`, None and non-finite as '-', text escaped."""
     if value is None:
         return "-"
     if isinstance(value, bool):
@@ -33,22 +51,70 @@ def _fmt(value: Any, spec: str = ".4g") -> str:
     return html.escape(str(value))
 
 
-def _table(header: list[str], rows: list[list[Any]]) -> str:
+def table(header: list[str], rows: list[list[Any]], css: str = "") -> str:
+    """An HTML table, numbers formatted by `fmt`, in a box that scrolls on narrow screens."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in row) + "</tr>" for row in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    body = "".join("<tr>" + "".join(f"<td>{fmt(c)}</td>" for c in row) + "</tr>" for row in rows)
+    cls = f' class="{css}"' if css else ""
+    return f'<div class="scroll"><table{cls}><tr>{head}</tr>{body}</table></div>'
 
 
-def _figure(name: str, caption: str) -> str:
+def figure(name: str, caption: str) -> str:
+    """An image with its caption (linked by relative name)."""
     return (f'<figure><img src="{name}" alt="{html.escape(caption)}" data-figure="{name}">'
             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
 
 
+def explain(term: str) -> str:
+    """The plain-words sentence for a term, as a note under the view that uses it."""
+    return f'<p class="explain"><b>{html.escape(term)}</b>: {html.escape(GLOSSARY[term])}</p>'
+
+
+def _header(head: ReportHeader, data: ReportData) -> str:
+    w, h = data.model.image_size
+    rows = [["session", head.session], ["rig", head.rig], ["cameras", head.cameras],
+            ["calibrated", head.date], ["software", head.software],
+            ["model", f"{data.model.type_name}, {w} x {h} px"],
+            ["poses used", f"{len(head.poses_used)}: {', '.join(head.poses_used)}"],
+            ["held-out poses", f"{len(head.heldout)}: {', '.join(head.heldout)}"
+             if head.heldout else "none"]]
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>"
+                   for k, v in rows)
+    return f'<div class="scroll"><table class="header">{body}</table></div>'
+
+
+def _verdict(verdict: Verdict) -> str:
+    status = verdict.status
+    words = {"pass": "PASS: the model can be used",
+             "warn": "WARN: usable, but read the lines marked warn",
+             "fail": "FAIL: do not use this model; see what to do below"}[status]
+    rows = "".join(
+        f'<tr><td>{html.escape(c.name)}</td><td class="{c.status}">{c.status.upper()}</td>'
+        f"<td>{html.escape(c.measured)}</td><td>{html.escape(c.threshold)}</td>"
+        f"<td>{html.escape(c.advice)}</td></tr>" for c in verdict.checks)
+    suggestion = (f"<p><b>Next pose</b>: {html.escape(verdict.suggestion)}</p>"
+                  if verdict.suggestion else "")
+    return (f'<div class="verdict"><p><span class="badge {status}" id="verdict" '
+            f'data-status="{status}">{words}</span></p>'
+            '<div class="scroll"><table class="checks"><tr><th>check</th><th>result</th>'
+            "<th>measured</th><th>threshold</th><th>what to do</th></tr>"
+            f"{rows}</table></div>{suggestion}</div>")
+
+
+def _downloads(downloads: list[Download]) -> str:
+    items = []
+    for d in downloads:
+        note = f" ({html.escape(d.note)})" if d.note else ""
+        if d.href is None:
+            items.append(f"<li>{html.escape(d.label)}: not available{note}</li>")
+        else:
+            items.append(f'<li><a class="download" href="{html.escape(d.href)}" download>'
+                         f"{html.escape(d.label)}</a>{note}</li>")
+    return f"<ul>{''.join(items)}</ul>"
+
+
 def _numbers(data: ReportData) -> str:
     st = data.stats
-    ok = st.get("model_adequate")
-    verdict = ('<span class="ok">model adequate</span>' if ok else
-               '<span class="bad">model inadequate: residuals above the noise floor</span>')
     sig = data.ray_sigma[np.isfinite(data.ray_sigma)]
     rows = [["RMS residual (camera px)", st.get("rms_px")],
             ["expected RMS from decoded noise (px)", st.get("expected_rms_px")],
@@ -69,19 +135,34 @@ def _numbers(data: ReportData) -> str:
     if hasattr(data.model, "param_names"):  # parametric models: named values and their std
         named = dict(zip(data.model.param_names(), data.model.get_params().tolist(),
                          strict=True))
-        params = [[k, named[k], s] for k, s in (st.get("param_std") or {}).items() if k in named]
+        for k, s in (st.get("param_std") or {}).items():
+            if k in named:
+                loose = bool(s) and s > PARAM_SIGMA_FRACTION * abs(named[k])
+                params.append([k, named[k], s, "undetermined" if loose else ""])
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in st.get("warnings", []))
-    return (f"<p>{verdict}</p>" + _table(["quantity", "value"], rows)
+    return (table(["quantity", "value"], rows, "numbers") + explain("noise-floor ratio")
+            + explain("ray 1-sigma")
             + "<h3>Per pose (recomputed from the stored maps)</h3>"
-            + _table(["pose", "RMS px", "expected px", "ratio", "points", "outliers"], poses)
-            + ("<h3>Parameters</h3>" + _table(["parameter", "value", "1-sigma"], params)
+            + table(["pose", "RMS px", "expected px", "ratio", "points", "outliers"], poses,
+                    "poses")
+            + (explain("held-out pose") if any(v.heldout for v in data.poses) else "")
+            + ("<h3>Parameters</h3>" + table(["parameter", "value", "1-sigma", "flag"], params,
+                                             "params")
+               + f'<p class="explain">A parameter is flagged undetermined when its 1-sigma '
+                 f"exceeds {PARAM_SIGMA_FRACTION:.0%} of its value.</p>"
                if params else "")
-            + (f"<h3>Warnings</h3><ul>{warnings}</ul>" if warnings else ""))
+            + (f"<h3>Warnings of the fit</h3><ul>{warnings}</ul>" if warnings else ""))
 
 
-def write_report(data: ReportData, out_dir: str | Path, title: str,
+def write_report(data: ReportData, out_dir: str | Path, header: ReportHeader,
+                 verdict: Verdict, downloads: list[Download] | None = None,
                  links: list[tuple[str, str]] | None = None) -> list[str]:
-    """Write every PNG and report.html into `out_dir`; returns the file names written."""
+    """Write every PNG and report.html into `out_dir`; returns the file names written.
+
+    `downloads`: the model and its exports (linked near the top); `links`: (text, URL) of
+    related pages (differences to other calibrations of the session); None keeps the
+    COMPARE_MARKER for `with_links` to fill when the page is served.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     size = data.model.image_size
@@ -92,52 +173,61 @@ def write_report(data: ReportData, out_dir: str | Path, title: str,
         kind = "held-out pose, located by PnP with the model" if view.heldout else "training pose"
         figs.append((name, f"{view.label} ({kind}): residual vectors with a reference arrow, "
                            "and the binned RMS magnitude"))
-    plots = (("histogram.png", report_plots.histogram_png, data.poses,
+    counts, cell_kind = coverage_counts(data)
+    plots = (("histogram.png", report_plots.histogram_png, (data.poses,),
               "residual distribution against the expected noise of each point"),
-             ("radial.png", report_plots.radial_png, data,
+             ("radial.png", report_plots.radial_png, (data,),
               "radial profile: RMS residual and the RMS of each point's expected noise"),
-             ("uncertainty.png", report_plots.uncertainty_png, data,
+             ("uncertainty.png", report_plots.uncertainty_png, (data,),
               "per-pixel ray direction uncertainty (1-sigma) from the fit's covariance"),
-             ("coverage.png", report_plots.coverage_png, data,
-              "coverage: observations per cell and training poses per pixel"))
-    for name, fn, arg, _ in plots:
-        fn(arg, out / name)  # type: ignore[operator]
+             ("coverage.png", report_plots.coverage_png, (data, counts, cell_kind),
+              "coverage: observations per cell (red: empty) and training poses per pixel"))
+    for name, fn, args, _ in plots:
+        fn(*args, out / name)  # type: ignore[operator]
     head = [(n, c) for n, _, _, c in plots]
-    link_html = "".join(f'<li><a href="{html.escape(u)}">{html.escape(t)}</a></li>'
-                        for t, u in links or [])
-    body = (f"<h1>{html.escape(title)}</h1><p>Model <b>{html.escape(data.model.type_name)}</b>, "
-            f"{size[0]}x{size[1]} px. Every number and image below is recomputed from the "
-            "stored model, fitted poses and decoded maps.</p><h2>Numbers</h2>"
-            + _numbers(data) + "<h2>Residuals</h2>"
-            + "".join(_figure(n, c) for n, c in head[:2])
-            + "<h2>Uncertainty and coverage</h2>" + "".join(_figure(n, c) for n, c in head[2:])
-            + "<h2>Per pose</h2>" + "".join(_figure(n, c) for n, c in figs)
-            + (f"<h2>Compare</h2><ul>{link_html}</ul>" if link_html else ""))
-    page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
-            f"</title><style>{_STYLE}</style></head><body>{body}</body></html>")
-    (out / REPORT_PAGE).write_text(page, encoding="utf-8")
+    terms = "".join(f"<dt>{html.escape(k)}</dt><dd>{html.escape(v)}</dd>"
+                    for k, v in GLOSSARY.items())
+    body = (f"<h1>{html.escape(header.title)}</h1>" + _header(header, data)
+            + "<h2>Verdict</h2>" + _verdict(verdict)
+            + ("<h2>Downloads</h2>" + _downloads(downloads) if downloads else "")
+            + "<h2>Numbers</h2><p>Every number and image below is recomputed from the "
+              "stored model, fitted poses and decoded maps.</p>" + _numbers(data)
+            + "<h2>Residuals</h2>" + figure(*head[0]) + explain("whitened residual")
+            + figure(*head[1])
+            + "<h2>Uncertainty and coverage</h2>" + figure(*head[2]) + figure(*head[3])
+            + explain("coverage cell")
+            + "<h2>Per pose</h2>" + "".join(figure(n, c) for n, c in figs)
+            + COMPARE_MARKER
+            + f"<h2>Terms</h2><dl>{terms}</dl>")
+    page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
+            f"<meta name='viewport' content='width=device-width, initial-scale=1'>"
+            f"<title>{html.escape(header.title)}</title><style>{STYLE}</style></head>"
+            f"<body>{body}</body></html>")
+    (out / REPORT_PAGE).write_text(page if links is None else with_links(page, links),
+                                   encoding="utf-8")
     return [*(n for n, _ in head), *(n for n, _ in figs), REPORT_PAGE]
 
 
-def write_diff(model_a: CameraModel, model_b: CameraModel, out_dir: str | Path,
-               pixels: np.ndarray | None = None, step_px: float = 4.0,
-               names: tuple[str, str] = ("a", "b")) -> dict[str, Any]:
-    """Ray-angle difference of two models after the best rotation: diff.png + diff.json."""
-    if model_a.image_size != model_b.image_size:
-        raise ValueError(f"diff: image sizes differ ({model_a.image_size} vs "
-                         f"{model_b.image_size})")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    d = ray_angle_difference(model_a.unproject, model_b.unproject, model_a.image_size,
-                             step_px=step_px, pixels=pixels)
-    summary = {"a": names[0], "b": names[1], "rms_urad": d["rms_rad"] * 1e6,
-               "max_urad": d["max_rad"] * 1e6,
-               "p95_urad": float(np.nanpercentile(d["angle_rad"], 95)) * 1e6,
-               "rotation_b_from_a": np.asarray(d["rotation"]).tolist(),
-               "pixels_compared": int(np.isfinite(d["angle_rad"]).sum()), "image": "diff.png"}
-    report_plots.diff_png(d["pixels"], d["angle_rad"], model_a.image_size, step_px,
-                          f"{names[0]} vs {names[1]}\nRMS {summary['rms_urad']:.3g} urad, "
-                          f"max {summary['max_urad']:.3g} urad after the best rotation",
-                          out / "diff.png")
-    (out / "diff.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
-    return summary
+def with_links(page: str, links: list[tuple[str, str]]) -> str:
+    """The page with its "Compare" section: (text, URL) of related pages (none: no section)."""
+    items = "".join(f'<li><a href="{html.escape(u)}">{html.escape(t)}</a></li>'
+                    for t, u in links)
+    return page.replace(COMPARE_MARKER, f"<h2>Compare</h2><ul>{items}</ul>" if items else "")
+
+
+_IMG_SRC = re.compile(r'src="([A-Za-z0-9_.-]+\.png)"')
+_LINK = re.compile(r'<a ([^>]*?)href="([^"#][^"]*)"([^>]*)>(.*?)</a>', re.S)
+
+
+def self_contained(page: str, folder: Path) -> str:
+    """The page as one file: its PNGs inlined as data URIs, and every link to another file
+    or route written out as text (the address to ask the service for), so nothing in it
+    refers outside the file."""
+    def inline(m: re.Match[str]) -> str:
+        data = base64.b64encode((folder / m.group(1)).read_bytes()).decode("ascii")
+        return f'src="data:image/png;base64,{data}"'
+
+    def as_text(m: re.Match[str]) -> str:
+        return f"{m.group(4)} (<code>{m.group(2)}</code>)"
+
+    return _LINK.sub(as_text, _IMG_SRC.sub(inline, page))

@@ -9,12 +9,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.cm import ScalarMappable
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
 from calibration.figures import one_at_a_time, subplots
 from calibration.report import binned_rms
-from calibration.report_data import PoseView, ReportData, whitened
+from calibration.report_data import PoseView, ReportData, poses_per_pixel, whitened
 
 _QUIVER_POINTS = 900
 _DPI = 80
@@ -36,6 +38,21 @@ def _log_norm(finite: np.ndarray) -> LogNorm:
         return LogNorm(1e-3, 1.0)
     lo, hi = float(np.percentile(pos, 1)), float(pos.max())
     return LogNorm(lo, max(hi, lo * 1.01))
+
+
+def colour_bar(fig: Figure, image: ScalarMappable, ax: Axes, label: str,
+               ticks: int = 5) -> None:
+    """A colour bar whose ends are both labelled with their values: a log scale's default
+    ticks fall on decades and can leave the low end of the bar without a number."""
+    bar = fig.colorbar(image, ax=ax, label=label)
+    lo, hi = float(image.norm.vmin), float(image.norm.vmax)
+    if isinstance(image.norm, LogNorm):
+        values = np.geomspace(lo, hi, ticks)
+        bar.ax.minorticks_off()
+    else:
+        values = np.linspace(lo, hi, ticks)
+    bar.set_ticks(values)
+    bar.set_ticklabels([f"{v:.3g}" for v in values])
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -66,7 +83,7 @@ def pose_png(view: PoseView, image_size: tuple[int, int], path: Path) -> None:
     hi = float(np.percentile(mag, 99)) if mag.size else 1.0
     im = ax.imshow(binned_rms(pix, mag, w, h), extent=(0, w, h, 0), vmin=0, vmax=hi,
                    cmap="magma", interpolation="nearest")
-    fig.colorbar(im, ax=ax, label="RMS |residual| (camera px)")
+    colour_bar(fig, im, ax, "RMS |residual| (camera px)")
     ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title="residual magnitude (binned RMS)",
            xlabel="u (px)", ylabel="v (px)")
     kind = "held-out" if view.heldout else "training"
@@ -149,9 +166,8 @@ def uncertainty_png(data: ReportData, path: Path) -> None:
     finite = img[np.isfinite(img)]
     im = ax.imshow(img, extent=(0, w, h, 0), cmap="inferno", norm=_log_norm(finite),
                    interpolation="bilinear")
-    fig.colorbar(im, ax=ax, label="ray direction 1-sigma (urad, log scale)")
-    seen = np.any([m for m, v in zip(data.coverage_masks, data.poses, strict=True)
-                   if not v.heldout], axis=0)
+    colour_bar(fig, im, ax, "ray direction 1-sigma (urad, log scale)")
+    seen = poses_per_pixel(data) > 0
     ax.contour(seen.astype(float), levels=[0.5], colors="cyan", linewidths=1,
                extent=(0, w, 0, h), origin="upper")
     med = float(np.nanmedian(img)) if finite.size else float("nan")
@@ -164,31 +180,29 @@ def uncertainty_png(data: ReportData, path: Path) -> None:
 
 
 @one_at_a_time
-def coverage_png(data: ReportData, path: Path) -> None:
-    """Valid points per cell (sGCC: its spline cells; else a 16x12 grid), and poses per pixel."""
+def coverage_png(data: ReportData, counts: np.ndarray, cell_kind: str, path: Path) -> None:
+    """Observations per coverage cell (`report_data.coverage_counts`; empty cells red) and
+    training poses per pixel."""
     w, h = data.model.image_size
-    grid = getattr(data.model, "grid", None)
-    nx, ny = tuple(grid.cells) if grid is not None else (16, 12)
-    train = [m for m, v in zip(data.coverage_masks, data.poses, strict=True) if not v.heldout]
-    views = np.sum(train, axis=0)
-    vv, uu = np.nonzero(views > 0)
-    counts = np.zeros((ny, nx))
-    np.add.at(counts, (np.minimum(vv * ny // h, ny - 1), np.minimum(uu * nx // w, nx - 1)),
-              views[vv, uu])
+    ny, nx = counts.shape
+    views = poses_per_pixel(data)
     fig, axes = subplots(2, (12, 4.6))
     ax = axes[0]
     im = ax.imshow(np.where(counts > 0, counts, np.nan), extent=(0, w, h, 0), cmap="viridis",
-                   interpolation="nearest")
-    fig.colorbar(im, ax=ax, label="observations per cell (pixels x poses)")
+                   interpolation="nearest", vmin=0, vmax=max(float(counts.max()), 1.0))
+    colour_bar(fig, im, ax, "observations per cell (pixels x poses)")
     ax.set_facecolor("#d62728")
-    kind = "spline cells" if grid is not None else "16x12 cells"
-    ax.set(aspect="equal", title=f"coverage of {nx}x{ny} {kind} (red: empty, "
-                                 f"{int(np.sum(counts == 0))} cells)")
+    empty = int(np.sum(counts == 0))
+    ax.set(aspect="equal", xlabel="u (px)", ylabel="v (px)",
+           title=f"coverage of {nx} x {ny} {cell_kind}: {empty} empty (red)")
     ax = axes[1]
+    top = max(int(views.max()), 1)
     im = ax.imshow(views, extent=(0, w, h, 0), cmap="cividis", interpolation="nearest",
-                   vmin=0, vmax=max(int(views.max()), 1))
-    fig.colorbar(im, ax=ax, label="training poses seeing the pixel")
-    ax.set(aspect="equal", title="poses per pixel")
+                   vmin=-0.5, vmax=top + 0.5)
+    bar = fig.colorbar(im, ax=ax, label="training poses seeing the pixel")
+    step = max(1, top // 8)
+    bar.set_ticks(list(range(0, top + 1, step)))
+    ax.set(aspect="equal", title="poses per pixel", xlabel="u (px)", ylabel="v (px)")
     _save(fig, path)
 
 
@@ -205,8 +219,32 @@ def diff_png(pixels: np.ndarray, angle_rad: np.ndarray, image_size: tuple[int, i
     fig, ax = subplots(1, (7.5, 5))
     im = ax.imshow(img, extent=(0, w, h, 0), cmap="magma", norm=_log_norm(img[np.isfinite(img)]),
                    interpolation="nearest")
-    fig.colorbar(im, ax=ax, label="ray angle difference (urad, log scale)")
+    colour_bar(fig, im, ax, "ray angle difference (urad, log scale)")
     ax.set(aspect="equal", xlabel="u (px)", ylabel="v (px)")
+    ax.set_title(title, fontsize=9)
+    _save(fig, path)
+
+
+@one_at_a_time
+def diff_sigma_png(pixels: np.ndarray, ratio: np.ndarray, image_size: tuple[int, int],
+                   step: float, level: float, title: str, path: Path) -> None:
+    """Difference divided by the combined sigma, with the `level` contour drawn white."""
+    w, h = image_size
+    nx, ny = int(np.ceil(w / step)), int(np.ceil(h / step))
+    img = np.full((ny, nx), np.nan)
+    ix = np.clip((pixels[:, 0] / step).astype(int), 0, nx - 1)
+    iy = np.clip((pixels[:, 1] / step).astype(int), 0, ny - 1)
+    img[iy, ix] = ratio
+    finite = img[np.isfinite(img)]
+    top = max(2 * level, float(np.percentile(finite, 99)) if finite.size else 2 * level)
+    fig, ax = subplots(1, (7.5, 5))
+    im = ax.imshow(img, extent=(0, w, h, 0), cmap="RdYlBu_r", vmin=0, vmax=top,
+                   interpolation="nearest")
+    colour_bar(fig, im, ax, "difference / combined 1-sigma")
+    if finite.size and np.nanmax(img) > level > np.nanmin(img):
+        ax.contour(np.nan_to_num(img, nan=0.0), levels=[level], colors="white", linewidths=1.2,
+                   extent=(0, w, 0, h), origin="upper")
+    ax.set(aspect="equal", xlabel="u (px)", ylabel="v (px)", xlim=(0, w), ylim=(h, 0))
     ax.set_title(title, fontsize=9)
     _save(fig, path)
 
@@ -225,7 +263,7 @@ def guidance_png(before: np.ndarray, after: np.ndarray, outline: np.ndarray,
         ax.set(aspect="equal", xlim=(0, w), ylim=(h, 0))
         ax.set_title(f"predicted ray 1-sigma {name}\nworst {np.nanmax(img) * 1e6:.3g} urad "
                      "(blank: beyond 70 deg)", fontsize=9)
-        fig.colorbar(im, ax=ax, label="urad (log scale)")
+        colour_bar(fig, im, ax, "urad (log scale)")
     closed = np.vstack([outline, outline[:1]])
     axes[1].plot(closed[:, 0], closed[:, 1], "c-", lw=2, label="suggested screen")
     axes[1].legend(loc="lower right", fontsize=8)

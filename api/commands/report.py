@@ -1,14 +1,23 @@
-"""`phasecal report`: the calibration report (HTML page + PNGs) from a model and its maps."""
+"""`phasecal report`: the calibration report (HTML page + PNGs, the model and its exports
+beside it) from a model and its maps."""
 
 from __future__ import annotations
 
 import argparse
-import json
+import time
 from pathlib import Path
 
-from calibration import gather, load_model, write_report
-from calibration.shared.maps import load_maps
-from calibration.shared.plan import read_plan
+from api.version import phasecal_version
+from calibration import (
+    ReportHeader,
+    ReportInputs,
+    draw_report,
+    load_model,
+    self_contained,
+    write_downloads,
+)
+
+SINGLE_FILE = "report-single.html"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,17 +29,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--result", help="the fit's result.json (fitted poses and statistics); "
                                     "without it each pose is located by PnP with the model")
     p.add_argument("--title", default=None, help="page title")
+    p.add_argument("--session", default="not given", help="session name for the header")
+    p.add_argument("--rig", default="not given", help="rig name for the header")
+    p.add_argument("--cameras", default="not given", help="camera(s) for the header")
     p.add_argument("-o", "--output", required=True, help="output folder")
 
 
 def run(args: argparse.Namespace) -> int:
-    model = load_model(args.model)
-    plan = read_plan(args.plan)
-    result = json.loads(Path(args.result).read_text()) if args.result else {}
-    maps = [load_maps(m) for m in args.maps]
-    held = [load_maps(m) for m in args.heldout_maps]
+    model_path = Path(args.model)
+    model = load_model(model_path)
+    out = Path(args.output)
     labels = [Path(m).stem for m in (*args.maps, *args.heldout_maps)]
-    data = gather(model, result, maps, held, plan.screen, labels=labels)
-    names = write_report(data, args.output, args.title or f"Calibration report: {args.model}")
-    print(f"wrote {Path(args.output) / 'report.html'} and {len(names) - 1} images")
+    header = ReportHeader(
+        title=args.title or f"Calibration report: {model_path.name} ({model.type_name})",
+        session=args.session, rig=args.rig, cameras=args.cameras,
+        date="model written " + time.strftime("%Y-%m-%d %H:%M UTC",
+                                              time.gmtime(model_path.stat().st_mtime)),
+        software=f"phasecal {phasecal_version()}", poses_used=labels[:len(args.maps)],
+        heldout=labels[len(args.maps):])
+    downloads = write_downloads(model, model_path, out)
+    inputs = ReportInputs(model=str(model_path), plan=args.plan, maps=list(args.maps),
+                          heldout_maps=list(args.heldout_maps), result=args.result,
+                          labels=labels, header=header, downloads=downloads)
+    names = draw_report(inputs, str(out))
+    page = (out / "report.html").read_text(encoding="utf-8")
+    (out / SINGLE_FILE).write_text(self_contained(page, out), encoding="utf-8")
+    files = sum(d.href is not None for d in downloads)
+    print(f"wrote {out / 'report.html'} ({len(names) - 1} images, {files} downloads) and "
+          f"{out / SINGLE_FILE} (one self-contained file)")
     return 0

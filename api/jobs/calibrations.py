@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 
 from api.db import CalibrationRecord
 from api.jobs.model import Job, JobKind
+from api.reports import draw_in_job
 from api.worker.dask_batch import BatchItem, run_batch
 from api.worker.tasks import calibrate_task
 from calibration.shared.progress import TaskContext
@@ -60,6 +61,7 @@ class CalibrateJob(Job):
             result = fut.result()
             ctx.check_cancelled()
             svc.store.commit(staged, output_names(result), svc.store.dir_for(self.cal_id))
+        draw_in_job(svc, self.cal_id)  # on the executor: the report's first open is a read
         return result
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:

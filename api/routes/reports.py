@@ -1,32 +1,54 @@
-"""Calibration report pages, their images, and model-versus-model differences."""
+"""Calibration report pages, their images and downloads, and model-versus-model differences."""
 
 from __future__ import annotations
 
-import json
 import re
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, Query
 from fastapi.responses import HTMLResponse, Response
 
 from api.problems import Problem
-from api.reports import diff_dir, report_dir
+from api.reports import (
+    calibration,
+    compare_links,
+    diff_dir,
+    diff_summary,
+    drawing_page,
+    ready_report,
+)
 from api.routes.common import PROBLEM_RESPONSES
 from api.services import Services, get_services
+from calibration import self_contained, with_links
 
 router = APIRouter(tags=["reports"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
 _PNG = re.compile(r"[a-z]+(_[0-9]{2})?\.png")
+_DIFF_FILES = {"diff.html": "text/html", "diff.png": "image/png", "diff_sigma.png": "image/png"}
 
 
-@router.get("/calibrations/{cal_id}/report.html", response_class=HTMLResponse)
-def report_page(cal_id: str, svc: Svc) -> HTMLResponse:
-    """The calibration report: numbers, residual fields per pose, histogram, radial profile,
-    ray-uncertainty map, coverage, held-out poses (drawn from stored data on first request)."""
-    page = (report_dir(svc, cal_id) / "report.html").read_text(encoding="utf-8")
+@router.get("/calibrations/{cal_id}/report.html", response_class=HTMLResponse,
+            responses={202: {"content": {"text/html": {}},
+                             "description": "the report is being drawn: a page that says so "
+                                            "and reloads itself"}})
+def report_page(cal_id: str, svc: Svc, download: Annotated[bool, Query(
+        description="the report as one self-contained file (images inlined) to save")] = False,
+                ) -> HTMLResponse:
+    """The calibration report: verdict against stated thresholds, downloads of the model and
+    its exports, numbers, residual fields per pose, histogram, radial profile, ray-uncertainty
+    map, coverage, held-out poses. Drawn by the calibration job; until it is in place (202)
+    a page that says so and reloads itself."""
+    folder = ready_report(svc, cal_id)
+    if folder is None:
+        return HTMLResponse(drawing_page(cal_id, calibration(svc, cal_id).status),
+                            status_code=202, headers={"Retry-After": "2"})
+    page = with_links((folder / "report.html").read_text(encoding="utf-8"),
+                      compare_links(svc, cal_id))
+    if download:
+        return HTMLResponse(self_contained(page, folder), headers={
+            "Content-Disposition": f'attachment; filename="{cal_id}-report.html"'})
     # Images are linked by file name; this page lives one level above them.
-    page = re.sub(r'src="([a-z_0-9]+\.png)"', r'src="report/\1"', page)
-    return HTMLResponse(page)
+    return HTMLResponse(re.sub(r'src="([a-z_0-9]+\.png)"', r'src="report/\1"', page))
 
 
 @router.get("/calibrations/{cal_id}/report/{name}", response_class=Response,
@@ -36,7 +58,11 @@ def report_file(cal_id: str, name: str, svc: Svc) -> Response:
     if name != "report.html" and not _PNG.fullmatch(name):
         raise Problem(404, "not-found", f"report file {name!r}: expected report.html or a "
                       "PNG named in it")
-    path = report_dir(svc, cal_id) / name
+    folder = ready_report(svc, cal_id)
+    if folder is None:
+        raise Problem(409, "not-ready", f"calibration {cal_id}'s report is being drawn; "
+                      "ask again in a few seconds")
+    path = folder / name
     if not path.is_file():
         raise Problem(404, "not-found", f"calibration {cal_id}'s report has no {name}")
     media = "text/html" if name.endswith(".html") else "image/png"
@@ -46,15 +72,28 @@ def report_file(cal_id: str, name: str, svc: Svc) -> Response:
 @router.get("/calibrations/{cal_a}/diff/{cal_b}")
 def diff(cal_a: str, cal_b: str, svc: Svc) -> dict[str, Any]:
     """Ray-angle difference of two calibrations after the best aligning rotation, on the pixels
-    their poses saw: RMS, 95th percentile and max (urad), the rotation, and the map's URL."""
-    out = json.loads((diff_dir(svc, cal_a, cal_b) / "diff.json").read_text())
-    out["image"] = f"/calibrations/{cal_a}/diff/{cal_b}/diff.png"
+    their poses saw, against the two fits' combined ray uncertainty: median, 95th percentile,
+    max and RMS (urad), the fraction beyond 2 combined sigma, whether the models agree, the
+    rotation, and the URLs of the page and its maps."""
+    out = diff_summary(diff_dir(svc, cal_a, cal_b))
+    base = f"/calibrations/{cal_a}/diff/{cal_b}"
+    out["image"] = f"{base}/diff.png"
+    out["page"] = f"{base}/diff.html"
+    if "sigma_image" in out:
+        out["sigma_image"] = f"{base}/diff_sigma.png"
     return out
 
 
-@router.get("/calibrations/{cal_a}/diff/{cal_b}/diff.png", response_class=Response,
-            responses={200: {"content": {"image/png": {}}}})
-def diff_image(cal_a: str, cal_b: str, svc: Svc) -> Response:
-    """The difference map (urad, log colour scale)."""
-    return Response((diff_dir(svc, cal_a, cal_b) / "diff.png").read_bytes(),
-                    media_type="image/png")
+@router.get("/calibrations/{cal_a}/diff/{cal_b}/{name}", response_class=Response,
+            responses={200: {"content": {"text/html": {}, "image/png": {}}}})
+def diff_file(cal_a: str, cal_b: str, name: str, svc: Svc) -> Response:
+    """The difference as a page (diff.html) and its maps: diff.png (urad, log colour scale),
+    diff_sigma.png (difference over the combined 1-sigma)."""
+    if name not in _DIFF_FILES:
+        raise Problem(404, "not-found", f"diff file {name!r}: expected one of "
+                      f"{sorted(_DIFF_FILES)}")
+    path = diff_dir(svc, cal_a, cal_b) / name
+    if not path.is_file():
+        raise Problem(404, "not-found", f"the difference of {cal_a} and {cal_b} has no {name} "
+                      "(the uncertainty of a model is not available)")
+    return Response(path.read_bytes(), media_type=_DIFF_FILES[name])

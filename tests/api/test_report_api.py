@@ -2,14 +2,18 @@
 
 Every image of the report must exist, decode and show something, and the page must be
 reproducible from the stored files alone: `phasecal report` run on the downloaded model,
-result and maps gives the same numbers.
+result and maps gives the same numbers. The verdict's lines are checked against what the
+test computes from the stored files itself.
 """
 
 from __future__ import annotations
 
+import html
 import io
 import json
 import re
+import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +49,8 @@ def service(tmp_path_factory: pytest.TempPathFactory):
             assert job["status"] == "succeeded", job
             poses.append(job["resource"].rsplit("/", 1)[-1])
         cals = {}
-        for model, opts in (("opencv5", {}), ("sgcc", {"cells": [4, 3]})):
+        for model, opts in (("opencv5", {}), ("sgcc", {"cells": [4, 3]}),
+                            ("opencv-rational", {})):
             job = client.wait(client.post(f"/sessions/{ses['id']}/calibrations",
                                           {"model": model, "pose_ids": poses[:3],
                                            "heldout_pose_ids": poses[3:], "options": opts}))
@@ -75,7 +80,17 @@ def test_report_has_every_view_drawn_from_stored_data(service, model, tmp_path: 
         _png(r.content)
     assert "ray 1-sigma max (urad)" in page and "held-out" in page
     other = cals["sgcc" if model == "opencv5" else "opencv5"]
-    assert f"/calibrations/{cal_id}/diff/{other}/diff.png" in page
+    assert f"/calibrations/{cal_id}/diff/{other}/diff.html" in page
+    # The header, and every download the page links answers with a file.
+    for row in ("session", "rig", "cameras", "calibrated", "software", "poses used"):
+        assert f"<th>{row}</th>" in page
+    assert f"3: {', '.join(poses[:3])}" in page and "phasecal " in page
+    links = re.findall(r'class="download" href="([^"]+)"', page)
+    assert f"/calibrations/{cal_id}/files/model.json" in links
+    assert any("format=mrcal" in u for u in links)
+    for url in links:
+        r = client.request("GET", html.unescape(url))
+        assert r.status_code == 200 and len(r.content) > 50, url
 
     # The same numbers from the stored files alone, through the CLI.
     files = {}
@@ -96,9 +111,14 @@ def test_report_has_every_view_drawn_from_stored_data(service, model, tmp_path: 
                  "--result", str(files["result.json"]), "--maps", *map(str, maps[:3]),
                  "--heldout-maps", str(maps[3]), "-o", str(out)]) == 0
     cli_page = (out / "report.html").read_text()
-    table = re.compile(r"<table>.*?</table>", re.S)
-    assert table.findall(cli_page)[:2] == table.findall(page)[:2]
+    for css in ("numbers", "poses", "checks"):
+        table = re.compile(rf'<table class="{css}">.*?</table>', re.S)
+        assert table.findall(cli_page) == table.findall(page), css
     assert sorted(p.name for p in out.glob("*.png")) == sorted(EXPECTED)
+    # The CLI writes the model and its exports beside the page and links them by name.
+    cli_links = re.findall(r'class="download" href="([^"]+)"', cli_page)
+    assert "model.json" in cli_links and len(cli_links) == len(links)
+    assert all((out / name).is_file() for name in cli_links)
 
     # The per-pose RMS in the page is the residual of the stored model, pose and maps.
     model_obj = model_from_dict(json.loads(files["model.json"].read_text()))
@@ -111,31 +131,137 @@ def test_report_has_every_view_drawn_from_stored_data(service, model, tmp_path: 
     assert f"<td>{poses[0]}</td><td>{st['rms_px']:.4g}</td>" in page
 
 
-def test_diff_between_two_calibrations(service, tmp_path: Path) -> None:
+def _report_folder(root: Path, cal_id: str) -> Path:
+    return root / "data" / "calibrations" / cal_id / "report"
+
+
+def test_report_is_drawn_by_the_calibration_job(service) -> None:
+    # Every fixture calibration's report was in place when its job said succeeded (no GET
+    # came before this test), so the first open is a read of a drawn page.
+    client, _, _, cals, root = service
+    for cal_id in cals.values():
+        assert (_report_folder(root, cal_id) / "report.html").is_file()
+        r = client.request("GET", f"/calibrations/{cal_id}/report.html")
+        assert r.status_code == 200 and 'id="verdict"' in r.text
+
+
+def _check_row(page: str, name: str) -> list[str]:
+    row = re.search(rf"<tr><td>{re.escape(name)}</td>(.*?)</tr>", page, re.S)
+    assert row, name
+    return [html.unescape(c) for c in re.findall(r"<td[^>]*>(.*?)</td>", row.group(1), re.S)]
+
+
+def test_verdict_lines_match_what_the_stored_files_show(service) -> None:
     client, ses, poses, cals, _ = service
-    a, b = cals["opencv5"], cals["sgcc"]
+    cal_id = cals["opencv-rational"]
+    page = client.request("GET", f"/calibrations/{cal_id}/report.html").text
+    result = json.loads(client.request("GET", f"/calibrations/{cal_id}/files/result.json")
+                        .content)
+    model = json.loads(client.request("GET", f"/calibrations/{cal_id}/files/model.json").content)
+    obj = model_from_dict(model)
+    values = dict(zip(obj.param_names(), obj.get_params(), strict=True))
+    loose = sorted(k for k, s in result["stats"]["param_std"].items()
+                   if s > 0 and s > 0.5 * abs(values[k]))
+    status, measured, threshold, advice = _check_row(page, "parameter uncertainty")
+    assert "50%" in threshold
+    assert status == ("WARN" if loose else "PASS")
+    assert sorted(re.findall(r"(\w+) = [-0-9.e]+ \+-", measured)) == loose
+    assert measured.startswith(f"{len(loose)} of {len(result['stats']['param_std'])}")
+
+    # Empty coverage cells, counted here from the training poses' decoded masks.
+    masks = [load_maps(client.request(
+        "GET", f"/sessions/{ses['id']}/poses/{pid}/maps.npz").content).mask for pid in poses[:3]]
+    seen = np.any(masks, axis=0)
+    h, w = seen.shape
+    cells = seen.reshape(12, h // 12, 16, w // 16).any(axis=(1, 3))
+    empty = int((~cells).sum())
+    status, measured, _, advice = _check_row(page, "coverage")
+    assert measured.startswith(f"{empty} of 192 cells empty")
+    assert status == ("PASS" if empty == 0 else "WARN" if empty <= 19 else "FAIL")
+    if empty:  # where, in words, and how to place the screen there
+        assert re.search(r"(corner|edge|centre)", measured) and "screen" in advice
+    assert "coverage of 16 x 12 cells" not in page  # the title is in the image, not doubled
+
+
+def test_report_downloads_as_one_self_contained_file(service) -> None:
+    client, _, _, cals, _ = service
+    r = client.request("GET", f"/calibrations/{cals['sgcc']}/report.html",
+                       params={"download": 1})
+    assert r.status_code == 200
+    assert r.headers["content-disposition"].startswith("attachment;")
+    page = r.text
+    refs = re.findall(r'(?:src|href)="([^"]*)"', page)
+    assert refs and all(u.startswith(("data:", "#")) for u in refs), refs[:5]
+    assert len(re.findall(r'src="data:image/png;base64,', page)) == len(EXPECTED)
+    assert "/export?format=mrcal" in page  # the download addresses, as text
+    assert "@media print" in page and "size:A4" in page
+
+
+def test_a_report_not_yet_drawn_answers_at_once_with_a_page_that_reloads(service) -> None:
+    client, _, _, cals, root = service
+    cal_id = cals["opencv5"]
+    shutil.rmtree(_report_folder(root, cal_id))
+    first = client.request("GET", f"/calibrations/{cal_id}/report.html")
+    assert first.status_code == 202 and "reloads itself" in first.text
+    assert "http-equiv='refresh'" in first.text
+    for _ in range(600):
+        r = client.request("GET", f"/calibrations/{cal_id}/report.html")
+        if r.status_code == 200:
+            break
+        assert r.status_code == 202
+        time.sleep(0.1)
+    assert r.status_code == 200 and 'id="verdict"' in r.text
+
+
+def _diff_page(client: PhasecalClient, a: str, b: str) -> tuple[dict, str]:
     d = client.get(f"/calibrations/{a}/diff/{b}")
-    assert 0 < d["rms_urad"] <= d["max_urad"] and d["pixels_compared"] > 100
-    _png(client.request("GET", d["image"]).content)
+    page = client.request("GET", d["page"]).text
+    for key in ("image", "sigma_image"):
+        _png(client.request("GET", d[key]).content)
+    assert d["median_urad"] <= d["p95_urad"] <= d["max_urad"] and d["pixels_compared"] > 100
+    for value in (d["median_urad"], d["p95_urad"], d["max_urad"]):
+        assert f"<td>{value:.4g}</td>" in page
+    assert f"{d['fraction_beyond_2_sigma']:.2%}" in page and d["verdict"] in page
+    assert d["agree"] == (d["fraction_beyond_2_sigma"] <= 0.05)
+    return d, page
+
+
+def test_diff_page_sets_the_difference_against_the_combined_uncertainty(service,
+                                                                         tmp_path: Path) -> None:
+    client, ses, poses, cals, _ = service
+    # Two models of the same poses of one camera: they differ by less than their noise.
+    same, page = _diff_page(client, cals["opencv5"], cals["opencv-rational"])
+    assert same["agree"] is True and "agree within their uncertainty" in page
+    # A model too coarse for the camera's ray field against the parametric fit.
+    a, b = cals["opencv5"], cals["sgcc"]
+    d, page = _diff_page(client, a, b)
     with pytest.raises(ServiceError) as err:
         client.get(f"/calibrations/{a}/diff/{a}")
     assert err.value.status == 422
-    files = []
+
+    # The CLI, on the downloaded files, gives the same numbers.
+    files, results = [], []
     for cid in (a, b):
-        path = tmp_path / f"{cid}.json"
-        path.write_bytes(client.request("GET", f"/calibrations/{cid}/files/model.json").content)
-        files.append(str(path))
+        for name, out in (("model.json", files), ("result.json", results)):
+            path = tmp_path / f"{cid}-{name}"
+            path.write_bytes(client.request("GET", f"/calibrations/{cid}/files/{name}").content)
+            out.append(str(path))
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps(client.get(f"/sessions/{ses['id']}/plan")))
     maps = []
     for pid in poses[:3]:  # the poses both calibrations used: the pixels the API compares
         path = tmp_path / f"{pid}.npz"
         path.write_bytes(client.request(
             "GET", f"/sessions/{ses['id']}/poses/{pid}/maps.npz").content)
         maps.append(str(path))
-    assert main(["diff", *files, "--maps", *maps, "-o", str(tmp_path / "d")]) == 0
-    assert (tmp_path / "d" / "diff.png").is_file()
+    assert main(["diff", *files, "--maps", *maps, "--plan", str(plan), "--result-a", results[0],
+                 "--result-b", results[1], "-o", str(tmp_path / "d")]) == 0
+    assert (tmp_path / "d" / "diff.html").is_file()
     summary = json.loads((tmp_path / "d" / "diff.json").read_text())
     assert summary["pixels_compared"] == d["pixels_compared"]
-    assert summary["rms_urad"] == pytest.approx(d["rms_urad"], rel=1e-9)
+    for key in ("rms_urad", "median_urad", "fraction_beyond_2_sigma"):
+        assert summary[key] == pytest.approx(d[key], rel=1e-9), key
+    assert summary["agree"] == d["agree"]
 
 
 def test_decode_previews_have_colour_bars(service) -> None:
