@@ -58,6 +58,7 @@ _EXPORTS = {
     # rigs: several cameras fitted jointly, their extrinsics with covariance
     "RigInput": "fit.rig.inputs",
     "RigOptions": "fit.rig.options",
+    "split_rig_options": "fit.rig.options",
     "RigResult": "fit.rig.result",
     "calibrate_rig": "fit.rig.calibrate",
     "calibrate_rig_files": "fit.rig.files",
