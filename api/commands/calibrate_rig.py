@@ -8,7 +8,7 @@ from pathlib import Path
 
 from api.cli import UserError
 from api.progress import progress_bar
-from calibration import MODEL_NAMES, RigOptions, calibrate_rig_files, save_rig
+from calibration import MODEL_NAMES, calibrate_rig_files, save_rig, split_rig_options
 
 
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
@@ -89,8 +89,7 @@ def run_rig(args: argparse.Namespace, options: dict[str, object]) -> int:
         raise UserError(f"--model: no model for camera(s) {missing} (give --model NAME for "
                         "every camera or --model CAMERA=NAME)")
     models = {c: per_camera.get(c, default) for c in cameras}
-    rig_opts = {k: v for k, v in options.items() if k in RigOptions.model_fields}
-    model_opts = {k: v for k, v in options.items() if k not in RigOptions.model_fields}
+    rig_opts, model_opts = split_rig_options(options)
     with progress_bar("calibrate rig") as update:
         result = calibrate_rig_files(
             args.plan, entries, models, reference=args.reference, options=rig_opts,
