@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from calibration.fit.rig.transforms import Transform
+from calibration.models.base import jsonable
 from calibration.shared.rig_model import RigModel
 
 
@@ -17,3 +18,7 @@ class RigResult:
     rig: RigModel
     view_poses: dict[str, Transform]
     stats: dict[str, Any] = field(default_factory=dict)
+
+    def json_stats(self) -> dict[str, Any]:
+        """`stats` as plain JSON data (numbers, lists; NaN as null)."""
+        return jsonable(self.stats)
