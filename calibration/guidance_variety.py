@@ -1,11 +1,12 @@
 """Are a session's captured poses varied enough? A cheap check from their decoded maps, no fit.
 
 Each pose is summarized by the homography from the screen to the image (a few hundred of
-its decoded points): the screen's four corners as the camera saw them (its outline) and,
-with the camera's nominal pinhole, the screen's normal. A pose whose outline lies within
-`DUPLICATE_FRACTION` of the image diagonal of an earlier pose's repeats it (it adds almost
-nothing); the fits need poses whose screen normals differ (parallel screens leave the focal
-length undetermined), at least `MIN_NORMAL_SPREAD_DEG` apart.
+its decoded points: cheap enough for the server, no fit): the screen's four corners as the
+camera saw them (its outline) and, with the camera's nominal pinhole, the screen's normal.
+A pose whose outline lies within `DUPLICATE_FRACTION` of the image diagonal of an earlier
+pose's repeats it (it adds almost nothing); the fits need poses whose screen normals
+differ (parallel screens leave the focal length undetermined), at least
+`MIN_NORMAL_SPREAD_DEG` apart.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.fit.correspondences import point_set, subsample
 from calibration.guidance_placement import Placement, outline_distance, screen_corners_mm
 from calibration.shared.maps import DecodedMaps
 from calibration.shared.plan import ScreenGeometry
@@ -51,13 +51,17 @@ class ObservedPose:
 
 def observe(maps: DecodedMaps, screen: ScreenGeometry, camera_matrix: np.ndarray
             ) -> ObservedPose:
-    """The pose's outline and screen normal from its decoded points; ValueError when it has
-    too few valid points to tell."""
-    pts = subsample(point_set(maps, screen), _HOMOGRAPHY_POINTS)
-    if len(pts) < _MIN_POINTS:
-        raise ValueError(f"pose has {len(pts)} usable decoded points (need >= {_MIN_POINTS})")
-    mm = pts.screen_mm[:, :2]
-    hom, _ = cv2.findHomography(mm, pts.pixels, cv2.RANSAC, 3.0)
+    """The pose's outline and screen normal from its decoded points (about
+    `_HOMOGRAPHY_POINTS` valid pixels on an even grid; RANSAC drops decoding outliers);
+    ValueError when it has too few valid points to tell."""
+    valid = maps.mask & np.isfinite(maps.x) & np.isfinite(maps.y)
+    stride = max(1, int(np.sqrt(max(int(valid.sum()), 1) / _HOMOGRAPHY_POINTS)))
+    v, u = np.nonzero(valid[::stride, ::stride])
+    v, u = v * stride, u * stride
+    if len(u) < _MIN_POINTS:
+        raise ValueError(f"pose has {len(u)} usable decoded points (need >= {_MIN_POINTS})")
+    mm = np.stack([maps.x[v, u] * screen.pitch_mm[0], maps.y[v, u] * screen.pitch_mm[1]], 1)
+    hom, _ = cv2.findHomography(mm, np.stack([u, v], 1).astype(np.float64), cv2.RANSAC, 3.0)
     if hom is None:
         raise ValueError("pose: its decoded points give no screen-to-image homography")
     corners = cv2.perspectiveTransform(screen_corners_mm(screen)[None, :, :2], hom)[0]

@@ -20,7 +20,7 @@ from api.jobs.intrinsics import RESULT as INTRINSICS_RESULT
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, get_session
 from api.services import Services, get_services
-from api.worker.guidance_task import guidance_task, observe_task
+from api.worker.guidance_task import guidance_task
 from calibration import (
     MODELS,
     NominalCamera,
@@ -28,6 +28,7 @@ from calibration import (
     captured_by,
     count_png,
     nominal_camera,
+    observe,
     pose_variety,
     starting_poses,
 )
@@ -89,29 +90,26 @@ def _camera(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
 
 def _observed(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
               camera: NominalCamera) -> list[tuple[str, ObservedPose]]:
-    """Each ready pose's outline and normal, computed once by the executor and cached."""
+    """Each ready pose's outline and normal (a few hundred points of its maps: read here,
+    no fit), cached per pose and camera matrix."""
     k = camera.model.camera_matrix
     tag = hashlib.sha1(np.round(k, 6).tobytes()).hexdigest()[:12]
     folder = svc.store.dir_for(sess.id) / "guidance" / "poses"
-    plan_path = str(svc.store.dir_for(sess.id) / "plan.json")
-    found: dict[str, ObservedPose] = {}
-    pending = {}
+    screen = plan_from_dict(sess.plan).screen
+    out = []
     for p in poses:
         cached = folder / f"{p.id}-{tag}.json"
         if cached.is_file():
-            found[p.id] = ObservedPose.from_json(json.loads(cached.read_text()))
-        else:
-            pending[p.id] = svc.executor.submit(observe_task, plan_path,
-                                                str(svc.store.file(p.id, "maps.npz")), k.tolist())
-    for pid, fut in pending.items():
+            out.append((p.id, ObservedPose.from_json(json.loads(cached.read_text()))))
+            continue
         try:
-            data = fut.result()
+            seen = observe(load_maps(svc.store.file(p.id, "maps.npz")), screen, k)
         except ValueError:
-            continue  # too few valid points to tell: neither a duplicate nor variety
+            continue  # too few valid points to tell: neither a repeat nor variety
         folder.mkdir(parents=True, exist_ok=True)
-        svc.store.write_bytes(folder / f"{pid}-{tag}.json", json.dumps(data).encode())
-        found[pid] = ObservedPose.from_json(data)
-    return [(p.id, found[p.id]) for p in poses if p.id in found]
+        svc.store.write_bytes(cached, json.dumps(seen.to_json()).encode())
+        out.append((p.id, seen))
+    return out
 
 
 def _variety(svc: Services, session_id: str, hfov_deg: float | None) -> dict[str, Any]:

@@ -1,6 +1,5 @@
-"""Executor tasks of pose guidance, run by a worker so that the server process that paces
-captures never runs a fit or reads a pose's whole maps: the next-pose suggestion (fit,
-prediction, image) and one pose's outline for the variety check."""
+"""Executor task: the next-pose suggestion of a session (fit, prediction, image), written
+by a worker so that the server process that paces captures never runs the fit."""
 
 from __future__ import annotations
 
@@ -8,9 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from calibration import guidance_png, observe, plan_next_pose, session_points
+from calibration import guidance_png, plan_next_pose, session_points
 from calibration.shared.maps import load_maps
 from calibration.shared.plan import read_plan
 
@@ -29,11 +26,3 @@ def guidance_task(plan_path: str, maps_paths: list[str], model: str, out_dir: st
     p = sug.placement
     guidance_png(sug.map_before, sug.map_after, p.border_px, (w, h),
                  f"next pose ({model}): {p.words((w, h))}", out / "next-pose.png")
-
-
-def observe_task(plan_path: str, maps_path: str, camera_matrix: list[list[float]]
-                 ) -> dict[str, Any]:
-    """One pose's outline and screen normal (`calibration.observe`) as JSON; ValueError when
-    its maps have too few valid points."""
-    plan = read_plan(plan_path)
-    return observe(load_maps(maps_path), plan.screen, np.asarray(camera_matrix)).to_json()

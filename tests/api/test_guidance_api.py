@@ -70,7 +70,7 @@ def test_next_pose_is_planned_by_the_executor_once(service, monkeypatch) -> None
     names = _submissions(monkeypatch, svc)
     first = client.get(f"/sessions/{sid}/next-pose", params={"model": "opencv5"})
     assert first.status_code == 200, first.text
-    assert names == ["observe_task"] * 3 + ["guidance_task"]
+    assert names == ["guidance_task"]
     body = first.json()
     assert body["session_id"] == sid and body["model"] == "opencv5"
     assert len(body["poses_used"]) == 3 and len(body["screen_pose"]["rvec"]) == 3
@@ -84,7 +84,7 @@ def test_next_pose_is_planned_by_the_executor_once(service, monkeypatch) -> None
     current = client.get(f"/sessions/{sid}/next-pose.png", params={"model": "opencv5"})
     assert current.content == image.content and current.headers["cache-control"] == "no-cache"
     again = client.get(f"/sessions/{sid}/next-pose", params={"model": "opencv5"})
-    assert again.json() == body and names == ["observe_task"] * 3 + ["guidance_task"]
+    assert again.json() == body and names == ["guidance_task"]
     assert again.headers["cache-control"] == "no-cache"
     stale = client.get(f"/sessions/{sid}/next-pose.png", params={"key": "0" * 16})
     assert stale.status_code == 404 and "next-pose" in stale.json()["detail"]
