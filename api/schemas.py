@@ -354,3 +354,21 @@ class UnprojectResponse(BaseModel):
 
     origins: list[list[float | None]]
     directions: list[list[float | None]]
+
+
+class RigCalibrationCreate(BaseModel):
+    """Calibrate every camera of a several-camera session's poses jointly (docs/rigs.md): each
+    pose is a view all its cameras share; the result is a rig model (phasecal.rig/1)."""
+
+    model_config = strict_config({"model": "opencv5"},
+                                 {"model": "opencv5", "camera_models": {"right": "fisheye"},
+                                  "options": {"max_points_per_view": 2000}})
+    model: ModelName = Field(description="every camera's model unless camera_models names one")
+    camera_models: dict[IdStr, ModelName] = Field(default_factory=dict, max_length=64)
+    pose_ids: list[IdStr] | None = Field(default=None, max_length=500)
+    heldout_pose_ids: list[IdStr] = Field(default_factory=list, max_length=500)
+    reference: IdStr | None = Field(default=None, description="default: the poses' first camera")
+    options: dict[IdStr, Any] = Field(
+        default_factory=dict, max_length=64,
+        description="the joint fit's options (max_points_per_view, outlier_sigmas, "
+                    "max_iterations, seed) and every camera's model options")
