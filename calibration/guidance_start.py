@@ -1,12 +1,13 @@
 """A varied starting set of screen poses, planned from the camera's nominal pinhole and the
 screen alone (before any pose is captured).
 
-The set is chosen greedily for information (D-optimal design): among the candidate
-placements (`calibration.guidance_placement`) at 0.7/1/1.4 times the distance where the
-screen spans half the image width, each next pose is the one that most raises the log
-determinant of the opencv5 parameters' information (poses marginalized), so the set mixes
-distances, tilts in different directions and positions across the image, and never repeats
-a placement.
+The set is chosen greedily among the candidate placements
+(`calibration.guidance_placement`) at 0.7/1/1.4 times the distance where the screen spans
+half the image width: the first two for information volume (each raises the log
+determinant of the opencv5 parameters' information most, poses marginalized), each later
+one for the smallest worst predicted ray sigma of the set so far, as next-pose chooses. So
+the set mixes tilt directions and positions across the image, and never repeats a
+placement.
 """
 
 from __future__ import annotations
@@ -25,13 +26,22 @@ from calibration.guidance_placement import (
 )
 from calibration.models.parametric import OpenCV5Model
 from calibration.shared.plan import ScreenGeometry
-from calibration.uncertainty import pose_information, sensor_grid
+from calibration.uncertainty import (
+    RAY_SIGMA_GRID,
+    covariance,
+    direction_jacobian,
+    pose_information,
+    ray_sigma,
+    sensor_grid,
+    worst_ray_sigma,
+)
 
 DEFAULT_HFOV_DEG = 60.0  # the nominal lens when nothing better is known
 SPAN_OF_IMAGE = 0.5  # the reference distance: the screen spans this part of the image width
 _DISTANCE_FACTORS = (0.7, 1.0, 1.4)
 _SAMPLE_GRID = (24, 18)
 _DISTINCT_FRACTION = 0.08  # outlines of two starting poses differ by this much at least
+_D_OPTIMAL_PICKS = 2  # picked for information volume; later ones for the worst ray sigma
 
 
 @dataclass
@@ -93,19 +103,25 @@ def starting_poses(camera: NominalCamera, screen: ScreenGeometry, count: int) ->
     rays = model.unproject(samples)
     free = np.arange(model.get_params().size)
     infos = [_information(model, screen, p, rays, samples, free) for p in cands]
-    scale = np.sqrt(np.clip(np.mean([np.diag(i) for i in infos], axis=0), 1e-300, None))
-    prior = 1e-6 * np.eye(len(free))  # keeps the log determinant finite for the first picks
+    scale = np.outer(*2 * [np.sqrt(np.clip(np.mean([np.diag(i) for i in infos], axis=0),
+                                           1e-300, None))])
+    prior = 1e-6 * np.diag(np.diag(scale))  # keeps the first picks' information invertible
+    grid = sensor_grid(model.image_size, *RAY_SIGMA_GRID)
+    jd = direction_jacobian(model, grid, free)
     total = np.zeros((len(free), len(free)))
     chosen: list[Placement] = []
     while len(chosen) < count:
-        best, best_gain = None, -np.inf
+        best, best_score = None, np.inf
         for p, info in zip(cands, infos, strict=True):
             if any(outline_distance(p.outline_px, c.outline_px, model.image_size)
                    < _DISTINCT_FRACTION for c in chosen):
                 continue
-            gain = np.linalg.slogdet((total + info) / np.outer(scale, scale) + prior)[1]
-            if gain > best_gain:
-                best, best_gain = (p, info), gain
+            both = total + info
+            score = (-np.linalg.slogdet(both / scale + 1e-6 * np.eye(len(free)))[1]
+                     if len(chosen) < _D_OPTIMAL_PICKS else
+                     worst_ray_sigma(model, grid, ray_sigma(jd, covariance(both + prior))))
+            if score < best_score:
+                best, best_score = (p, info), score
         if best is None:
             break
         chosen.append(best[0])
