@@ -75,6 +75,46 @@ class CalibrationRecord(Base):
     created_at: Mapped[float] = mapped_column(Float, default=time.time)
 
 
+class TargetSessionRecord(Base):
+    """A session of a passive target (a board, or surveyed points): its views are target
+    observations, uploaded or detected in uploaded images (api/routes/observations.py)."""
+
+    __tablename__ = "target_sessions"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), default="")
+    target: Mapped[str] = mapped_column(String(200))  # a board description, or "points"
+    created_at: Mapped[float] = mapped_column(Float, default=time.time)
+
+
+class TargetViewRecord(Base):
+    """One view of a target session: a `phasecal.observations/1` file in its folder."""
+
+    __tablename__ = "target_views"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("target_sessions.id"), index=True)
+    index: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(200))
+    source: Mapped[str] = mapped_column(String(16))  # "observations" or "image"
+    points: Mapped[int] = mapped_column(Integer)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[float] = mapped_column(Float, default=time.time)
+
+
+class TargetCalibrationRecord(Base):
+    """A calibration of chosen views of a target session with one model."""
+
+    __tablename__ = "target_calibrations"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("target_sessions.id"), index=True)
+    model: Mapped[str] = mapped_column(String(32))
+    view_ids: Mapped[list[str]] = mapped_column(JSON)
+    options: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    cross_validate: Mapped[int] = mapped_column(Integer, default=0)
+    stats: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[float] = mapped_column(Float, default=time.time)
+
+
 class JobRecord(Base):
     """A long operation: capture, decode or calibrate, with progress and outcome."""
 
