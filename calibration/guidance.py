@@ -89,6 +89,7 @@ class Suggestion:
     map_after: np.ndarray  # (ny, nx) rad
     image_size: tuple[int, int]
     region_fraction: float
+    note: str  # about the fit the prediction rests on ('' when nothing to say)
 
     @property
     def rotation(self) -> np.ndarray:
@@ -115,7 +116,7 @@ class Suggestion:
             "helps": self.helps, "advice": self.advice,
             "candidates_scored": self.candidates,
             "candidates_rejected_as_repeats": self.rejected_repeats,
-            "region_fraction": self.region_fraction,
+            "region_fraction": self.region_fraction, "model_note": self.note,
         }
 
 
@@ -216,7 +217,25 @@ def suggest_next_pose(fit: SessionFit, screen: ScreenGeometry) -> Suggestion:
     reach = np.where(region, 1.0, np.nan)
     return Suggestion(placement, tilt, az, worst_before, score, len(cands) - repeats, repeats,
                       helps, advice, (before * reach).reshape(shape),
-                      (after * reach).reshape(shape), (w, h), float(region.mean()))
+                      (after * reach).reshape(shape), (w, h), float(region.mean()),
+                      "; ".join(n for n in (fit.note, undetermined(fit)) if n))
+
+
+def undetermined(fit: SessionFit) -> str:
+    """Words on distortion coefficients the poses do not pin down (1-sigma above both 1 and
+    their value): the predicted sigma then rests on where the fit landed in a flat valley
+    and can rise from one pose count to the next ('' when all are determined)."""
+    std = fit.param_std or {}
+    values = dict(zip(fit.model.param_names(), fit.model.get_params().tolist(), strict=True))
+    loose = [k for k, v in values.items() if k not in ("fx", "fy", "cx", "cy")
+             and std.get(k, 0.0) > max(1.0, abs(v))]
+    if not loose:
+        return ""
+    worst = max(std[k] for k in loose)
+    return (f"{', '.join(loose)} are not individually determined by these poses (1-sigma up "
+            f"to {worst:.3g}): their effects nearly cancel, so the predicted ray sigma depends "
+            "on where the fit lands and can rise from one pose count to the next; a model "
+            "with fewer distortion terms (opencv5 for a mild lens) predicts steadily")
 
 
 def _near(a: np.ndarray, b: np.ndarray, image_size: tuple[int, int]) -> bool:

@@ -42,7 +42,7 @@ Model = Annotated[str, Query(description="parametric model the prediction uses",
 Hfov = Annotated[float | None, Query(
     gt=5, le=150, description="the camera's nominal horizontal field of view (deg), used "
     "until the session has quick intrinsics (POST /sessions/{id}/intrinsics)")]
-PLAN_VERSION = 2  # part of every cache key: a changed planner never serves an older plan
+PLAN_VERSION = 3  # part of every cache key: a changed planner never serves an older plan
 _IMMUTABLE = "private, max-age=31536000, immutable"  # a keyed URL's content never changes
 _locks: dict[str, threading.Lock] = {}  # one per cached plan: a plan is computed once, while
 _locks_guard = threading.Lock()  # other sessions' (and models') plans go on at the same time

@@ -77,6 +77,7 @@ def test_next_pose_is_planned_by_the_executor_once(service, monkeypatch) -> None
     corners = np.array(body["outline_px"])
     assert corners.shape == (4, 2) and np.all((corners >= 0) & (corners < SIZE))
     assert body["placement"] and isinstance(body["helps"], bool) and body["advice"]
+    assert isinstance(body["model_note"], str)
     assert body["image"].endswith(f"&key={body['key']}")
     image = client.get(body["image"])
     assert image.headers["content-type"] == "image/png" and image.content[:4] == b"\x89PNG"

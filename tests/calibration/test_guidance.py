@@ -84,7 +84,7 @@ def test_guided_poses_lower_the_worst_sigma_the_calibration_reports(truth) -> No
     for _ in range(2):
         sug, _ = plan_next_pose(session_points(maps, DEFAULT_SCREEN), SIZE, DEFAULT_SCREEN,
                                 "opencv5")
-        assert sug.helps and sug.worst_after_rad < sug.worst_before_rad
+        assert sug.helps and sug.worst_after_rad < sug.worst_before_rad and sug.note == ""
         assert sug.placement.image_fraction >= 0.08
         nows.append(sug.worst_before_rad)
         maps.append(synthetic_maps(truth, ScreenPose(sug.rotation, sug.translation),
