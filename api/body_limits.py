@@ -26,6 +26,7 @@ JSON_SETTING = "PHASECAL_MAX_JSON_BYTES"
 UPLOAD_ROUTES = (
     "/sessions/{session_id}/poses/import",
     "/sessions/{session_id}/poses/import-maps",
+    "/target-sessions/{session_id}/views",
 )
 # Routes whose JSON bodies are arrays of up to MAX_POINTS rows of 2 or 3 numbers.
 POINT_ROUTES = (
