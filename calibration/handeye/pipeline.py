@@ -1,0 +1,73 @@
+"""Hand-eye from files: robot poses (phasecal.robot-poses/1) and one maps or observations file
+per view; the camera is fitted first (the model asked for), then each view's target pose
+is refitted with the camera fixed to get its covariance, then `solve.estimate_handeye`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.fit.dispatch import calibrate
+from calibration.fit.result import CalibrationResult
+from calibration.handeye.rigid import Rigid
+from calibration.handeye.robot_poses import RobotPoses, read_robot_poses
+from calibration.handeye.solve import Mount, estimate_handeye, handeye_document
+from calibration.handeye.view_poses import ViewPose, view_pose_from_maps
+from calibration.models.base import jsonable
+from calibration.shared.maps import DecodedMaps, load_maps
+from calibration.shared.plan import Plan, read_plan
+from calibration.shared.progress import CancelCheck, ProgressFn, check_cancelled
+
+
+def _camera_stats(result: CalibrationResult, model: str) -> dict[str, Any]:
+    st = result.stats
+    keep = ("rms_px", "expected_rms_px", "noise_floor_ratio", "model_adequate")
+    return jsonable({"model": model, **{k: st[k] for k in keep if k in st}})
+
+
+def handeye_from_maps(mount: Mount, robot: RobotPoses, plan: Plan, maps: dict[str, DecodedMaps],
+                      model: str, *, options: dict[str, Any] | None = None,
+                      progress: ProgressFn | None = None,
+                      cancelled: CancelCheck | None = None) -> dict[str, Any]:
+    """The phasecal.handeye/1 document from decoded maps keyed by view name."""
+    missing = [v for v in maps if v not in robot.poses]
+    if missing:
+        raise ValueError(f"robot poses: no pose for view(s) {', '.join(missing)} (the VIEW "
+                         "names of the maps must match the robot poses' keys)")
+    names = list(maps)
+    result = calibrate([maps[v] for v in names], plan.screen, model, options=options,
+                       progress=progress, cancelled=cancelled)
+    rng = np.random.default_rng(0)
+    views: dict[str, ViewPose] = {}
+    for i, name in enumerate(names):
+        check_cancelled(cancelled, "hand-eye")
+        est = result.poses[i]
+        start = Rigid(np.asarray(est.rotation), np.asarray(est.translation))
+        views[name] = view_pose_from_maps(result.model, maps[name], plan.screen, start, rng)
+        if progress is not None:
+            progress(i + 1, len(names), "view poses")
+    screen = plan.screen
+    center = np.array([(screen.width_px - 1) / 2 * screen.pitch_mm[0],
+                       (screen.height_px - 1) / 2 * screen.pitch_mm[1], 0.0])
+    check_cancelled(cancelled, "hand-eye")
+    estimate = estimate_handeye(mount, robot.poses, views, robot.repeatability_mm,
+                                robot.repeatability_deg, center)
+    return handeye_document(estimate, result.model.to_dict(), _camera_stats(result, model),
+                            robot.repeatability_mm, robot.repeatability_deg)
+
+
+def handeye_files(mount: Mount, robot_path: str | Path, plan_path: str | Path,
+                  maps_paths: dict[str, str], model: str, *,
+                  options: dict[str, Any] | None = None, progress: ProgressFn | None = None,
+                  cancelled: CancelCheck | None = None) -> dict[str, Any]:
+    """`handeye_from_maps` on files: robot poses JSON, the plan, VIEW -> maps.npz."""
+    robot = read_robot_poses(robot_path)
+    plan = read_plan(plan_path)
+    maps = {}
+    for view, path in maps_paths.items():
+        check_cancelled(cancelled, "hand-eye")
+        maps[view] = load_maps(path)
+    return handeye_from_maps(mount, robot, plan, maps, model, options=options,
+                             progress=progress, cancelled=cancelled)
