@@ -1,5 +1,5 @@
-"""Hand-eye from files: robot poses (phasecal.robot-poses/1) and one maps or observations file
-per view; the camera is fitted first (the model asked for), then each view's target pose
+"""Hand-eye from robot poses (phasecal.robot-poses/1) and one maps or observations file per
+view; the camera is fitted first (the model asked for), then each view's target pose
 is refitted with the camera fixed to get its covariance, then `solve.estimate_handeye`."""
 
 from __future__ import annotations
@@ -11,12 +11,18 @@ import numpy as np
 
 from calibration.fit.dispatch import calibrate
 from calibration.fit.result import CalibrationResult
+from calibration.fit.sparse.calibrate import calibrate_observations
 from calibration.handeye.rigid import Rigid
 from calibration.handeye.robot_poses import RobotPoses, read_robot_poses
 from calibration.handeye.solve import Mount, estimate_handeye, handeye_document
-from calibration.handeye.view_poses import ViewPose, view_pose_from_maps
+from calibration.handeye.view_poses import (
+    ViewPose,
+    view_pose_from_maps,
+    view_pose_from_observations,
+)
 from calibration.models.base import jsonable
 from calibration.shared.maps import DecodedMaps, load_maps
+from calibration.shared.observations import TargetObservations, load_observations
 from calibration.shared.plan import Plan, read_plan
 from calibration.shared.progress import CancelCheck, ProgressFn, check_cancelled
 
@@ -27,16 +33,31 @@ def _camera_stats(result: CalibrationResult, model: str) -> dict[str, Any]:
     return jsonable({"model": model, **{k: st[k] for k in keep if k in st}})
 
 
+def _check_views(names: list[str], robot: RobotPoses) -> None:
+    missing = [v for v in names if v not in robot.poses]
+    if missing:
+        raise ValueError(f"robot poses: no pose for view(s) {', '.join(missing)} (the VIEW "
+                         "names of the camera data must match the robot poses' keys)")
+
+
+def _document(mount: Mount, robot: RobotPoses, result: CalibrationResult, model: str,
+              views: dict[str, ViewPose], reference_point: np.ndarray,
+              cancelled: CancelCheck | None) -> dict[str, Any]:
+    check_cancelled(cancelled, "hand-eye")
+    estimate = estimate_handeye(mount, robot.poses, views, robot.repeatability_mm,
+                                robot.repeatability_deg, reference_point)
+    return handeye_document(estimate, result.model.to_dict(), _camera_stats(result, model),
+                            robot.repeatability_mm, robot.repeatability_deg)
+
+
 def handeye_from_maps(mount: Mount, robot: RobotPoses, plan: Plan, maps: dict[str, DecodedMaps],
                       model: str, *, options: dict[str, Any] | None = None,
                       progress: ProgressFn | None = None,
                       cancelled: CancelCheck | None = None) -> dict[str, Any]:
-    """The phasecal.handeye/1 document from decoded maps keyed by view name."""
-    missing = [v for v in maps if v not in robot.poses]
-    if missing:
-        raise ValueError(f"robot poses: no pose for view(s) {', '.join(missing)} (the VIEW "
-                         "names of the maps must match the robot poses' keys)")
+    """The phasecal.handeye/1 document from decoded maps keyed by view name; the held-out
+    error is stated at the screen's center."""
     names = list(maps)
+    _check_views(names, robot)
     result = calibrate([maps[v] for v in names], plan.screen, model, options=options,
                        progress=progress, cancelled=cancelled)
     rng = np.random.default_rng(0)
@@ -51,23 +72,49 @@ def handeye_from_maps(mount: Mount, robot: RobotPoses, plan: Plan, maps: dict[st
     screen = plan.screen
     center = np.array([(screen.width_px - 1) / 2 * screen.pitch_mm[0],
                        (screen.height_px - 1) / 2 * screen.pitch_mm[1], 0.0])
-    check_cancelled(cancelled, "hand-eye")
-    estimate = estimate_handeye(mount, robot.poses, views, robot.repeatability_mm,
-                                robot.repeatability_deg, center)
-    return handeye_document(estimate, result.model.to_dict(), _camera_stats(result, model),
-                            robot.repeatability_mm, robot.repeatability_deg)
+    return _document(mount, robot, result, model, views, center, cancelled)
 
 
-def handeye_files(mount: Mount, robot_path: str | Path, plan_path: str | Path,
-                  maps_paths: dict[str, str], model: str, *,
+def handeye_from_observations(mount: Mount, robot: RobotPoses,
+                              observations: dict[str, TargetObservations], model: str, *,
+                              options: dict[str, Any] | None = None,
+                              progress: ProgressFn | None = None,
+                              cancelled: CancelCheck | None = None) -> dict[str, Any]:
+    """The phasecal.handeye/1 document from target observations keyed by view name; the
+    held-out error is stated at the centroid of the target points."""
+    names = list(observations)
+    _check_views(names, robot)
+    result = calibrate_observations([observations[v] for v in names], model, options=options,
+                                    progress=progress, cancelled=cancelled)
+    views: dict[str, ViewPose] = {}
+    for i, name in enumerate(names):
+        check_cancelled(cancelled, "hand-eye")
+        est = result.poses[i]
+        start = Rigid(np.asarray(est.rotation), np.asarray(est.translation))
+        views[name] = view_pose_from_observations(result.model, observations[name], start)
+    points = np.vstack([o.target_xyz[o.used()] for o in observations.values()])
+    return _document(mount, robot, result, model, views, points.mean(axis=0), cancelled)
+
+
+def handeye_files(mount: Mount, robot_path: str | Path, source: str,
+                  paths: dict[str, str], model: str, *, plan_path: str | Path | None = None,
                   options: dict[str, Any] | None = None, progress: ProgressFn | None = None,
                   cancelled: CancelCheck | None = None) -> dict[str, Any]:
-    """`handeye_from_maps` on files: robot poses JSON, the plan, VIEW -> maps.npz."""
+    """Hand-eye from files: robot poses JSON and VIEW -> maps.npz (`source` "maps", with the
+    plan) or VIEW -> observations.npz (`source` "observations")."""
     robot = read_robot_poses(robot_path)
-    plan = read_plan(plan_path)
-    maps = {}
-    for view, path in maps_paths.items():
-        check_cancelled(cancelled, "hand-eye")
-        maps[view] = load_maps(path)
-    return handeye_from_maps(mount, robot, plan, maps, model, options=options,
-                             progress=progress, cancelled=cancelled)
+    if source == "maps":
+        if plan_path is None:
+            raise ValueError("plan: decoded maps need the pattern plan (--plan)")
+        plan = read_plan(plan_path)
+        maps = {}
+        for view, path in paths.items():
+            check_cancelled(cancelled, "hand-eye")
+            maps[view] = load_maps(path)
+        return handeye_from_maps(mount, robot, plan, maps, model, options=options,
+                                 progress=progress, cancelled=cancelled)
+    if source == "observations":
+        obs = {view: load_observations(path) for view, path in paths.items()}
+        return handeye_from_observations(mount, robot, obs, model, options=options,
+                                         progress=progress, cancelled=cancelled)
+    raise ValueError(f"source: expected maps or observations, got {source!r}")
