@@ -17,7 +17,7 @@ from calibration.handeye.view_poses import ViewPose
 
 HANDEYE_FORMAT = "phasecal.handeye/1"
 MOUNTS = ("eye-in-hand", "eye-to-hand")
-MIN_VIEWS = 4  # three to fit (two independent motions) and one to hold out
+MIN_HANDEYE_VIEWS = 4  # three to fit (two independent motions) and one to hold out
 
 
 @dataclass(frozen=True)
@@ -53,8 +53,8 @@ def estimate_handeye(mount: Mount, flange: dict[str, Rigid], views: dict[str, Vi
     if mount not in MOUNTS:
         raise ValueError(f"mount: expected one of {', '.join(MOUNTS)}, got {mount!r}")
     names = [v for v in views if v in flange]
-    if len(names) < MIN_VIEWS:
-        raise ValueError(f"hand-eye needs >= {MIN_VIEWS} views with both a robot pose and "
+    if len(names) < MIN_HANDEYE_VIEWS:
+        raise ValueError(f"hand-eye needs >= {MIN_HANDEYE_VIEWS} views with both a robot pose and "
                          f"camera data, got {len(names)}")
     fl = [flange[v] for v in names]
     vp = [views[v] for v in names]
