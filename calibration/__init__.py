@@ -48,6 +48,7 @@ _EXPORTS = {
     # hand-eye: robot poses and the camera's views -> the camera on (or beside) the robot
     "HANDEYE_FORMAT": "handeye.solve",
     "MOUNTS": "handeye.solve",
+    "MIN_HANDEYE_VIEWS": "handeye.solve",
     "handeye_files": "handeye.pipeline",
     "handeye_from_maps": "handeye.pipeline",
     "ROBOT_POSES_FORMAT": "handeye.robot_poses",
