@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from calibration.evaluate import pose_residuals, screen_jacobian, summarize
+from calibration.fit.classic.pnp import estimate_pose
 from calibration.fit.correspondences import PointSet, point_set, subsample
 from calibration.models.base import CameraModel
 from calibration.shared.maps import DecodedMaps
@@ -104,8 +105,6 @@ def gather(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
     `result` is result.json (`stats`, `poses` with `rotation` and `translation_mm` of the
     training poses, in `maps` order); held-out poses are located by PnP with the model.
     """
-    from calibration.fit.classic.pnp import estimate_pose
-
     fitted = result.get("poses") or []
     if fitted and len(fitted) != len(maps):
         raise ValueError(f"result.json: {len(fitted)} fitted poses but {len(maps)} training maps")
@@ -141,8 +140,6 @@ def fit_ray_sigma(model: CameraModel, result: dict[str, Any], maps: list[Decoded
                   screen: ScreenGeometry) -> tuple[np.ndarray, np.ndarray, str]:
     """The ray-sigma map of a stored fit on the report's sensor grid: (grid (N, 2), sigma (N,)
     rad, how it was obtained). Only the training poses count (held-out ones add nothing)."""
-    from calibration.fit.classic.pnp import estimate_pose
-
     fitted = result.get("poses") or []
     if fitted and len(fitted) != len(maps):
         raise ValueError(f"result.json: {len(fitted)} fitted poses but {len(maps)} training maps")

@@ -29,7 +29,8 @@ td:first-child,th:first-child{text-align:left}
 table.checks td,table.checks th,table.header td{text-align:left}
 img{max-width:100%;height:auto;border:1px solid #ddd;margin:.3em 0}
 .fail{color:#b00;font-weight:bold}.warn{color:#a60;font-weight:bold}.pass{color:#070;
-font-weight:bold}.badge{font-size:1.3em;padding:.2em .6em;border-radius:4px;border:2px solid}
+font-weight:bold}.badge{display:inline-block;font-size:1.3em;padding:.2em .6em;
+border-radius:4px;border:2px solid}
 .explain{font-size:.9em;color:#444;margin:.2em 0 1em}figcaption{font-size:.9em;color:#555;
 margin-bottom:1.2em}dt{font-weight:bold}dd{margin:0 0 .5em 1.5em}
 .scroll{overflow-x:auto}
