@@ -16,7 +16,7 @@ import numpy as np
 from calibration.handeye.classical import Mount
 from calibration.handeye.joint import JointSolution, predicted_target, refine, robot_sigmas
 from calibration.handeye.rigid import Rigid
-from calibration.handeye.view_poses import ViewPose
+from calibration.handeye.view_poses import ViewPoses
 
 _STEP = np.array([1e-7] * 3 + [1e-4] * 3)
 
@@ -48,20 +48,21 @@ def _prediction_covariance(mount: Mount, sol: JointSolution, flange: Rigid,
     return jac @ cov @ jac.T
 
 
-def leave_one_out(mount: Mount, flange: list[Rigid], views: list[ViewPose],
+def leave_one_out(mount: Mount, flange: list[Rigid], views: ViewPoses,
                   repeatability_mm: float, repeatability_deg: float, full: JointSolution,
                   reference_point: np.ndarray, names: list[str]) -> dict[str, Any]:
     """Per-view and summary held-out errors (see the module's docstring)."""
     robot_sig = robot_sigmas(repeatability_mm, repeatability_deg)
     rows = []
-    for k in range(len(views)):
-        keep = [i for i in range(len(views)) if i != k]
-        sol = refine(mount, [flange[i] for i in keep], [views[i] for i in keep],
+    for k in range(len(views.poses)):
+        keep = [i for i in range(len(views.poses)) if i != k]
+        sol = refine(mount, [flange[i] for i in keep], views.subset(keep),
                      repeatability_mm, repeatability_deg, (full.hand_eye, full.world_target))
         pred = predicted_target(mount, sol, flange[k])
-        meas = views[k].pose
+        meas = views.poses[k]
         err6 = pred.minus(meas)
-        cov6 = _prediction_covariance(mount, sol, flange[k], robot_sig) + views[k].covariance
+        # (the left-out pose's correlation with the others through the intrinsics is left out)
+        cov6 = _prediction_covariance(mount, sol, flange[k], robot_sig) + views.block(k)
         point = meas.rotation @ reference_point
         err_point = pred.rotation @ reference_point + pred.translation - point - meas.translation
         to_point = np.hstack([-_skew(point), np.eye(3)])

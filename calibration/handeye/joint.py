@@ -3,7 +3,7 @@
 A maximum-likelihood fit of Y = C_i X A_i over all views: the unknowns are X, Y and each
 view's robot pose error (drawn with the robot's stated 1-sigma repeatability, rotation in
 the base frame and position of the flange origin), the data are the camera's target poses
-A_i weighted by their covariance. The 12x12 covariance of (X, Y) comes from the whitened
+A_i weighted by their joint covariance. The 12x12 covariance of (X, Y) comes from the whitened
 Jacobian at the solution, with the robot errors marginalized, and is scaled up by chi2/dof
 when the residuals exceed what the stated noise explains.
 """
@@ -17,7 +17,7 @@ from scipy.optimize import least_squares
 
 from calibration.handeye.classical import Mount, chain
 from calibration.handeye.rigid import Rigid, batch_matrices, batch_rotvecs
-from calibration.handeye.view_poses import ViewPose
+from calibration.handeye.view_poses import ViewPoses
 
 
 @dataclass(frozen=True)
@@ -43,16 +43,16 @@ def whitener(covariance: np.ndarray) -> np.ndarray:
     return np.linalg.cholesky(np.linalg.inv(covariance)).T
 
 
-def refine(mount: Mount, flange: list[Rigid], views: list[ViewPose], repeatability_mm: float,
+def refine(mount: Mount, flange: list[Rigid], views: ViewPoses, repeatability_mm: float,
            repeatability_deg: float, start: tuple[Rigid, Rigid]) -> JointSolution:
-    """Refine (X, Y) from `start`; `flange[i]` and `views[i]` are one view."""
-    n = len(views)
+    """Refine (X, Y) from `start`; `flange[i]` and `views.poses[i]` are one view."""
+    n = len(views.poses)
     sig = robot_sigmas(repeatability_mm, repeatability_deg)
-    weights = np.stack([whitener(v.covariance) for v in views])
+    weight = whitener(views.covariance)  # all views at once: they share the intrinsics' error
     f_rot = np.stack([f.rotation for f in flange])
     f_t = np.stack([f.translation for f in flange])
-    m_rot = np.stack([v.pose.rotation for v in views])
-    m_t = np.stack([v.pose.translation for v in views])
+    m_rot = np.stack([v.rotation for v in views.poses])
+    m_t = np.stack([v.translation for v in views.poses])
     x0, y0 = start
 
     def residual(p: np.ndarray) -> np.ndarray:
@@ -70,7 +70,7 @@ def refine(mount: Mount, flange: list[Rigid], views: list[ViewPose], repeatabili
         p_t = (np.einsum("ij,njk,k->ni", x_inv.rotation, c_inv_rot, y.translation)
                + c_inv_t @ x_inv.rotation.T + x_inv.translation)
         err = np.hstack([batch_rotvecs(p_rot @ m_rot.transpose(0, 2, 1)), p_t - m_t])
-        return np.hstack([np.einsum("nij,nj->ni", weights, err), deltas / sig]).ravel()
+        return np.concatenate([weight @ err.ravel(), (deltas / sig).ravel()])
 
     scale = np.concatenate([[1e-3] * 3 + [1.0] * 3] * (2 + n))
     sol = least_squares(residual, np.zeros(12 + 6 * n), x_scale=scale, method="lm")

@@ -1,6 +1,7 @@
 """Hand-eye from robot poses (phasecal.robot-poses/1) and one maps or observations file per
-view; the camera is fitted first (the model asked for), then each view's target pose
-is refitted with the camera fixed to get its covariance, then `solve.estimate_handeye`."""
+view; the camera is fitted first (the model asked for), then each view's target pose is
+refitted with the camera fixed and the poses' joint covariance found
+(`view_poses.fit_view_poses`), then `solve.estimate_handeye`."""
 
 from __future__ import annotations
 
@@ -16,9 +17,10 @@ from calibration.handeye.rigid import Rigid
 from calibration.handeye.robot_poses import RobotPoses, read_robot_poses
 from calibration.handeye.solve import Mount, estimate_handeye, handeye_document
 from calibration.handeye.view_poses import (
-    ViewPose,
-    view_pose_from_maps,
-    view_pose_from_observations,
+    ViewData,
+    fit_view_poses,
+    maps_view,
+    observations_view,
 )
 from calibration.models.base import jsonable
 from calibration.shared.maps import DecodedMaps, load_maps
@@ -41,12 +43,24 @@ def _check_views(names: list[str], robot: RobotPoses) -> None:
 
 
 def _document(mount: Mount, robot: RobotPoses, result: CalibrationResult, model: str,
-              views: dict[str, ViewPose], reference_point: np.ndarray,
-              cancelled: CancelCheck | None) -> dict[str, Any]:
+              names: list[str], data: list[ViewData], reference_point: np.ndarray,
+              progress: ProgressFn | None, cancelled: CancelCheck | None) -> dict[str, Any]:
+    """Each view's pose and their covariance with the fitted camera, then the hand-eye."""
     check_cancelled(cancelled, "hand-eye")
-    estimate = estimate_handeye(mount, robot.poses, views, robot.repeatability_mm,
+    if progress is not None:
+        progress(0, 2, "view poses")
+    starts = [Rigid(np.asarray(p.rotation), np.asarray(p.translation)) for p in result.poses]
+    views = fit_view_poses(result.model, data, starts)
+    check_cancelled(cancelled, "hand-eye")
+    if progress is not None:
+        progress(1, 2, "hand-eye")
+    estimate = estimate_handeye(mount, robot.poses, names, views, robot.repeatability_mm,
                                 robot.repeatability_deg, reference_point)
-    return handeye_document(estimate, result.model.to_dict(), _camera_stats(result, model),
+    stats = {**_camera_stats(result, model), "view_poses_chi2_per_dof": views.chi2_per_dof,
+             "intrinsics_uncertainty_in_view_poses": views.intrinsics_marginalized}
+    if progress is not None:
+        progress(2, 2, "hand-eye")
+    return handeye_document(estimate, result.model.to_dict(), stats,
                             robot.repeatability_mm, robot.repeatability_deg)
 
 
@@ -61,18 +75,11 @@ def handeye_from_maps(mount: Mount, robot: RobotPoses, plan: Plan, maps: dict[st
     result = calibrate([maps[v] for v in names], plan.screen, model, options=options,
                        progress=progress, cancelled=cancelled)
     rng = np.random.default_rng(0)
-    views: dict[str, ViewPose] = {}
-    for i, name in enumerate(names):
-        check_cancelled(cancelled, "hand-eye")
-        est = result.poses[i]
-        start = Rigid(np.asarray(est.rotation), np.asarray(est.translation))
-        views[name] = view_pose_from_maps(result.model, maps[name], plan.screen, start, rng)
-        if progress is not None:
-            progress(i + 1, len(names), "view poses")
+    data = [maps_view(maps[v], plan.screen, rng) for v in names]
     screen = plan.screen
     center = np.array([(screen.width_px - 1) / 2 * screen.pitch_mm[0],
                        (screen.height_px - 1) / 2 * screen.pitch_mm[1], 0.0])
-    return _document(mount, robot, result, model, views, center, cancelled)
+    return _document(mount, robot, result, model, names, data, center, progress, cancelled)
 
 
 def handeye_from_observations(mount: Mount, robot: RobotPoses,
@@ -86,14 +93,10 @@ def handeye_from_observations(mount: Mount, robot: RobotPoses,
     _check_views(names, robot)
     result = calibrate_observations([observations[v] for v in names], model, options=options,
                                     progress=progress, cancelled=cancelled)
-    views: dict[str, ViewPose] = {}
-    for i, name in enumerate(names):
-        check_cancelled(cancelled, "hand-eye")
-        est = result.poses[i]
-        start = Rigid(np.asarray(est.rotation), np.asarray(est.translation))
-        views[name] = view_pose_from_observations(result.model, observations[name], start)
+    data = [observations_view(observations[v]) for v in names]
     points = np.vstack([o.target_xyz[o.used()] for o in observations.values()])
-    return _document(mount, robot, result, model, views, points.mean(axis=0), cancelled)
+    return _document(mount, robot, result, model, names, data, points.mean(axis=0), progress,
+                     cancelled)
 
 
 def handeye_files(mount: Mount, robot_path: str | Path, source: str,

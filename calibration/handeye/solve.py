@@ -13,7 +13,7 @@ from calibration.handeye.classical import METHODS, Mount, chain, classical
 from calibration.handeye.heldout import leave_one_out
 from calibration.handeye.joint import JointSolution, refine, robot_sigmas, whitener
 from calibration.handeye.rigid import Rigid
-from calibration.handeye.view_poses import ViewPose
+from calibration.handeye.view_poses import ViewPoses
 
 HANDEYE_FORMAT = "phasecal.handeye/1"
 MOUNTS = ("eye-in-hand", "eye-to-hand")
@@ -33,38 +33,36 @@ class HandEyeEstimate:
     views: list[str]
 
 
-def _cost(mount: Mount, flange: list[Rigid], views: list[ViewPose], rep_mm: float,
+def _cost(mount: Mount, flange: list[Rigid], views: ViewPoses, rep_mm: float,
           rep_deg: float, x: Rigid, y: Rigid) -> float:
     """Sum of squares of the view residuals with the robot's and camera's noise combined
     (a crude stand-in for the joint fit's cost, to pick its start)."""
     robot = np.diag(robot_sigmas(rep_mm, rep_deg) ** 2)
     total = 0.0
-    for f, v in zip(flange, views, strict=True):
+    for i, (f, pose) in enumerate(zip(flange, views.poses, strict=True)):
         predicted = x.inverse() @ chain(mount, f).inverse() @ y
-        e = whitener(v.covariance + robot) @ predicted.minus(v.pose)
+        e = whitener(views.block(i) + robot) @ predicted.minus(pose)
         total += float(e @ e)
     return total
 
 
-def estimate_handeye(mount: Mount, flange: dict[str, Rigid], views: dict[str, ViewPose],
-                     repeatability_mm: float, repeatability_deg: float,
+def estimate_handeye(mount: Mount, flange: dict[str, Rigid], names: list[str],
+                     views: ViewPoses, repeatability_mm: float, repeatability_deg: float,
                      reference_point: np.ndarray) -> HandEyeEstimate:
-    """Hand-eye of the views present in both `flange` and `views` (same names)."""
+    """Hand-eye of the views `names` (`views` in that order, each with a robot pose)."""
     if mount not in MOUNTS:
         raise ValueError(f"mount: expected one of {', '.join(MOUNTS)}, got {mount!r}")
-    names = [v for v in views if v in flange]
     if len(names) < MIN_HANDEYE_VIEWS:
-        raise ValueError(f"hand-eye needs >= {MIN_HANDEYE_VIEWS} views with both a robot pose and "
-                         f"camera data, got {len(names)}")
+        raise ValueError(f"hand-eye needs >= {MIN_HANDEYE_VIEWS} views with both a robot pose "
+                         f"and camera data, got {len(names)}")
     fl = [flange[v] for v in names]
-    vp = [views[v] for v in names]
     found: dict[str, tuple[Rigid, Rigid] | str] = {}
     for method in METHODS:
         try:
-            found[method] = classical(method, mount, fl, [v.pose for v in vp])
+            found[method] = classical(method, mount, fl, views.poses)
         except (np.linalg.LinAlgError, ValueError) as exc:
             found[method] = f"failed: {str(exc).strip().splitlines()[-1]}"
-    costs = {m: _cost(mount, fl, vp, repeatability_mm, repeatability_deg, *xy)
+    costs = {m: _cost(mount, fl, views, repeatability_mm, repeatability_deg, *xy)
              for m, xy in found.items() if not isinstance(xy, str)}
     if not costs:
         raise ValueError("every classical hand-eye method failed: " + "; ".join(
@@ -72,8 +70,8 @@ def estimate_handeye(mount: Mount, flange: dict[str, Rigid], views: dict[str, Vi
     best = min(costs, key=lambda m: costs[m])
     start = found[best]
     assert not isinstance(start, str)
-    solution = refine(mount, fl, vp, repeatability_mm, repeatability_deg, start)
-    held = leave_one_out(mount, fl, vp, repeatability_mm, repeatability_deg, solution,
+    solution = refine(mount, fl, views, repeatability_mm, repeatability_deg, start)
+    held = leave_one_out(mount, fl, views, repeatability_mm, repeatability_deg, solution,
                          reference_point, names)
     return HandEyeEstimate(mount, solution, found, best, held, names)
 
