@@ -50,6 +50,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                        "on Dask)"),
     "export": ("export", "export a model: opencv-yaml, ros, mrcal (.cameramodel), remap (NPZ "
                          "maps), opencv-fit"),
+    "handeye": ("handeye", "where the camera sits on (or beside) a robot: hand-eye from robot "
+                           "poses and maps or observations (phasecal.handeye/1)"),
     "undistort-points": ("undistort_points", "map pixels.npy (N,2) of a model to a virtual "
                                              "pinhole camera (like cv2.undistortPoints)"),
 }
