@@ -28,7 +28,7 @@ from api.pose_path import (
 from api.rigs import RigHandle
 from api.storage import NO_SPACE, pose_bytes
 from api.worker.tasks import decode_task, warm_decode_task
-from calibration.shared.atomic import write_json_atomic
+from calibration.shared.atomic import fsync_path, write_json_atomic
 from calibration.shared.frame_store import FrameStore
 from calibration.shared.plan import Plan
 from calibration.shared.progress import TaskContext
@@ -215,6 +215,7 @@ class CaptureJob(PoseJob):
                 write_json_atomic(dirs[name] / CAMERA_SUMMARY,
                                   {k: decs[name].get(k) for k in
                                    ("valid_pixels", "width", "height")})
+                fsync_path(dirs[name])  # the renames of the maps and summary, durable
         reference = decs[names[0]]
         dec = {"valid_pixels": reference.get("valid_pixels"), "width": reference.get("width"),
                "height": reference.get("height"), "cameras": decs,
