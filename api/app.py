@@ -28,6 +28,7 @@ from api.routes import (
     pose_frames,
     preview,
     reports,
+    rig_calibrations,
     rigs,
     sessions,
 )
@@ -77,6 +78,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         calibrations,
         handeye,
         observations,
+        rig_calibrations,
         reports,
         exports,
         batch,
