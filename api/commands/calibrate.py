@@ -27,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--observations", nargs="+", metavar="[CAMERA/VIEW=]PATH",
                    help="target observations (phasecal.observations/1, e.g. from `phasecal "
                         "detect`), one .npz per view; parametric models")
+    p.add_argument("--uncertainty-png", metavar="PNG",
+                   help="observations: draw the projection uncertainty (and the "
+                        "cross-validation difference) over the sensor")
     p.add_argument("--cross-validate", type=int, default=0, metavar="N",
                    help="observations: also fit N (>= 2) disjoint sets of the views and compare "
                         "their projections with the difference their uncertainties predict")
@@ -132,8 +135,9 @@ def input_form(args: argparse.Namespace) -> str:
     if args.maps and args.observations:
         raise UserError("inputs: --maps and --observations together need CAMERA/VIEW= "
                         "prefixes (a rig); one camera takes one kind")
-    if args.cross_validate and not args.observations:
-        raise UserError("--cross-validate: applies to --observations")
+    for flag in ("cross_validate", "uncertainty_png"):
+        if getattr(args, flag) and not args.observations:
+            raise UserError(f"--{flag.replace('_', '-')}: applies to --observations")
     if args.maps and not args.plan:
         raise UserError("--plan: needed with --maps (the screen the maps are in)")
     return "observations" if args.observations else "maps"

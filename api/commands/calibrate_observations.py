@@ -62,6 +62,11 @@ def run_observations(args: argparse.Namespace, options: dict[str, object]) -> in
         from calibration import write_residual_report
 
         write_residual_report(result, args.report)
+    if args.uncertainty_png:
+        # lazy: matplotlib, as for --report
+        from calibration import write_uncertainty_png
+
+        write_uncertainty_png(result, args.uncertainty_png)
     if args.export_opencv:
         export_opencv_yaml(result.model, args.export_opencv)
     if args.export_ros:

@@ -30,7 +30,9 @@ from calibration import (
     TargetSpecError,
     calibrate_observations,
     write_model_folder,
+    write_uncertainty_png,
 )
+from calibration.shared.atomic import atomic_path
 from calibration.shared.observations import load_observations, save_observations
 
 router = APIRouter(tags=["target sessions"], responses=PROBLEM_RESPONSES)
@@ -234,6 +236,8 @@ def create_calibration(session_id: str, body: TargetCalibrationCreate, svc: Svc
     folder = svc.store.dir_for(cid)
     try:
         written = write_model_folder(result, body.model, folder)
+        with atomic_path(folder / "uncertainty.png") as tmp:
+            write_uncertainty_png(result, tmp)
         with svc.db.session() as s:
             _session(s, session_id)
             rec = TargetCalibrationRecord(
@@ -271,3 +275,14 @@ def download_model(session_id: str, cal_id: str, svc: Svc) -> FileResponse:
     """The fitted model (`phasecal.model/1`)."""
     _calibration(svc, session_id, cal_id)
     return FileResponse(svc.store.file(cal_id, "model.json"), media_type="application/json")
+
+
+@router.get("/target-sessions/{session_id}/calibrations/{cal_id}/{name}.png",
+            response_class=Response, responses={200: {"content": {"image/png": {}}}})
+def download_figure(session_id: str, cal_id: str, name: str, svc: Svc) -> FileResponse:
+    """`residuals.png` (residual vectors, map and radial profile) or `uncertainty.png`
+    (projection uncertainty and the cross-validation difference over the sensor)."""
+    if name not in ("residuals", "uncertainty"):
+        raise Problem(404, "not-found", f"{name}.png: expected residuals.png or uncertainty.png")
+    _calibration(svc, session_id, cal_id)
+    return FileResponse(svc.store.file(cal_id, f"{name}.png"), media_type="image/png")

@@ -50,13 +50,15 @@ def test_calibrate_observations_with_cross_validation(detected, capsys):
     model = detected / "model.json"
     assert main(["calibrate", "--observations", *files, "--model", "opencv5",
                  "--option", "target=fit", "--cross-validate", "2", "-o", str(model),
-                 "--report", str(detected / "residuals.png")]) == 0
+                 "--report", str(detected / "residuals.png"),
+                 "--uncertainty-png", str(detected / "uncertainty.png")]) == 0
     out = capsys.readouterr().out
     assert "target bow: x" in out and "cross-validation (2 view sets)" in out
     data = json.loads(model.read_text())
     assert data["type"] == "opencv5"
     assert data["stats"]["cross_validation"]["verdict"] == "agree"
     assert (detected / "residuals.png").stat().st_size > 10_000
+    assert (detected / "uncertainty.png").stat().st_size > 10_000
     # bad inputs: one line, exit 1
     for argv, message in [
         (["--model", "raygrid"], "raygrid cannot be fitted to target observations"),

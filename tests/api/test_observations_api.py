@@ -54,6 +54,9 @@ def test_board_session_images_and_calibration(client, tmp_path):
     model = client.get(f"/target-sessions/{sid}/calibrations/{cal['id']}/model.json").json()
     assert model["type"] == "opencv5" and model["image_size"] == [640, 480]
     assert client.get(f"/target-sessions/{sid}/calibrations/{cal['id']}").json()["id"] == cal["id"]
+    for name in ("residuals", "uncertainty"):
+        png = client.get(f"/target-sessions/{sid}/calibrations/{cal['id']}/{name}.png")
+        assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
 
 
 def test_bad_uploads_and_requests_are_refused(client, tmp_path):

@@ -1,18 +1,27 @@
-"""Projection uncertainty of a pixel-space fit: how far (camera px, 1 sigma) the model's
-projection of a fixed ray may be off, from the intrinsics' covariance (poses and target
-shape marginalized). The ray through pixel q is held fixed and projected with perturbed
-intrinsics: Sigma(q) = J(q) C J(q)^T, J the derivative of the projection over the
-intrinsics (central differences through the model itself)."""
+"""Projection uncertainty of a pixel-space fit, from the intrinsics' covariance (poses and
+target shape marginalized).
+
+A ray fixed in the camera frame is projected with perturbed intrinsics: its pixel moves by
+J(q) dtheta, J the derivative of the projection over the intrinsics (central differences
+through the model itself). Part of that motion is a rotation of the whole camera frame (a
+shifted principal point with the poses turned to match): it moves every pixel alike and
+says nothing about how the model maps directions relative to each other, so, as when two
+models are compared (`phasecal diff`), it is taken out: the stacked motions of the sensor
+grid are projected onto the complement of the three small rotations of the frame. What
+remains is the covariance of the model's projection up to the frame's orientation.
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
+import cv2
 import numpy as np
 
 from calibration.models.parametric import PinholeFamily
 
 SIGMA_GRID = (32, 24)  # (nx, ny) sensor samples of the projection-sigma map
+_ROT_STEP = 1e-6  # rad, central differences of the frame rotation
 
 
 def sensor_grid(image_size: tuple[int, int], nx: int, ny: int) -> np.ndarray:
@@ -22,14 +31,11 @@ def sensor_grid(image_size: tuple[int, int], nx: int, ny: int) -> np.ndarray:
     return np.stack([uu.ravel(), vv.ravel()], axis=1)
 
 
-def projection_covariance(model: PinholeFamily, covariance: np.ndarray,
-                          pixels: np.ndarray) -> np.ndarray:
-    """(N, 2, 2) covariance (px^2) of the projection of each pixel's ray; NaN where the
-    model has no ray."""
-    _, rays = model.unproject(pixels)
+def intrinsics_jacobian(model: PinholeFamily, rays: np.ndarray, free: np.ndarray
+                        ) -> np.ndarray:
+    """(M, 2, len(free)) derivative of the projections of fixed rays over the intrinsics."""
     base = model.get_params()
-    free = np.flatnonzero(np.diag(covariance) > 0)
-    jac = np.empty((len(pixels), 2, free.size))
+    jac = np.empty((len(rays), 2, free.size))
     try:
         for col, i in enumerate(free):
             step = 1e-6 * max(abs(base[i]), 1e-3)
@@ -42,8 +48,49 @@ def projection_covariance(model: PinholeFamily, covariance: np.ndarray,
             jac[:, :, col] = (plus - model.project(rays)) / (2 * step)
     finally:
         model.set_params(base)
-    c = covariance[np.ix_(free, free)]
-    return np.einsum("nip,pq,njq->nij", jac, c, jac)
+    return jac
+
+
+def rotate(rays: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """Rays turned by the rotation vector `omega` (rad)."""
+    return rays @ cv2.Rodrigues(np.asarray(omega, dtype=np.float64).reshape(3, 1))[0].T
+
+
+def rotation_jacobian(model: PinholeFamily, rays: np.ndarray) -> np.ndarray:
+    """(M, 2, 3) derivative of the projections of rays over a small rotation of the frame."""
+    jac = np.empty((len(rays), 2, 3))
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = _ROT_STEP
+        jac[:, :, k] = (model.project(rotate(rays, step))
+                        - model.project(rotate(rays, -step))) / (2 * _ROT_STEP)
+    return jac
+
+
+def without_rotation(rot_jac: np.ndarray) -> np.ndarray:
+    """(2M, 2M) projector onto the complement of the frame rotations' pixel motions."""
+    k = rot_jac.reshape(-1, 3)
+    return np.eye(k.shape[0]) - k @ np.linalg.pinv(k)
+
+
+def frame_free_covariance(model: PinholeFamily, covariance: np.ndarray, rays: np.ndarray
+                          ) -> np.ndarray:
+    """(2M, 2M) covariance (px^2) of the stacked projections of `rays` (finite ones only),
+    the frame's rotation taken out."""
+    free = np.flatnonzero(np.diag(covariance) > 0)
+    jac = intrinsics_jacobian(model, rays, free).reshape(-1, free.size)
+    proj = without_rotation(rotation_jacobian(model, rays))
+    pj = proj @ jac
+    return pj @ covariance[np.ix_(free, free)] @ pj.T
+
+
+def projection_covariance(model: PinholeFamily, covariance: np.ndarray, rays: np.ndarray
+                          ) -> np.ndarray:
+    """(M, 2, 2) covariance (px^2) of each ray's projection, frame orientation included
+    (what two independent fits of one camera differ by)."""
+    free = np.flatnonzero(np.diag(covariance) > 0)
+    jac = intrinsics_jacobian(model, rays, free)
+    return np.einsum("nip,pq,njq->nij", jac, covariance[np.ix_(free, free)], jac)
 
 
 def intrinsics_covariance(model: PinholeFamily) -> np.ndarray:
@@ -57,10 +104,16 @@ def intrinsics_covariance(model: PinholeFamily) -> np.ndarray:
 
 def projection_sigma_map(model: PinholeFamily, covariance: np.ndarray,
                          grid: tuple[int, int] = SIGMA_GRID) -> dict[str, Any]:
-    """The 1-sigma projection uncertainty (px, sqrt of the covariance's trace / 2: the RMS
-    per axis) on a sensor grid, with its median and maximum, as JSON data."""
+    """The 1-sigma projection uncertainty (px, RMS per axis, frame rotation taken out) on a
+    sensor grid, NaN where the model has no ray, with its median and maximum, as JSON."""
     nx, ny = grid
-    cov = projection_covariance(model, covariance, sensor_grid(model.image_size, nx, ny))
-    sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+    pixels = sensor_grid(model.image_size, nx, ny)
+    _, rays = model.unproject(pixels)
+    ok = np.all(np.isfinite(rays), axis=1) & np.all(np.isfinite(model.project(rays)), axis=1)
+    sigma = np.full(len(pixels), np.nan)
+    if ok.any():
+        cov = frame_free_covariance(model, covariance, rays[ok])
+        var = np.clip(np.diag(cov), 0, None).reshape(-1, 2)
+        sigma[ok] = np.sqrt(0.5 * var.sum(axis=1))
     return {"grid": [nx, ny], "values": sigma.reshape(ny, nx).tolist(),
             "median": float(np.nanmedian(sigma)), "max": float(np.nanmax(sigma))}
