@@ -45,6 +45,7 @@ _EXPORTS = {
     "ObservationFitError": "fit.sparse.fit",
     "calibrate_observations": "fit.sparse.calibrate",
     "calibrate_observation_files": "pipeline",
+    "write_uncertainty_png": "fit.sparse.figure",
     # hand-eye: robot poses and the camera's views -> the camera on (or beside) the robot
     "HANDEYE_FORMAT": "handeye.solve",
     "MOUNTS": "handeye.solve",
