@@ -93,15 +93,6 @@ def projection_covariance(model: PinholeFamily, covariance: np.ndarray, rays: np
     return np.einsum("nip,pq,njq->nij", jac, covariance[np.ix_(free, free)], jac)
 
 
-def intrinsics_covariance(model: PinholeFamily) -> np.ndarray:
-    """The covariance a pixel-space fit stored in the model's statistics."""
-    entry = model.stats.get("intrinsics_covariance")
-    if not isinstance(entry, dict) or entry.get("names") != model.param_names():
-        raise ValueError(f"model {model.type_name}: no intrinsics covariance in its stats "
-                         "(fitted to observations?)")
-    return np.asarray(entry["matrix"], dtype=np.float64)
-
-
 def projection_sigma_map(model: PinholeFamily, covariance: np.ndarray,
                          grid: tuple[int, int] = SIGMA_GRID) -> dict[str, Any]:
     """The 1-sigma projection uncertainty (px, RMS per axis, frame rotation taken out) on a
