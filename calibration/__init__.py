@@ -53,6 +53,7 @@ _EXPORTS = {
     "handeye_files": "handeye.pipeline",
     "handeye_from_maps": "handeye.pipeline",
     "ROBOT_POSES_FORMAT": "handeye.robot_poses",
+    "RobotPoses": "handeye.robot_poses",
     "RobotPosesError": "handeye.robot_poses",
     "robot_poses_from_dict": "handeye.robot_poses",
     "intrinsics_from_images": "fit.classic.quick",
