@@ -34,7 +34,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from acquisition.controller import capture_rig_pose
+from acquisition.controller import capture_pose, capture_rig_pose
 from acquisition.rig import Rig
 from api.worker.executor import Executor
 from api.worker.tasks import stream_decode_rig_task, stream_decode_task
@@ -262,7 +262,12 @@ def capture_camera_frames(ctx: TaskContext, rig: Rig, plan: Plan, dirs: dict[str
         return {"captured": 0, "resumed_from": have, **({"flagged": verdict} if verdict else {})}
     t0 = time.perf_counter()
     try:
-        result = capture_rig_pose(rig, plan, sinks, indices=missing, progress=None,
+        first, sink = next(iter(sinks.items()))
+        if several or first != rig.reference:
+            result = capture_rig_pose(rig, plan, sinks, indices=missing, progress=None,
+                                      cancelled=ctx.cancelled)
+        else:  # (a one-camera rig: the controller's one-camera entry point, as always)
+            result = capture_pose(rig, plan, sink, indices=missing, progress=None,
                                   cancelled=ctx.cancelled)
     finally:
         returned_at = time.time()
@@ -291,8 +296,9 @@ def capture_camera_frames(ctx: TaskContext, rig: Rig, plan: Plan, dirs: dict[str
             raise RuntimeError(f"capture ended with {len(left)} plan frames missing (first "
                                f"{left[0]}{f' of camera {name!r}' if several else ''})")
     out: dict[str, Any] = {"captured": len(missing), "resumed_from": have, **timing}
+    per_camera = result.cameras if several else dict.fromkeys(dirs, result)
     for name, folder in dirs.items():  # durable before the pose is (the maps' commit fsyncs)
-        cam = result.cameras.get(name, result)
+        cam = per_camera[name]
         if cam.status == "flagged":
             write_json_atomic(folder / VERDICT, {"flagged": cam.reason})
     verdict = _verdict(dirs, several)  # (frames of an earlier, flagged run stay flagged)
