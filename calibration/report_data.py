@@ -18,11 +18,10 @@ from calibration.fit.correspondences import PointSet, point_set, subsample
 from calibration.models.base import CameraModel
 from calibration.shared.maps import DecodedMaps
 from calibration.shared.plan import ScreenGeometry
-from calibration.uncertainty import model_ray_sigma, sensor_grid
+from calibration.uncertainty import RAY_SIGMA_GRID, RAY_SIGMA_POINTS_PER_POSE, ray_sigma_map
 
 # Points per pose evaluated for the report (spread evenly over the image).
 REPORT_POINTS_PER_POSE = 6000
-SIGMA_GRID = (48, 36)  # (nx, ny) sensor samples of the ray-sigma map
 COVERAGE_CELLS = (16, 12)  # (nx, ny) coverage cells of models without their own mesh
 
 
@@ -77,7 +76,7 @@ class ReportData:
     ray_sigma: np.ndarray  # (N,) rad
     ray_sigma_method: str
     screen: ScreenGeometry
-    train_points: list[PointSet]  # the subsampled points the ray-sigma map was computed from
+    train_points: list[PointSet]  # each training pose's points (as evaluated for the report)
 
 
 def _pose_view(model: CameraModel, rotation: np.ndarray, translation: np.ndarray,
@@ -128,12 +127,10 @@ def gather(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
     stats = dict(result.get("stats") or {})
     if "rms_px" not in stats:
         stats.update(summarize([v.stats for v in views if not v.heldout]))
-    nx, ny = SIGMA_GRID
-    grid = sensor_grid(model.image_size, nx, ny)
-    small = [subsample(p, 800) for p in train_pts]
-    sigma, method = model_ray_sigma(model, grid, rt, small, stats.get("param_std"))
+    nx, ny = RAY_SIGMA_GRID
+    grid, sigma, method = ray_sigma_map(model, rt, train_pts, stats.get("param_std"))
     return ReportData(model, stats, views, [m.mask for m in (*maps, *heldout_maps)], grid,
-                      (ny, nx), sigma, method, screen, small)
+                      (ny, nx), sigma, method, screen, train_pts)
 
 
 def fit_ray_sigma(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
@@ -144,20 +141,17 @@ def fit_ray_sigma(model: CameraModel, result: dict[str, Any], maps: list[Decoded
     if fitted and len(fitted) != len(maps):
         raise ValueError(f"result.json: {len(fitted)} fitted poses but {len(maps)} training maps")
     rng = np.random.default_rng(0)
-    rt, small = [], []
+    rt, pts_all = [], []
     for i, m in enumerate(maps):
-        pts = subsample(point_set(m, screen), 800)
+        pts = subsample(point_set(m, screen), RAY_SIGMA_POINTS_PER_POSE)
         if fitted:
             rt.append((np.asarray(fitted[i]["rotation"], float),
                        np.asarray(fitted[i]["translation_mm"], float)))
         else:
             r, t, _ = estimate_pose(model, pts, rng)
             rt.append((r, t))
-        small.append(pts)
-    grid = sensor_grid(model.image_size, *SIGMA_GRID)
-    sigma, method = model_ray_sigma(model, grid, rt, small,
-                                    (result.get("stats") or {}).get("param_std"))
-    return grid, sigma, method
+        pts_all.append(pts)
+    return ray_sigma_map(model, rt, pts_all, (result.get("stats") or {}).get("param_std"))
 
 
 def coverage_counts(data: ReportData) -> tuple[np.ndarray, str]:

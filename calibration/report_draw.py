@@ -12,10 +12,9 @@ from typing import Any
 import numpy as np
 
 from calibration.formats import load_model_any
-from calibration.guidance import suggest_next_pose
+from calibration.guidance import SessionFit, suggest_next_pose
 from calibration.models.base import CameraModel, load_model
 from calibration.report_data import (
-    SIGMA_GRID,
     Download,
     ReportData,
     ReportHeader,
@@ -27,7 +26,7 @@ from calibration.report_html import write_report
 from calibration.report_verdict import assess, empty_regions, loose_parameters
 from calibration.shared.maps import load_maps
 from calibration.shared.plan import read_plan
-from calibration.uncertainty import free_parameters, model_ray_sigma, sensor_grid
+from calibration.uncertainty import RAY_SIGMA_GRID, model_ray_sigma, sensor_grid
 
 
 @dataclass
@@ -47,22 +46,20 @@ class ReportInputs:
 
 
 def guidance_advice(data: ReportData) -> str:
-    """The pose guidance's next pose in words, for a parametric fit ('' for other models, or
-    when no candidate pose shows the whole screen)."""
+    """The pose guidance's next pose in words, planned with this calibration's own fit
+    (parametric models; '' for others, or when no candidate pose can be placed)."""
     if not hasattr(data.model, "param_names"):
         return ""
     train = [v for v in data.poses if not v.heldout]
-    free = free_parameters(data.model, data.stats.get("param_std"))
+    fit = SessionFit(data.model, [(v.rotation, v.translation) for v in train],
+                     data.train_points, data.stats.get("param_std"))
     try:
-        s = suggest_next_pose(data.model, [(v.rotation, v.translation) for v in train],
-                              data.train_points, data.screen, free)
+        s = suggest_next_pose(fit, data.screen)
     except (ValueError, np.linalg.LinAlgError):
         return ""
-    return (f"the pose guidance suggests the screen centre at pixel ({s.target_px[0]:.0f}, "
-            f"{s.target_px[1]:.0f}), {s.distance_mm:.0f} mm away, tilted {s.tilt_deg:.0f} deg "
-            f"(azimuth {s.tilt_azimuth_deg:.0f} deg), covering {s.image_fraction:.0%} of the "
-            f"image: the worst predicted ray 1-sigma would go from "
-            f"{s.worst_before_rad * 1e6:.3g} to {s.worst_after_rad * 1e6:.3g} urad")
+    if not s.helps:
+        return s.advice
+    return f"place the screen {s.placement.words(data.model.image_size)}; {s.advice}"
 
 
 def draw_report(inputs: ReportInputs, out_dir: str) -> list[str]:
@@ -102,7 +99,7 @@ class DiffInputs:
 def ray_sigma_map(model: CameraModel, fit: FitFiles | None) -> RaySigmaMap | None:
     """A fit's ray-sigma map: sGCC from the model's own covariance; parametric models from
     their fit's files (None without them)."""
-    nx, ny = SIGMA_GRID
+    nx, ny = RAY_SIGMA_GRID
     if getattr(model, "covariance", None) is not None:
         sigma, method = model_ray_sigma(model, sensor_grid(model.image_size, nx, ny))
     elif fit is not None:

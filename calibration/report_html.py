@@ -17,6 +17,7 @@ import numpy as np
 from calibration import report_plots
 from calibration.report_data import Download, ReportData, ReportHeader, coverage_counts
 from calibration.report_verdict import GLOSSARY, PARAM_SIGMA_FRACTION, Verdict
+from calibration.uncertainty import MAX_FIELD_ANGLE_DEG, worst_ray_sigma
 
 REPORT_PAGE = "report.html"
 # Where the links to related pages go: a served report lists the calibrations of its
@@ -123,7 +124,8 @@ def _numbers(data: ReportData) -> str:
             ["RMS in the screen plane (screen px)", st.get("rms_screen_px")],
             ["noise-floor ratio in the screen plane", st.get("noise_floor_ratio_screen")],
             ["ray 1-sigma median (urad)", float(np.median(sig)) * 1e6 if sig.size else None],
-            ["ray 1-sigma max (urad)", float(np.max(sig)) * 1e6 if sig.size else None],
+            [f"worst ray 1-sigma within {MAX_FIELD_ANGLE_DEG:g} deg of the axis (urad)",
+             worst_ray_sigma(data.model, data.grid, data.ray_sigma) * 1e6],
             ["iterations", st.get("iterations")], ["fit time (s)", st.get("wall_s")]]
     held = st.get("heldout") or {}
     if held:

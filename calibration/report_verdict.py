@@ -184,7 +184,7 @@ def assess(data: ReportData, suggestion: str = "") -> Verdict:
                             f"pass: none empty; fail above {EMPTY_CELLS_FAIL:.0%}",
                             f"the model there is extrapolated; {advice}"))
     loose = loose_parameters(data)
-    n_std = len(st.get("param_std") or {})
+    n_std = sum(1 for v in (st.get("param_std") or {}).values() if v)  # fixed terms: 0
     if n_std:
         names = ", ".join(f"{k} = {v:.3g} +- {s:.3g}" for k, v, s in loose)
         checks.append(Check(

@@ -35,11 +35,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="output folder")
 
 
+def pose_labels(paths: list[str]) -> list[str]:
+    """A name per maps file: its stem, or folder/stem when stems repeat (pose folders each
+    holding a maps.npz)."""
+    stems = [Path(m).stem for m in paths]
+    if len(set(stems)) == len(stems):
+        return stems
+    return [f"{Path(m).parent.name}/{Path(m).stem}" for m in paths]
+
+
 def run(args: argparse.Namespace) -> int:
     model_path = Path(args.model)
     model = load_model(model_path)
     out = Path(args.output)
-    labels = [Path(m).stem for m in (*args.maps, *args.heldout_maps)]
+    labels = pose_labels([*args.maps, *args.heldout_maps])
     header = ReportHeader(
         title=args.title or f"Calibration report: {model_path.name} ({model.type_name})",
         session=args.session, rig=args.rig, cameras=args.cameras,
