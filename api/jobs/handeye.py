@@ -1,6 +1,7 @@
-"""The hand-eye job: fit the camera to a session's poses, then where it sits on (or beside)
-the robot from the poses' robot poses; the latest result is kept in the session folder as
-phasecal.handeye/1 (one such job per session at a time)."""
+"""The hand-eye job: fit the camera to a session's poses (their maps) or a target session's
+views (their observations), then where it sits on (or beside) the robot from the robot pose
+of each; the latest result is kept in the session folder as phasecal.handeye/1 (one such
+job per session at a time)."""
 
 from __future__ import annotations
 
@@ -20,14 +21,14 @@ if TYPE_CHECKING:
 RESULT = "handeye.json"
 
 
-def handeye_task(ctx: TaskContext, mount: str, robot_poses: dict[str, Any], plan_path: str,
-                 maps_paths: dict[str, str], model: str, out_path: str,
+def handeye_task(ctx: TaskContext, mount: str, robot_poses: dict[str, Any], source: str,
+                 paths: dict[str, str], plan_path: str | None, model: str, out_path: str,
                  options: dict[str, Any] | None = None) -> dict[str, Any]:
     """On the executor: write the robot poses beside the output, run the hand-eye, write the
     document; returns its summary (the job's result)."""
     robot_path = Path(out_path).with_name("robot-poses.json")
     write_json_atomic(robot_path, robot_poses)
-    doc = handeye_files(mount, robot_path, "maps", maps_paths, model,  # type: ignore[arg-type]
+    doc = handeye_files(mount, robot_path, source, paths, model,  # type: ignore[arg-type]
                         plan_path=plan_path, options=options, progress=ctx.progress,
                         cancelled=ctx.cancelled)
     ctx.check_cancelled()
@@ -40,27 +41,30 @@ def handeye_task(ctx: TaskContext, mount: str, robot_poses: dict[str, Any], plan
 
 @dataclass(kw_only=True)
 class HandEyeJob(Job):
-    """Hand-eye of `pose_ids` (their maps) with the robot poses keyed by pose id."""
+    """Hand-eye of the views in `paths` (VIEW -> maps.npz with the session's plan, or VIEW ->
+    observations.npz) with the robot poses keyed by the same VIEW names."""
 
     kind = JobKind.CALIBRATE  # a camera fit and the hand-eye fit on it
     svc: Services
     mount: str
     model: str
     robot_poses: dict[str, Any]
-    pose_ids: list[str]
+    source: str  # "maps" or "observations"
+    paths: dict[str, str]
     options: dict[str, Any]
+    resource_path: str  # the route the result is read at
 
     def __post_init__(self) -> None:
-        self.resource = f"/sessions/{self.session_id}/handeye"
+        self.resource = self.resource_path
         self.claims = (f"{self.session_id}:handeye",)
 
     def run(self, ctx: TaskContext) -> dict[str, Any]:
         svc = self.svc
         folder = svc.store.dir_for(self.session_id or "")
-        maps = {p: str(svc.store.file(p, "maps.npz")) for p in self.pose_ids}
+        plan = str(folder / "plan.json") if self.source == "maps" else None
         with svc.store.staging(ctx.job_id) as staged:  # the worker writes only here
             fut = svc.executor.run_task(handeye_task, self.mount, self.robot_poses,
-                                        str(folder / "plan.json"), maps, self.model,
+                                        self.source, self.paths, plan, self.model,
                                         str(staged / RESULT), job_id=ctx.job_id,
                                         on_progress=ctx.progress, options=self.options or None)
             result = fut.result()

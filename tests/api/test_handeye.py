@@ -143,3 +143,31 @@ def test_rest_handeye_on_session_poses(recorded, tmp_path: Path) -> None:
         assert doc["format"] == "phasecal.handeye/1"
         assert sorted(doc["stats"]["views"]) == sorted(by_pose)
         assert np.all(np.abs(_truth_sigma(doc, rig)) < 3)
+
+
+def test_rest_handeye_on_target_session_views(recorded, tmp_path: Path) -> None:
+    """Observation files uploaded as a target session's views, the robot poses keyed by the
+    view ids: the same hand-eye, read back from the target session."""
+    d, rig = recorded
+    robot = json.loads((d / "robot.json").read_text())
+    app = create_app(ServiceConfig(data_dir=tmp_path / "data", executor="threads"))
+    with TestClient(app) as c:
+        sid = c.post("/target-sessions", json={"name": "arm", "target": "points"}).json()["id"]
+        by_view = {}
+        for k in range(VIEWS):
+            r = c.post(f"/target-sessions/{sid}/views",
+                       files={"file": (f"v{k}.npz", (d / f"v{k}.obs.npz").read_bytes())})
+            assert r.status_code == 201, r.text
+            by_view[r.json()["id"]] = robot["poses"][f"v{k}"]
+        body = {"mount": "eye-in-hand", "model": "opencv5",
+                "robot_poses": {**robot, "poses": by_view}}
+        stranger = c.post(f"/target-sessions/{sid}/handeye", json={**body, "robot_poses": {
+            **robot, "poses": {**by_view, "pose_nosuch": robot["poses"]["v0"]}}})
+        assert stranger.status_code == 422 and "pose_nosuch" in stranger.json()["detail"]
+        r = c.post(f"/target-sessions/{sid}/handeye", json=body)
+        assert r.status_code == 202, r.text
+        final = _wait(c, r.json())
+        assert final["status"] == "succeeded", final.get("error")
+        doc = c.get(f"/target-sessions/{sid}/handeye").json()
+        assert sorted(doc["stats"]["views"]) == sorted(by_view)
+        assert np.all(np.abs(_truth_sigma(doc, rig)) < 3)
