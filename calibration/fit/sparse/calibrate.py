@@ -15,6 +15,7 @@ from calibration.fit.sparse.crossval import cross_validate
 from calibration.fit.sparse.fit import fit_observations, to_result
 from calibration.fit.sparse.options import ObservationOptions
 from calibration.fit.sparse.projection import project_view
+from calibration.fit.sparse.target_shape import TargetShape
 from calibration.fit.sparse.uncertainty import projection_sigma_map
 from calibration.shared.observations import TargetObservations
 from calibration.shared.progress import CancelCheck, ProgressFn, check_cancelled
@@ -77,7 +78,7 @@ def calibrate_observations(
 
 
 def _attach_residuals(result: CalibrationResult, observations: list[TargetObservations],
-                      shape: Any) -> None:
+                      shape: TargetShape) -> None:
     """Inlier residuals per view for the residual plot, with each view's expected RMS."""
     for j, (obs, pose, row) in enumerate(zip(observations, result.poses,
                                              result.stats["per_pose"], strict=True)):

@@ -277,8 +277,8 @@ def fit_observations(
     for rounds in range(opts.outlier_rounds + 1):
         if progress is not None:
             progress(rounds, opts.outlier_rounds + 1, f"{model_name}: pixel-space fit")
-        sol = _solve(problem, opts.max_iterations)
-        _update_sigma(problem)
+        nfev += _solve(problem, opts.max_iterations).nfev
+        _update_sigma(problem)  # the weights change only where views give no sigma
         sol = _solve(problem, opts.max_iterations)
         nfev += sol.nfev
         converged = bool(sol.success)
