@@ -29,10 +29,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
                                "sgcc, ...) to maps"),
     "detect": ("detect", "find chessboard / ChArUco corners in images: one observations NPZ "
                          "per image (phasecal.observations/1)"),
-    "report": ("report", "calibration report (report.html + PNGs) from a model.json and the "
-                         "poses' maps"),
-    "diff": ("diff", "difference of two models' rays (after the best rotation): diff.png + "
-                     "diff.json"),
+    "report": ("report", "calibration report (verdict, downloads, report.html + PNGs and a "
+                         "single-file copy) from a model.json and the poses' maps"),
+    "diff": ("diff", "difference of two models' rays (after the best rotation) against "
+                     "their combined uncertainty: diff.html + maps + diff.json"),
     "intrinsics": ("intrinsics", "quick intrinsics before decoding: rectangle vanishing points, "
                                  "general-motion self-calibration, or rotation-only "
                                  "self-calibration"),
