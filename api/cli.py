@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "capture": ("capture", "capture one pose on a rig (simulated or a rig .toml/.json) into "
                            "POSE_DIR"),
     "calibrate": ("calibrate", "fit a camera model (opencv5, opencv-rational, fisheye, raygrid, "
-                               "sgcc, ...) to maps"),
+                               "sgcc, ...) to maps, or to target observations"),
     "detect": ("detect", "find chessboard / ChArUco corners in images: one observations NPZ "
                          "per image (phasecal.observations/1)"),
     "report": ("report", "calibration report (verdict, downloads, report.html + PNGs and a "
