@@ -33,6 +33,7 @@ from calibration import (
     ReportInputs,
     draw_diff,
     draw_report,
+    is_current,
     load_model,
     served_downloads,
 )
@@ -150,7 +151,7 @@ def ready_report(svc: Services, cal_id: str) -> Path | None:
                       "exists only for a calibration that succeeded")
     final = svc.store.dir_for(cal_id) / REPORT_DIR
     with _lock(cal_id):
-        if (final / "report.html").is_file():
+        if _current(final / "report.html"):
             return final
         if cal_id in _failed:
             reason = _failed.pop(cal_id)  # the next request tries again
@@ -163,6 +164,15 @@ def ready_report(svc: Services, cal_id: str) -> Path | None:
             _drawing[cal_id] = future
             future.add_done_callback(lambda f: _placed(svc, cal_id, f, tmp, final))
     return None
+
+
+def _current(page: Path) -> bool:
+    """A stored report page of the current layout (older ones are drawn again)."""
+    try:
+        with page.open(encoding="utf-8") as fh:
+            return is_current(fh.read(4096))
+    except FileNotFoundError:
+        return False
 
 
 def _placed(svc: Services, cal_id: str, future: Future, tmp: Path, final: Path) -> None:

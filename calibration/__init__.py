@@ -116,6 +116,7 @@ _EXPORTS = {
     "write_report": "report_html",
     "self_contained": "report_html",
     "with_links": "report_html",
+    "is_current": "report_html",
     "write_diff": "report_diff",
     "ReportInputs": "report_draw",
     "DiffInputs": "report_draw",

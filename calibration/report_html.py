@@ -20,6 +20,8 @@ from calibration.report_verdict import GLOSSARY, PARAM_SIGMA_FRACTION, Verdict
 from calibration.uncertainty import MAX_FIELD_ANGLE_DEG, worst_ray_sigma
 
 REPORT_PAGE = "report.html"
+# Named in each page's head: a stored report of an older layout is drawn again when served.
+REPORT_FORMAT = "phasecal.report/2"
 # Where the links to related pages go: a served report lists the calibrations of its
 # session as they are when it is opened, not as they were when it was drawn.
 COMPARE_MARKER = "<!-- compare -->"
@@ -204,11 +206,17 @@ def write_report(data: ReportData, out_dir: str | Path, header: ReportHeader,
             + f"<h2>Terms</h2><dl>{terms}</dl>")
     page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
             f"<meta name='viewport' content='width=device-width, initial-scale=1'>"
+            f"<meta name='generator' content='{REPORT_FORMAT}'>"
             f"<title>{html.escape(header.title)}</title><style>{STYLE}</style></head>"
             f"<body>{body}</body></html>")
     (out / REPORT_PAGE).write_text(page if links is None else with_links(page, links),
                                    encoding="utf-8")
     return [*(n for n, _ in head), *(n for n, _ in figs), REPORT_PAGE]
+
+
+def is_current(page_head: str) -> bool:
+    """Whether a stored page (its first kilobytes suffice) has this layout."""
+    return f"content='{REPORT_FORMAT}'" in page_head
 
 
 def with_links(page: str, links: list[tuple[str, str]]) -> str:
