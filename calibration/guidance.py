@@ -56,6 +56,7 @@ from calibration.uncertainty import (
 )
 
 MIN_POLE_MARGIN = 0.25  # radial factor's numerator and denominator stay this far from 0
+MIN_VISIBLE = 0.5  # the least part of a suggested screen inside the image one may ask for
 NEAR_POSE_FRACTION = 0.05  # outlines this close (of the image diagonal) repeat a pose
 MIN_GAIN = 0.02  # a suggestion must lower the worst predicted sigma by this fraction
 _SAMPLE_GRID = (32, 24)  # image samples per candidate
@@ -110,7 +111,7 @@ class Suggestion:
             "distance_mm": p.distance_mm, "tilt_deg": self.tilt_deg,
             "tilt_azimuth_deg": self.tilt_azimuth_deg,
             "screen_center_px": list(p.centre_px), "image_fraction": p.image_fraction,
-            "full_screen_visible": True,
+            "full_screen_visible": p.visible_fraction >= 1.0,
             "predicted_worst_ray_sigma_urad": {"now": self.worst_before_rad * 1e6,
                                                "after": self.worst_after_rad * 1e6},
             "helps": self.helps, "advice": self.advice,
@@ -160,10 +161,15 @@ def _rational_from_opencv5(points: list[PointSet], image_size: tuple[int, int],
     return dense.model, dense.poses, dict(zip(names, dense.param_std.tolist(), strict=True))
 
 
-def suggest_next_pose(fit: SessionFit, screen: ScreenGeometry) -> Suggestion:
+def suggest_next_pose(fit: SessionFit, screen: ScreenGeometry,
+                      min_visible: float = 1.0) -> Suggestion:
     """The candidate placement that most lowers the worst predicted ray sigma, among those
-    that show the whole screen and do not repeat a pose already taken. `fit` may be a
-    calibration's own (its model, fitted poses, training points and `param_std`)."""
+    that show at least `min_visible` of the screen (1: all of it; less lets a screen reach
+    past the image's edge and put data in its corners) and do not repeat a pose already
+    taken. `fit` may be a calibration's own (its model, fitted poses, training points and
+    `param_std`)."""
+    if not MIN_VISIBLE <= min_visible <= 1.0:
+        raise ValueError(f"min_screen_visible: expected {MIN_VISIBLE}..1, got {min_visible}")
     model = fit.model
     w, h = model.image_size
     free = free_parameters(model, fit.param_std)
@@ -179,10 +185,10 @@ def suggest_next_pose(fit: SessionFit, screen: ScreenGeometry) -> Suggestion:
     samples = sensor_grid((w, h), *_SAMPLE_GRID)
     rays = model.unproject(samples)
     taken = [found.outline_px for r, t in fit.poses
-             if (found := place(model, screen, r, t)) is not None]
+             if (found := place(model, screen, r, t, 0.0)) is not None]
     dist0 = float(np.median([np.linalg.norm(r @ screen_centre_mm(screen) + t)
                              for r, t in fit.poses]))
-    cands = candidate_placements(model, screen, dist0)
+    cands = candidate_placements(model, screen, dist0, min_visible=min_visible)
     if not cands:
         raise ValueError("guidance: no candidate pose shows the whole screen; the screen may be "
                          "too large for this camera's view at the session's distances")
@@ -248,8 +254,10 @@ def session_points(maps: list[DecodedMaps], screen: ScreenGeometry) -> list[Poin
 
 
 def plan_next_pose(points: list[PointSet], image_size: tuple[int, int], screen: ScreenGeometry,
-                   model_name: str = "opencv-rational") -> tuple[Suggestion, CameraModel]:
+                   model_name: str = "opencv-rational", min_visible: float = 1.0
+                   ) -> tuple[Suggestion, CameraModel]:
     """Fit `model_name` to the session's points (>= 3 poses) as its calibration would and
-    suggest the next pose. Returns the suggestion and the fitted model it was planned with."""
+    suggest the next pose (`suggest_next_pose`). Returns the suggestion and the fitted model
+    it was planned with."""
     fit = fit_session(points, image_size, screen, model_name)
-    return suggest_next_pose(fit, screen), fit.model
+    return suggest_next_pose(fit, screen, min_visible), fit.model

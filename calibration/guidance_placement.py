@@ -2,10 +2,11 @@
 with the screen's outline as the camera would see it and the placement in words, and the
 candidate placements pose guidance chooses from.
 
-A placement is offered only when the whole screen is seen: every border point in front of
-the camera, inside the image and seen at less than `MAX_VIEW_ANGLE_DEG` from the screen's
-normal; a placement covering less than `MIN_IMAGE_FRACTION` of the image would add few
-valid pixels and is not offered either.
+A placement is offered only when the screen is in front of the camera and seen at less
+than `MAX_VIEW_ANGLE_DEG` from its normal everywhere, with enough of it inside the image
+(the whole screen for a starting pose; most of it for a next pose, which may reach past the
+image's edge to put data in its corners); a placement covering less than
+`MIN_IMAGE_FRACTION` of the image would add few valid pixels and is not offered either.
 """
 
 from __future__ import annotations
@@ -81,6 +82,7 @@ class Placement:
     centre_px: tuple[float, float]  # where the screen's centre appears
     distance_mm: float  # camera to screen centre
     sight: np.ndarray  # (3,) unit direction from the camera to the screen centre
+    visible_fraction: float  # part of the screen inside the image
 
     def screen_pose(self) -> dict[str, list[float]]:
         """`{"rvec", "tvec_mm"}`, as `PUT /rigs/{id}/screen-pose` takes it."""
@@ -105,12 +107,16 @@ class Placement:
         return (f"{self.distance_mm:.0f} mm from the camera, {tilt}; its centre at "
                 f"({self.centre_px[0]:.0f}, {self.centre_px[1]:.0f}) px, "
                 f"{image_region(self.centre_px, image_size)}; it covers "
-                f"{100 * self.image_fraction:.0f} % of the image")
+                f"{100 * self.image_fraction:.0f} % of the image"
+                + ("" if self.visible_fraction >= 1 else
+                   f", {100 * (1 - self.visible_fraction):.0f} % of the screen beyond its edge"))
 
     def to_json(self, image_size: tuple[int, int]) -> dict[str, Any]:
-        """`screen_pose`, `placement` (words) and `outline_px` (4 corners)."""
+        """`screen_pose`, `placement` (words) and `outline_px` (4 corners, possibly outside
+        the image when part of the screen is)."""
         return {"screen_pose": self.screen_pose(), "placement": self.words(image_size),
-                "outline_px": np.round(self.outline_px, 2).tolist()}
+                "outline_px": np.round(self.outline_px, 2).tolist(),
+                "screen_visible_fraction": round(self.visible_fraction, 3)}
 
 
 def image_region(px: tuple[float, float], image_size: tuple[int, int]) -> str:
@@ -124,10 +130,11 @@ def image_region(px: tuple[float, float], image_size: tuple[int, int]) -> str:
 
 
 def place(model: CameraModel, screen: ScreenGeometry, rotation: np.ndarray,
-          translation: np.ndarray) -> Placement | None:
-    """The placement if the whole screen is seen, in front of the camera, at less than
-    `MAX_VIEW_ANGLE_DEG` from its normal and covering `MIN_IMAGE_FRACTION` of the image;
-    None otherwise."""
+          translation: np.ndarray, min_visible: float = 1.0) -> Placement | None:
+    """The placement if the screen is in front of the camera, seen at less than
+    `MAX_VIEW_ANGLE_DEG` from its normal everywhere, at least `min_visible` of it inside
+    the image (1: the whole screen) and covering `MIN_IMAGE_FRACTION` of the image; None
+    otherwise."""
     cam = screen_border_mm(screen) @ rotation.T + translation
     if np.any(cam[:, 2] <= 0):
         return None
@@ -135,11 +142,15 @@ def place(model: CameraModel, screen: ScreenGeometry, rotation: np.ndarray,
     if np.any(cosang < np.cos(np.radians(MAX_VIEW_ANGLE_DEG))):
         return None
     border = model.project(cam)
+    if not _round_trip(model, cam, border):
+        return None  # beyond where the model projects one-to-one
     w, h = model.image_size
-    if not (np.isfinite(border).all() and np.all(border >= 0) and np.all(border[:, 0] <= w - 1)
-            and np.all(border[:, 1] <= h - 1)):
+    visible = _visible_fraction(model, screen, rotation, translation)
+    if visible < min_visible - 1e-9:
         return None
-    fraction = float(cv2.contourArea(border.astype(np.float32))) / (w * h)
+    hull = cv2.convexHull(border.astype(np.float32))
+    frame = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float32)
+    fraction = float(cv2.intersectConvexConvex(hull, frame)[0]) / (w * h)
     if fraction < MIN_IMAGE_FRACTION:
         return None
     centre_cam = rotation @ screen_centre_mm(screen) + translation
@@ -147,17 +158,45 @@ def place(model: CameraModel, screen: ScreenGeometry, rotation: np.ndarray,
     corners = model.project(screen_corners_mm(screen) @ rotation.T + translation)
     distance = float(np.linalg.norm(centre_cam))
     return Placement(rotation, translation, corners, border, fraction,
-                     (float(centre[0]), float(centre[1])), distance, centre_cam / distance)
+                     (float(centre[0]), float(centre[1])), distance, centre_cam / distance,
+                     visible)
+
+
+def _round_trip(model: CameraModel, cam: np.ndarray, px: np.ndarray) -> bool:
+    """Whether the pixels project back onto the rays they came from (no fold of the model
+    far outside its image)."""
+    if not np.isfinite(px).all():
+        return False
+    _, d = model.unproject(px)
+    ray = cam / np.linalg.norm(cam, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore"):
+        cos = np.sum(d * ray, axis=1) / np.linalg.norm(d, axis=1)
+    return bool(np.all(cos > np.cos(1e-3)))
+
+
+def _visible_fraction(model: CameraModel, screen: ScreenGeometry, rotation: np.ndarray,
+                      translation: np.ndarray, nx: int = 16, ny: int = 10) -> float:
+    """Part of an even grid of screen points that lands inside the image."""
+    c = screen_corners_mm(screen)
+    sx, sy = np.meshgrid(np.linspace(0, c[1, 0], nx), np.linspace(0, c[2, 1], ny))
+    pts = np.stack([sx.ravel(), sy.ravel(), np.zeros(sx.size)], 1) @ rotation.T + translation
+    px = model.project(pts)
+    w, h = model.image_size
+    with np.errstate(invalid="ignore"):
+        inside = ((px[:, 0] >= 0) & (px[:, 0] <= w - 1) & (px[:, 1] >= 0)
+                  & (px[:, 1] <= h - 1))
+    return float(inside.mean())
 
 
 def candidate_placements(model: CameraModel, screen: ScreenGeometry, distance_mm: float,
                          distance_factors: tuple[float, ...] = DISTANCE_FACTORS,
                          fractions: tuple[float, ...] = CENTRE_FRACTIONS,
                          tilts: tuple[tuple[float, float], ...] = TILTS,
-                         ) -> list[tuple[Placement, float, float]]:
+                         min_visible: float = 1.0) -> list[tuple[Placement, float, float]]:
     """(placement, tilt deg, tilt azimuth deg) of every candidate that `place` accepts: the
     screen centre on the ray of a pixel of an even grid (`fractions` of the image per axis),
-    at `distance_factors` times `distance_mm`, facing the camera or tilted by `tilts`."""
+    at `distance_factors` times `distance_mm`, facing the camera or tilted by `tilts`, with
+at least `min_visible` of the screen inside the image."""
     w, h = model.image_size
     targets = np.array([[fx * (w - 1), fy * (h - 1)] for fy in fractions for fx in fractions])
     _, dirs = model.unproject(targets)
@@ -168,7 +207,7 @@ def candidate_placements(model: CameraModel, screen: ScreenGeometry, distance_mm
         for factor in distance_factors:
             for tilt, az in tilts:
                 rot, t = look_at(screen, direction, distance_mm * factor, tilt, az)
-                found = place(model, screen, rot, t)
+                found = place(model, screen, rot, t, min_visible)
                 if found is not None:
                     out.append((found, tilt, az))
     return out

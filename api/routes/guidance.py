@@ -42,6 +42,10 @@ Model = Annotated[str, Query(description="parametric model the prediction uses",
 Hfov = Annotated[float | None, Query(
     gt=5, le=150, description="the camera's nominal horizontal field of view (deg), used "
     "until the session has quick intrinsics (POST /sessions/{id}/intrinsics)")]
+Visible = Annotated[float, Query(
+    ge=0.5, le=1.0, description="the least part of the suggested screen inside the image: 1 "
+    "(default) the whole screen; less lets it reach past the image's edge, which puts data "
+    "in the image's corners and lowers the worst sigma faster")]
 PLAN_VERSION = 3  # part of every cache key: a changed planner never serves an older plan
 _IMMUTABLE = "private, max-age=31536000, immutable"  # a keyed URL's content never changes
 _locks: dict[str, threading.Lock] = {}  # one per cached plan: a plan is computed once, while
@@ -120,7 +124,8 @@ def _variety(svc: Services, session_id: str, hfov_deg: float | None) -> dict[str
     return pose_variety(observed, size, {m: s.min_poses for m, s in MODELS.items()})
 
 
-def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, str]:
+def _guidance_dir(svc: Services, session_id: str, model: str,
+                  min_visible: float) -> tuple[Path, str]:
     """Cached guidance for the session's current ready poses and its cache key, computed on
     first request by the executor's worker (the fit takes seconds of CPU; the server paces
     live captures)."""
@@ -130,17 +135,19 @@ def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, str
     if not variety["ready_for_guidance"]:
         raise Problem(409, "not-enough-poses", f"session {session_id}: guidance needs >= 3 "
                       f"varied ready poses ({len(ids)} ready): {variety['reason']}")
-    key = hashlib.sha1(json.dumps([PLAN_VERSION, model, *ids]).encode()).hexdigest()[:16]
+    key = hashlib.sha1(json.dumps([PLAN_VERSION, model, min_visible, *ids]).encode()
+                       ).hexdigest()[:16]
     final = svc.store.dir_for(session_id) / "guidance" / key
     with _plan_lock(final):
         if (final / "next-pose.json").is_file():
             return final, key
         tmp = svc.store.temp_dir()
-        header = {"session_id": session_id, "model": model, "poses_used": ids}
+        header = {"session_id": session_id, "model": model, "poses_used": ids,
+                  "min_screen_visible": min_visible}
         try:
             svc.executor.submit(guidance_task, str(svc.store.dir_for(session_id) / "plan.json"),
                                 [str(svc.store.file(p, "maps.npz")) for p in ids], model,
-                                str(tmp), header).result()
+                                str(tmp), header, min_visible).result()
         except ValueError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             raise Problem(422, "guidance-failed", f"session {session_id}: {exc}") from None
@@ -153,14 +160,16 @@ def _guidance_dir(svc: Services, session_id: str, model: str) -> tuple[Path, str
 
 
 @router.get("/sessions/{session_id}/next-pose")
-def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational") -> JSONResponse:
+def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational",
+              min_screen_visible: Visible = 1.0) -> JSONResponse:
     """The screen pose that most reduces the worst predicted ray uncertainty over the sensor,
     planned from the session's own varied ready poses (>= 3; 409 with the reason otherwise):
     `screen_pose` (rvec rad, tvec_mm) for `POST /sessions/{id}/poses` on a simulated or
     robotic rig, `placement` in words, `outline_px` (the screen's corners in camera pixels),
     the predicted worst 1-sigma now and after, `helps` and `advice` (whether any pose still
-    helps), and `image`, the URL of its picture (it changes whenever the plan does)."""
-    folder, key = _guidance_dir(svc, session_id, model)
+    helps), and `image`, the URL of its picture (it changes whenever the plan does).
+    `min_screen_visible` below 1 lets the suggested screen reach past the image's edge."""
+    folder, key = _guidance_dir(svc, session_id, model, min_screen_visible)
     out = json.loads((folder / "next-pose.json").read_text())
     out["image"] = f"/sessions/{session_id}/next-pose.png?model={model}&key={key}"
     out["key"] = key
@@ -170,6 +179,7 @@ def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational") -> JS
 @router.get("/sessions/{session_id}/next-pose.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}})
 def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational",
+                    min_screen_visible: Visible = 1.0,
                     key: Annotated[str | None, Query(
                         pattern="^[0-9a-f]{16}$",
                         description="the plan's key from GET next-pose: that plan's picture, "
@@ -185,7 +195,7 @@ def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational",
                           f"key {key}; GET /sessions/{session_id}/next-pose for the current one")
         return Response(path.read_bytes(), media_type="image/png",
                         headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{key}"'})
-    folder, current = _guidance_dir(svc, session_id, model)
+    folder, current = _guidance_dir(svc, session_id, model, min_screen_visible)
     return Response((folder / "next-pose.png").read_bytes(), media_type="image/png",
                     headers={"Cache-Control": "no-cache", "ETag": f'"{current}"'})
 

@@ -13,14 +13,16 @@ from calibration.shared.plan import read_plan
 
 
 def guidance_task(plan_path: str, maps_paths: list[str], model: str, out_dir: str,
-                  header: dict[str, Any]) -> None:
+                  header: dict[str, Any], min_visible: float = 1.0) -> None:
     """Fit `model` to the poses' maps, plan the next pose and write `next-pose.json`
-    (`header` plus the suggestion) and `next-pose.png` into `out_dir`; ValueError when the
-    poses do not support a fit."""
+    (`header` plus the suggestion) and `next-pose.png` into `out_dir`; `min_visible`: the
+    least part of the suggested screen inside the image. ValueError when the poses do not
+    support a fit."""
     plan = read_plan(plan_path)
     maps = [load_maps(p) for p in maps_paths]
     h, w = maps[0].shape
-    sug, _ = plan_next_pose(session_points(maps, plan.screen), (w, h), plan.screen, model)
+    sug, _ = plan_next_pose(session_points(maps, plan.screen), (w, h), plan.screen, model,
+                            min_visible)
     out = Path(out_dir)
     (out / "next-pose.json").write_text(json.dumps({**header, **sug.to_json()}))
     p = sug.placement

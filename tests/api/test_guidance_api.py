@@ -75,7 +75,9 @@ def test_next_pose_is_planned_by_the_executor_once(service, monkeypatch) -> None
     assert body["session_id"] == sid and body["model"] == "opencv5"
     assert len(body["poses_used"]) == 3 and len(body["screen_pose"]["rvec"]) == 3
     corners = np.array(body["outline_px"])
-    assert corners.shape == (4, 2) and np.all((corners >= 0) & (corners < SIZE))
+    inside = np.all((corners >= 0) & (corners < SIZE))
+    assert corners.shape == (4, 2) and inside == body["full_screen_visible"]
+    assert (body["screen_visible_fraction"] == 1.0) == body["full_screen_visible"]
     assert body["placement"] and isinstance(body["helps"], bool) and body["advice"]
     assert isinstance(body["model_note"], str)
     assert body["image"].endswith(f"&key={body['key']}")
@@ -176,11 +178,13 @@ def test_starting_poses_need_no_pose_and_know_the_ones_taken(in_threads) -> None
     assert [p["captured_by"] for p in after["poses"]] == [None, pose_id, None, None]
 
 
-def test_starting_poses_reject_bad_parameters_by_name(in_threads) -> None:
+def test_guidance_rejects_bad_parameters_by_name(in_threads) -> None:
     client, _, sid, _ = in_threads
     for params, field in (({"count": 0}, "count"), ({"hfov_deg": 200}, "hfov_deg")):
         r = client.get(f"/sessions/{sid}/starting-poses", params=params)
         assert r.status_code == 422 and field in r.text
+    r = client.get(f"/sessions/{sid}/next-pose", params={"min_screen_visible": 0.3})
+    assert r.status_code == 422 and "min_screen_visible" in r.text
     assert client.get("/sessions/ses_0000000000000000/starting-poses").status_code == 404
 
 

@@ -11,7 +11,13 @@ import pytest
 from calibration.fit.classic.calibrate import calibrate_parametric
 from calibration.fit.classic.options import ParametricOptions
 from calibration.fit.correspondences import point_set
-from calibration.guidance import MIN_POLE_MARGIN, fit_session, plan_next_pose, session_points
+from calibration.guidance import (
+    MIN_POLE_MARGIN,
+    fit_session,
+    plan_next_pose,
+    session_points,
+    suggest_next_pose,
+)
 from calibration.guidance_placement import outline_distance
 from calibration.guidance_start import nominal_camera, starting_poses
 from calibration.guidance_variety import captured_by, observe, pose_variety
@@ -99,6 +105,12 @@ def test_guided_poses_lower_the_worst_sigma_the_calibration_reports(truth) -> No
     planned_now = worst_ray_sigma(fit.model, g2, s2)
     assert planned_now == pytest.approx(reported, rel=0.05)
     assert nows[0] > nows[1] > planned_now
+    # a screen that may reach past the image's edge has every whole-screen choice and more
+    whole = suggest_next_pose(fit, DEFAULT_SCREEN)
+    part = suggest_next_pose(fit, DEFAULT_SCREEN, 0.6)
+    assert whole.placement.visible_fraction == 1.0
+    assert part.worst_after_rad <= whole.worst_after_rad
+    assert part.placement.visible_fraction >= 0.6
 
 
 def test_starting_poses_are_varied_and_recognized_once_captured(truth) -> None:
