@@ -46,9 +46,9 @@ from hw_mocks.scene import ScreenPose
 from hw_mocks.synthetic import synthetic_maps
 
 # (truth camera, image size, model guidance and calibration use, the operator's nominal
-# horizontal field of view for the starting set)
-CAMERAS = (("mild_pinhole", (160, 120), "opencv5", 60.0),
-           ("wide_fisheye", (320, 240), "fisheye", 120.0))
+# horizontal field of view for the starting set, a fisheye lens)
+CAMERAS = (("mild_pinhole", (160, 120), "opencv5", 60.0, False),
+           ("wide_fisheye", (320, 240), "fisheye", 150.0, True))
 RISE = 1.02
 VISIBLE = (1.0, 0.6)  # the guided arms' least part of the screen inside the image
 
@@ -63,7 +63,7 @@ def report_worst(maps: list[DecodedMaps], model_name: str) -> float:
 
 
 def run_camera(camera: str, size: tuple[int, int], model_name: str, hfov: float,
-               max_poses: int, seed: int, min_visible: float) -> dict:
+               fisheye: bool, max_poses: int, seed: int, min_visible: float) -> dict:
     """Per pose count: one guided arm's predicted and report figures, the fixed list's."""
     truth = make_truth_camera(camera, *size)
     screen = DEFAULT_SCREEN
@@ -72,7 +72,7 @@ def run_camera(camera: str, size: tuple[int, int], model_name: str, hfov: float,
     def capture(pose: ScreenPose) -> DecodedMaps:
         return synthetic_maps(truth, pose, screen, sigma_px=0.05, rng=rng)[0]
 
-    start = starting_poses(nominal_camera(size, hfov_deg=hfov), screen, 3)
+    start = starting_poses(nominal_camera(size, hfov_deg=hfov, fisheye=fisheye), screen, 3)
     guided = [capture(ScreenPose(p.rotation, p.translation)) for p in start]
     fixed_list = random_poses(truth, screen, max_poses, np.random.default_rng(7))
     fixed = [capture(p) for p in fixed_list[:3]]
@@ -108,12 +108,12 @@ def main() -> int:
     print(f"load {os.getloadavg()[0]:.2f}; screen {DEFAULT_SCREEN.width_px}x"
           f"{DEFAULT_SCREEN.height_px} px at {DEFAULT_SCREEN.pitch_mm[0]} mm; worst predicted "
           "ray 1-sigma in urad")
-    for camera, size, model, hfov in CAMERAS:
-        arms = {v: run_camera(camera, size, model, hfov, args.max_poses, args.seed, v)
+    for camera, size, model, hfov, fisheye in CAMERAS:
+        arms = {v: run_camera(camera, size, model, hfov, fisheye, args.max_poses, args.seed, v)
                 for v in VISIBLE}
         whole, part = arms[1.0]["rows"], arms[0.6]["rows"]
         print(f"\n{camera} {size[0]}x{size[1]} ({model}; starting set planned with a "
-              f"{hfov:.0f} deg pinhole); planning "
+              f"{hfov:.0f} deg {'fisheye' if fisheye else 'pinhole'}); planning "
               f"{np.mean([a['plan_cpu_s'] for a in arms.values()]):.1f} CPU s per suggestion")
         print("| poses | fixed list: report | whole screen: predicted | report | "
               "valid px | >= 60 % of the screen: predicted | report | valid px |")

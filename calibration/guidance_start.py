@@ -1,11 +1,13 @@
-"""A varied starting set of screen poses, planned from the camera's nominal pinhole and the
-screen alone (before any pose is captured).
+"""A varied starting set of screen poses, planned from the camera's nominal lens (a pinhole,
+or an equidistant fisheye for a wide-angle lens) and the screen alone (before any pose is
+captured).
 
 The set is chosen greedily among the candidate placements
 (`calibration.guidance_placement`) at 0.7/1/1.4 times the distance where the screen spans
 half the image width: the first two for information volume (each raises the log
-determinant of the opencv5 parameters' information most, poses marginalized), each later
-one for the smallest worst predicted ray sigma of the set so far, as next-pose chooses. So
+determinant of the parameters' information most), each later
+one for the smallest worst predicted ray sigma of the set so far, as next-pose chooses
+(the information is the nominal lens's own parameters', poses marginalized). So
 the set mixes tilt directions and positions across the image, and never repeats a
 placement.
 """
@@ -24,7 +26,7 @@ from calibration.guidance_placement import (
     outline_distance,
     planned_points,
 )
-from calibration.models.parametric import OpenCV5Model
+from calibration.models.parametric import FisheyeModel, OpenCV5Model, PinholeFamily
 from calibration.shared.plan import ScreenGeometry
 from calibration.uncertainty import (
     RAY_SIGMA_GRID,
@@ -46,39 +48,46 @@ _D_OPTIMAL_PICKS = 2  # picked for information volume; later ones for the worst 
 
 @dataclass
 class NominalCamera:
-    """The pinhole the starting set is planned with, and what was assumed to get it."""
+    """The distortion-free camera the starting set is planned with, and what was assumed."""
 
-    model: OpenCV5Model
+    model: PinholeFamily
     assumed: str
 
     def to_json(self) -> dict[str, object]:
-        """`image_size`, `camera_matrix` and `assumed` (words)."""
+        """`image_size`, `camera_matrix`, `projection` and `assumed` (words)."""
         return {"image_size": list(self.model.image_size),
-                "camera_matrix": self.model.camera_matrix.tolist(), "assumed": self.assumed}
+                "camera_matrix": self.model.camera_matrix.tolist(),
+                "projection": self.model.type_name, "assumed": self.assumed}
 
 
 def nominal_camera(image_size: tuple[int, int], camera_matrix: np.ndarray | None = None,
-                   hfov_deg: float | None = None, source: str = "") -> NominalCamera:
-    """A distortion-free pinhole: `camera_matrix` (measured, e.g. quick intrinsics; `source`
+                   hfov_deg: float | None = None, source: str = "",
+                   fisheye: bool = False) -> NominalCamera:
+    """A distortion-free camera: `camera_matrix` (measured, e.g. quick intrinsics; `source`
     says where from) or else a horizontal field of view (default `DEFAULT_HFOV_DEG`) with
-    square pixels and the principal point at the image centre."""
+    square pixels and the principal point at the image centre; a pinhole, or with `fisheye`
+    an equidistant fisheye (r = f theta), whose field of view may pass 180 degrees' half."""
     w, h = image_size
+    kind = FisheyeModel if fisheye else OpenCV5Model
+    lens = "an equidistant fisheye" if fisheye else "a pinhole"
     if camera_matrix is not None:
         k = np.asarray(camera_matrix, np.float64)
-        return NominalCamera(OpenCV5Model(image_size, k),
-                             f"a pinhole with the measured camera matrix ({source}: fx "
+        return NominalCamera(kind(image_size, k),
+                             f"{lens} with the measured camera matrix ({source}: fx "
                              f"{k[0, 0]:.1f} px, fy {k[1, 1]:.1f} px), no distortion")
     fov = DEFAULT_HFOV_DEG if hfov_deg is None else float(hfov_deg)
-    if not 5.0 <= fov <= 150.0:
-        raise ValueError(f"hfov_deg: expected a horizontal field of view in [5, 150] deg, "
-                         f"got {fov}")
-    f = (w / 2) / np.tan(np.radians(fov) / 2)
+    top = 200.0 if fisheye else 150.0
+    if not 5.0 <= fov <= top:
+        raise ValueError(f"hfov_deg: expected a horizontal field of view in [5, {top:.0f}] "
+                         f"deg for {lens}, got {fov}")
+    half = np.radians(fov) / 2
+    f = (w / 2) / (half if fisheye else np.tan(half))
     k = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
     said = "given" if hfov_deg is not None else "assumed (no intrinsics measured yet)"
-    return NominalCamera(OpenCV5Model(image_size, k),
-                         f"a pinhole with {fov:.0f} deg horizontal field of view {said}: fx = "
+    return NominalCamera(kind(image_size, k),
+                         f"{lens} with {fov:.0f} deg horizontal field of view {said}: fx = "
                          f"fy = {f:.1f} px, principal point at the image centre, no "
-                         "distortion; a wide-angle lens sees the screen smaller near the edges")
+                         "distortion")
 
 
 def reference_distance(camera: NominalCamera, screen: ScreenGeometry) -> float:
@@ -129,7 +138,7 @@ def starting_poses(camera: NominalCamera, screen: ScreenGeometry, count: int) ->
     return chosen
 
 
-def _information(model: OpenCV5Model, screen: ScreenGeometry, placement: Placement,
+def _information(model: PinholeFamily, screen: ScreenGeometry, placement: Placement,
                  rays: tuple[np.ndarray, np.ndarray], samples: np.ndarray,
                  free: np.ndarray) -> np.ndarray:
     """Information a placement adds on the model's parameters, per sampled pixel it shows."""

@@ -8,7 +8,7 @@ import json
 import shutil
 import threading
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query
@@ -40,8 +40,10 @@ Svc = Annotated[Services, Depends(get_services)]
 Model = Annotated[str, Query(description="parametric model the prediction uses",
                              pattern="^(opencv5|opencv-rational|fisheye)$")]
 Hfov = Annotated[float | None, Query(
-    gt=5, le=150, description="the camera's nominal horizontal field of view (deg), used "
-    "until the session has quick intrinsics (POST /sessions/{id}/intrinsics)")]
+    ge=5, le=200, description="the camera's nominal horizontal field of view (deg; a pinhole "
+    "up to 150), used until the session has quick intrinsics (POST /sessions/{id}/intrinsics)")]
+Lens = Annotated[Literal["pinhole", "fisheye"], Query(
+    description="the nominal lens: a pinhole, or an equidistant fisheye for a wide-angle lens")]
 Visible = Annotated[float, Query(
     ge=0.5, le=1.0, description="the least part of the suggested screen inside the image: 1 "
     "(default) the whole screen; less lets it reach past the image's edge, which puts data "
@@ -70,8 +72,8 @@ def _ready_poses(svc: Services, session_id: str) -> tuple[SessionRecord, list[Po
 
 
 def _camera(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
-            hfov_deg: float | None) -> NominalCamera:
-    """The session camera's nominal pinhole: its quick intrinsics when measured, else the
+            hfov_deg: float | None, lens: str) -> NominalCamera:
+    """The session camera's nominal lens: its quick intrinsics when measured, else the
     given (or default) field of view over the rig camera's (or a pose's) image size."""
     size = None
     if sess.rig_id is not None:
@@ -86,8 +88,9 @@ def _camera(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
     try:
         if hfov_deg is None and measured.is_file():
             k = json.loads(measured.read_text())["camera_matrix"]
-            return nominal_camera(size, np.asarray(k), source="the session's quick intrinsics")
-        return nominal_camera(size, hfov_deg=hfov_deg)
+            return nominal_camera(size, np.asarray(k), source="the session's quick intrinsics",
+                                  fisheye=lens == "fisheye")
+        return nominal_camera(size, hfov_deg=hfov_deg, fisheye=lens == "fisheye")
     except ValueError as exc:
         raise Problem(422, "validation-error", str(exc)) from None
 
@@ -116,9 +119,10 @@ def _observed(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
     return out
 
 
-def _variety(svc: Services, session_id: str, hfov_deg: float | None) -> dict[str, Any]:
+def _variety(svc: Services, session_id: str, hfov_deg: float | None,
+             lens: str = "pinhole") -> dict[str, Any]:
     sess, poses = _ready_poses(svc, session_id)
-    camera = _camera(svc, sess, poses, hfov_deg) if poses else None
+    camera = _camera(svc, sess, poses, hfov_deg, lens) if poses else None
     observed = _observed(svc, sess, poses, camera) if camera else []
     size = camera.model.image_size if camera else (1, 1)
     return pose_variety(observed, size, {m: s.min_poses for m, s in MODELS.items()})
@@ -204,14 +208,14 @@ def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational",
 def starting_poses_route(session_id: str, svc: Svc,
                          count: Annotated[int, Query(ge=1, le=12, description="poses to plan")
                                           ] = 5,
-                         hfov_deg: Hfov = None) -> JSONResponse:
+                         hfov_deg: Hfov = None, lens: Lens = "pinhole") -> JSONResponse:
     """A varied starting set planned from the rig's camera and screen alone (works with no
     pose yet): each item has `screen_pose` (rvec rad, tvec_mm, as `PUT /rigs/{id}/screen-pose`
     takes it), `placement` in words, `outline_px` (the screen's 4 corners in camera pixels,
     corner (0, 0) first) and `captured_by` (a ready pose that already matches it, or null);
-    `camera` says which nominal pinhole the prediction assumed."""
+    `camera` says which nominal lens the prediction assumed (`lens`, `hfov_deg`)."""
     sess, poses = _ready_poses(svc, session_id)
-    camera = _camera(svc, sess, poses, hfov_deg)
+    camera = _camera(svc, sess, poses, hfov_deg, lens)
     screen = plan_from_dict(sess.plan).screen
     size = camera.model.image_size
     try:
@@ -226,11 +230,13 @@ def starting_poses_route(session_id: str, svc: Svc,
 
 
 @router.get("/sessions/{session_id}/pose-variety")
-def pose_variety_route(session_id: str, svc: Svc, hfov_deg: Hfov = None) -> JSONResponse:
+def pose_variety_route(session_id: str, svc: Svc, hfov_deg: Hfov = None,
+                       lens: Lens = "pinhole") -> JSONResponse:
     """Whether the ready poses are varied enough (no fit): `ready_for_guidance`,
     `ready_for_calibration` per model, `reason` in words and `duplicates` (each pose that
     repeats an earlier one: `pose_id`, `repeats`, `similarity` 0..1)."""
-    return JSONResponse(_variety(svc, session_id, hfov_deg), headers={"Cache-Control": "no-cache"})
+    return JSONResponse(_variety(svc, session_id, hfov_deg, lens),
+                        headers={"Cache-Control": "no-cache"})
 
 
 @router.get("/sessions/{session_id}/coverage.png", response_class=Response,

@@ -180,12 +180,17 @@ def test_starting_poses_need_no_pose_and_know_the_ones_taken(in_threads) -> None
 
 def test_guidance_rejects_bad_parameters_by_name(in_threads) -> None:
     client, _, sid, _ = in_threads
-    for params, field in (({"count": 0}, "count"), ({"hfov_deg": 200}, "hfov_deg")):
+    for params, field in (({"count": 0}, "count"), ({"hfov_deg": 170}, "hfov_deg"),
+                          ({"hfov_deg": 250, "lens": "fisheye"}, "hfov_deg"),
+                          ({"lens": "zoom"}, "lens")):
         r = client.get(f"/sessions/{sid}/starting-poses", params=params)
         assert r.status_code == 422 and field in r.text
     r = client.get(f"/sessions/{sid}/next-pose", params={"min_screen_visible": 0.3})
     assert r.status_code == 422 and "min_screen_visible" in r.text
     assert client.get("/sessions/ses_0000000000000000/starting-poses").status_code == 404
+    wide = client.get(f"/sessions/{sid}/starting-poses",
+                      params={"lens": "fisheye", "hfov_deg": 170, "count": 2}).json()
+    assert wide["camera"]["projection"] == "fisheye" and len(wide["poses"]) == 2
 
 
 def test_repeated_poses_are_named_and_guidance_says_why_it_waits(in_threads) -> None:
