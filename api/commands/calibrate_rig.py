@@ -66,11 +66,15 @@ def parse_models(values: str | list[str]) -> tuple[str | None, dict[str, str]]:
 def run_rig(args: argparse.Namespace, options: dict[str, object]) -> int:
     """Fit the rig and write its model; `options` are the parsed `--option` pairs (the joint
     fit's own keys go to it, the rest to every camera's model)."""
-    for flag in ("export_opencv", "export_ros", "report"):
+    export = ("not for a rig; after fitting use `phasecal export --model RIG --camera CAMERA` "
+              "(or --cameras A,B --format opencv-stereo)")
+    refused = {"export_opencv": export, "export_ros": export, "report": export,
+               "uncertainty_png": "applies to one camera's observations",
+               "cross_validate": "applies to one camera's observations",
+               "max_points": "a rig takes --option max_points_per_view=N"}
+    for flag, why in refused.items():
         if getattr(args, flag, None):
-            raise UserError(f"--{flag.replace('_', '-')}: not for a rig; after fitting use "
-                            "`phasecal export --model RIG --camera CAMERA` (or --cameras A,B "
-                            "--format opencv-stereo)")
+            raise UserError(f"--{flag.replace('_', '-')}: {why}")
     if getattr(args, "heldout", None):
         raise UserError("--heldout: a rig leaves out views by name: use --heldout-view VIEW")
     entries = []
