@@ -152,8 +152,8 @@ class RigProblem:
     # -- solve and covariance ------------------------------------------------------------
     def solve(self, x0: np.ndarray, free: np.ndarray | None = None,
               max_iterations: int = 100) -> tuple[np.ndarray, dict[str, object]]:
-        """Levenberg-Marquardt-style trust-region fit of the `free` parameters (default all)
-        from x0; returns (x, {iterations, converged, cost})."""
+        """Trust-region least-squares fit of the `free` parameters (default all) from x0;
+        returns (x, {iterations (Jacobians built), converged, cost})."""
         mask = np.ones(self.size, dtype=bool) if free is None else free
 
         def full(y: np.ndarray) -> np.ndarray:
@@ -167,7 +167,7 @@ class RigProblem:
                             gtol=1e-10)
         x = full(sol.x)
         self.set_models(x)
-        return x, {"iterations": int(sol.nfev), "converged": bool(sol.status > 0),
+        return x, {"iterations": int(sol.njev), "converged": bool(sol.status > 0),
                    "cost": float(2 * sol.cost)}
 
     def covariance(self, x: np.ndarray) -> tuple[np.ndarray, float]:
