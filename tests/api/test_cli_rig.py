@@ -4,6 +4,7 @@ reference frame and the rig exports, end to end on simulated two-camera maps."""
 from __future__ import annotations
 
 import json
+import subprocess
 
 import cv2
 import numpy as np
@@ -17,6 +18,7 @@ from calibration.shared.observations import save_observations
 from calibration.shared.plan import write_plan
 from hw_mocks.rig_truth import grid_points, shared_views, view_maps, view_observations
 from tests.calibration.rig.conftest import two_pinholes
+from tests.calibration.test_exports import SYSTEM_PYTHON, needs_mrcal
 
 VIEWS = 5
 
@@ -154,3 +156,23 @@ def test_rig_from_target_observations_needs_no_plan(tmp_path, capsys) -> None:
     assert main(["calibrate", "--observations", *inputs, "--model", "opencv5",
                  "--max-points", "100", "-o", str(out)]) == 1
     assert "max_points_per_view" in capsys.readouterr().err
+
+
+@needs_mrcal
+def test_mrcal_reads_the_rig_cameras_extrinsics(rig_dir, tmp_path) -> None:
+    """mrcal itself (the system python3-mrcal) maps a reference-frame point into camera B as
+    the rig model does."""
+    d, _ = rig_dir
+    path = tmp_path / "b.cameramodel"
+    assert main(["export", "--model", str(d / "rig.json"), "--camera", "B", "--format", "mrcal",
+                 "-o", str(path)]) == 0
+    p = np.array([25.0, -12.0, 480.0])
+    script = ("import mrcal, numpy as np, sys\n"
+              "m = mrcal.cameramodel(sys.argv[1])\n"
+              "print(*mrcal.transform_point_rt(m.extrinsics_rt_fromref(), "
+              "np.array([float(v) for v in sys.argv[2:]])))\n")
+    out = subprocess.run([SYSTEM_PYTHON, "-c", script, str(path), *map(str, p)],
+                         capture_output=True, text=True, check=True).stdout
+    ext = json.loads((d / "rig.json").read_text())["cameras"]["B"]["extrinsics"]
+    expect = np.asarray(ext["R"]) @ p + np.asarray(ext["t_mm"])
+    assert np.allclose([float(v) for v in out.split()], expect, atol=1e-9)
