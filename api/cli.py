@@ -33,6 +33,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                          "single-file copy) from a model.json and the poses' maps"),
     "diff": ("diff", "difference of two models' rays (after the best rotation) against "
                      "their combined uncertainty: diff.html + maps + diff.json"),
+    "guide": ("guide", "pose guidance from maps: starting poses, whether the poses are "
+                       "varied enough, the next pose that most lowers the worst ray sigma"),
     "intrinsics": ("intrinsics", "quick intrinsics before decoding: rectangle vanishing points, "
                                  "general-motion self-calibration, or rotation-only "
                                  "self-calibration"),

@@ -4,6 +4,7 @@ problems when it cannot be planned; starting poses with no pose yet; the variety
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -217,3 +218,27 @@ def test_varied_poses_are_ready(service) -> None:
     body = client.get(f"/sessions/{sid}/pose-variety").json()
     assert body["ready_for_guidance"] is True and body["duplicates"] == []
     assert body["ready_for_calibration"]["opencv5"] is True
+
+
+def test_the_guide_command_answers_as_the_routes(tmp_path: Path) -> None:
+    from api.cli import main as cli_main
+
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps(PLAN.to_dict()))
+    paths = []
+    for k in range(3):
+        paths.append(tmp_path / f"m{k}.npz")
+        paths[-1].write_bytes(good_maps(20 + k, size=SIZE).to_npz_bytes())
+    out = tmp_path / "guide.json"
+    assert cli_main(["guide", "--plan", str(plan), "--maps", *map(str, paths), "--model",
+                     "opencv5", "-o", str(out), "--image", str(tmp_path / "n.png")]) == 0
+    body = json.loads(out.read_text())
+    assert body["pose_variety"]["ready_for_guidance"] and len(body["next_pose"]["outline_px"]) == 4
+    assert (tmp_path / "n.png").read_bytes()[:4] == b"\x89PNG"
+    assert cli_main(["guide", "--plan", str(plan), "--starting", "3", "--image-size", "160x120",
+                     "-o", str(out)]) == 0
+    assert [p["captured_by"] for p in json.loads(out.read_text())["starting_poses"]["poses"]
+            ] == [None] * 3
+    same = [str(paths[0])] * 3
+    assert cli_main(["guide", "--plan", str(plan), "--maps", *same]) == 1
+    assert cli_main(["guide", "--plan", str(plan), "--starting", "3"]) == 1
