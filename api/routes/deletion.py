@@ -1,4 +1,5 @@
-"""DELETE for poses, calibrations and sessions: records and files; 409 while a job uses them.
+"""DELETE for poses, calibrations and sessions, of screen and of target sessions: records and
+files; 409 while a job uses them.
 
 Deletes run in `Database.claim_session`, serialized with every job start, so a job cannot
 claim a resource between the check and the delete. They work on a full disk: a record
@@ -14,7 +15,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Response
 from sqlalchemy import delete, select
 
-from api.db import CalibrationRecord, JobLockRecord, PoseRecord, SessionRecord
+from api.db import (
+    CalibrationRecord,
+    JobLockRecord,
+    PoseRecord,
+    SessionRecord,
+    TargetCalibrationRecord,
+    TargetSessionRecord,
+    TargetViewRecord,
+)
 from api.jobs.model import ACTIVE_JOB_STATES
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, get_pose, get_session
@@ -104,6 +113,80 @@ def delete_session(session_id: str, svc: Svc) -> Response:
             s.execute(delete(PoseRecord).where(PoseRecord.session_id == session_id))
             s.execute(delete(SessionRecord).where(SessionRecord.id == session_id))
         return [*pose_ids, *cal_ids]
+
+    _remove_folders(svc, [*svc.space.retrying(forget), session_id])
+    return Response(status_code=204)
+
+
+def _target_session(s: Any, session_id: str) -> TargetSessionRecord:
+    """The target session's record, or 404."""
+    check_id(session_id, "ses", "target session")
+    rec = s.get(TargetSessionRecord, session_id)
+    if rec is None:
+        raise Problem(404, "not-found", f"target session {session_id!r} does not exist")
+    return rec
+
+
+@router.delete("/target-sessions/{session_id}/views/{view_id}", status_code=204,
+               response_class=Response)
+def delete_target_view(session_id: str, view_id: str, svc: Svc) -> Response:
+    """Delete a view of a target session (record and observations file); 409 while a
+    hand-eye job of the session reads the views. Calibrations made from it stay: they hold
+    their own model and statistics."""
+    check_id(view_id, "pose", "view")
+
+    def forget() -> None:
+        with svc.db.claim_session() as s:
+            _target_session(s, session_id)
+            view = s.get(TargetViewRecord, view_id)
+            if view is None or view.session_id != session_id:
+                raise Problem(404, "not-found",
+                              f"view {view_id!r} does not exist in target session {session_id}")
+            _busy(s, [f"{session_id}:handeye"], f"view {view_id}")
+            s.delete(view)
+
+    svc.space.retrying(forget)
+    svc.store.file(session_id, f"{view_id}.npz").unlink(missing_ok=True)
+    svc.space.restore()
+    return Response(status_code=204)
+
+
+@router.delete("/target-sessions/{session_id}/calibrations/{cal_id}", status_code=204,
+               response_class=Response)
+def delete_target_calibration(session_id: str, cal_id: str, svc: Svc) -> Response:
+    """Delete a calibration of a target session (record, model and figures)."""
+    check_id(cal_id, "cal", "calibration")
+
+    def forget() -> None:
+        with svc.db.claim_session() as s:
+            _target_session(s, session_id)
+            cal = s.get(TargetCalibrationRecord, cal_id)
+            if cal is None or cal.session_id != session_id:
+                raise Problem(404, "not-found", f"calibration {cal_id!r} does not exist in "
+                              f"target session {session_id}")
+            s.delete(cal)
+
+    svc.space.retrying(forget)
+    _remove_folders(svc, [cal_id])
+    return Response(status_code=204)
+
+
+@router.delete("/target-sessions/{session_id}", status_code=204, response_class=Response)
+def delete_target_session(session_id: str, svc: Svc) -> Response:
+    """Delete a target session with its views, calibrations and hand-eye result; 409 while a
+    hand-eye job of the session runs."""
+
+    def forget() -> list[str]:
+        with svc.db.claim_session() as s:
+            _target_session(s, session_id)
+            _busy(s, [f"{session_id}:handeye"], f"target session {session_id}")
+            cal_ids = list(s.scalars(select(TargetCalibrationRecord.id).where(
+                TargetCalibrationRecord.session_id == session_id)))
+            s.execute(delete(TargetCalibrationRecord)
+                      .where(TargetCalibrationRecord.session_id == session_id))
+            s.execute(delete(TargetViewRecord).where(TargetViewRecord.session_id == session_id))
+            s.execute(delete(TargetSessionRecord).where(TargetSessionRecord.id == session_id))
+        return cal_ids
 
     _remove_folders(svc, [*svc.space.retrying(forget), session_id])
     return Response(status_code=204)
