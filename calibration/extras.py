@@ -12,6 +12,7 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "usb": ("usb", "USB camera discovery and USB trigger boxes (pyusb)"),
     "dask": ("distributed", "running jobs on a Dask cluster"),
     "gpu": ("cupy", "the sGCC GPU path (CuPy)"),
+    "bluesky": ("ophyd_async", "phasecal as Bluesky devices (bluesky, ophyd-async)"),
 }
 
 
