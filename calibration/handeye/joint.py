@@ -39,8 +39,12 @@ def robot_sigmas(repeatability_mm: float, repeatability_deg: float) -> np.ndarra
 
 
 def whitener(covariance: np.ndarray) -> np.ndarray:
-    """W with W.T @ W = inverse(covariance): W @ e is e in units of its sigma."""
-    return np.linalg.cholesky(np.linalg.inv(covariance)).T
+    """W with W.T @ W = inverse(covariance): W @ e is e in units of its sigma. Directions
+    the covariance leaves (numerically) without variance get a weight of 1e6 times the
+    largest sigma's inverse instead of an infinite one."""
+    vals, vecs = np.linalg.eigh((covariance + covariance.T) / 2)
+    vals = np.maximum(vals, vals.max() * 1e-12)
+    return (vecs / np.sqrt(vals)).T
 
 
 def refine(mount: Mount, flange: list[Rigid], views: ViewPoses, repeatability_mm: float,
