@@ -107,7 +107,8 @@ def _page(summary: dict[str, Any], methods: tuple[str, str]) -> str:
     a, b = html.escape(summary["a"]), html.escape(summary["b"])
     sigma_fig = ('<figure><img src="diff_sigma.png" alt="difference over combined sigma">'
                  "<figcaption>the difference divided by the combined 1-sigma of the two fits; "
-                 f"the white line marks {SIGMA_LEVEL:g} sigma</figcaption></figure>"
+                 f"a white line encloses where it exceeds {SIGMA_LEVEL:g} (none: nowhere)"
+                 "</figcaption></figure>"
                  if agree is not None else "")
     return (f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
             f"<meta name='viewport' content='width=device-width, initial-scale=1'>"
