@@ -1,243 +1,593 @@
 // phasecal operator page: plain JS against the REST API (same token as the API).
-"use strict";
+// A newcomer goes from a new session through varied starting poses, guided poses and a
+// calibration to the report and the model files, and every action answers next to itself.
+// Modules: service.js (requests, explanations), dom.js, camera_view.js (a preview per camera).
 
-const $ = (sel) => document.querySelector(sel);
-const state = { session: null, job: null, source: null, suggestion: null };
+import { $, el, fmt } from "/ui/dom.js";
+import { CameraView, rigCameras } from "/ui/camera_view.js";
+import { ServiceError, api, explain, explainJob, request, setToken, token } from "/ui/service.js";
 
-function token() { return localStorage.getItem("phasecal_token") || ""; }
+const STARTING_COUNT = 5;      // starting poses asked for: enough for guidance and opencv fits
+const EXPORT_FORMATS = [       // the REST export formats and what each is for
+  ["opencv-yaml", "OpenCV YAML", "cv2.FileStorage: camera_matrix, distortion_coefficients"],
+  ["ros", "ROS camera_info", "sensor_msgs/CameraInfo YAML for camera_info_manager"],
+  ["mrcal", "mrcal .cameramodel", "mrcal and its tools (generic models as a spline fit)"],
+  ["remap", "cv2.remap maps (NPZ)", "map_x, map_y into a virtual pinhole camera"],
+  ["opencv-fit", "best OpenCV fit (NPZ)", "the closest OpenCV model, with its residual per pixel"],
+];
 
-function setToken(value) {
-  localStorage.setItem("phasecal_token", value);
-  // Images, reports and the SSE stream are loaded by URL and cannot send a header:
-  // the server accepts this cookie for GET requests only.
-  document.cookie = "phasecal_token=" + encodeURIComponent(value) + "; path=/; SameSite=Strict";
-}
+const state = {
+  rigs: new Map(),          // rig id -> rig record
+  session: null,            // the open session's record
+  rig: null,                // its rig
+  cameras: new Map(),       // camera name -> CameraView (one per camera of the rig)
+  poses: [],
+  calibrations: [],
+  heldout: new Set(),       // pose ids held out of the next calibration
+  starting: [],             // the session's starting poses
+  suggestion: null,         // the next-pose answer
+  calibration: null,        // the calibration whose downloads are shown
+  busy: false,              // a capture or calibration job is being followed
+  capturing: false,         // that job is a capture (the preview shows its frames)
+  job: null,                // its id (for Cancel)
+  variety: null,            // the pose-variety answer: duplicates, readiness
+  assumedCamera: null,      // the camera the starting poses were planned for
+  nextPoseAsked: 0,         // counts next-pose requests: a slow older answer is dropped
+};
 
 function say(text, error) {
-  const el = $("#status");
-  el.textContent = text;
-  el.className = error ? "error" : "";
+  const s = $("#status");
+  s.textContent = text;
+  s.className = error ? "error" : "";
 }
 
-async function api(method, path, body) {
-  const headers = {};
-  if (token()) headers["Authorization"] = "Bearer " + token();
-  if (body !== undefined) headers["Content-Type"] = "application/json";
-  const r = await fetch(path, { method, headers,
-                                body: body === undefined ? undefined : JSON.stringify(body) });
-  if (!r.ok) {
-    let detail = r.statusText;
-    try { detail = (await r.json()).detail || detail; } catch (e) { /* not JSON */ }
-    const err = new Error(`${method} ${path}: ${r.status} ${detail}`);
-    err.status = r.status;
-    throw err;
+// Feedback next to the action that caused it: a sentence, and the service's own words.
+function tell(id, kind, text, err) {
+  const box = document.getElementById(id);
+  box.className = `feedback ${kind}`;
+  box.replaceChildren(el("span", { class: "message" }, text));
+  if (err instanceof ServiceError && err.detail) {
+    box.append(el("details", {}, el("summary", {}, "what the service said"),
+                  el("code", {}, `${err.status} ${err.slug}: ${err.detail}`)));
   }
-  return r.json();
 }
 
-function el(tag, attrs, ...children) {
-  const node = document.createElement(tag);
-  for (const [k, v] of Object.entries(attrs || {})) {
-    if (k === "onclick") node.onclick = v; else node.setAttribute(k, v);
-  }
-  for (const c of children) node.append(c instanceof Node ? c : String(c));
-  return node;
-}
+function clear(id) { const box = document.getElementById(id); box.className = "feedback"; box.replaceChildren(); }
 
-function fmt(v, digits) { return v === null || v === undefined ? "-" : Number(v).toPrecision(digits || 4); }
-
-// --- rigs and their live camera preview ------------------------------------------------
-function previewBox(rig) {
-  const box = el("div", { class: "preview", "data-rig": rig.id });
-  const img = el("img", { alt: `camera of ${rig.name}` });
-  const none = el("span", { class: "no-preview" }, "no preview");
-  box.append(none);
-  const tryLoad = () => {
-    img.onload = () => { none.remove(); if (!img.isConnected) box.append(img); };
-    img.onerror = () => {
-      img.remove();
-      if (!none.isConnected) box.append(none);
-      none.textContent = "no preview (the camera preview is not available)";
-      setTimeout(tryLoad, 15000);
-    };
-    img.src = `/rigs/${rig.id}/camera/preview?ts=${Date.now()}`;
+// Run an action; a failure is explained in its own feedback box.
+function act(feedbackId, fn) {
+  return async (...args) => {
+    try { await fn(...args); } catch (e) { tell(feedbackId, "error", explain(e), e); }
   };
-  // An MJPEG stream never finishes loading: start it after the page's load event, which it
-  // would otherwise hold back forever.
-  if (document.readyState === "complete") tryLoad();
-  else window.addEventListener("load", tryLoad, { once: true });
-  return box;
 }
 
+// --- URL state: the open session, pose and calibration ------------------------------------
+function urlState() {
+  const q = new URLSearchParams(location.search);
+  return { session: q.get("session"), pose: q.get("pose"), calibration: q.get("calibration") };
+}
+
+function setUrl(changes) {
+  const q = new URLSearchParams(location.search);
+  for (const [k, v] of Object.entries(changes)) { if (v) q.set(k, v); else q.delete(k); }
+  const s = q.toString();
+  history.replaceState(null, "", location.pathname + (s ? "?" + s : ""));
+}
+
+// --- cameras: a live preview per camera, with the suggested placement drawn over it --------
+function showCameras(rig) {
+  for (const view of state.cameras.values()) view.stop();
+  state.cameras.clear();
+  const cams = rigCameras(rig);
+  for (const cam of cams) state.cameras.set(cam.name, new CameraView(rig, cam, cams.length > 1, () => state.capturing));
+  $("#cameras").replaceChildren(...[...state.cameras.values()].map((v) => v.node));
+  for (const view of state.cameras.values()) view.start();
+}
+
+function outlineOnCameras(points, label) {
+  for (const view of state.cameras.values()) view.setOutline(points, label);
+}
+
+// --- rigs and sessions ---------------------------------------------------------------------
 async function loadRigs() {
   const rigs = await api("GET", "/rigs");
-  const box = $("#rigs");
-  box.replaceChildren(...rigs.map((r) => el("div", { class: "rig" },
-    el("div", {}, el("b", {}, r.name || r.id), ` (${r.simulated ? "simulated" : "hardware"}, ${r.id})`),
-    previewBox(r))));
-  $("#new-session-rig").replaceChildren(...rigs.map((r) => el("option", { value: r.id }, r.name || r.id)));
+  state.rigs = new Map(rigs.map((r) => [r.id, r]));
+  $("#new-session-rig").replaceChildren(...rigs.map((r) => el("option", { value: r.id },
+    `${r.name || r.id} (${r.simulated ? "simulated" : "hardware"})`)));
+  showSimHint();
 }
 
-// --- sessions -----------------------------------------------------------------------------
+function showSimHint() {
+  const rig = state.rig || state.rigs.get($("#new-session-rig").value);
+  $("#sim-hint").hidden = !(rig && rig.simulated);
+}
+
 async function loadSessions() {
   const sessions = await api("GET", "/sessions");
   $("#sessions").replaceChildren(...sessions.map((s) => {
-    const li = el("li", { "data-session": s.id, onclick: () => openSession(s.id) },
-                  `${s.name || "(unnamed)"} — ${s.id}`);
-    if (state.session === s.id) li.classList.add("current");
-    return li;
+    const current = state.session && state.session.id === s.id;
+    return el("li", { "data-session": s.id, class: current ? "current" : null },
+      el("button", { class: "link", onclick: act("new-session-feedback", () => openSession(s.id)),
+                     "aria-current": current ? "true" : null },
+         `${s.name || "(unnamed)"} — ${s.id}`));
   }));
 }
 
 async function openSession(id) {
-  state.session = id;
   const s = await api("GET", `/sessions/${id}`);
+  if (!state.session || state.session.id !== id) {
+    if (state.session) setUrl({ pose: null, calibration: null });  // they belong to the old one
+    delete $("#pose-maps").dataset.pose;
+    state.heldout.clear();
+    state.calibration = null;
+    state.suggestion = null;
+    $("#pose-maps").replaceChildren();
+    $("#calibration-detail").hidden = true;
+    for (const id2 of ["capture-feedback", "starting-feedback", "calibrate-feedback",
+                       "poses-feedback", "calibrations-feedback"]) clear(id2);
+  }
+  state.session = s;
+  state.rig = state.rigs.get(s.rig_id) || (s.rig_id ? await api("GET", `/rigs/${s.rig_id}`) : null);
+  setUrl({ session: id });
   $("#session-section").hidden = false;
-  $("#session-title").textContent = `Session ${s.name || ""} (${id})`;
+  const rigName = state.rig ? `${state.rig.name} (${state.rig.simulated ? "simulated" : "hardware"})`
+    : "the server's rig";
+  $("#session-title").textContent = `Session ${s.name || ""} (${id}) on ${rigName}`;
+  const simulated = !!(state.rig && state.rig.simulated);
+  $("#starting-btn").hidden = !simulated;
+  $("#use-suggestion-label").hidden = !simulated;
+  showSimHint();
+  if (state.rig) showCameras(state.rig);
   await Promise.all([loadSessions(), refreshSession()]);
 }
 
 async function refreshSession() {
   if (!state.session) return;
   await Promise.all([loadPoses(), loadCalibrations()]);
-  await loadNextPose();
+  loadNextPose();  // a fit on first request: the rest of the page does not wait for it
+  await Promise.all([loadStarting(), loadVariety()]);
 }
 
+// --- poses ---------------------------------------------------------------------------------
+const BAD_POSE = ["failed", "cancelled", "interrupted", "flagged"];  // shown in red
+
 async function loadPoses() {
-  const sid = state.session;
-  const poses = await api("GET", `/sessions/${sid}/poses`);
-  const rows = poses.map((p) => el("tr", { "data-pose": p.id },
-    el("td", {}, p.index), el("td", {}, p.id),
-    el("td", { class: p.status === "ready" ? "" : "bad" }, p.status + (p.error ? `: ${p.error}` : "")),
-    el("td", {}, p.valid_pixels ?? "-"),
-    el("td", {}, ["ready", "flagged"].includes(p.status)
-      ? el("button", { onclick: () => showMaps(p.id) }, "show maps") : "-")));
+  const sid = state.session.id;
+  state.poses = await api("GET", `/sessions/${sid}/poses`);
+  const rows = state.poses.map((p) => {
+    const decoded = ["ready", "flagged"].includes(p.status);
+    const held = el("input", { type: "checkbox", "aria-label": `hold out pose ${p.index}`,
+                               disabled: p.status !== "ready" });
+    held.checked = state.heldout.has(p.id);
+    held.onchange = () => { if (held.checked) state.heldout.add(p.id); else state.heldout.delete(p.id); showHeldout(); };
+    return el("tr", { "data-pose": p.id },
+      el("td", {}, p.index), el("td", {}, p.id),
+      el("td", { class: BAD_POSE.includes(p.status) ? "bad" : "" }, p.status + (p.error ? `: ${p.error}` : "")),
+      el("td", {}, p.valid_pixels ?? "-"),
+      el("td", {}, held),
+      el("td", {}, decoded ? el("button", { onclick: () => showMaps(p.id) }, "show maps") : "-"),
+      el("td", {}, el("button", { class: "danger", "aria-label": `delete pose ${p.index}`,
+                                  onclick: act("poses-feedback", () => deletePose(p)) }, "delete")));
+  });
   $("#poses tbody").replaceChildren(...rows);
-  const decoded = poses.filter((p) => ["ready", "flagged"].includes(p.status)).length;
+  for (const id of [...state.heldout]) if (!state.poses.some((p) => p.id === id && p.status === "ready")) state.heldout.delete(id);
+  showHeldout();
+  const decoded = state.poses.filter((p) => ["ready", "flagged"].includes(p.status));
   const cov = $("#coverage");
-  cov.hidden = decoded === 0;
-  if (decoded) cov.src = `/sessions/${sid}/coverage.png?n=${decoded}&ts=${Date.now()}`;
+  cov.hidden = decoded.length === 0;
+  if (decoded.length) cov.src = `/sessions/${sid}/coverage.png?poses=${decoded.map((p) => p.index).join("-")}`;
+  const shown = urlState().pose;
+  if (shown && decoded.some((p) => p.id === shown) && !$("#pose-maps").dataset.pose) showMaps(shown);
+}
+
+// A pose by its number in the session (ids are long), or its id when unknown here.
+function poseName(id) {
+  const p = state.poses.find((q) => q.id === id);
+  return p ? String(p.index) : id;
+}
+
+function showHeldout() {
+  const ready = state.poses.filter((p) => p.status === "ready").length;
+  const held = state.heldout.size;
+  $("#heldout-summary").textContent = held
+    ? `fits ${ready - held} poses; ${held} held out to score it (ticked in the pose table)`
+    : `fits all ${ready} ready poses (tick "held out" in the pose table to keep some for scoring)`;
 }
 
 function showMaps(poseId) {
-  const base = `/sessions/${state.session}/poses/${poseId}/preview`;
-  $("#pose-maps").replaceChildren(el("h4", {}, `Decoded maps of ${poseId}`),
-    ...["x", "y", "sigma", "mask"].map((k) => el("img", { src: `${base}/${k}.png`, alt: `${k} map` })));
+  const base = `/sessions/${state.session.id}/poses/${poseId}/preview`;
+  const box = $("#pose-maps");
+  box.dataset.pose = poseId;
+  setUrl({ pose: poseId });
+  box.replaceChildren(el("h4", {}, `Decoded maps of ${poseId}`),
+    el("p", { class: "explain" }, "x and y: the screen pixel each camera pixel sees; sigma: " +
+       "how uncertain that is; mask: where the screen was decoded at all."),
+    ...["x", "y", "sigma", "mask"].map((k) => el("img", { src: `${base}/${k}.png`, alt: `${k} map of ${poseId}` })));
 }
 
-// --- capture with progress from the SSE stream --------------------------------------------
-function follow(job, onEnd) {
-  state.job = job.id;
-  $("#cancel-btn").disabled = false;
-  $("#capture-btn").disabled = true;
-  showProgress(job);
-  // EventSource reconnects by itself and sends Last-Event-ID; the server resumes from it.
-  const source = new EventSource(`/jobs/${job.id}/events`);
-  state.source = source;
-  source.addEventListener("progress", (e) => showProgress(JSON.parse(e.data)));
-  source.addEventListener("end", (e) => {
-    source.close();
-    const end = JSON.parse(e.data);
-    showProgress(end);
-    state.job = null;
-    $("#cancel-btn").disabled = true;
-    $("#capture-btn").disabled = false;
-    onEnd(end);
-  });
+async function deletePose(p) {
+  if (!confirm(`Delete pose ${p.index} (${p.id}) and its frames and maps?`)) return;
+  await api("DELETE", `/sessions/${state.session.id}/poses/${p.id}`);
+  if ($("#pose-maps").dataset.pose === p.id) { $("#pose-maps").replaceChildren(); delete $("#pose-maps").dataset.pose; setUrl({ pose: null }); }
+  clear("capture-feedback");  // it may speak of the deleted pose
+  tell("poses-feedback", "ok", `Pose ${p.index} deleted.`);
+  await refreshSession();
 }
 
-function showProgress(job) {
-  const bar = $("#progress");
+// --- jobs: progress next to the action that started them -----------------------------------
+const PANELS = {
+  capture: { bar: "#progress", text: "#progress-text", box: "#capture-job", cancel: "#cancel-btn" },
+  calibrate: { bar: "#cal-progress", text: "#cal-progress-text", box: "#calibrate-job", cancel: "#cal-cancel-btn" },
+};
+
+function setBusy(busy, jobId, panel) {
+  state.busy = busy;
+  state.capturing = busy && panel === PANELS.capture;
+  state.job = busy ? jobId : null;
+  for (const p of Object.values(PANELS)) $(p.cancel).disabled = !(busy && p === panel);
+  for (const b of ["#capture-btn", "#calibrate-btn", "#new-session-btn"]) $(b).disabled = busy;
+  $("#starting-btn").disabled = busy || !state.starting.some((p) => !p.captured_by);
+  for (const b of document.querySelectorAll(".capture-one")) b.disabled = busy;
+}
+
+function showProgress(panel, job, label) {
+  const bar = $(panel.bar);
   const total = Math.max(job.total || 0, 1);
   bar.max = total;
   bar.value = job.status === "succeeded" ? total : Math.min(job.done || 0, total);
-  const eta = job.eta_s ? `, ${job.eta_s.toFixed(0)} s left in this stage` : "";
-  const err = job.error ? ` — ${job.error}` : "";
-  $("#progress-text").textContent = `${job.kind} ${job.status}: ${job.stage} ${job.done}/${job.total}${eta}${err}`;
-  $("#progress-text").dataset.status = job.status;
+  const eta = job.eta_s ? `, about ${job.eta_s.toFixed(0)} s left in this step` : "";
+  const text = $(panel.text);
+  const stage = job.stage && job.stage !== job.status ? ` (${job.stage})` : "";
+  text.textContent = `${label || job.kind}: ${job.status}${stage} ${job.done}/${job.total}${eta}`;
+  text.dataset.status = job.status;
 }
 
-async function capture() {
-  const body = {};
-  if ($("#use-suggestion").checked && state.suggestion) body.screen_pose = state.suggestion.screen_pose;
-  const job = await api("POST", `/sessions/${state.session}/poses`, body);
-  say(`capture ${job.id} started`);
+// Follow a job's SSE stream until it ends; resolves with its final state.
+function follow(job, panel, label) {
+  setBusy(true, job.id, panel);
+  showProgress(panel, job, label);
+  $(panel.box).scrollIntoView({ block: "nearest" });
+  return new Promise((resolve) => {
+    // EventSource reconnects by itself and sends Last-Event-ID; the server resumes from it.
+    const source = new EventSource(`/jobs/${job.id}/events`);
+    source.addEventListener("progress", (e) => showProgress(panel, JSON.parse(e.data), label));
+    source.addEventListener("end", (e) => {
+      source.close();
+      const end = JSON.parse(e.data);
+      showProgress(panel, end, label);
+      setBusy(false);
+      resolve(end);
+    });
+  });
+}
+
+async function cancel() { if (state.job) await api("POST", `/jobs/${state.job}/cancel`); }
+
+// --- capture -------------------------------------------------------------------------------
+// `planNext`: ask for the next-pose plan afterwards (a fit; not between starting poses).
+async function captureAt(screenPose, label, feedbackId, planNext = true) {
+  const body = screenPose ? { screen_pose: screenPose } : {};
+  const job = await api("POST", `/sessions/${state.session.id}/poses`, body);
+  tell(feedbackId, "info", `${label || "Capture"} started (${job.id}).`);
   await loadPoses();
-  follow(job, async (end) => { say(`capture ${end.status}`, end.status !== "succeeded"); await refreshSession(); });
+  const end = await follow(job, PANELS.capture, label || "Capture");
+  // What the new pose means comes first; the next-pose plan (a fit) follows when ready.
+  await Promise.all([loadPoses(), loadVariety(), loadStarting()]);
+  if (planNext) loadNextPose();
+  if (end.status !== "succeeded") {
+    tell(feedbackId, "error", explainJob(end));
+    return false;
+  }
+  const pose = (end.resource || "").split("/").pop();
+  const rec = state.poses.find((p) => p.id === pose);
+  const repeat = state.variety && state.variety.duplicates.find((d) => d.pose_id === pose);
+  if (repeat) {
+    tell(feedbackId, "warn", `Pose ${rec ? rec.index : pose} repeats pose ${poseName(repeat.repeats)} ` +
+         `(${(100 * repeat.similarity).toFixed(0)}% alike): it adds almost nothing. Move or ` +
+         "tilt the screen and capture again, or delete it.");
+  } else if (rec && rec.status === "flagged") {
+    tell(feedbackId, "warn", `Pose ${rec.index} was captured but flagged: ${rec.error}. ` +
+         "Capture it again with the screen and camera still.");
+  } else {
+    tell(feedbackId, "ok", `${label || "Capture"} succeeded: pose ${rec ? rec.index : pose}` +
+         (rec && rec.valid_pixels ? ` sees the screen on ${rec.valid_pixels} pixels.` : "."));
+  }
+  return true;
 }
 
-async function cancel() {
-  if (state.job) await api("POST", `/jobs/${state.job}/cancel`);
+async function captureClicked() {
+  const pose = $("#use-suggestion").checked && state.suggestion ? state.suggestion.screen_pose : null;
+  await captureAt(pose, pose ? "Capture at the suggested pose" : "Capture", "capture-feedback");
 }
 
-// --- calibrations and their reports -------------------------------------------------------
+// --- starting poses and pose variety -------------------------------------------------------
+async function loadStarting() {
+  const list = $("#starting-list");
+  try {
+    const answer = await api("GET", `/sessions/${state.session.id}/starting-poses?count=${STARTING_COUNT}`);
+    state.starting = answer.poses;
+    state.assumedCamera = answer.camera || null;
+    if (answer.camera) {
+      const [w, h] = answer.camera.image_size;
+      for (const view of state.cameras.values()) view.assumeSize(w, h);
+    }
+  } catch (e) {
+    state.starting = [];
+    list.replaceChildren();
+    tell("starting-feedback", "error", explain(e), e);
+    return;
+  }
+  const simulated = state.rig && state.rig.simulated;
+  const open = state.starting.filter((p) => !p.captured_by);
+  $("#starting-btn").textContent = !open.length ? "All starting poses captured"
+    : open.length === state.starting.length ? `Capture the ${state.starting.length} starting poses`
+      : `Capture the ${open.length} remaining starting poses`;
+  $("#starting-btn").disabled = state.busy || open.length === 0;
+  $("#starting-text").textContent = simulated
+    ? "A calibration needs the screen seen from varied places. On the simulated rig the page " +
+      "moves the screen through this varied set for you: capture them all, or one by one."
+    : "A calibration needs the screen seen from varied places. Put the screen where each " +
+      "line says (the dashed outline on the camera preview shows it), then press Capture.";
+  if (state.assumedCamera) {
+    $("#starting-text").append(el("span", { class: "explain", title: "what the plan assumed about the camera" },
+      ` Planned for ${state.assumedCamera.assumed}.`));
+  }
+  list.replaceChildren(...state.starting.map((p, i) => {
+    const done = p.captured_by
+      ? el("span", { class: "ok" }, ` captured (${p.captured_by})`)
+      : simulated
+        ? el("button", { class: "capture-one", disabled: state.busy,
+                         onclick: act("starting-feedback", () => captureAt(p.screen_pose, `Starting pose ${i + 1}`, "starting-feedback")) },
+             "capture this one")
+        : el("button", { onclick: () => outlineOnCameras(p.outline_px, `starting pose ${i + 1}`) }, "show outline");
+    return el("li", { "data-captured": p.captured_by ? "yes" : "no" }, p.placement, " ", done);
+  }));
+  if (!simulated && !state.suggestion) {
+    const next = open[0];
+    outlineOnCameras(next ? next.outline_px : null, next ? `starting pose ${state.starting.indexOf(next) + 1}` : "");
+  }
+}
+
+async function captureStarting() {
+  clear("starting-feedback");
+  let n = 0;
+  for (;;) {
+    const open = state.starting.filter((p) => !p.captured_by);
+    if (!open.length) break;
+    const p = open[0];
+    const i = state.starting.indexOf(p);
+    const last = open.length === 1;
+    const ok = await captureAt(p.screen_pose, `Starting pose ${i + 1} of ${state.starting.length}`,
+                               "starting-feedback", last);
+    if (!ok) return;
+    n += 1;
+    if (state.starting.filter((q) => !q.captured_by).length >= open.length) {
+      tell("starting-feedback", "warn", `Starting pose ${i + 1} was captured but does not ` +
+           "match its placement; look at its maps, then capture the rest one by one.");
+      return;
+    }
+  }
+  tell("starting-feedback", "ok", `${n} starting poses captured. Next: follow the suggested ` +
+       "next pose, or calibrate.");
+}
+
+async function loadVariety() {
+  const box = $("#variety");
+  let v;
+  try {
+    v = await api("GET", `/sessions/${state.session.id}/pose-variety`);
+  } catch (e) {
+    state.variety = null;
+    box.replaceChildren(el("p", { class: "warn" }, explain(e)));
+    return;
+  }
+  state.variety = v;
+  const items = v.duplicates.map((d) => {
+    const p = state.poses.find((q) => q.id === d.pose_id);
+    return el("li", { class: "warn", "data-duplicate": d.pose_id },
+      `Pose ${p ? p.index : d.pose_id} repeats pose ${poseName(d.repeats)} (${(100 * d.similarity).toFixed(0)}% alike): ` +
+      "it adds almost nothing. Move or tilt the screen and capture again; delete the repeat. ",
+      p ? el("button", { class: "danger", onclick: act("poses-feedback", () => deletePose(p)) }, "delete it") : null);
+  });
+  const models = Object.entries(v.ready_for_calibration || {});
+  box.replaceChildren(
+    el("h4", {}, "Pose variety"),
+    el("p", { class: v.ready_for_guidance && !items.length ? "ok" : "warn" }, v.reason),
+    items.length ? el("ul", {}, ...items) : "",
+    models.length ? el("p", { class: "explain" }, "Enough varied poses for: ",
+      ...models.map(([m, ok]) => el("span", { class: ok ? "ok tag" : "bad tag", title: ok ? "ready" : "needs more varied poses" }, `${m} ${ok ? "yes" : "not yet"}`))) : "");
+}
+
+// --- the suggested next pose ---------------------------------------------------------------
+async function loadNextPose() {
+  const text = $("#next-pose-text");
+  const img = $("#next-pose-img");
+  const chosen = $("#calibrate-model").value;
+  const model = ["opencv5", "opencv-rational", "fisheye"].includes(chosen) ? chosen : "opencv-rational";
+  const asked = ++state.nextPoseAsked;  // only the newest answer is shown
+  try {
+    const g = await api("GET", `/sessions/${state.session.id}/next-pose?model=${model}`);
+    if (asked !== state.nextPoseAsked) return;
+    state.suggestion = g;
+    const p = g.predicted_worst_ray_sigma_urad;
+    const [u, v] = g.screen_center_px;
+    const where = g.placement ||
+      `${g.distance_mm.toFixed(0)} mm from the camera, tilted ${g.tilt_deg.toFixed(0)} deg towards ` +
+      `${g.tilt_azimuth_deg.toFixed(0)} deg, its centre at pixel (${u.toFixed(0)}, ${v.toFixed(0)}), ` +
+      `filling ${(100 * g.image_fraction).toFixed(0)}% of the image`;
+    text.replaceChildren(
+      g.helps === false
+        ? el("p", { class: "ok" }, g.advice || "No further pose would lower the uncertainty much: calibrate.")
+        : el("p", {}, `Place the screen ${where}.`, g.advice ? el("span", { class: "explain" }, ` ${g.advice}`) : ""),
+      el("p", { class: "explain", title: "ray sigma: the 1-sigma uncertainty of the viewing direction of a pixel, in microradians (1 urad is 1 um at 1 m)" },
+        `Worst predicted ray sigma (${g.model}, from ${g.poses_used.length} poses): ` +
+        `${fmt(p.now, 3)} urad now, ${fmt(p.after, 3)} urad after this pose. Smaller is better.`));
+    // The image's URL changes with its content; older services answer one URL per model.
+    img.src = /[?&]key=/.test(g.image) ? g.image : `${g.image}&poses=${g.poses_used.length}-${g.poses_used.at(-1)}`;
+    img.hidden = false;
+    if (g.outline_px) outlineOnCameras(g.outline_px, "suggested next pose");
+  } catch (e) {
+    if (asked !== state.nextPoseAsked) return;
+    state.suggestion = null;
+    img.hidden = true;
+    text.textContent = explain(e);
+  }
+}
+
+// --- calibrations, downloads and comparison ------------------------------------------------
 async function loadCalibrations() {
-  const cals = await api("GET", `/calibrations?session_id=${state.session}`);
-  $("#calibrations tbody").replaceChildren(...cals.map((c) => el("tr", { "data-calibration": c.id },
-    el("td", {}, c.id), el("td", {}, c.model),
-    el("td", { class: c.status === "succeeded" ? "" : "bad" }, c.status + (c.error ? `: ${c.error}` : "")),
-    el("td", {}, fmt(c.stats && c.stats.rms_px)), el("td", {}, fmt(c.stats && c.stats.noise_floor_ratio, 3)),
-    el("td", {}, c.status === "succeeded"
-      ? el("a", { href: `/calibrations/${c.id}/report.html`, target: "_blank", class: "report-link" }, "report")
-      : "-"))));
+  state.calibrations = await api("GET", `/calibrations?session_id=${state.session.id}`);
+  $("#calibrations tbody").replaceChildren(...state.calibrations.map((c) => {
+    const ok = c.status === "succeeded";
+    return el("tr", { "data-calibration": c.id, class: state.calibration === c.id ? "current" : null },
+      el("td", {}, c.id), el("td", {}, c.model),
+      el("td", { class: ok ? "" : "bad" }, c.status + (c.error ? `: ${c.error}` : "")),
+      el("td", {}, fmt(c.stats && c.stats.rms_px)), el("td", {}, fmt(c.stats && c.stats.noise_floor_ratio, 3)),
+      el("td", {}, ok ? el("a", { href: `/calibrations/${c.id}/report.html`, target: "_blank", class: "report-link" }, "report") : "-"),
+      el("td", {}, ok ? el("button", { class: "open-cal", onclick: act("calibrations-feedback", () => selectCalibration(c.id)) }, "downloads, compare") : "-"),
+      el("td", {}, el("button", { class: "danger", "aria-label": `delete calibration ${c.id}`,
+                                  onclick: act("calibrations-feedback", () => deleteCalibration(c)) }, "delete")));
+  }));
+  const wanted = state.calibration || urlState().calibration;
+  if (wanted && state.calibrations.some((c) => c.id === wanted && c.status === "succeeded")) selectCalibration(wanted);
+  else if (state.calibration) { state.calibration = null; $("#calibration-detail").hidden = true; setUrl({ calibration: null }); }
 }
 
 async function calibrate(ev) {
   ev.preventDefault();
-  const job = await api("POST", `/sessions/${state.session}/calibrations`, { model: $("#calibrate-model").value });
-  say(`calibration ${job.id} started`);
+  clear("calibrate-feedback");
+  const model = $("#calibrate-model").value;
+  const body = { model };
+  if (state.heldout.size) body.heldout_pose_ids = [...state.heldout];
+  const job = await api("POST", `/sessions/${state.session.id}/calibrations`, body);
+  tell("calibrate-feedback", "info", `Calibrating with ${model} (${job.id}).`);
   await loadCalibrations();
-  follow(job, async (end) => { say(`calibration ${end.status}`, end.status !== "succeeded"); await loadCalibrations(); });
+  const end = await follow(job, PANELS.calibrate, `Calibrate ${model}`);
+  await loadCalibrations();
+  if (end.status !== "succeeded") { tell("calibrate-feedback", "error", explainJob(end)); return; }
+  const cal = end.resource.split("/").pop();
+  const rec = state.calibrations.find((c) => c.id === cal);
+  tell("calibrate-feedback", "ok", `Calibration ${cal} succeeded` +
+       (rec && rec.stats ? `: RMS ${fmt(rec.stats.rms_px, 3)} px` : "") +
+       ". Its report and model files are below.");
+  selectCalibration(cal);
 }
 
-// --- the suggested next pose --------------------------------------------------------------
-async function loadNextPose() {
-  const text = $("#next-pose-text");
-  const img = $("#next-pose-img");
-  try {
-    const chosen = $("#calibrate-model").value;
-    const model = ["opencv5", "opencv-rational", "fisheye"].includes(chosen) ? chosen : "opencv-rational";
-    const g = await api("GET", `/sessions/${state.session}/next-pose?model=${model}`);
-    state.suggestion = g;
-    const p = g.predicted_worst_ray_sigma_urad;
-    const [u, v] = g.screen_center_px;
-    text.textContent = `Predicted with ${g.model}, from ${g.poses_used.length} poses. Screen at ${g.distance_mm.toFixed(0)} mm, tilted ${g.tilt_deg.toFixed(0)} deg ` +
-      `towards ${g.tilt_azimuth_deg.toFixed(0)} deg, its centre at pixel (${u.toFixed(0)}, ${v.toFixed(0)}), ` +
-      `filling ${(100 * g.image_fraction).toFixed(0)}% of the image. Worst predicted ray sigma ` +
-      `${fmt(p.now, 3)} urad now, ${fmt(p.after, 3)} urad after it.`;
-    img.src = g.image;
-    img.hidden = false;
-  } catch (e) {
-    state.suggestion = null;
-    img.hidden = true;
-    text.textContent = e.status === 409 ? "capture at least 3 varied poses first" : e.message;
+async function deleteCalibration(c) {
+  if (!confirm(`Delete calibration ${c.id} (${c.model}) and its files?`)) return;
+  await api("DELETE", `/calibrations/${c.id}`);
+  tell("calibrations-feedback", "ok", `Calibration ${c.id} deleted.`);
+  await loadCalibrations();
+}
+
+function downloadLink(path, label, title) {
+  const a = el("a", { href: path, class: "download", title }, label);
+  a.onclick = act("downloads-feedback", async (ev) => {
+    ev.preventDefault();
+    await saveFile(a.getAttribute("href"), label);
+  });
+  return a;
+}
+
+// Fetch with the token and save; a refusal is explained instead of saved as a file.
+async function saveFile(path, label) {
+  tell("downloads-feedback", "info", `Preparing ${label}...`);
+  const r = await request("GET", path);
+  const disposition = r.headers.get("Content-Disposition") || "";
+  const named = /filename="?([^";]+)"?/.exec(disposition);
+  const name = named ? named[1] : path.split("?")[0].split("/").filter(Boolean).slice(-2).join("-");
+  const info = r.headers.get("Phasecal-Export-Info");
+  const blob = await r.blob();
+  const url = URL.createObjectURL(blob);
+  const a = el("a", { href: url, download: name });
+  document.body.append(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 60000);
+  let note = "";
+  if (info) {
+    const i = JSON.parse(info);
+    note = i.exact === false && i.residual ? ` (an approximation: ${JSON.stringify(i.residual)})` : i.exact ? " (exact)" : "";
   }
+  tell("downloads-feedback", "ok", `Saved ${name}${note}.`);
+}
+
+function exportPath(cal, format) {
+  const q = new URLSearchParams({ format });
+  const pinhole = $("#remap-pinhole").value.trim();
+  if (format === "remap" && pinhole) q.set("pinhole", pinhole);
+  if (format === "mrcal" && $("#mrcal-approximate").checked) q.set("approximate", "true");
+  return `/calibrations/${cal}/export?${q}`;
+}
+
+function selectCalibration(cal) {
+  state.calibration = cal;
+  setUrl({ calibration: cal });
+  const rec = state.calibrations.find((c) => c.id === cal);
+  for (const tr of document.querySelectorAll("#calibrations tbody tr")) tr.classList.toggle("current", tr.dataset.calibration === cal);
+  $("#calibration-detail").hidden = false;
+  $("#calibration-title").textContent = `Calibration ${cal}${rec ? ` (${rec.model})` : ""}`;
+  const renderDownloads = () => $("#downloads").replaceChildren(
+    el("li", {}, downloadLink(`/calibrations/${cal}/files/model.json`, "model.json", "phasecal's own model file: every tool of phasecal reads it")),
+    ...EXPORT_FORMATS.map(([f, label, what]) => el("li", { "data-format": f },
+      downloadLink(exportPath(cal, f), label, what), el("span", { class: "explain" }, ` ${what}`))),
+    el("li", {}, el("a", { href: `/calibrations/${cal}/report.html`, target: "_blank" }, "open the report"),
+      el("span", { class: "explain" }, " numbers, residuals per pose, uncertainty; "),
+      downloadLink(`/calibrations/${cal}/report.html?download=1`, "save the report as one file", "one HTML file with its pictures inside")));
+  renderDownloads();
+  $("#remap-pinhole").oninput = renderDownloads;
+  $("#mrcal-approximate").onchange = renderDownloads;
+  const others = state.calibrations.filter((c) => c.status === "succeeded" && c.id !== cal);
+  $("#compare-with").replaceChildren(...others.map((c) => el("option", { value: c.id }, `${c.id} (${c.model})`)));
+  $("#compare-btn").disabled = others.length === 0;
+  $("#compare-result").textContent = others.length ? "" : "calibrate again (another model or poses) to compare";
+  clear("compare-feedback");
+}
+
+async function compare() {
+  const a = state.calibration, b = $("#compare-with").value;
+  tell("compare-feedback", "info", `Comparing ${a} with ${b}...`);
+  const d = await api("GET", `/calibrations/${a}/diff/${b}`);
+  const page = d.page || d.image;
+  $("#compare-result").replaceChildren(
+    `Viewing directions differ by ${fmt(d.rms_urad, 3)} urad RMS, ${fmt(d.p95_urad, 3)} urad ` +
+    `at the 95th percentile, ${fmt(d.max_urad, 3)} urad at most, after the best rotation. `,
+    el("a", { href: page, target: "_blank", class: "diff-link" }, d.page ? "open the comparison" : "difference map"));
+  clear("compare-feedback");
 }
 
 // --- wiring ---------------------------------------------------------------------------------
-function guard(fn) {
-  return async (...args) => {
-    try { await fn(...args); } catch (e) { say(e.message, true); }
-  };
-}
-
 async function start() {
   $("#token").value = token();
   if (token()) setToken(token());
   await loadRigs();
   await loadSessions();
+  const wanted = urlState().session;
+  if (wanted) await openSession(wanted);
   say("ready");
 }
 
-$("#token-form").onsubmit = guard(async (ev) => { ev.preventDefault(); setToken($("#token").value); await start(); });
-$("#new-session").onsubmit = guard(async (ev) => {
+function guarded(fn) {
+  return async (...args) => {
+    try { await fn(...args); } catch (e) { say(explain(e), true); }
+  };
+}
+
+$("#token-form").onsubmit = guarded(async (ev) => { ev.preventDefault(); setToken($("#token").value); await start(); });
+$("#new-session-rig").onchange = showSimHint;
+$("#new-session").onsubmit = act("new-session-feedback", async (ev) => {
   ev.preventDefault();
+  clear("new-session-feedback");
   const s = await api("POST", "/sessions", { name: $("#new-session-name").value,
     rig_id: $("#new-session-rig").value || null, preset: $("#new-session-preset").value });
   await openSession(s.id);
 });
-$("#capture-btn").onclick = guard(capture);
-$("#cancel-btn").onclick = guard(cancel);
-$("#calibrate-form").onsubmit = guard(calibrate);
-$("#calibrate-model").onchange = guard(async () => { if (state.session) await loadNextPose(); });
-guard(start)();
+$("#capture-btn").onclick = act("capture-feedback", captureClicked);
+$("#cancel-btn").onclick = act("capture-feedback", cancel);
+$("#cal-cancel-btn").onclick = act("calibrate-feedback", cancel);
+$("#starting-btn").onclick = act("starting-feedback", captureStarting);
+$("#calibrate-form").onsubmit = act("calibrate-feedback", calibrate);
+$("#calibrate-model").onchange = act("calibrate-feedback", async () => { if (state.session) await loadNextPose(); });
+$("#compare-btn").onclick = act("compare-feedback", compare);
+window.addEventListener("resize", () => { for (const v of state.cameras.values()) v.draw(); });
+guarded(start)();
