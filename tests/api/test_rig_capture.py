@@ -23,6 +23,9 @@ from api.pose_path import (
     stored_indices,
     write_camera_names,
 )
+from api.worker.tasks import stream_decode_rig_task
+from calibration.decode import DecodeError
+from calibration.shared.frame_store import FrameStore
 from calibration.shared.maps import load_maps
 from calibration.shared.progress import TaskContext
 from hw_mocks.rig import open_simulated_rig
@@ -170,3 +173,20 @@ def test_capture_on_several_cameras_outside_the_service_and_resume(tmp_path: Pat
         maps = load_maps(dirs[name] / "maps.npz")
         info = rig.cameras[name].info
         assert maps.shape == (info.height, info.width) and maps.valid_count() > 0
+
+
+def test_one_cameras_failed_decode_stops_the_others(tmp_path: Path) -> None:
+    """A camera whose store holds frames of another plan fails its decode; the decodes of
+    the cameras still waiting for frames stop too, and the failure (not their cancel) is
+    what the task raises."""
+    plan = build_plan(320, 240, [0.5, 0.5], preset="fast")
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps(plan.to_dict()))
+    wrong = FrameStore(tmp_path / "bad", len(plan.frames) + 1)
+    wrong.add(0, np.zeros((4, 6), np.uint8))
+    wrong.flush()
+    cameras = {"bad": (str(tmp_path / "bad"), str(tmp_path / "bad.npz"), {}),
+               "idle": (str(tmp_path / "idle"), str(tmp_path / "idle.npz"), {})}
+    with pytest.raises(DecodeError):
+        stream_decode_rig_task(TaskContext("job"), str(plan_path), cameras)
+    assert not (tmp_path / "idle.npz").exists()
