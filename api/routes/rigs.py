@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, Query
 from fastapi.responses import JSONResponse
 from sqlalchemy import select
 
@@ -63,25 +63,50 @@ def _settings_dict(s: Any) -> dict[str, Any]:
     return {"exposure_s": s.exposure_s, "gain_db": s.gain_db, "pixel_format": s.pixel_format}
 
 
+CameraQuery = Annotated[str | None, Query(
+    pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$",
+    description="a camera of a rig of several cameras (default: the reference camera)")]
+
+
+def _camera_of(rig: Any, camera: str | None) -> str:
+    """The camera a settings request names (default: the reference); 422 naming it if the
+    rig has no such camera."""
+    if camera is None:
+        return rig.reference
+    if camera not in rig.cameras:
+        raise Problem(422, "validation-error", f"camera: {camera!r} is not a camera of this "
+                      f"rig; it has {list(rig.cameras)}", field="camera")
+    return camera
+
+
 @router.get("/rigs/{rig_id}/camera/settings", response_model=CameraSettingsModel)
-def read_camera_settings(rig_id: str, svc: Svc) -> dict[str, Any]:
-    """The camera settings currently applied."""
+def read_camera_settings(rig_id: str, svc: Svc, camera: CameraQuery = None) -> dict[str, Any]:
+    """The camera settings currently applied (of `camera` on a rig of several)."""
     rig_id = svc.rigs.resolve(rig_id)
-    return _settings_dict(svc.rigs.handle(rig_id).rig.settings)
+    rig = svc.rigs.handle(rig_id).rig
+    return _settings_dict(rig.settings_for(_camera_of(rig, camera)))
 
 
 @router.put("/rigs/{rig_id}/camera/settings", response_model=CameraSettingsModel)
-def change_camera_settings(rig_id: str, body: CameraSettingsModel, svc: Svc) -> dict[str, Any]:
-    """Change exposure, gain or pixel format (not while a capture runs on the rig: 409)."""
+def change_camera_settings(rig_id: str, body: CameraSettingsModel, svc: Svc,
+                           camera: CameraQuery = None) -> dict[str, Any]:
+    """Change exposure, gain or pixel format (not while a capture runs on the rig: 409). On
+    a rig of several cameras, of `camera` alone; without it, the reference camera's, which
+    are also the settings of every camera that has none of its own."""
     rig_id = svc.rigs.resolve(rig_id)
     h = svc.rigs.handle(rig_id)
+    name = _camera_of(h.rig, camera)
     if not h.lock.acquire(blocking=False):
         raise Problem(409, "rig-busy", f"rig {rig_id} is capturing; change settings between poses")
     try:
         changes = body.model_dump(exclude_none=True)
-        wanted = dataclasses.replace(h.rig.settings, **changes)
-        h.rig.settings = h.rig.camera.configure(wanted)
-        return _settings_dict(h.rig.settings)
+        wanted = dataclasses.replace(h.rig.settings_for(name), **changes)
+        applied = h.rig.cameras[name].configure(wanted)
+        if name == h.rig.reference:
+            h.rig.settings = applied
+        else:
+            h.rig.camera_settings[name] = applied
+        return _settings_dict(applied)
     finally:
         h.lock.release()
 

@@ -78,6 +78,13 @@ def test_rig_configs_over_rest_are_validated(service) -> None:
     stored = c.get(f"/rigs/{rig.json()['id']}").json()["config"]
     assert [cam["name"] for cam in stored["cameras"]] == ["left", "right", "top"]
     assert stored["camera"] is None
+    settings = f"/rigs/{rig.json()['id']}/camera/settings"
+    changed = c.put(settings, params={"camera": "right"}, json={"exposure_s": 0.005})
+    assert changed.status_code == 200 and changed.json()["exposure_s"] == 0.005
+    assert c.get(settings, params={"camera": "right"}).json()["exposure_s"] == 0.005
+    assert c.get(settings).json()["exposure_s"] != 0.005  # the reference's are its own
+    unknown = c.get(settings, params={"camera": "back"})
+    assert unknown.status_code == 422 and unknown.json()["field"] == "camera"
     twice = three_camera_rig()
     twice["cameras"][2]["name"] = "left"
     bad = c.post("/rigs", json={"name": "twice", "config": twice})
