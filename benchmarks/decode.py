@@ -13,7 +13,8 @@ streaming decoder frame by frame (`add`, `finish`, as a live capture runs it), a
 ratio to a NumPy sum over the same uint8 bytes measured on this machine; then finish
 alone: Mpixel/s, its share of the pose's decode time and of the capture time.
 Each stage also shows its CPU seconds (all threads): on a shared, loaded machine wall
-times inflate, CPU seconds much less; `uptime`'s load is printed with the table.
+times inflate, CPU seconds much less; `uptime`'s load is printed with the table (the
+floor's CPU seconds too: on a loaded machine, compare configurations by CPU seconds).
 Last, `phasecal decode` on the same stack in a fresh process against the library's read +
 decode (best of N each), with the command's stage breakdown (`--timings`): startup,
 imports, plan, read + decode (including the kernels' load), write, fsync, rename, summary.
@@ -97,12 +98,18 @@ def make_stack(plan: Plan, border: bool, partly: bool = False, read_dn: float = 
 
 def timed(fn, repeats: int) -> float:
     """Best wall time of `repeats` runs (seconds)."""
-    best = float("inf")
+    return timed_cpu(fn, repeats)[0]
+
+
+def timed_cpu(fn, repeats: int) -> tuple[float, float]:
+    """Best wall time of `repeats` runs and the least CPU time of one (seconds)."""
+    best, cpu = float("inf"), float("inf")
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         fn()
         best = min(best, time.perf_counter() - t0)
-    return best
+        cpu = min(cpu, time.process_time() - c0)
+    return best, cpu
 
 
 CPU: dict[str, float] = {}  # stage row name -> CPU seconds of its best run
@@ -263,11 +270,12 @@ def main() -> int:
     for clip, border, partly in CONFIGS:
         stack = make_stack(plan, border, partly, args.read_noise, args.gain)
         if not (border or partly):
-            floor = timed(
+            floor, floor_cpu = timed_cpu(
                 lambda s=stack: [s[i].sum(dtype=np.uint64) for i in range(s.shape[0])],
                 args.repeats,
             )
             rows.append(("numpy sum over the same bytes (floor)", floor))
+            CPU["numpy sum over the same bytes (floor)"] = floor_cpu
         if args.xp == "numpy":
             for noise in (given_noise(args, partly), None):
                 tag = f"{clip}, noise {'given' if noise else 'from residuals'}"
