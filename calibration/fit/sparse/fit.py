@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -27,6 +27,7 @@ from calibration.fit.result import CalibrationResult, PoseEstimate
 from calibration.fit.sparse.options import MIN_VIEWS, ObservationOptions
 from calibration.fit.sparse.projection import project_view
 from calibration.fit.sparse.target_shape import TargetShape
+from calibration.models.base import CameraModel
 from calibration.models.parametric import PARAMETRIC_MODELS, PinholeFamily
 from calibration.shared.observations import TargetObservations
 
@@ -39,8 +40,8 @@ class ObservationFitError(ValueError):
 
 
 @dataclass
-class _View:
-    """One view's used points and its state in the fit."""
+class View:
+    """One view's used points and its state in the fit (any model's pixel-space fit)."""
 
     index: int
     obs: TargetObservations
@@ -59,7 +60,7 @@ class _View:
 class SparseFit:
     """The fitted camera, poses, target shape and uncertainty of a pixel-space fit."""
 
-    model: PinholeFamily
+    model: CameraModel  # a PinholeFamily, or an sGCC model (calibration/fit/sparse/sgcc.py)
     poses: list[PoseEstimate]
     shape: TargetShape
     intrinsics_covariance: np.ndarray  # (P, P) over all of `get_params()`, 0 where fixed
@@ -67,7 +68,7 @@ class SparseFit:
     stats: dict[str, Any]
 
 
-def _views(observations: list[TargetObservations], weights: str) -> list[_View]:
+def collect_views(observations: list[TargetObservations], weights: str) -> list[View]:
     """Used points of each view; errors name the view."""
     if not observations:
         raise ObservationFitError("observations: no views given")
@@ -85,7 +86,7 @@ def _views(observations: list[TargetObservations], weights: str) -> list[_View]:
                 f"usable points (need >= {MIN_POINTS_PER_VIEW})")
         rows = np.flatnonzero(used)
         w = np.ones(rows.size) if weights == "equal" else obs.weights()[rows]
-        out.append(_View(i, obs, rows, obs.image_xy[rows], obs.target_xyz[rows], w,
+        out.append(View(i, obs, rows, obs.image_xy[rows], obs.target_xyz[rows], w,
                          obs.sigma_px or 1.0, obs.sigma_px is not None,
                          inlier=np.ones(rows.size, bool)))
     return out
@@ -101,7 +102,7 @@ def _opencv_flags(model_name: str, options: ObservationOptions) -> int:
     return 0
 
 
-def _initialize(views: list[_View], size: tuple[int, int], model_name: str,
+def _initialize(views: list[View], size: tuple[int, int], model_name: str,
                 options: ObservationOptions) -> PinholeFamily:
     """OpenCV's calibration as the start: Zhang's method for a planar target, a guessed K
     (focal = image width, centre) otherwise; sets each view's pose."""
@@ -132,11 +133,11 @@ def _free_intrinsics(model: PinholeFamily, options: ObservationOptions) -> np.nd
     return free
 
 
-class _Problem:
+class _Problem:  # a SparseProblem
     """Parameter vector [free intrinsics, target shape, (rvec, tvec) per view] over the
     inliers of every view; whitened residuals and their Jacobian."""
 
-    def __init__(self, model: PinholeFamily, views: list[_View], shape: TargetShape,
+    def __init__(self, model: PinholeFamily, views: list[View], shape: TargetShape,
                  free: np.ndarray) -> None:
         self.model, self.views, self.shape = model, views, shape
         self.free = np.flatnonzero(free)
@@ -180,7 +181,7 @@ class _Problem:
         return np.concatenate(res), (np.concatenate(jacs) if want_jac else None)
 
 
-def _solve(problem: _Problem, max_nfev: int) -> Any:
+def solve(problem: SparseProblem, max_nfev: int) -> Any:
     cache: dict[bytes, np.ndarray] = {}
 
     def fun(x: np.ndarray) -> np.ndarray:
@@ -199,14 +200,39 @@ def _solve(problem: _Problem, max_nfev: int) -> Any:
     return sol
 
 
-def _view_norms(problem: _Problem) -> list[np.ndarray]:
-    """Per view, the whitened residual norm of every used point."""
+class SparseProblem(Protocol):
+    """What the shared robust loop needs of a pixel-space problem (parametric or sGCC):
+    its views, the parameter vector, and whitened residuals (the data's 2 per used point
+    first, view by view; any prior rows after them) with their Jacobian."""
+
+    views: list[View]
+
+    def pack(self) -> np.ndarray: ...
+
+    def unpack(self, x: np.ndarray) -> None: ...
+
+    def evaluate(self, x: np.ndarray, want_jac: bool, all_points: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray | None]: ...
+
+
+def view_residuals(problem: SparseProblem) -> list[np.ndarray]:
+    """Per view, the pixel residual (n, 2) of every used point (model minus observed)."""
     r, _ = problem.evaluate(problem.pack(), False, all_points=True)
-    sizes = np.cumsum([v.rows.size for v in problem.views])[:-1]
-    return [np.hypot(c[0::2], c[1::2]) for c in np.split(r, 2 * sizes)]
+    out, start = [], 0
+    for v in problem.views:
+        n = v.rows.size
+        out.append(r[start:start + 2 * n].reshape(n, 2) * (v.sigma / v.weight)[:, None])
+        start += 2 * n
+    return out
 
 
-def _update_sigma(problem: _Problem) -> None:
+def _view_norms(problem: SparseProblem) -> list[np.ndarray]:
+    """Per view, the whitened residual norm of every used point."""
+    return [np.hypot(d[:, 0], d[:, 1]) * v.weight / v.sigma
+            for v, d in zip(problem.views, view_residuals(problem), strict=True)]
+
+
+def _update_sigma(problem: SparseProblem) -> None:
     """One sigma for the views whose files give none: from their inlier residuals, with the
     fit's degrees of freedom shared out by point count."""
     unknown = [v for v in problem.views if not v.sigma_given]
@@ -228,7 +254,7 @@ def _update_sigma(problem: _Problem) -> None:
         v.sigma = sigma
 
 
-def _flag_outliers(problem: _Problem, k: float) -> bool:
+def _flag_outliers(problem: SparseProblem, k: float) -> bool:
     """Mark points beyond k robust sigmas; True if the inlier set changed."""
     norms = _view_norms(problem)
     scale = float(np.median(np.concatenate(norms))) / _CHI_MEDIAN_2DOF
@@ -242,7 +268,28 @@ def _flag_outliers(problem: _Problem, k: float) -> bool:
     return changed
 
 
-def _covariance(problem: _Problem) -> np.ndarray:
+def robust_fit(problem: SparseProblem, opts: ObservationOptions, label: str,
+               progress: Callable[[int, int, str], None] | None = None
+               ) -> tuple[int, int, bool]:
+    """Solve, estimate the sigma of views that give none, solve again, drop outliers beyond
+    `outlier_sigma` robust sigmas and repeat until the inlier set is stable (at most
+    `outlier_rounds` refits): (evaluations, rounds, converged)."""
+    nfev, rounds, converged = 0, 0, False
+    for rounds in range(opts.outlier_rounds + 1):
+        if progress is not None:
+            progress(rounds, opts.outlier_rounds + 1, f"{label}: pixel-space fit")
+        nfev += solve(problem, opts.max_iterations).nfev
+        _update_sigma(problem)  # the weights change only where views give no sigma
+        sol = solve(problem, opts.max_iterations)
+        nfev += sol.nfev
+        converged = bool(sol.success)
+        if rounds == opts.outlier_rounds or not _flag_outliers(problem, opts.outlier_sigma):
+            break
+    return nfev, rounds, converged
+
+
+def covariance_of(problem: SparseProblem) -> np.ndarray:
+    """Inverse normal matrix of every parameter at the solution (Jacobi-scaled inverse)."""
     _, jac = problem.evaluate(problem.pack(), True)
     normal = jac.T @ jac
     scale = np.sqrt(np.clip(np.diag(normal), 1e-300, None))
@@ -252,6 +299,43 @@ def _covariance(problem: _Problem) -> np.ndarray:
         raise ObservationFitError("observations: the fit is degenerate (singular normal "
                                   "matrix): the views do not fix every parameter") from None
     return inv / np.outer(scale, scale)
+
+
+def view_statistics(problem: SparseProblem, rotations: list[np.ndarray]
+                    ) -> tuple[list[PoseEstimate], dict[str, Any]]:
+    """Each view's pose (given its rotation matrix) and residual row, and the fit's RMS,
+    expected RMS, chi^2 and outlier count: the statistics every pixel-space fit reports."""
+    per_pose, poses, sq, count = [], [], 0.0, 0
+    chi2, expected_sq = 0.0, 0.0
+    for v, d, rot in zip(problem.views, view_residuals(problem), rotations, strict=True):
+        e2 = np.sum(d * d, axis=1)[v.inlier]
+        chi2 += float(np.sum(e2 * (v.weight[v.inlier] / v.sigma) ** 2))
+        sq, count = sq + float(e2.sum()), count + int(v.inlier.sum())
+        expected_sq += float(np.sum(2 * (v.sigma / v.weight[v.inlier]) ** 2))
+        rms = float(np.sqrt(e2.mean()))
+        per_pose.append({
+            "view": str(v.obs.meta.get("view", v.index)), "source": v.obs.meta.get("source"),
+            "rms_px": rms, "n_points": int(v.inlier.sum()), "sigma_px": v.sigma,
+            "sigma_estimated": not v.sigma_given,
+            "outliers": v.rows[~v.inlier].tolist(),
+            "outlier_residuals_px": np.hypot(d[~v.inlier, 0], d[~v.inlier, 1]).tolist()})
+        poses.append(PoseEstimate(rot, v.tvec.copy(), rms, None, int(v.inlier.sum())))
+    rms, expected = float(np.sqrt(sq / count)), float(np.sqrt(expected_sq / count))
+    stats: dict[str, Any] = {
+        "source": "observations",
+        "rms_px": rms,
+        # with sigma estimated from these residuals the ratio is ~1 by construction; the
+        # cross-validation is then the test of the model
+        "expected_rms_px": expected,
+        "noise_floor_ratio": rms / expected,
+        "model_adequate": bool(rms / expected <= ADEQUATE_RATIO),
+        "sigma_estimated": any(not v.sigma_given for v in problem.views),
+        "sigma_px": float(np.median([v.sigma for v in problem.views])),
+        "reduced_chi2_sum": chi2, "residual_count": 2 * count,
+        "per_pose": per_pose,
+        "outliers": int(sum((~v.inlier).sum() for v in problem.views)),
+    }
+    return poses, stats
 
 
 def fit_observations(
@@ -267,24 +351,14 @@ def fit_observations(
         raise ObservationFitError(f"observations: {model_name} needs >= {MIN_VIEWS} views, "
                                   f"got {len(observations)}")
     t0 = time.perf_counter()
-    views = _views(observations, opts.weights)
+    views = collect_views(observations, opts.weights)
     size = observations[0].image_size
     model = _initialize(views, size, model_name, opts)
     shape = TargetShape.of(np.concatenate([v.xyz for v in views]), opts.target)
     free = _free_intrinsics(model, opts)
     problem = _Problem(model, views, shape, free)
-    nfev, rounds, converged = 0, 0, False
-    for rounds in range(opts.outlier_rounds + 1):
-        if progress is not None:
-            progress(rounds, opts.outlier_rounds + 1, f"{model_name}: pixel-space fit")
-        nfev += _solve(problem, opts.max_iterations).nfev
-        _update_sigma(problem)  # the weights change only where views give no sigma
-        sol = _solve(problem, opts.max_iterations)
-        nfev += sol.nfev
-        converged = bool(sol.success)
-        if rounds == opts.outlier_rounds or not _flag_outliers(problem, opts.outlier_sigma):
-            break
-    cov = _covariance(problem)
+    nfev, rounds, converged = robust_fit(problem, opts, model_name, progress)
+    cov = covariance_of(problem)
     return _summarize(problem, cov, free, opts, nfev, rounds, converged,
                       time.perf_counter() - t0)
 
@@ -298,47 +372,18 @@ def _summarize(problem: _Problem, cov: np.ndarray, free: np.ndarray,
     cov_int[np.ix_(problem.free, problem.free)] = cov[:ni, :ni]
     problem.shape.set_covariance(cov[ni:ni + ns, ni:ni + ns])
     std = np.sqrt(np.clip(np.diag(cov_int), 0, None))
-    per_pose, poses, sq, count = [], [], 0.0, 0
-    chi2, expected_sq = 0.0, 0.0
-    for v in views:
-        pts, _ = problem.shape.points(v.xyz)
-        d = project_view(model, v.rvec, v.tvec, pts).pixels - v.xy
-        e2 = np.sum(d * d, axis=1)[v.inlier]
-        chi2 += float(np.sum(e2 * (v.weight[v.inlier] / v.sigma) ** 2))
-        sq, count = sq + float(e2.sum()), count + int(v.inlier.sum())
-        expected_sq += float(np.sum(2 * (v.sigma / v.weight[v.inlier]) ** 2))
-        rms = float(np.sqrt(e2.mean()))
-        per_pose.append({
-            "view": str(v.obs.meta.get("view", v.index)), "source": v.obs.meta.get("source"),
-            "rms_px": rms, "n_points": int(v.inlier.sum()), "sigma_px": v.sigma,
-            "sigma_estimated": not v.sigma_given,
-            "outliers": v.rows[~v.inlier].tolist(),
-            "outlier_residuals_px": np.hypot(d[~v.inlier, 0], d[~v.inlier, 1]).tolist()})
-        rot = cv2.Rodrigues(v.rvec)[0]
-        poses.append(PoseEstimate(rot, v.tvec.copy(), rms, None, int(v.inlier.sum())))
-    n_res = 2 * count
+    poses, stats = view_statistics(problem, [cv2.Rodrigues(v.rvec)[0] for v in views])
+    chi2, n_res = stats.pop("reduced_chi2_sum"), stats.pop("residual_count")
     names = model.param_names()
-    rms, expected = float(np.sqrt(sq / count)), float(np.sqrt(expected_sq / count))
-    stats: dict[str, Any] = {
-        "source": "observations",
-        "rms_px": rms,
-        # with sigma estimated from these residuals the ratio is ~1 by construction; the
-        # cross-validation is then the test of the model
-        "expected_rms_px": expected,
-        "noise_floor_ratio": rms / expected,
-        "model_adequate": bool(rms / expected <= ADEQUATE_RATIO),
-        "sigma_estimated": any(not v.sigma_given for v in views),
-        "sigma_px": float(np.median([v.sigma for v in views])),
+    stats.update({
         "reduced_chi2": chi2 / max(n_res - cov.shape[0], 1),
         "param_std": dict(zip(names, std.tolist(), strict=True)),
-        "per_pose": per_pose,
-        "outliers": int(sum((~v.inlier).sum() for v in views)),
         "target": problem.shape.to_json(),
         "intrinsics_covariance": {"names": names, "matrix": cov_int.tolist()},
         "options": opts.model_dump(),
         "iterations": nfev, "outlier_rounds": rounds, "converged": converged,
         "training_poses": list(range(len(views))), "wall_s": wall_s,
-    }
+    })
     return SparseFit(model, poses, problem.shape, cov_int, free, stats)
 
 
