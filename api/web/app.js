@@ -495,7 +495,7 @@ async function saveFile(path, label) {
   const r = await request("GET", path);
   const disposition = r.headers.get("Content-Disposition") || "";
   const named = /filename="?([^";]+)"?/.exec(disposition);
-  const name = named ? named[1] : path.split("?")[0].split("/").filter(Boolean).slice(-2).join("-");
+  const name = named ? named[1] : `${state.calibration}-${path.split("?")[0].split("/").pop()}`;
   const info = r.headers.get("Phasecal-Export-Info");
   const blob = await r.blob();
   const url = URL.createObjectURL(blob);

@@ -247,6 +247,10 @@ def test_calibration_from_the_page_alone(service, browser, downloads: Path) -> N
     _feedback(d, "#downloads-feedback", ".cameramodel")
     model = read_cameramodel(_downloaded(downloads, ".cameramodel"))
     np.testing.assert_allclose(model.camera_matrix, k, rtol=1e-9)
+    _click(d, "#downloads a[href$='download=1']")
+    _feedback(d, "#downloads-feedback", ".html")
+    page = _downloaded(downloads, ".html").read_text(encoding="utf-8")
+    assert cal in page and "data:image/png;base64," in page  # one file, pictures inside
 
     # A second model, then the two compared from the page.
     Select(d.find_element(By.ID, "calibrate-model")).select_by_value("opencv-rational")
@@ -289,6 +293,11 @@ def test_errors_are_explained_next_to_their_action(service, browser) -> None:
     d = browser
     _open_page(d, url)
     sid = _new_session(d, rig_id, "mistakes")
+    unlabelled = d.execute_script(
+        "return [...document.querySelectorAll('input, select, button')]"
+        ".filter(e => !(e.labels && e.labels.length) && !e.getAttribute('aria-label')"
+        " && !e.textContent.trim()).map(e => e.outerHTML)")
+    assert not unlabelled, f"controls without a label: {unlabelled}"
 
     # Calibrating with no poses at all.
     Select(d.find_element(By.ID, "calibrate-model")).select_by_value("sgcc")
