@@ -1,12 +1,12 @@
 """Calibration reports and model diffs built from the stored files, cached next to them.
 
-A calibration job draws its report as its last step (`draw_in_job`), on the executor, so the
-first open of a report is a file read. A calibration without one (drawn by a batch, before
-reports were drawn by jobs, or whose drawing failed) gets it drawn in the background on its
-first request (`ready_report`), which answers at once; until it is in place the page says
-so and reloads itself. Each report is written in a scratch folder and moved into
-`calibrations/<id>/report/`, so it is reproducible from stored data and costs nothing the
-second time.
+A calibration job (one model or a batch) draws its reports as its last step (`draw_in_job`),
+on the executor, so the first open of a report is a file read. A calibration without one
+(calibrated before reports were drawn by jobs, of an older layout, or whose drawing failed)
+gets it drawn in the background on its first request (`ready_report`), which answers at
+once; until it is in place the page says so and reloads itself. Each report is written in a
+scratch folder and moved into `calibrations/<id>/report/`, so it is reproducible from
+stored data and costs nothing the second time.
 """
 
 from __future__ import annotations
@@ -122,22 +122,32 @@ def _inputs(svc: Services, rec: CalibrationRecord) -> ReportInputs:
         header=_header(svc, rec), downloads=served_downloads(model, rec.id), links=None)
 
 
-def draw_in_job(svc: Services, cal_id: str) -> None:
-    """Draw a just-fitted calibration's report on the executor and wait for it (the job's
-    last step). A report that cannot be drawn does not fail the calibration: it is logged,
-    and the first request tries again."""
-    final = svc.store.dir_for(cal_id) / REPORT_DIR
-    with _lock(cal_id):
+def draw_in_job(svc: Services, cal_ids: list[str]) -> None:
+    """Draw just-fitted calibrations' reports on the executor, all at once, and wait for
+    them (a calibration job's last step). A report that cannot be drawn does not fail its
+    calibration: it is logged, and the first request tries again."""
+    started = []
+    for cal_id in cal_ids:
         tmp = svc.store.temp_dir()
         try:
             inputs = _inputs(svc, calibration(svc, cal_id))
-            svc.executor.submit(draw_report, inputs, str(tmp)).result()
+            started.append((cal_id, tmp, svc.executor.submit(draw_report, inputs, str(tmp))))
         # Whatever went wrong, the fit stands; the report is drawn again on its first request.
         except Exception as exc:
-            log.warning("calibration %s: report not drawn: %s", cal_id, exc)
-            shutil.rmtree(tmp, ignore_errors=True)
-            return
-        svc.store.replace_dir(tmp, final)
+            _not_drawn(cal_id, tmp, exc)
+    for cal_id, tmp, future in started:
+        try:
+            future.result()
+        except Exception as exc:
+            _not_drawn(cal_id, tmp, exc)
+            continue
+        with _lock(cal_id):
+            svc.store.replace_dir(tmp, svc.store.dir_for(cal_id) / REPORT_DIR)
+
+
+def _not_drawn(cal_id: str, tmp: Path, exc: Exception) -> None:
+    log.warning("calibration %s: report not drawn: %s", cal_id, exc)
+    shutil.rmtree(tmp, ignore_errors=True)
 
 
 def ready_report(svc: Services, cal_id: str) -> Path | None:

@@ -61,7 +61,7 @@ class CalibrateJob(Job):
             result = fut.result()
             ctx.check_cancelled()
             svc.store.commit(staged, output_names(result), svc.store.dir_for(self.cal_id))
-        draw_in_job(svc, self.cal_id)  # on the executor: the report's first open is a read
+        draw_in_job(svc, [self.cal_id])  # on the executor: the report's first open is a read
         return result
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:
@@ -110,12 +110,15 @@ class BatchCalibrateJob(Job):
                 for e in self.entries
             ]
             result = run_batch(svc.executor, items, ctx)
+            fitted = []
             for outcome in result.get("items", []):
                 if outcome["status"] == "succeeded":
                     cid = outcome["name"]
                     svc.store.commit(staged / cid, output_names(outcome["result"]),
                                      svc.store.dir_for(cid))
+                    fitted.append(cid)
                 outcome.pop("out_dir", None)
+        draw_in_job(svc, fitted)  # every report at once on the executor
         return result
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:

@@ -48,13 +48,19 @@ def service(tmp_path_factory: pytest.TempPathFactory):
             assert job["status"] == "succeeded", job
             poses.append(job["resource"].rsplit("/", 1)[-1])
         cals = {}
-        for model, opts in (("opencv5", {}), ("sgcc", {"cells": [4, 3]}),
-                            ("opencv-rational", {})):
+        for model, opts in (("opencv5", {}), ("sgcc", {"cells": [4, 3]})):
             job = client.wait(client.post(f"/sessions/{ses['id']}/calibrations",
                                           {"model": model, "pose_ids": poses[:3],
                                            "heldout_pose_ids": poses[3:], "options": opts}))
             assert job["status"] == "succeeded", job
             cals[model] = job["resource"].rsplit("/", 1)[-1]
+        # One through a batch (all 4 poses): batch jobs draw their reports too.
+        job = client.wait(client.post("/batches/calibrations", {
+            "session_ids": [ses["id"]], "models": [{"model": "opencv-rational"}]}))
+        assert job["status"] == "succeeded", job
+        cals["opencv-rational"] = next(
+            c["id"] for c in client.get("/calibrations", session_id=ses["id"])
+            if c["model"] == "opencv-rational")
         yield client, ses, poses, cals, root
         client.close()
 
@@ -135,8 +141,8 @@ def _report_folder(root: Path, cal_id: str) -> Path:
 
 
 def test_report_is_drawn_by_the_calibration_job(service) -> None:
-    # Every fixture calibration's report was in place when its job said succeeded (no GET
-    # came before this test), so the first open is a read of a drawn page.
+    # Every fixture calibration's report (one of them from a batch) was in place when its
+    # job said succeeded (no GET came before this test): the first open reads a drawn page.
     client, _, _, cals, root = service
     for cal_id in cals.values():
         assert (_report_folder(root, cal_id) / "report.html").is_file()
@@ -151,7 +157,7 @@ def _check_row(page: str, name: str) -> list[str]:
 
 
 def test_verdict_lines_match_what_the_stored_files_show(service) -> None:
-    client, ses, poses, cals, _ = service
+    client, ses, _, cals, _ = service
     cal_id = cals["opencv-rational"]
     page = client.request("GET", f"/calibrations/{cal_id}/report.html").text
     result = json.loads(client.request("GET", f"/calibrations/{cal_id}/files/result.json")
@@ -169,8 +175,9 @@ def test_verdict_lines_match_what_the_stored_files_show(service) -> None:
     assert measured.startswith(f"{len(loose)} of {fitted} parameters")
 
     # Empty coverage cells, counted here from the training poses' decoded masks.
+    used = client.get(f"/calibrations/{cal_id}")["pose_ids"]
     masks = [load_maps(client.request(
-        "GET", f"/sessions/{ses['id']}/poses/{pid}/maps.npz").content).mask for pid in poses[:3]]
+        "GET", f"/sessions/{ses['id']}/poses/{pid}/maps.npz").content).mask for pid in used]
     seen = np.any(masks, axis=0)
     h, w = seen.shape
     cells = seen.reshape(12, h // 12, 16, w // 16).any(axis=(1, 3))
@@ -232,7 +239,8 @@ def _diff_page(client: PhasecalClient, a: str, b: str) -> tuple[dict, str]:
 def test_diff_page_sets_the_difference_against_the_combined_uncertainty(service,
                                                                          tmp_path: Path) -> None:
     client, ses, poses, cals, _ = service
-    # Two models of the same poses of one camera: they differ by less than their noise.
+    # Two models of one camera (3 and 4 of the same poses): they differ by less than their
+    # uncertainty.
     same, page = _diff_page(client, cals["opencv5"], cals["opencv-rational"])
     assert same["agree"] is True and "agree within their uncertainty" in page
     # A model too coarse for the camera's ray field against the parametric fit.
