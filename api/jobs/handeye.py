@@ -44,7 +44,7 @@ class HandEyeJob(Job):
     """Hand-eye of the views in `paths` (VIEW -> maps.npz with the session's plan, or VIEW ->
     observations.npz) with the robot poses keyed by the same VIEW names."""
 
-    kind = JobKind.CALIBRATE  # a camera fit and the hand-eye fit on it
+    kind = JobKind.HANDEYE  # a camera fit and the hand-eye fit on it
     svc: Services
     mount: str
     model: str

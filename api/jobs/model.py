@@ -32,6 +32,7 @@ class JobKind(StrEnum):
     DECODE = "decode"
     CALIBRATE = "calibrate"
     INTRINSICS = "intrinsics"
+    HANDEYE = "handeye"
 
 
 ACTIVE_JOB_STATES = (JobStatus.QUEUED.value, JobStatus.RUNNING.value)
