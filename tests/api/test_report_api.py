@@ -26,7 +26,8 @@ from api.inprocess import running_service
 from calibration.evaluate import pose_residuals
 from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.result import PoseEstimate
-from calibration.models.base import model_from_dict
+from calibration.models.base import model_from_dict, save_model
+from calibration.models.parametric import OpenCV5Model
 from calibration.shared.maps import load_maps
 from calibration.shared.plan import plan_from_dict
 from tests.api.test_api_session import screen_poses, small_rig
@@ -273,6 +274,24 @@ def test_diff_page_sets_the_difference_against_the_combined_uncertainty(service,
     for key in ("rms_urad", "median_urad", "fraction_beyond_2_sigma"):
         assert summary[key] == pytest.approx(d[key], rel=1e-9), key
     assert summary["agree"] == d["agree"]
+
+
+def test_cli_diff_of_model_files(tmp_path: Path,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    paths = []
+    for name, f in (("a.json", 150.0), ("b.json", 151.0)):
+        model = OpenCV5Model((160, 120), np.array([[f, 0, 80.0], [0, f, 60.0], [0, 0, 1]]),
+                             np.array([-0.1, 0.04, 0.0, 0.0, 0.0]))
+        save_model(model, tmp_path / name)
+        paths.append(str(tmp_path / name))
+    # Without the fits' files a parametric model's uncertainty is unknown: no verdict.
+    assert main(["diff", *paths, "--step", "8", "-o", str(tmp_path / "d")]) == 0
+    out = capsys.readouterr().out
+    assert "cannot be judged" in out and (tmp_path / "d" / "diff.html").is_file()
+    # A fit's result without the plan it needs is one line and exit 1.
+    assert main(["diff", *paths, "--result-a", paths[0], "-o", str(tmp_path / "e")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--plan" in err[0]
 
 
 def test_decode_previews_have_colour_bars(service) -> None:

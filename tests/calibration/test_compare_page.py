@@ -56,3 +56,4 @@ def test_page_of_two_models_that_differ_and_two_that_agree(tmp_path: Path) -> No
     unknown = write_diff(a, b, tmp_path / "unknown", step_px=8.0, names=("A", "B"))
     assert unknown["agree"] is None and not (tmp_path / "unknown" / "diff_sigma.png").exists()
     assert "cannot be judged" in (tmp_path / "unknown" / "diff.html").read_text()
+
