@@ -77,7 +77,7 @@ export class CameraView {
   }
 
   show(blob, idleText, caption) {
-    this.caption.textContent = caption;
+    if (this.caption.textContent !== caption) this.caption.textContent = caption;  // announced once
     if (blob) {
       if (this.url) URL.revokeObjectURL(this.url);
       this.url = URL.createObjectURL(blob);

@@ -217,6 +217,13 @@ def test_calibration_from_the_page_alone(service, browser, downloads: Path) -> N
     _wait(d, lambda d: _loaded(d, "#next-pose-img")
           and d.find_element(By.ID, "next-pose-img").get_attribute("src") != first_plan)
     assert _rows(d, "#poses") == starting + 1
+    # the suggested placement is drawn over the camera preview (what hardware users follow)
+    assert d.execute_script(
+        "const c = document.querySelector('.camera canvas.overlay');"
+        "const px = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+        "let n = 0; for (let i = 0; i < px.length; i += 4)"
+        " if (px[i] > 200 && px[i + 1] > 150 && px[i + 2] < 80 && px[i + 3] > 0) n++;"
+        "return n;") > 50
     _shots(d, "3-guided")
 
     # Calibrate with the first pose held out; the progress bar is in view while it runs.
@@ -263,6 +270,14 @@ def test_calibration_from_the_page_alone(service, browser, downloads: Path) -> N
     _wait(d, lambda d: "urad" in _text(d, "#compare-result"), 300)
     compare_link = d.find_element(By.CSS_SELECTOR, "#compare-result a").get_attribute("href")
     _shots(d, "5-compared")
+
+    # A long fit cancelled from its own panel.
+    Select(d.find_element(By.ID, "calibrate-model")).select_by_value("sgcc")
+    _click(d, "#calibrate-btn")
+    _wait(d, lambda d: d.find_element(By.ID, "cal-cancel-btn").is_enabled())
+    assert not d.find_element(By.ID, "cancel-btn").is_enabled()  # only the running job's
+    _click(d, "#cal-cancel-btn")
+    _feedback(d, "#calibrate-feedback", "cancelled", 300)
 
     # Reload: the session and the calibration come back from the URL.
     d.refresh()
