@@ -31,7 +31,9 @@ from api.bluesky.plans import calibration_session
 from api.client import AsyncPhasecalClient, PhasecalClient
 from api.config import ServiceConfig
 from api.inprocess import running_service
-from tests.api.test_api_session import H, W, screen_poses, small_rig
+from calibration.models.base import model_from_dict
+from calibration.shared.maps import load_maps
+from tests.api.test_api_session import H, W, screen_poses, small_rig, truth_camera
 
 
 class Documents:
@@ -111,9 +113,8 @@ def test_guided_session_documents_carry_poses_and_fit(client, aclient, engine) -
         assert ev["data"]["phasecal-valid_pixels"] == pose["valid_pixels"] > 0.1 * W * H
         assert np.allclose(ev["data"]["screen-tvec_mm"], g["data"]["guide-tvec_mm"])
         assert np.allclose(ev["data"]["screen-rvec"], g["data"]["guide-rvec"])
-        maps = client.request("GET", ev["data"]["phasecal-maps_url"].removeprefix(
-            client.http.base_url.__str__().rstrip("/")))
-        assert maps.headers["content-type"].startswith("application/")
+        maps = load_maps(client.request("GET", ev["data"]["phasecal-maps_url"]).content)
+        assert maps.meta["pose_id"] == pose["id"]
     keys = docs.descriptor("primary")["data_keys"]
     assert keys["phasecal-valid_pixels"]["dtype"] == "integer"
     assert keys["phasecal-valid_pixels"]["units"] == "px"
@@ -132,6 +133,12 @@ def test_guided_session_documents_carry_poses_and_fit(client, aclient, engine) -
     assert np.isfinite(event["data"]["fit-heldout_rms_px"])
     fit_config = docs.descriptor("calibration")["configuration"]["fit"]["data"]
     assert fit_config["fit-model"] == "opencv5"
+    # and the model it names sees the simulated camera's rays
+    model = model_from_dict(client.get(f"/calibrations/{cal['id']}/files/model.json"))
+    u, v = np.meshgrid(np.linspace(10, W - 10, 7), np.linspace(10, H - 10, 5))
+    _, rays = model.unproject(np.stack([u.ravel(), v.ravel()], axis=1))
+    _, true_rays = truth_camera().rays(u.ravel(), v.ravel())
+    assert np.median(np.arccos(np.clip(np.sum(rays * true_rays, axis=1), -1, 1))) < 2e-3
 
 
 def test_stopped_run_cancels_the_capture(client, aclient, engine) -> None:
