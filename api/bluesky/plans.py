@@ -35,20 +35,19 @@ def calibration_session(capture: PhasecalCapture, screen: PhasecalScreen,
                         ) -> MsgGenerator[str]:
     """Capture a pose at each screen pose and calibrate; returns the calibration id.
 
-    The screen poses are `poses` (each `{"rvec", "tvec_mm"}`), or, without them,
+    The screen poses are either `poses` (each `{"rvec", "tvec_mm"}`) or
     `pose_count` suggestions of `guide` (starting poses, then the next-pose guidance), each
     read into the `guidance` stream before the screen moves there. The last `heldout`
     captured poses are held out of the fit and scored. Staging `capture` creates (or
     attaches) the session; its id is in the start document (`phasecal_session_id`).
     """
-    if poses is not None:
-        for pose in poses:
-            screen_pose_vectors(pose)  # a bad pose fails before anything moves
-        count = len(poses)
-    elif guide is None:
-        raise ValueError("calibration_session: give the screen poses or a guide to plan them")
-    else:
-        count = pose_count
+    if (poses is None) == (guide is None):
+        raise ValueError("calibration_session: give either the screen poses or a guide that "
+                         "plans them")
+    listed = [dict(pose) for pose in poses or ()]
+    for pose in listed:
+        screen_pose_vectors(pose)  # a bad pose fails before anything moves
+    count = len(listed) if poses is not None else pose_count
     if not 0 <= heldout < count:
         raise ValueError(f"calibration_session: heldout must be in [0, {count - 1}] for "
                          f"{count} poses, got {heldout}")
@@ -56,17 +55,19 @@ def calibration_session(capture: PhasecalCapture, screen: PhasecalScreen,
     yield from ensure_connected(*devices)
     calibration_ids: list[str] = []  # what the run made (run_wrapper returns the run's uid)
 
+    def next_target(index: int) -> MsgGenerator[dict[str, Any]]:
+        """The listed pose, or the guide's suggestion read into the guidance stream."""
+        if guide is None:
+            return listed[index]
+        yield from bps.trigger_and_read([guide], name=GUIDANCE)
+        rvec = yield from bps.rd(guide.rvec)
+        tvec = yield from bps.rd(guide.tvec_mm)
+        return {"rvec": list(rvec), "tvec_mm": list(tvec)}
+
     def captured_run() -> MsgGenerator[None]:
         pose_ids: list[str] = []
         for index in range(count):
-            if poses is not None:
-                target = dict(poses[index])
-            else:
-                assert guide is not None
-                yield from bps.trigger_and_read([guide], name=GUIDANCE)
-                rvec = yield from bps.rd(guide.rvec)
-                tvec = yield from bps.rd(guide.tvec_mm)
-                target = {"rvec": list(rvec), "tvec_mm": list(tvec)}
+            target = yield from next_target(index)
             yield from bps.mv(screen, target)
             yield from bps.trigger_and_read([capture, screen], name=CAPTURES)
             pose_ids.append((yield from bps.rd(capture.pose_id)))

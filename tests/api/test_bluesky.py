@@ -5,6 +5,7 @@ mid-capture cancels the capture job, and the service's refusals surface with its
 from __future__ import annotations
 
 import asyncio
+import importlib
 import json
 import re
 import threading
@@ -20,6 +21,7 @@ from bluesky import plan_stubs as bps
 from bluesky.utils import FailedStatus, RunEngineInterrupted
 from ophyd_async.plan_stubs import ensure_connected
 
+import api.bluesky
 from api.bluesky.devices import (
     PhasecalCalibration,
     PhasecalCapture,
@@ -31,6 +33,7 @@ from api.bluesky.plans import calibration_session
 from api.client import AsyncPhasecalClient, PhasecalClient
 from api.config import ServiceConfig
 from api.inprocess import running_service
+from calibration import extras
 from calibration.models.base import model_from_dict
 from calibration.shared.maps import load_maps
 from tests.api.test_api_session import H, W, screen_poses, small_rig, truth_camera
@@ -141,7 +144,8 @@ def test_guided_session_documents_carry_poses_and_fit(client, aclient, engine) -
     assert np.median(np.arccos(np.clip(np.sum(rays * true_rays, axis=1), -1, 1))) < 2e-3
 
 
-def test_stopped_run_cancels_the_capture(client, aclient, engine) -> None:
+@pytest.mark.parametrize(("end", "exit_status"), [("stop", "success"), ("abort", "abort")])
+def test_stopped_run_cancels_the_capture(client, aclient, engine, end, exit_status) -> None:
     rig_id = rig(client, slow=True)
     capture = PhasecalCapture(aclient, rig_id, preset="fast", name="phasecal")
     screen = PhasecalScreen(aclient, rig_id, name="screen")
@@ -164,14 +168,14 @@ def test_stopped_run_cancels_the_capture(client, aclient, engine) -> None:
     with pytest.raises(RunEngineInterrupted):
         engine(calibration_session(capture, screen, fit, screen_poses(3, seed=5)), docs)
     watcher.join()
-    engine.stop()
+    getattr(engine, end)()
     assert running, "the capture never started"
     final = client.wait(running["id"], check=False, timeout_s=60)
     assert final["status"] == "cancelled"
     assert client.get(final["resource"])["status"] == "cancelled"
     assert client.get("/jobs", status="running")["items"] == []
     assert client.get("/jobs", status="queued")["items"] == []
-    assert docs.by_kind["stop"][0]["exit_status"] == "success"
+    assert docs.by_kind["stop"][0]["exit_status"] == exit_status
     assert docs.events("primary") == [] and docs.events("calibration") == []
 
 
@@ -191,6 +195,8 @@ def test_service_refusal_surfaces_with_its_reason(client, aclient, engine) -> No
     assert isinstance(cause, PhasecalDeviceError) and cause.status == 404
     assert "moving the screen of rig no-such-rig" in str(cause)
     assert cause.problem["detail"] in str(cause)
+    with pytest.raises(ValueError, match=r"heldout must be in \[0, 2\] for 3 poses, got 3"):
+        engine(calibration_session(capture, screen, fit, screen_poses(3, seed=5), heldout=3))
     with pytest.raises(ValueError, match="tvec_mm must be 3 finite numbers"):
         engine(calibration_session(capture, screen, fit,
                                    [{"rvec": [0, 0, 0], "tvec_mm": [0, 0]}]))
@@ -199,3 +205,9 @@ def test_service_refusal_surfaces_with_its_reason(client, aclient, engine) -> No
 def screen_move(screen: PhasecalScreen):
     yield from ensure_connected(screen)
     yield from bps.mv(screen, screen_poses(1, seed=3)[0])
+
+
+def test_without_the_extra_the_import_names_the_install_command(monkeypatch) -> None:
+    monkeypatch.setattr(extras, "installed", lambda extra: extra != "bluesky")
+    with pytest.raises(extras.MissingExtra, match=r"pip install 'phasecal\[bluesky\]'"):
+        importlib.reload(api.bluesky)
