@@ -11,6 +11,10 @@ fsynced when the capture ends), so:
   may be incomplete: recovery checks every member's CRC-32 (`intact_maps`); intact maps
   are made durable, others are removed and the pose becomes `interrupted`, so resuming it
   decodes its stored frames again. Maps that may be half-written are never trusted.
+
+A pose of several cameras has a maps file per camera (`cameras/<name>/maps.npz`), each
+marked and made durable in its camera's folder the same way; one camera's lost maps make
+the whole pose `interrupted` (its resume decodes every camera's stored frames again).
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from pathlib import Path
 from sqlalchemy import select
 
 from api.db import Database, PoseRecord
+from api.pose_path import CAMERA_SUMMARY, CAMERAS
 from calibration.shared.atomic import fsync_path
 
 PENDING = "maps.pending"
@@ -106,26 +111,34 @@ class MapsSyncer:
 
 def recover_pending(db: Database, poses_dir: Path) -> list[str]:
     """At start: poses whose maps were committed but maybe not durable when the last process
-    stopped. Intact maps are made durable; others are removed and their pose becomes
-    `interrupted` (resume decodes its stored frames again). Returns those pose ids."""
-    lost = []
-    for marker in sorted(poses_dir.glob(f"*/{PENDING}")):
-        pose_dir = marker.parent
-        problem = intact_maps(pose_dir / MAPS)
+    stopped (a one-camera pose's folder, or a camera's folder of a several-camera pose).
+    Intact maps are made durable; others are removed and their pose becomes `interrupted`
+    (resume decodes its stored frames again). Returns those pose ids."""
+    lost: list[str] = []
+    markers = sorted([*poses_dir.glob(f"*/{PENDING}"),
+                      *poses_dir.glob(f"*/{CAMERAS}/*/{PENDING}")])
+    for marker in markers:
+        maps_dir = marker.parent
+        problem = intact_maps(maps_dir / MAPS)
         if problem is None:
-            make_durable(pose_dir)
+            make_durable(maps_dir)
             continue
-        reason = (f"interrupted: the maps were not yet durable when the server stopped "
+        camera = maps_dir.name if maps_dir.parent.name == CAMERAS else None
+        pose_id = maps_dir.parent.parent.name if camera else maps_dir.name
+        whose = f"camera {camera!r}'s maps were" if camera else "the maps were"
+        reason = (f"interrupted: {whose} not yet durable when the server stopped "
                   f"({problem}); resume the pose to decode its stored frames again")
         with db.session() as s:
-            pose = s.scalars(select(PoseRecord).where(PoseRecord.id == pose_dir.name)).first()
+            pose = s.scalars(select(PoseRecord).where(PoseRecord.id == pose_id)).first()
             if pose is not None and pose.status in ("ready", "flagged"):
                 before = f" (it was {pose.status}: {pose.error})" if pose.error else ""
                 pose.status, pose.error = "interrupted", reason + before
                 pose.valid_pixels = None
                 lost.append(pose.id)
-        (pose_dir / MAPS).unlink(missing_ok=True)
-        fsync_path(pose_dir)
+        (maps_dir / MAPS).unlink(missing_ok=True)
+        if camera:  # the camera shows ready only with its maps and their summary
+            (maps_dir / CAMERA_SUMMARY).unlink(missing_ok=True)
+        fsync_path(maps_dir)
         marker.unlink()
-        fsync_path(pose_dir)
+        fsync_path(maps_dir)
     return lost

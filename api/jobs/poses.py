@@ -28,7 +28,7 @@ from api.pose_path import (
 from api.rigs import RigHandle
 from api.storage import NO_SPACE, pose_bytes
 from api.worker.tasks import decode_task, warm_decode_task
-from calibration.shared.atomic import fsync_path, write_json_atomic
+from calibration.shared.atomic import write_json_atomic
 from calibration.shared.frame_store import FrameStore
 from calibration.shared.plan import Plan
 from calibration.shared.progress import TaskContext
@@ -171,8 +171,8 @@ class CaptureJob(PoseJob):
 
     def run_cameras(self, ctx: TaskContext, handle: RigHandle) -> dict[str, Any]:
         """A pose of a several-camera rig: every camera captured in sync into its own
-        folder (`cameras/<name>/`), each decoded live; the maps are fsynced by the decode
-        before they are committed (the pose is ready with every camera's maps durable)."""
+        folder (`cameras/<name>/`), each decoded live; each camera's maps are made durable
+        after the pose is ready, as a one-camera pose's (api/maps_durability.py)."""
         svc, plan, rig = self.svc, self.plan, handle.rig
         pose_dir = svc.store.dir_for(self.pose_id)
         plan_path = svc.store.dir_for(self.session_id or "") / "plan.json"
@@ -200,7 +200,7 @@ class CaptureJob(PoseJob):
                 decode = ExecutorRigDecode(
                     svc.executor, ctx, plan_path,
                     {name: (dirs[name], outs[name]) for name in names}, metas,
-                    noise=self.noise_dn, durable=True, compiled=True)
+                    noise=self.noise_dn, durable=False, compiled=True)
                 try:
                     cap = capture_rig_live(ctx, rig, plan, dirs, decode,
                                            on_frame=svc.preview.publisher(self.rig_id))
@@ -210,12 +210,13 @@ class CaptureJob(PoseJob):
             decs = decode.result()
             ctx.check_cancelled()
             decoded_at = time.time()
-            for name in names:
+            for name in names:  # the maps unsynced: ready now, durable in the background
+                mark_pending(dirs[name])
                 svc.store.commit(outs[name].parent, ["maps.npz"], dirs[name])
                 write_json_atomic(dirs[name] / CAMERA_SUMMARY,
                                   {k: decs[name].get(k) for k in
                                    ("valid_pixels", "width", "height")})
-                fsync_path(dirs[name])  # the renames of the maps and summary, durable
+                svc.maps_sync.submit(dirs[name])
         reference = decs[names[0]]
         dec = {"valid_pixels": reference.get("valid_pixels"), "width": reference.get("width"),
                "height": reference.get("height"), "cameras": decs,

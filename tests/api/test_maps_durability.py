@@ -67,7 +67,11 @@ def captured(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, bytes
 
 def _crash_state(data: Path, pose_url: str, damage: str, maps: bytes) -> Path:
     """Leave the pose folder as a crash before the background fsync could have left it."""
-    pose_dir = data / "poses" / pose_url.rsplit("/", 1)[1]
+    return _crash_maps(data / "poses" / pose_url.rsplit("/", 1)[1], damage, maps)
+
+
+def _crash_maps(pose_dir: Path, damage: str, maps: bytes) -> Path:
+    """Leave a folder of maps (a pose's, or a camera's of a pose) as such a crash would."""
     (pose_dir / PENDING).touch()
     path = pose_dir / "maps.npz"
     if damage == "killed":  # page cache kept: the whole file
@@ -147,3 +151,51 @@ def test_a_flagged_pose_stays_flagged_when_its_lost_maps_are_decoded_again(
         assert pose["status"] == "flagged"
         assert pose["error"] == "integrity check: camera or screen moved"
         c.app.state.services.maps_sync.drain()
+
+
+TWO_CAMERAS = {"kind": "simulated", "screen": {"width_px": 320, "height_px": 240,
+                                               "pitch_mm": [0.5, 0.5]},
+               "cameras": [{"name": "left", "width": 64, "height": 48},
+                           {"name": "right", "width": 72, "height": 54}]}
+
+
+def test_a_camera_of_several_keeps_or_loses_its_pending_maps_as_a_pose_does(
+        tmp_path: Path) -> None:
+    """Each camera's maps of a several-camera pose are marked pending in the camera's
+    folder and made durable in the background; after a crash intact ones are kept, and a
+    damaged one makes the pose interrupted until a resume decodes the stored frames again."""
+    data = tmp_path / "data"
+    with TestClient(_app(data)) as c:
+        rig = c.post("/rigs", json={"name": "two", "config": TWO_CAMERAS}).json()
+        sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
+        final = _wait_done(c, c.post(f"/sessions/{sess['id']}/poses", json={}).json()["id"])
+        assert final["status"] == "succeeded", final["error"]
+        url = final["resource"]
+        maps = {n: c.get(f"{url}/maps.npz", params={"camera": n}).content
+                for n in ("left", "right")}
+        c.app.state.services.maps_sync.drain()
+    cameras = data / "poses" / url.rsplit("/", 1)[1] / "cameras"
+    assert not list(cameras.glob(f"*/{PENDING}"))  # durable: every camera's mark is gone
+    killed = _crash_maps(cameras / "left", "killed", maps["left"])
+    lost = _crash_maps(cameras / "right", "truncated", maps["right"])
+    with TestClient(_app(data)) as c:
+        pose = c.get(url).json()
+        assert pose["status"] == "interrupted" and "camera 'right'" in pose["error"]
+        status = {cam["name"]: cam["status"] for cam in pose["cameras"]}
+        assert status == {"left": "ready", "right": "interrupted"}
+        assert not (killed / PENDING).exists()
+        assert (killed / "maps.npz").read_bytes() == maps["left"]
+        assert not (lost / PENDING).exists() and not (lost / "maps.npz").exists()
+        job = c.post(f"{url}/resume").json()
+        done = _wait_done(c, job["id"])
+        assert done["status"] == "succeeded", done["error"]
+        assert done["result"]["capture"]["captured"] == 0
+        pose = c.get(url).json()
+        assert pose["status"] == "ready"
+        assert [cam["status"] for cam in pose["cameras"]] == ["ready", "ready"]
+        again = load_maps(c.get(f"{url}/maps.npz", params={"camera": "right"}).content)
+        c.app.state.services.maps_sync.drain()
+    assert not list(cameras.glob(f"*/{PENDING}"))
+    before = load_maps(maps["right"])
+    for name in ("x", "y", "sigma_x", "sigma_y", "mask"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(before, name))
