@@ -4,8 +4,9 @@ detector: `PhasecalScreen` (the simulated screen's pose, settable), `PhasecalCap
 = capture and decode one pose), `PhasecalGuide` (the next screen pose the service suggests)
 and `PhasecalCalibration` (trigger = fit a model to the captured poses).
 
-A device's job is cancelled on the server when the device is stopped or unstaged while the
-job runs (a RunEngine stopped or aborted mid-capture), so no capture outlives the plan."""
+A device's job is cancelled on the server when the device is stopped, paused or unstaged
+while the job runs (a RunEngine paused, stopped or aborted mid-capture), so no capture
+outlives the plan and a paused run leaves the rig free."""
 
 from __future__ import annotations
 
@@ -143,9 +144,10 @@ class PhasecalCapture(StandardReadable):
 
     `stage()` attaches to `session_id` or creates a session on `rig_id` (with `preset` or
     `plan`); `trigger()` captures and decodes one pose on it; the reading is the pose's id,
-    status, valid-pixel count and the URL of its decoded maps. `stop()`/`unstage()` cancel a
-    capture in progress on the server; that trigger then completes with the pose `cancelled`
-    (any other capture that does not succeed fails the trigger with the service's reason)."""
+    status, valid-pixel count and the URL of its decoded maps. `stop()`, `pause()` and
+    `unstage()` cancel a capture in progress on the server; that trigger then completes with
+    the pose `cancelled` (any other capture that does not succeed fails the trigger with the
+    service's reason)."""
 
     def __init__(self, client: AsyncPhasecalClient, rig_id: str = "default",
                  session_id: str | None = None, session_name: str = "",
@@ -192,6 +194,14 @@ class PhasecalCapture(StandardReadable):
     async def stop(self, success: bool = True) -> None:
         """Cancel a capture in progress (its job ends `cancelled` on the server)."""
         await self.job.stop()
+
+    async def pause(self) -> None:
+        """The RunEngine pauses: cancel a capture in progress so the rig is free meanwhile;
+        on resume the run goes back to its checkpoint and captures that pose again."""
+        await self.job.stop()
+
+    async def resume(self) -> None:
+        """Nothing to restore: a paused capture was cancelled and is captured afresh."""
 
     @AsyncStatus.wrap
     async def trigger(self) -> None:
@@ -285,8 +295,8 @@ class PhasecalCalibration(StandardReadable):
     and `heldout_pose_ids`; `options` are the model's options. `trigger()` runs the job;
     the reading is the calibration id, its status, RMS reprojection error, held-out RMS,
     whether the fit converged, and every statistic as JSON (`stats`), so the run's
-    documents carry the whole result. `stop()`/`unstage()` cancel a fit in progress (that
-    trigger completes with the status `cancelled`)."""
+    documents carry the whole result. `stop()`, `pause()` and `unstage()` cancel a fit in
+    progress (that trigger completes with the status `cancelled`)."""
 
     def __init__(self, capture: PhasecalCapture, model: str = "opencv5",
                  options: dict[str, Any] | None = None, fit_timeout_s: float = 1800.0,
@@ -319,6 +329,13 @@ class PhasecalCalibration(StandardReadable):
     async def stop(self, success: bool = True) -> None:
         """Cancel a fit in progress (its job ends `cancelled` on the server)."""
         await self.job.stop()
+
+    async def pause(self) -> None:
+        """The RunEngine pauses: cancel a fit in progress; on resume it is fitted again."""
+        await self.job.stop()
+
+    async def resume(self) -> None:
+        """Nothing to restore: a paused fit was cancelled and is run afresh."""
 
     @AsyncStatus.wrap
     async def trigger(self) -> None:

@@ -67,10 +67,12 @@ def calibration_session(capture: PhasecalCapture, screen: PhasecalScreen,
     def captured_run() -> MsgGenerator[None]:
         pose_ids: list[str] = []
         for index in range(count):
+            yield from bps.checkpoint()  # a resumed run captures this pose again
             target = yield from next_target(index)
             yield from bps.mv(screen, target)
             yield from bps.trigger_and_read([capture, screen], name=CAPTURES)
             pose_ids.append((yield from bps.rd(capture.pose_id)))
+        yield from bps.checkpoint()
         split = len(pose_ids) - heldout
         yield from bps.mv(calibration.pose_ids, pose_ids[:split],
                           calibration.heldout_pose_ids, pose_ids[split:])

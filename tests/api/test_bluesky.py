@@ -27,6 +27,7 @@ from api.bluesky.devices import (
     PhasecalCapture,
     PhasecalGuide,
     PhasecalScreen,
+    resource_id,
 )
 from api.bluesky.errors import PhasecalDeviceError
 from api.bluesky.plans import calibration_session
@@ -144,18 +145,14 @@ def test_guided_session_documents_carry_poses_and_fit(client, aclient, engine) -
     assert np.median(np.arccos(np.clip(np.sum(rays * true_rays, axis=1), -1, 1))) < 2e-3
 
 
-@pytest.mark.parametrize(("end", "exit_status"), [("stop", "success"), ("abort", "abort")])
-def test_stopped_run_cancels_the_capture(client, aclient, engine, end, exit_status) -> None:
-    rig_id = rig(client, slow=True)
-    capture = PhasecalCapture(aclient, rig_id, preset="fast", name="phasecal")
-    screen = PhasecalScreen(aclient, rig_id, name="screen")
-    fit = PhasecalCalibration(capture, name="fit")
-    docs = Documents()
+def pause_mid_capture(client: PhasecalClient, engine: RunEngine, plan, docs: Documents
+                      ) -> dict:
+    """Run `plan` and pause the engine once a capture has taken two frames; that job."""
     running: dict = {}
 
-    def stop_mid_capture() -> None:
+    def pause_when_capturing() -> None:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not running:
+        while time.monotonic() < deadline:
             for job in client.get("/jobs", kind="capture", status="running")["items"]:
                 if job["stage"] == "capture" and job["done"] >= 2:
                     running.update(job)
@@ -163,20 +160,54 @@ def test_stopped_run_cancels_the_capture(client, aclient, engine, end, exit_stat
                     return
             time.sleep(0.05)
 
-    watcher = threading.Thread(target=stop_mid_capture)
+    watcher = threading.Thread(target=pause_when_capturing)
     watcher.start()
-    with pytest.raises(RunEngineInterrupted):
-        engine(calibration_session(capture, screen, fit, screen_poses(3, seed=5)), docs)
-    watcher.join()
-    getattr(engine, end)()
+    try:
+        with pytest.raises(RunEngineInterrupted):
+            engine(plan, docs)
+    finally:
+        watcher.join()
     assert running, "the capture never started"
     final = client.wait(running["id"], check=False, timeout_s=60)
-    assert final["status"] == "cancelled"
+    assert final["status"] == "cancelled"  # already while paused: the rig is free
     assert client.get(final["resource"])["status"] == "cancelled"
+    return final
+
+
+@pytest.mark.parametrize(("end", "exit_status"), [("stop", "success"), ("abort", "abort")])
+def test_stopped_run_cancels_the_capture(client, aclient, engine, end, exit_status) -> None:
+    rig_id = rig(client, slow=True)
+    capture = PhasecalCapture(aclient, rig_id, preset="fast", name="phasecal")
+    screen = PhasecalScreen(aclient, rig_id, name="screen")
+    fit = PhasecalCalibration(capture, name="fit")
+    docs = Documents()
+    pause_mid_capture(client, engine,
+                      calibration_session(capture, screen, fit, screen_poses(3, seed=5)), docs)
+    getattr(engine, end)()
     assert client.get("/jobs", status="running")["items"] == []
     assert client.get("/jobs", status="queued")["items"] == []
     assert docs.by_kind["stop"][0]["exit_status"] == exit_status
     assert docs.events("primary") == [] and docs.events("calibration") == []
+
+
+def test_paused_run_resumes_by_capturing_the_pose_again(client, aclient, engine) -> None:
+    rig_id = rig(client, slow=True)
+    capture = PhasecalCapture(aclient, rig_id, preset="fast", name="phasecal")
+    screen = PhasecalScreen(aclient, rig_id, name="screen")
+    fit = PhasecalCalibration(capture, name="fit")
+    docs = Documents()
+    cancelled = pause_mid_capture(
+        client, engine, calibration_session(capture, screen, fit, screen_poses(3, seed=5)),
+        docs)
+    result = engine.resume()
+    assert result.exit_status == "success"
+    ids = [e["data"]["phasecal-pose_id"] for e in docs.events("primary")]
+    session_id = docs.by_kind["start"][0]["phasecal_session_id"]
+    poses = {p["id"]: p["status"] for p in client.get(f"/sessions/{session_id}/poses")}
+    assert resource_id(cancelled) not in ids and poses.pop(resource_id(cancelled)) == "cancelled"
+    assert len(ids) == 3 and poses == dict.fromkeys(ids, "ready")
+    cal = client.get(f"/calibrations/{result.plan_result}")
+    assert cal["status"] == "succeeded" and cal["pose_ids"] == ids
 
 
 def test_service_refusal_surfaces_with_its_reason(client, aclient, engine) -> None:
