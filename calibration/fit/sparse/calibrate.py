@@ -6,15 +6,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import cv2
 import numpy as np
 
 from calibration.fit.registry import model_spec
 from calibration.fit.result import CalibrationResult
 from calibration.fit.sparse.crossval import cross_validate
-from calibration.fit.sparse.fit import fit_observations, to_result
+from calibration.fit.sparse.fit import to_result
 from calibration.fit.sparse.options import ObservationOptions
-from calibration.fit.sparse.projection import project_view
+from calibration.fit.sparse.sgcc import fit_sparse
 from calibration.fit.sparse.target_shape import TargetShape
 from calibration.fit.sparse.uncertainty import projection_sigma_map
 from calibration.shared.observations import TargetObservations
@@ -25,12 +24,6 @@ REFUSED: dict[str, str] = {
     "raygrid": "raygrid interpolates one ray per pixel from dense decoded maps; a few hundred "
                "target points cannot fill its grid (use a parametric model: opencv5, "
                "opencv-rational, fisheye)",
-    "sgcc": "sGCC's spline mesh is fitted to dense decoded maps (thousands of points per "
-            "cell); sparse target points leave most cells without data (use a parametric "
-            "model, or decoded maps of a screen)",
-    "sgcc-noncentral": "sGCC's spline mesh is fitted to dense decoded maps (thousands of "
-                       "points per cell); sparse target points leave most cells without data "
-                       "(use a parametric model, or decoded maps of a screen)",
 }
 
 
@@ -61,7 +54,7 @@ def calibrate_observations(
         if progress is not None:
             progress(min(done, total), total, stage)
 
-    fit = fit_observations(observations, model, opts,
+    fit = fit_sparse(observations, model, opts,
                            lambda i, n, s: report(0, steps, s))
     report(1, steps, f"{model}: projection uncertainty")
     fit.stats["projection_sigma_px"] = projection_sigma_map(fit.model, fit.intrinsics_covariance)
@@ -85,8 +78,7 @@ def _attach_residuals(result: CalibrationResult, observations: list[TargetObserv
         used = obs.used()
         used[row["outliers"]] = False
         pts, _ = shape.points(obs.target_xyz[used])
-        rvec = np.ravel(cv2.Rodrigues(pose.rotation)[0])
-        uv = project_view(result.model, rvec, pose.translation, pts).pixels
+        uv = result.model.project(pts @ pose.rotation.T + pose.translation)
         result.residual_pixels[j] = obs.image_xy[used]
         result.residuals[j] = uv - obs.image_xy[used]
         row["pose"] = j

@@ -16,9 +16,15 @@ from typing import Any
 
 import numpy as np
 
-from calibration.fit.sparse.fit import SparseFit, fit_observations
+from calibration.fit.sparse.fit import SparseFit
 from calibration.fit.sparse.options import MIN_VIEWS, ObservationOptions
-from calibration.fit.sparse.uncertainty import SIGMA_GRID, projection_covariance, sensor_grid
+from calibration.fit.sparse.sgcc import fit_sparse
+from calibration.fit.sparse.uncertainty import (
+    SIGMA_GRID,
+    projection_covariance,
+    ray_points,
+    sensor_grid,
+)
 from calibration.shared.observations import TargetObservations
 
 # differences up to twice their predicted size still agree: the prediction counts the corner
@@ -37,7 +43,7 @@ def compare_fits(a: SparseFit, b: SparseFit, grid: tuple[int, int] = SIGMA_GRID
     """Observed against predicted projection difference of two fits of one camera."""
     nx, ny = grid
     pixels = sensor_grid(a.model.image_size, nx, ny)
-    _, rays = a.model.unproject(pixels)
+    rays = ray_points(a.model, pixels)
     with np.errstate(invalid="ignore"):
         ok = np.all(np.isfinite(rays), axis=1) & np.all(np.isfinite(b.model.project(rays)),
                                                         axis=1)
@@ -74,7 +80,7 @@ def cross_validate(observations: list[TargetObservations], model_name: str,
     if min(len(s) for s in sets) < MIN_VIEWS:
         raise ValueError(f"cross-validate: {folds} folds of {len(observations)} views leave "
                          f"{min(len(s) for s in sets)} views in one (need >= {MIN_VIEWS})")
-    fits = [fit_observations([observations[i] for i in s], model_name, options) for s in sets]
+    fits = [fit_sparse([observations[i] for i in s], model_name, options) for s in sets]
     pairs = []
     for i in range(folds):
         for j in range(i + 1, folds):

@@ -1,10 +1,11 @@
-"""Typed options of the pixel-space fits on target observations (every parametric model)."""
+"""Typed options of the pixel-space fits on target observations (every parametric model,
+and the sGCC models)."""
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt, StrictBool
 
 MIN_VIEWS = 3  # a planar target: Zhang's method needs three views for K with distortion
 
@@ -27,5 +28,10 @@ class ObservationOptions(BaseModel):
     outlier_rounds: int = Field(default=3, ge=0, le=10,
                                 description="refits after dropping outliers")
     thin_prism: StrictBool = Field(default=False, description="opencv-rational: also fit s1..s4")
+    cells: tuple[PositiveInt, PositiveInt] | Literal["auto"] = Field(
+        default="auto",
+        description='sgcc models: spline mesh [cu, cv] cells, or "auto": the finest of 10, 8, '
+                    "6, 5, 4 cells along the longer side with >= 20 points in each cell "
+                    "that holds points")
     max_iterations: int = Field(default=200, ge=5, le=10_000,
                                 description="Levenberg-Marquardt evaluations per round")

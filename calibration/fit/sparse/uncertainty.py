@@ -18,10 +18,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.models.parametric import PinholeFamily
+from calibration.fit.sparse.ray_residual import ray_residual
+from calibration.models.base import CameraModel
+from calibration.models.sgcc import SGCCBase
 
 SIGMA_GRID = (32, 24)  # (nx, ny) sensor samples of the projection-sigma map
 _ROT_STEP = 1e-6  # rad, central differences of the frame rotation
+FAR_MM = 1000.0  # a ray stands for its point this far out (for a central model: any point)
 
 
 def sensor_grid(image_size: tuple[int, int], nx: int, ny: int) -> np.ndarray:
@@ -31,9 +34,19 @@ def sensor_grid(image_size: tuple[int, int], nx: int, ny: int) -> np.ndarray:
     return np.stack([uu.ravel(), vv.ravel()], axis=1)
 
 
-def intrinsics_jacobian(model: PinholeFamily, rays: np.ndarray, free: np.ndarray
+def ray_points(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
+    """(M, 3) camera-frame points on the rays of `pixels`, `FAR_MM` from their origins."""
+    origins, directions = model.unproject(pixels)
+    return origins + FAR_MM * directions
+
+
+def intrinsics_jacobian(model: CameraModel, rays: np.ndarray, free: np.ndarray
                         ) -> np.ndarray:
-    """(M, 2, len(free)) derivative of the projections of fixed rays over the intrinsics."""
+    """(M, 2, len(free)) derivative of the projections of fixed ray points over the
+    intrinsics: closed form for sGCC (hundreds of control values), central differences
+    through the model for the parametric ones."""
+    if isinstance(model, SGCCBase):
+        return ray_residual(model, model.project(rays), rays).d_coeffs[:, :, free]
     base = model.get_params()
     jac = np.empty((len(rays), 2, free.size))
     try:
@@ -56,7 +69,7 @@ def rotate(rays: np.ndarray, omega: np.ndarray) -> np.ndarray:
     return rays @ cv2.Rodrigues(np.asarray(omega, dtype=np.float64).reshape(3, 1))[0].T
 
 
-def rotation_jacobian(model: PinholeFamily, rays: np.ndarray) -> np.ndarray:
+def rotation_jacobian(model: CameraModel, rays: np.ndarray) -> np.ndarray:
     """(M, 2, 3) derivative of the projections of rays over a small rotation of the frame."""
     jac = np.empty((len(rays), 2, 3))
     for k in range(3):
@@ -73,7 +86,7 @@ def without_rotation(rot_jac: np.ndarray) -> np.ndarray:
     return np.eye(k.shape[0]) - k @ np.linalg.pinv(k)
 
 
-def frame_free_covariance(model: PinholeFamily, covariance: np.ndarray, rays: np.ndarray
+def frame_free_covariance(model: CameraModel, covariance: np.ndarray, rays: np.ndarray
                           ) -> np.ndarray:
     """(2M, 2M) covariance (px^2) of the stacked projections of `rays` (finite ones only),
     the frame's rotation taken out."""
@@ -84,7 +97,7 @@ def frame_free_covariance(model: PinholeFamily, covariance: np.ndarray, rays: np
     return pj @ covariance[np.ix_(free, free)] @ pj.T
 
 
-def projection_covariance(model: PinholeFamily, covariance: np.ndarray, rays: np.ndarray
+def projection_covariance(model: CameraModel, covariance: np.ndarray, rays: np.ndarray
                           ) -> np.ndarray:
     """(M, 2, 2) covariance (px^2) of each ray's projection, frame orientation included
     (what two independent fits of one camera differ by)."""
@@ -93,13 +106,13 @@ def projection_covariance(model: PinholeFamily, covariance: np.ndarray, rays: np
     return np.einsum("nip,pq,njq->nij", jac, covariance[np.ix_(free, free)], jac)
 
 
-def projection_sigma_map(model: PinholeFamily, covariance: np.ndarray,
+def projection_sigma_map(model: CameraModel, covariance: np.ndarray,
                          grid: tuple[int, int] = SIGMA_GRID) -> dict[str, Any]:
     """The 1-sigma projection uncertainty (px, RMS per axis, frame rotation taken out) on a
     sensor grid, NaN where the model has no ray, with its median and maximum, as JSON."""
     nx, ny = grid
     pixels = sensor_grid(model.image_size, nx, ny)
-    _, rays = model.unproject(pixels)
+    rays = ray_points(model, pixels)
     ok = np.all(np.isfinite(rays), axis=1) & np.all(np.isfinite(model.project(rays)), axis=1)
     sigma = np.full(len(pixels), np.nan)
     if ok.any():

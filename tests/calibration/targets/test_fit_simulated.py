@@ -1,5 +1,5 @@
 """Pixel-space fits on rendered boards (hw_mocks.board) against the simulator's truth: the
-bow, an outlier corner, the observations entry and the models that refuse sparse points."""
+bow, an outlier corner, the observations entry and the model that refuses sparse points."""
 
 from __future__ import annotations
 
@@ -67,9 +67,8 @@ def test_observation_entry_stats_and_refusals(simulated):
     for model in ("opencv-rational", "fisheye"):  # every parametric model takes observations
         other = calibrate_observations(views, model, options={"target": "fit"})
         assert other.stats["rms_px"] < 1.2 * st["rms_px"]
-    for model in ("raygrid", "sgcc", "sgcc-noncentral"):
-        with pytest.raises(ValueError, match=f"{model} cannot be fitted to target obs"):
-            calibrate_observations(views, model)
+    with pytest.raises(ValueError, match="raygrid cannot be fitted to target obs"):
+        calibrate_observations(views, "raygrid")
     with pytest.raises(ValueError, match=r"options\.outlier_sigma"):
         calibrate_observations(views, "opencv5", options={"outlier_sigma": 0.5})
     with pytest.raises(ObservationFitError, match="needs >= 3 views"):
