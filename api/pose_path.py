@@ -84,18 +84,24 @@ def pose_cameras(pose_dir: Path, status: str, error: str | None) -> list[dict[st
     return out
 
 
-def camera_maps_path(pose_dir: Path, camera: str | None) -> Path:
-    """The maps file of a pose (`camera` None) or of one of its cameras; ValueError naming
-    the cameras when `camera` is missing on a several-camera pose or names none of them."""
+def camera_dir(pose_dir: Path, camera: str | None) -> Path:
+    """The folder of a pose's frames and maps (`camera` None: a one-camera pose's own) or of
+    one of its cameras; ValueError naming the cameras when `camera` is missing on a
+    several-camera pose or names none of them."""
     names = pose_camera_names(pose_dir)
     if camera is None:
         if names:
             raise ValueError(f"camera: this pose has cameras {names}; name one")
-        return pose_dir / MAPS
+        return pose_dir
     if camera not in names:
         raise ValueError(f"camera: {camera!r} is not a camera of this pose "
                          f"({names or 'it has one camera: leave camera out'})")
-    return camera_dirs(pose_dir, [camera])[camera] / MAPS
+    return camera_dirs(pose_dir, [camera])[camera]
+
+
+def camera_maps_path(pose_dir: Path, camera: str | None) -> Path:
+    """The maps file of a pose or of one of its cameras (validated as `camera_dir`)."""
+    return camera_dir(pose_dir, camera) / MAPS
 
 
 def write_camera_names(pose_dir: Path, names: list[str]) -> None:

@@ -16,8 +16,10 @@ from api.jobs.model import STOPPED_STATES, Job, JobKind
 from api.maps_durability import mark_pending
 from api.pose_path import (
     CAMERA_SUMMARY,
+    MAPS,
     ExecutorDecode,
     ExecutorRigDecode,
+    camera_dir,
     camera_dirs,
     capture_live,
     capture_rig_live,
@@ -247,7 +249,9 @@ class ImportDecodeJob(PoseJob):
 @dataclass(kw_only=True)
 class RedecodeJob(Job):
     """Decode a pose's stored frames again with other options; the new maps replace the old
-    ones on success, and on failure the pose keeps its maps and state (the job has the error)."""
+    ones on success, and on failure the pose keeps its maps and state (the job has the error).
+    On a several-camera pose it decodes one camera's frames (`camera`) into that camera's
+    maps; the pose's valid pixels follow its reference camera, as a capture's do."""
 
     kind = JobKind.DECODE
     svc: Services
@@ -256,6 +260,7 @@ class RedecodeJob(Job):
     before: str  # the pose's status when the job was asked for
     noise_dn: float | None = None
     options: dict[str, float] = field(default_factory=dict)
+    camera: str | None = None  # one camera of a several-camera pose
 
     def __post_init__(self) -> None:
         self.resource = f"/sessions/{self.session_id}/poses/{self.pose_id}"
@@ -264,14 +269,25 @@ class RedecodeJob(Job):
     def run(self, ctx: TaskContext) -> dict[str, Any]:
         svc = self.svc
         meta = {"pose_id": self.pose_id, "session_id": self.session_id, "redecoded": True,
-                "decode_options": {"noise_dn": self.noise_dn, **self.options}}
+                "decode_options": {"noise_dn": self.noise_dn, **self.options},
+                **({"camera_name": self.camera} if self.camera else {})}
         plan_path = svc.store.dir_for(self.session_id or "") / "plan.json"
-        dec = decode_staged(svc, ctx, plan_path, self.frames, svc.store.dir_for(self.pose_id),
+        pose_dir = svc.store.dir_for(self.pose_id)
+        folder = camera_dir(pose_dir, self.camera)
+        dec = decode_staged(svc, ctx, plan_path, self.frames, folder,
                             noise=self.noise_dn, meta=meta, options=dict(self.options))
-        return {"decode": dec}
+        if self.camera is not None:
+            write_json_atomic(folder / CAMERA_SUMMARY, {
+                k: dec.get(k) for k in ("valid_pixels", "width", "height")})
+        names = pose_camera_names(pose_dir)
+        # a failed pose of several cameras is ready once every camera has its maps again
+        complete = all((d / MAPS).is_file() for d in camera_dirs(pose_dir, names).values())
+        return {"decode": dec, "camera": self.camera, "complete": complete,
+                "reference": self.camera is None or self.camera == names[0]}
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:
         p = s.get(PoseRecord, self.pose_id)
-        if self.before != "flagged":
+        if self.before != "flagged" and result["complete"]:
             p.status, p.error = "ready", None
-        p.valid_pixels = result["decode"]["valid_pixels"]
+        if result["reference"]:
+            p.valid_pixels = result["decode"]["valid_pixels"]

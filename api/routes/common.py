@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any
+from pathlib import Path
+from typing import Annotated, Any
 
+from fastapi import Query
 from fastapi.responses import JSONResponse
 
 from api.db import PoseRecord, SessionRecord
+from api.pose_path import pose_cameras
 from api.problems import Problem
 from api.schemas import ProblemDetail
 from api.store import check_id
@@ -31,6 +34,12 @@ TOO_MANY_STREAMS: dict[int | str, dict[str, Any]] = {
           "headers": {"Retry-After": {"description": "seconds to wait before retrying",
                                       "schema": {"type": "integer"}}}},
 }
+
+
+#: `?camera=NAME`: one camera of a pose captured on several cameras (the pose's `cameras`).
+CameraQuery = Annotated[str | None, Query(
+    pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$",
+    description="the camera of a pose captured on several cameras (see the pose's cameras)")]
 
 
 def accepted(job: dict[str, Any]) -> JSONResponse:
@@ -58,11 +67,13 @@ def get_pose(s: Any, session_id: str, pose_id: str) -> PoseRecord:
     return rec
 
 
-def pose_to_dict(p: PoseRecord) -> dict[str, Any]:
-    """A pose record as API data."""
+def pose_to_dict(p: PoseRecord, pose_dir: Path | None = None) -> dict[str, Any]:
+    """A pose record as API data; `cameras` lists each camera of a several-camera pose
+    (found in its folder `pose_dir`) with its status, None for one camera."""
     return {
         "id": p.id, "session_id": p.session_id, "index": p.index, "source": p.source,
         "status": p.status, "job_id": p.job_id, "valid_pixels": p.valid_pixels,
         "width": p.width, "height": p.height, "frames_done": p.frames_done,
         "screen_pose": p.screen_pose, "error": p.error, "created_at": p.created_at,
+        "cameras": None if pose_dir is None else pose_cameras(pose_dir, p.status, p.error),
     }

@@ -4,10 +4,13 @@ truth), a camera dropping a frame, and the per-camera maps and status of a pose.
 
 from __future__ import annotations
 
+import io
 import json
 import time
+import zipfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -153,6 +156,49 @@ def test_a_one_camera_pose_keeps_its_layout(service, tmp_path: Path) -> None:
     assert c.get(f"{job['resource']}/maps.npz").status_code == 200
     wrong = c.get(f"{job['resource']}/maps.npz", params={"camera": "cam0"})
     assert wrong.status_code == 422 and "leave camera out" in wrong.json()["detail"]
+
+
+def test_one_cameras_frames_are_decoded_again_and_exported(service) -> None:
+    """Re-decode and frames.zip of a several-camera pose name the camera (a missing or
+    unknown one is refused naming the pose's cameras); a re-decode replaces that camera's
+    maps only."""
+    c, data = service
+    config = {"kind": "simulated", "screen": SCREEN, "cameras": [
+        {"name": "near", "width": 64, "height": 48},
+        {"name": "far", "width": 72, "height": 54}]}
+    job, pose = _capture(c, config, "redecode")
+    url, cameras = job["resource"], data / "poses" / pose["id"] / "cameras"
+    listed = c.get(url.rsplit("/", 1)[0]).json()
+    assert [cam["name"] for cam in listed[0]["cameras"]] == ["near", "far"]
+    for route, method in (("decode", c.post), ("frames.zip", c.get)):
+        missing = method(f"{url}/{route}")
+        assert missing.status_code == 422 and missing.json()["field"] == "camera"
+        assert "['near', 'far']" in missing.json()["detail"], route
+        unknown = method(f"{url}/{route}", params={"camera": "back"})
+        assert unknown.status_code == 422 and "'back' is not a camera" in unknown.json()["detail"]
+    near_before = (cameras / "near" / "maps.npz").read_bytes()
+    far_before = load_maps(cameras / "far" / "maps.npz")
+    median = float(np.median(far_before.sigma_x[far_before.mask]))
+    again = c.post(f"{url}/decode", params={"camera": "far"},
+                   json={"options": {"max_sigma_px": float(f"{median:.4g}")}})
+    assert again.status_code == 202, again.text
+    done = _finished(c, again.json()["id"])
+    assert done["status"] == "succeeded", done["error"]
+    far = load_maps(c.get(f"{url}/maps.npz", params={"camera": "far"}).content)
+    assert far.meta["redecoded"] is True and far.meta["camera_name"] == "far"
+    assert 0 < far.valid_count() < far_before.valid_count()  # the tighter sigma limit
+    assert (cameras / "near" / "maps.npz").read_bytes() == near_before
+    after = c.get(url).json()
+    assert after["status"] == "ready" and after["valid_pixels"] == pose["valid_pixels"]
+    assert {cam["name"]: cam["valid_pixels"] for cam in after["cameras"]}["far"] \
+        == far.valid_count()
+    exported = c.get(f"{url}/frames.zip", params={"camera": "far"})
+    assert exported.status_code == 200
+    assert f'{pose["id"]}-far-frames.zip' in exported.headers["content-disposition"]
+    with zipfile.ZipFile(io.BytesIO(exported.content)) as zf:
+        names = zf.namelist()
+        first = cv2.imdecode(np.frombuffer(zf.read(names[0]), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert len(names) == pose["frames_done"] and first.shape == (54, 72)
 
 
 def test_capture_on_several_cameras_outside_the_service_and_resume(tmp_path: Path) -> None:
