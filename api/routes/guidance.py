@@ -74,13 +74,14 @@ def _ready_poses(svc: Services, session_id: str) -> tuple[SessionRecord, list[Po
 def _camera(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
             hfov_deg: float | None, lens: str) -> NominalCamera:
     """The session camera's nominal lens: its quick intrinsics when measured, else the
-    given (or default) field of view over the rig camera's (or a pose's) image size."""
+    given (or default) field of view over a decoded pose's (or the rig camera's) image
+    size."""
     size = None
-    if sess.rig_id is not None:
+    if poses and poses[0].width and poses[0].height:  # no need to open the rig's devices
+        size = (int(poses[0].width), int(poses[0].height))
+    elif sess.rig_id is not None:
         info = svc.rigs.handle(sess.rig_id).rig.camera.info
         size = (int(info.width), int(info.height))
-    elif poses and poses[0].width and poses[0].height:
-        size = (int(poses[0].width), int(poses[0].height))
     if size is None:
         raise Problem(409, "no-camera", f"session {sess.id} has no rig and no decoded pose: "
                       "the camera's image size is unknown")
