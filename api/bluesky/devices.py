@@ -223,15 +223,21 @@ class PhasecalCapture(StandardReadable):
         self._set_maps_url(str(self.client.http.base_url.join(maps_path(session, pose))))
 
 
+DECODED = ("ready", "flagged")  # pose statuses whose maps a fit can use
+
+
 class PhasecalGuide(StandardReadable):
     """Where to put the screen next, as the service plans it for `capture`'s session.
 
-    Each trigger reads one suggestion: first the poses of `GET /sessions/{id}/starting-poses`
-    (`starting_count` of them, planned from the rig alone) that no ready pose matches yet,
-    then `GET /sessions/{id}/next-pose` for `model` (the pose that most lowers the worst
-    predicted ray uncertainty). The reading is the suggested `rvec`/`tvec_mm`, its placement
-    in words, where it came from, and the predicted worst ray sigma after it (NaN for a
-    starting pose)."""
+    A trigger reads one suggestion: first, in turn, the poses of
+    `GET /sessions/{id}/starting-poses` (`starting_count` planned from the rig alone at the
+    first trigger after staging, less those a decoded pose already matches), then
+    `GET /sessions/{id}/next-pose` for `model` (the pose that most lowers the worst
+    predicted ray uncertainty). The suggestion moves on only when the session has one more
+    decoded pose, so triggering again after a cancelled capture (a resumed run going back to
+    its checkpoint) suggests the same pose. The reading is the suggested `rvec`/`tvec_mm`,
+    its placement in words, where it came from, and the predicted worst ray sigma after it
+    (NaN for a starting pose)."""
 
     def __init__(self, capture: PhasecalCapture, model: str = "opencv-rational",
                  starting_count: int = 5, name: str = "") -> None:
@@ -240,7 +246,8 @@ class PhasecalGuide(StandardReadable):
         self.client = capture.client
         self.model = model
         self.starting_count = starting_count
-        self.starting: list[dict[str, Any]] | None = None  # planned once a stage, given in turn
+        self.starting: list[dict[str, Any]] | None = None  # planned at the first trigger
+        self.decoded_at_start = 0  # the session's decoded poses when they were planned
         with self.add_children_as_readables(Format.UNCACHED_SIGNAL):
             self.rvec, self._set_rvec = soft_signal_r_and_setter(Array1D[np.float64],
                                                                  units="rad")
@@ -258,21 +265,29 @@ class PhasecalGuide(StandardReadable):
         self.starting = None
         await super().stage()
 
+    async def decoded_poses(self, session: str) -> int:
+        """How many of the session's poses are decoded."""
+        async with service_errors(self.name, f"listing the poses of session {session}"):
+            poses = await self.client.list_poses(session)
+        return sum(p["status"] in DECODED for p in poses)
+
     @AsyncStatus.wrap
     async def trigger(self) -> None:
         """Ask the service for the next screen pose."""
         session = await self.current_session()
-        client = self.client
+        decoded = await self.decoded_poses(session)
         if self.starting is None:
             async with service_errors(self.name, f"planning starting poses of session {session}"):
-                planned = await client.get(f"/sessions/{session}/starting-poses",
-                                           count=self.starting_count)
+                planned = await self.client.get(f"/sessions/{session}/starting-poses",
+                                                count=self.starting_count)
             self.starting = [p for p in planned["poses"] if p["captured_by"] is None]
-        if self.starting:
-            item, source, sigma = self.starting.pop(0), "starting-poses", float("nan")
+            self.decoded_at_start = decoded
+        turn = decoded - self.decoded_at_start
+        if turn < len(self.starting):
+            item, source, sigma = self.starting[turn], "starting-poses", float("nan")
         else:
             async with service_errors(self.name, f"planning the next pose of session {session}"):
-                item = await client.get(f"/sessions/{session}/next-pose", model=self.model)
+                item = await self.client.get(f"/sessions/{session}/next-pose", model=self.model)
             source = "next-pose"
             sigma = float(item["predicted_worst_ray_sigma_urad"]["after"])
         rvec, tvec = screen_pose_vectors(item["screen_pose"])
@@ -281,11 +296,6 @@ class PhasecalGuide(StandardReadable):
         self._set_placement(str(item["placement"]))
         self._set_source(source)
         self._set_sigma(sigma)
-
-    async def screen_pose(self) -> dict[str, list[float]]:
-        """The last suggestion as a screen pose for `PhasecalScreen.set`."""
-        rvec, tvec = await asyncio.gather(self.rvec.get_value(), self.tvec_mm.get_value())
-        return {"rvec": rvec.tolist(), "tvec_mm": tvec.tolist()}
 
 
 class PhasecalCalibration(StandardReadable):

@@ -194,10 +194,11 @@ def test_paused_run_resumes_by_capturing_the_pose_again(client, aclient, engine)
     rig_id = rig(client, slow=True)
     capture = PhasecalCapture(aclient, rig_id, preset="fast", name="phasecal")
     screen = PhasecalScreen(aclient, rig_id, name="screen")
+    guide = PhasecalGuide(capture, model="opencv5", starting_count=3, name="guide")
     fit = PhasecalCalibration(capture, name="fit")
     docs = Documents()
     cancelled = pause_mid_capture(
-        client, engine, calibration_session(capture, screen, fit, screen_poses(3, seed=5)),
+        client, engine, calibration_session(capture, screen, fit, guide=guide, pose_count=3),
         docs)
     result = engine.resume()
     assert result.exit_status == "success"
@@ -208,6 +209,12 @@ def test_paused_run_resumes_by_capturing_the_pose_again(client, aclient, engine)
     assert len(ids) == 3 and poses == dict.fromkeys(ids, "ready")
     cal = client.get(f"/calibrations/{result.plan_result}")
     assert cal["status"] == "succeeded" and cal["pose_ids"] == ids
+    # the replayed guide suggested the interrupted pose again: the three starting poses,
+    # each captured once, in the order suggested
+    suggested = [tuple(g["data"]["guide-tvec_mm"]) for g in docs.events("guidance")]
+    assert len(suggested) == 4 and len(set(suggested)) == 3
+    shown = [tuple(e["data"]["screen-tvec_mm"]) for e in docs.events("primary")]
+    assert shown == list(dict.fromkeys(suggested))
 
 
 def test_service_refusal_surfaces_with_its_reason(client, aclient, engine) -> None:
