@@ -41,9 +41,15 @@ def run_observations(args: argparse.Namespace, options: dict[str, object]) -> in
     for pp in st["per_pose"]:
         out = (f", outliers at rows {pp['outliers']}" if pp["outliers"] else "")
         print(f"  view {pp['view']}: RMS {pp['rms_px']:.4g} px, {pp['n_points']} points{out}")
-    std = st["param_std"]
-    print("  " + ", ".join(f"{k} {v:.6g} +- {std[k]:.2g}" for k, v in zip(
-        result.model.param_names(), result.model.get_params(), strict=True) if std[k] > 0))
+    if "mesh" in st:  # sGCC: hundreds of control values; the mesh and its choice instead
+        cu, cv = st["mesh"]["candidates"][-1]["cells"]
+        print(f"  mesh {cu}x{cv} cells, "
+              f"{st['mesh']['candidates'][-1]['points_per_cell']:.3g} points per cell with "
+              f"points; started from {st['start']['model']} (RMS {st['start']['rms_px']:.4g} px)")
+    else:
+        std = st["param_std"]
+        print("  " + ", ".join(f"{k} {v:.6g} +- {std[k]:.2g}" for k, v in zip(
+            result.model.param_names(), result.model.get_params(), strict=True) if std[k] > 0))
     tgt = st["target"]
     if tgt["mode"] == "fit":
         print(f"  target bow: x {tgt['bow_x_mm']:.4g} +- {tgt['bow_x_std_mm']:.2g} mm, "
@@ -67,8 +73,11 @@ def run_observations(args: argparse.Namespace, options: dict[str, object]) -> in
         from calibration import write_uncertainty_png
 
         write_uncertainty_png(result, args.uncertainty_png)
-    if args.export_opencv:
-        export_opencv_yaml(result.model, args.export_opencv)
-    if args.export_ros:
-        export_ros_yaml(result.model, args.export_ros)
+    try:
+        if args.export_opencv:
+            export_opencv_yaml(result.model, args.export_opencv)
+        if args.export_ros:
+            export_ros_yaml(result.model, args.export_ros)
+    except ModelError as exc:  # e.g. an sGCC model has no OpenCV form
+        raise UserError(f"{exc} ({args.output} is written)") from None
     return 0

@@ -212,8 +212,8 @@ def download_view(session_id: str, view_id: str, svc: Svc) -> FileResponse:
              response_model=TargetCalibration)
 def create_calibration(session_id: str, body: TargetCalibrationCreate, svc: Svc
                        ) -> JSONResponse:
-    """Fit a parametric model to the chosen views in pixel space; 422 naming the field for
-    a model or options the fit refuses."""
+    """Fit a parametric or sGCC model to the chosen views in pixel space; 422 naming the
+    field for a model or options the fit refuses."""
     with svc.db.session() as s:
         _session(s, session_id)
         rows = s.scalars(select(TargetViewRecord).where(

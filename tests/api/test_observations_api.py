@@ -57,6 +57,14 @@ def test_board_session_images_and_calibration(client, tmp_path):
     for name in ("residuals", "uncertainty"):
         png = client.get(f"/target-sessions/{sid}/calibrations/{cal['id']}/{name}.png")
         assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+    r = client.post(f"/target-sessions/{sid}/calibrations",
+                    json={"model": "sgcc", "options": {"target": "fit", "cells": [6, 5]}})
+    assert r.status_code == 201, r.text
+    generic = r.json()
+    assert generic["stats"]["mesh"]["candidates"][0]["cells"] == [6, 5]
+    assert generic["stats"]["rms_px"] <= cal["stats"]["rms_px"]
+    model = client.get(f"/target-sessions/{sid}/calibrations/{generic['id']}/model.json").json()
+    assert model["type"] == "sgcc" and model["params"]["cells"] == [6, 5]
 
 
 def test_bad_uploads_and_requests_are_refused(client, tmp_path):
@@ -82,7 +90,8 @@ def test_bad_uploads_and_requests_are_refused(client, tmp_path):
     r = client.post(f"/target-sessions/{pts}/views", files={"file": ("v.npz", npz)})
     assert r.status_code == 201
     for body, message in [
-        ({"model": "sgcc"}, "sgcc cannot be fitted to target observations"),
+        ({"model": "raygrid"}, "raygrid cannot be fitted to target observations"),
+        ({"model": "sgcc"}, "sgcc needs >= 3 views, got 1"),
         ({"model": "opencv5", "options": {"outlier_sigma": 0}}, "options.outlier_sigma"),
         ({"model": "opencv5"}, "needs >= 3 views"),
         ({"model": "opencv5", "view_ids": ["pose_0000000000000000"]}, "view_ids: not views"),
