@@ -4,7 +4,10 @@ with a known bow (hw_mocks.board, detected by phasecal's detector).
 
 Prints, per data set: views, RMS, sigma, outliers, each intrinsic with its 1-sigma beside
 `cv2.calibrateCameraExtended`'s on the same corners (real images) or the truth (simulated),
-the fitted bow, the cross-validation verdict, and wall and CPU seconds of detection and fit.
+the fitted bow, the cross-validation verdict, and wall and CPU seconds of detection and fit;
+then the same for the generic model sgcc (bow fitted, cross-validated): its RMS beside
+opencv5's, its mesh, its cross-validation and, on simulated boards, its rays against the
+truth camera's (normalized by the fit's predicted projection covariance).
 
     .venv/bin/python benchmarks/targets.py [--seeds 3]
 
@@ -22,6 +25,7 @@ import cv2
 import numpy as np
 
 from calibration import TargetSpec, calibrate_observations, detect_file
+from calibration.fit.sparse.uncertainty import projection_covariance
 from calibration.targets.detect import detect_image
 from hw_mocks.board import BoardRenderer, BoardTruth, look_at_poses
 from hw_mocks.cameras import mild_pinhole
@@ -43,8 +47,47 @@ class Clock:
         return out
 
 
+def truth_ratio(cam, result, views: list) -> tuple[float, float]:
+    """sgcc's rays against the truth camera's at the observed pixels, after the rotation
+    that best aligns the frames: (sqrt(mean z^2 / 2) with the fit's projection covariance,
+    RMS pixel difference)."""
+    pix = np.concatenate([v.image_xy for v in views])
+    _, truth = cam.rays(pix[:, 0], pix[:, 1])
+    _, model = result.model.unproject(pix)
+    u, _, vt = np.linalg.svd(model.T @ truth)
+    rays = 1000.0 * truth @ (u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt).T
+    diff = result.model.project(rays) - pix
+    cov = projection_covariance(result.model, result.model.covariance, rays)
+    z2 = np.einsum("ni,nij,nj->n", diff, np.linalg.inv(cov), diff)
+    return float(np.sqrt(np.mean(z2) / 2)), float(np.sqrt(np.mean(np.sum(diff**2, axis=1))))
+
+
+def sgcc_and_print(views: list, parametric_rms: float, cam=None) -> None:
+    """The generic model on the same views: RMS, mesh, cross-validation, truth, time."""
+    clock = Clock()
+    fit = calibrate_observations(views, "sgcc", options={"target": "fit"},
+                                 cross_validate_folds=2)
+    wall, cpu = clock.lap()
+    st = fit.stats
+    mesh = st["mesh"]["candidates"][-1]
+    cv = st["cross_validation"]
+    pair = cv["pairs"][0]
+    print(f"\nsgcc, bow fitted: RMS {st['rms_px']:.4f} px (opencv5 {parametric_rms:.4f}), mesh "
+          f"{mesh['cells'][0]}x{mesh['cells'][1]} ({mesh['points_per_cell']:.1f} points per "
+          f"cell), {st['outliers']} outliers; projection 1-sigma median "
+          f"{st['projection_sigma_px']['median']:.3f} px")
+    print(f"sgcc cross-validation: RMS difference {pair['rms_difference_px']:.3f} px, predicted "
+          f"{pair['rms_predicted_px']:.3f} px, ratio {cv['ratio']:.2f} -> {cv['verdict']}; "
+          f"fit + cross-validation {wall:.2f} s wall / {cpu:.2f} s CPU")
+    if cam is not None:
+        ratio, rms = truth_ratio(cam, fit, views)
+        print(f"sgcc rays against the truth at the observed pixels: RMS {rms:.4f} px, "
+              f"normalized ratio {ratio:.2f}")
+
+
 def fit_and_print(label: str, views: list, reference: dict[str, tuple[float, float]],
-                  ref_name: str, detect_s: tuple[float, float], truth_bow=None) -> None:
+                  ref_name: str, detect_s: tuple[float, float], truth_bow=None,
+                  cam=None) -> None:
     clock = Clock()
     flat = calibrate_observations(views, "opencv5", options={"weights": "equal"})
     fit = calibrate_observations(views, "opencv5", options={"target": "fit"},
@@ -81,6 +124,7 @@ def fit_and_print(label: str, views: list, reference: dict[str, tuple[float, flo
     print(f"cross-validation (views {cv['folds'][0]} | {cv['folds'][1]}): RMS difference "
           f"{pair['rms_difference_px']:.3f} px, predicted {pair['rms_predicted_px']:.3f} px, "
           f"ratio {cv['ratio']:.2f} -> {cv['verdict']}")
+    sgcc_and_print(views, st["rms_px"], cam)
 
 
 def real(side: str) -> None:
@@ -121,7 +165,7 @@ def simulated(seed: int) -> None:
     ref = {n: (float(v), 0.0) for n, v in zip(NAMES, truth, strict=True)}
     print(f"\n## simulated board, seed {seed} (render {render_s[1]:.2f} s CPU)")
     fit_and_print(f"simulated seed {seed}", views, ref, "truth", detect_s,
-                  (board.bow_x_mm, board.bow_y_mm))
+                  (board.bow_x_mm, board.bow_y_mm), cam)
 
 
 def main() -> None:
