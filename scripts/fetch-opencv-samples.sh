@@ -15,8 +15,10 @@ if ! command -v apt-get >/dev/null 2>&1 || ! command -v dpkg-deb >/dev/null 2>&1
 fi
 work="$(mktemp -d)"
 trap 'rm -rf "${work}"' EXIT
-(cd "${work}" && apt-get download -qq opencv-doc 2>/dev/null) || {
-  echo "fetch-opencv-samples: apt-get download opencv-doc failed (run apt-get update?)" >&2
+download() { (cd "${work}" && apt-get download -qq opencv-doc 2>/dev/null); }
+# A machine whose packages came preinstalled may have no package lists yet: refresh once.
+download || { [ "$(id -u)" -eq 0 ] && apt-get -o DPkg::Lock::Timeout=600 update -qq && download; } || {
+  echo "fetch-opencv-samples: apt-get download opencv-doc failed (run apt-get update as root)" >&2
   exit 0
 }
 dpkg-deb --fsys-tarfile "${work}"/opencv-doc_*.deb \
