@@ -60,8 +60,9 @@ async def service_errors(device: str, action: str) -> AsyncIterator[None]:
 
 class ServiceJob:
     """The one job a device runs at a time: started, followed to its end, and cancelled on
-    the server when the device is stopped (or the waiting task is cancelled). A stop that
-    comes while the job is being created cancels it as soon as its id is known."""
+    the server when the device is stopped, when the waiting task is cancelled, or when it
+    has not ended within `timeout_s`. A stop that comes while the job is being created
+    cancels it as soon as its id is known."""
 
     def __init__(self, client: AsyncPhasecalClient, timeout_s: float) -> None:
         self.client = client
@@ -80,7 +81,13 @@ class ServiceJob:
             self.job_id = job["id"]
             if self.stopped:
                 await self.cancel_on_server()
-            return await self.client.wait(job, timeout_s=self.timeout_s, check=False)
+            try:
+                return await self.client.wait(job, timeout_s=self.timeout_s, check=False)
+            except TimeoutError:
+                await self.cancel_on_server()
+                raise PhasecalDeviceError(
+                    f"job {job['id']} ({job['kind']}) did not end within {self.timeout_s:g} s; "
+                    "it was cancelled on the service") from None
         finally:
             self.job_id = None
             self.ended.set()

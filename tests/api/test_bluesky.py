@@ -217,6 +217,21 @@ def test_paused_run_resumes_by_capturing_the_pose_again(client, aclient, engine)
     assert shown == list(dict.fromkeys(suggested))
 
 
+def test_capture_past_its_timeout_is_cancelled(client, aclient, engine) -> None:
+    rig_id = rig(client, slow=True)
+    capture = PhasecalCapture(aclient, rig_id, preset="fast", capture_timeout_s=0.5,
+                              name="phasecal")
+    screen = PhasecalScreen(aclient, rig_id, name="screen")
+    fit = PhasecalCalibration(capture, name="fit")
+    with pytest.raises(FailedStatus) as failed:
+        engine(calibration_session(capture, screen, fit, screen_poses(3, seed=5)))
+    cause = failed.value.__cause__
+    assert isinstance(cause, PhasecalDeviceError)
+    job_id = re.fullmatch(r"job (\S+) \(capture\) did not end within 0.5 s; it was "
+                          r"cancelled on the service", str(cause)).group(1)
+    assert client.wait(job_id, check=False, timeout_s=60)["status"] == "cancelled"
+
+
 def test_service_refusal_surfaces_with_its_reason(client, aclient, engine) -> None:
     capture = PhasecalCapture(aclient, session_id="no-such-session", name="phasecal")
     screen = PhasecalScreen(aclient, "no-such-rig", name="screen")
