@@ -134,9 +134,11 @@ def gather(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
 
 
 def fit_ray_sigma(model: CameraModel, result: dict[str, Any], maps: list[DecodedMaps],
-                  screen: ScreenGeometry) -> tuple[np.ndarray, np.ndarray, str]:
+                  screen: ScreenGeometry, rotation_free: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, str]:
     """The ray-sigma map of a stored fit on the report's sensor grid: (grid (N, 2), sigma (N,)
-    rad, how it was obtained). Only the training poses count (held-out ones add nothing)."""
+    rad, how it was obtained). Only the training poses count (held-out ones add nothing).
+    `rotation_free`: for comparing two fits after their best rotation."""
     fitted = result.get("poses") or []
     if fitted and len(fitted) != len(maps):
         raise ValueError(f"result.json: {len(fitted)} fitted poses but {len(maps)} training maps")
@@ -151,7 +153,8 @@ def fit_ray_sigma(model: CameraModel, result: dict[str, Any], maps: list[Decoded
             r, t, _ = estimate_pose(model, pts, rng)
             rt.append((r, t))
         pts_all.append(pts)
-    return ray_sigma_map(model, rt, pts_all, (result.get("stats") or {}).get("param_std"))
+    return ray_sigma_map(model, rt, pts_all, (result.get("stats") or {}).get("param_std"),
+                         rotation_free)
 
 
 def coverage_counts(data: ReportData) -> tuple[np.ndarray, str]:

@@ -97,15 +97,17 @@ class DiffInputs:
 
 
 def ray_sigma_map(model: CameraModel, fit: FitFiles | None) -> RaySigmaMap | None:
-    """A fit's ray-sigma map: sGCC from the model's own covariance; parametric models from
-    their fit's files (None without them)."""
+    """A fit's ray-sigma map for a comparison after the best rotation: parametric models from
+    their fit's files without the rotation-like part (None without the files); sGCC from the
+    model's own covariance, that part included."""
     nx, ny = RAY_SIGMA_GRID
     if getattr(model, "covariance", None) is not None:
-        sigma, method = model_ray_sigma(model, sensor_grid(model.image_size, nx, ny))
+        sigma, method = model_ray_sigma(model, sensor_grid(model.image_size, nx, ny),
+                                        rotation_free=True)
     elif fit is not None:
         result = json.loads(Path(fit.result).read_text())
         _, sigma, method = fit_ray_sigma(model, result, [load_maps(m) for m in fit.maps],
-                                         read_plan(fit.plan).screen)
+                                         read_plan(fit.plan).screen, rotation_free=True)
     else:
         return None
     if not np.isfinite(sigma).any():

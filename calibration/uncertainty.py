@@ -131,28 +131,56 @@ def ray_sigma(jd: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(var, 0.0, None))
 
 
+def without_rotation(jd: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """`jd` with the part a rigid rotation of all rays explains taken out (least squares over
+    the pixels with a finite ray). Two fits compared after their best rotation differ only in
+    the rest, so that rest is the uncertainty a comparison can be judged against: a fit's
+    rotation-like error (which, with the poses free, is much of its ray sigma) is no error of
+    the lens model."""
+    ok = np.isfinite(directions).all(axis=1) & np.isfinite(jd).all(axis=(1, 2))
+    d = np.where(ok[:, None], directions, 0.0)
+    # omega x d = A @ omega with A = -[d]x, for every pixel
+    a = np.zeros((len(d), 3, 3))
+    a[:, 0, 1], a[:, 0, 2] = d[:, 2], -d[:, 1]
+    a[:, 1, 0], a[:, 1, 2] = -d[:, 2], d[:, 0]
+    a[:, 2, 0], a[:, 2, 1] = d[:, 1], -d[:, 0]
+    j = np.where(ok[:, None, None], jd, 0.0)
+    normal = np.einsum("nai,naj->ij", a, a)
+    rotation = np.linalg.lstsq(normal, np.einsum("nai,nap->ip", a, j), rcond=None)[0]
+    return jd - np.einsum("nai,ip->nap", a, rotation)
+
+
 def parametric_ray_sigma(model: CameraModel, poses: list[tuple[np.ndarray, np.ndarray]],
                          points: list[PointSet], pixels: np.ndarray, free: np.ndarray,
-                         chi2: float = 1.0) -> np.ndarray:
-    """(N,) ray sigma (rad) at `pixels` of a parametric fit to `points` seen from `poses`."""
+                         chi2: float = 1.0, rotation_free: bool = False) -> np.ndarray:
+    """(N,) ray sigma (rad) at `pixels` of a parametric fit to `points` seen from `poses`;
+    `rotation_free`: without what a rotation of every ray explains (`without_rotation`)."""
     info = sum(pose_information(model, r, t, p, free) for (r, t), p in zip(poses, points,
                                                                               strict=True))
-    return ray_sigma(direction_jacobian(model, pixels, free), covariance(info) * chi2)
+    jd = direction_jacobian(model, pixels, free)
+    if rotation_free:
+        jd = without_rotation(jd, model.unproject(pixels)[1])
+    return ray_sigma(jd, covariance(info) * chi2)
 
 
 def model_ray_sigma(model: CameraModel, pixels: np.ndarray,
                     poses: list[tuple[np.ndarray, np.ndarray]] | None = None,
                     points: list[PointSet] | None = None,
-                    param_std: dict[str, float] | None = None) -> tuple[np.ndarray, str]:
-    """Ray sigma (rad) at pixels and how it was obtained: sGCC covariance or parametric Fisher."""
+                    param_std: dict[str, float] | None = None,
+                    rotation_free: bool = False) -> tuple[np.ndarray, str]:
+    """Ray sigma (rad) at pixels and how it was obtained: sGCC covariance or parametric Fisher;
+    `rotation_free` (parametric models) leaves out what a rotation of every ray explains."""
     if hasattr(model, "ray_std") and getattr(model, "covariance", None) is not None:
         ang, _ = model.ray_std(pixels)
-        return ang, "sGCC full coefficient covariance"
+        return ang, ("sGCC full coefficient covariance" if not rotation_free else
+                     "sGCC full coefficient covariance, its rotation-like part included")
     if poses and points and hasattr(model, "param_names"):
         free = free_parameters(model, param_std)
-        return (parametric_ray_sigma(model, poses, points, pixels, free),
+        return (parametric_ray_sigma(model, poses, points, pixels, free,
+                                     rotation_free=rotation_free),
                 f"parametric Fisher information ({len(free)} model parameters, "
-                f"{len(poses)} poses marginalized)")
+                f"{len(poses)} poses marginalized"
+                + (", rotation of every ray taken out)" if rotation_free else ")"))
     return np.full(len(pixels), np.nan), "not available for this model"
 
 
@@ -173,14 +201,14 @@ def worst_ray_sigma(model: CameraModel, pixels: np.ndarray, sigma: np.ndarray) -
 
 
 def ray_sigma_map(model: CameraModel, poses: list[tuple[np.ndarray, np.ndarray]],
-                  points: list[PointSet], param_std: dict[str, float] | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, str]:
+                  points: list[PointSet], param_std: dict[str, float] | None = None,
+                  rotation_free: bool = False) -> tuple[np.ndarray, np.ndarray, str]:
     """The predicted ray-sigma map of a fit: (`RAY_SIGMA_GRID` pixels (N, 2), sigma (N,) rad,
     how it was obtained), each training pose's `points` counted with at most
     `RAY_SIGMA_POINTS_PER_POSE` of them; `worst_ray_sigma` reads its figure."""
     grid = sensor_grid(model.image_size, *RAY_SIGMA_GRID)
     small = [subsample(p, RAY_SIGMA_POINTS_PER_POSE) for p in points]
-    sigma, method = model_ray_sigma(model, grid, poses, small, param_std)
+    sigma, method = model_ray_sigma(model, grid, poses, small, param_std, rotation_free)
     return grid, sigma, method
 
 
