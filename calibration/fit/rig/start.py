@@ -77,8 +77,8 @@ def start_camera(camera: str, inputs: list[RigInput], model_name: str,
             views = [i.view for i in maps]
         else:
             if spec.family != "classic":
-                raise ValueError(f"{model_name} needs decoded maps; target observations are "
-                                 "too sparse for a generic model (use a parametric model)")
+                raise ValueError(f"{model_name}: a rig fits generic models from decoded maps "
+                                 "only (give this camera's maps, or a parametric model)")
             if len(obs) < CLASSIC_MIN_POSES:
                 raise ValueError(f"needs >= {CLASSIC_MIN_POSES} views, got {len(obs)}")
             size = obs[0].image_size
