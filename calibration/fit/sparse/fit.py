@@ -232,6 +232,23 @@ def _view_norms(problem: SparseProblem) -> list[np.ndarray]:
             for v, d in zip(problem.views, view_residuals(problem), strict=True)]
 
 
+def fitted_parameters(problem: SparseProblem, n_data: int) -> float:
+    """How many parameters the data fix: trace(J_d^T J_d (J^T J)^-1), J_d the first `n_data`
+    (data) rows of the Jacobian. Every parameter when there is no prior; fewer where prior
+    rows (the sGCC spline's) define what no point reaches, so they do not eat into the
+    degrees of freedom that sigma is estimated with."""
+    _, jac = problem.evaluate(problem.pack(), True)
+    if jac.shape[0] == n_data:
+        return float(jac.shape[1])
+    normal = jac.T @ jac
+    scale = np.sqrt(np.clip(np.diag(normal), 1e-300, None))
+    data = jac[:n_data] / scale
+    try:
+        return float(np.trace(np.linalg.solve(normal / np.outer(scale, scale), data.T @ data)))
+    except np.linalg.LinAlgError:
+        return float(jac.shape[1])
+
+
 def _update_sigma(problem: SparseProblem) -> None:
     """One sigma for the views whose files give none: from their inlier residuals, with the
     fit's degrees of freedom shared out by point count."""
@@ -240,7 +257,7 @@ def _update_sigma(problem: SparseProblem) -> None:
         return
     norms = _view_norms(problem)
     m_all = sum(2 * int(v.inlier.sum()) for v in problem.views)
-    n_par = problem.pack().size
+    n_par = fitted_parameters(problem, m_all)
     ss, m = 0.0, 0
     for v, nr in zip(problem.views, norms, strict=True):
         if not v.sigma_given:
@@ -248,7 +265,8 @@ def _update_sigma(problem: SparseProblem) -> None:
             m += 2 * int(v.inlier.sum())
     dof = m - n_par * m / m_all
     if dof <= 0:
-        raise ObservationFitError(f"observations: {m} residuals cannot fix {n_par} unknowns")
+        raise ObservationFitError(f"observations: {m} residuals cannot fix {n_par:.0f} "
+                                  "unknowns")
     sigma = float(np.sqrt(ss / dof))
     for v in unknown:
         v.sigma = sigma
