@@ -2,10 +2,11 @@
 
 A rig is one display, one camera or several named ones (`cameras = [{name = "left", ...}]`,
 any mix of backends, captured in sync on the one screen), the screen geometry (pixel pitch in
-mm), the camera settings to start from and optionally a USB trigger box. `kind = "hardware"`
-opens real backends; `kind = "simulated"` (the default) is opened by the `SimulatorFactory`
-the caller passes (`hw_mocks.rig.open_simulated_rig`, wired in by `api`), so real code never
-imports the simulator.
+mm), the camera settings to start from, optionally a USB trigger box and a mover (a robot
+arm or stage that places the camera or the screen: `mover = {backend = ...}`).
+`kind = "hardware"` opens real backends; `kind = "simulated"` (the default) is opened by
+the `SimulatorFactory` the caller passes (`hw_mocks.rig.open_simulated_rig`, wired in by
+`api`), simulated movers included, so real code never imports the simulator.
 See docs/hardware.md and docs/rigs/*.toml for examples.
 """
 
@@ -25,10 +26,13 @@ from pydantic import (
     Field,
     PositiveFloat,
     ValidationError,
+    field_validator,
     model_validator,
 )
 
 from acquisition.clock import Clock, RealClock
+from acquisition.errors import AcquisitionError
+from acquisition.mover import Mover, RobotPose
 from acquisition.patterns import DisplayResponse
 from acquisition.protocols import Camera, CameraSettings, Display, SimulatorControls
 from acquisition.usb.trigger_box import TriggerSink
@@ -37,6 +41,7 @@ from calibration.shared.plan import ScreenGeometry
 RIG_FORMAT = "phasecal.rig/1"
 DEFAULT_CAMERA = "cam0"  # the name of a one-camera rig's camera (`camera = {...}`)
 CAMERA_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$")  # also a folder name
+URL_RE = re.compile(r"^https?://[^\s/?#]+(/\S*)?$")  # a robot server's
 
 
 class RigConfigError(ValueError):
@@ -190,6 +195,116 @@ class TriggerBoxConfig(_Strict):
     index: int = Field(default=0, ge=0, le=0xFFFF)
 
 
+Vec3 = tuple[float, float, float]
+Limits = tuple[float, float]
+
+
+def _ordered(limits: Limits, name: str) -> None:
+    """A (low, high) pair must be ordered."""
+    if limits[0] > limits[1]:
+        raise ValueError(f"{name}: low {limits[0]:g} exceeds high {limits[1]:g}")
+
+
+class WorkspaceConfig(_Strict):
+    """Where a simulated arm's flange may go: a box for its origin (base frame, mm) and
+    orientations within `max_angle_deg` of the identity."""
+
+    min_mm: Vec3
+    max_mm: Vec3
+    max_angle_deg: float = Field(default=180.0, gt=0, le=180)
+
+    @model_validator(mode="after")
+    def _box(self) -> WorkspaceConfig:
+        for axis, lo, hi in zip("xyz", self.min_mm, self.max_mm, strict=True):
+            _ordered((lo, hi), f"{axis} of min_mm/max_mm")
+        return self
+
+
+class MoverBase(_Strict):
+    """What every mover has: how long one move may take before it is stopped."""
+
+    timeout_s: float = Field(default=60.0, gt=0, le=3600, allow_inf_nan=False,
+                             description="a move not settled by then is stopped (MoveTimeout)")
+
+
+class SimulatedMotionConfig(MoverBase):
+    """A simulated mover's errors and pace (`hw_mocks.arm`); unset: the simulator's."""
+
+    repeatability_mm: float | None = Field(default=None, ge=0, le=10)
+    repeatability_deg: float | None = Field(default=None, ge=0, le=5)
+    backlash_mm: float = Field(default=0.0, ge=0, le=10)
+    backlash_deg: float = Field(default=0.0, ge=0, le=5)
+    speed_mm_s: float = Field(default=250.0, gt=0, allow_inf_nan=False)
+    speed_deg_s: float = Field(default=60.0, gt=0, allow_inf_nan=False)
+    settle_s: float = Field(default=0.05, ge=0, le=60)
+    seed: int = Field(default=0, ge=0, description="its random landing errors")
+
+
+class SimulatedArmConfig(SimulatedMotionConfig):
+    """A simulated six-axis arm (default workspace: +-1500 mm, any orientation)."""
+
+    backend: Literal["simulated-arm"]
+    workspace: WorkspaceConfig | None = None
+
+
+class SimulatedPanTiltConfig(SimulatedMotionConfig):
+    """A simulated pan-tilt head rotating about `origin_mm` (R = Rz(pan) Rx(tilt))."""
+
+    backend: Literal["simulated-pan-tilt"]
+    origin_mm: Vec3 = (0.0, 0.0, 0.0)
+    pan_deg: Limits = (-90.0, 90.0)
+    tilt_deg: Limits = (-45.0, 45.0)
+
+    @model_validator(mode="after")
+    def _limits(self) -> SimulatedPanTiltConfig:
+        _ordered(self.pan_deg, "pan_deg")
+        _ordered(self.tilt_deg, "tilt_deg")
+        if max(map(abs, self.pan_deg)) > 180 or max(map(abs, self.tilt_deg)) > 90:
+            raise ValueError("pan_deg must lie within [-180, 180] and tilt_deg within "
+                             "[-90, 90] degrees")
+        return self
+
+
+class SimulatedLinearConfig(SimulatedMotionConfig):
+    """A simulated linear rail: t = origin_mm + travel * direction (unit), orientation fixed."""
+
+    backend: Literal["simulated-linear"]
+    origin_mm: Vec3 = (0.0, 0.0, 0.0)
+    direction: Vec3 = (1.0, 0.0, 0.0)
+    travel_mm: Limits = (0.0, 1000.0)
+
+    @model_validator(mode="after")
+    def _axis(self) -> SimulatedLinearConfig:
+        _ordered(self.travel_mm, "travel_mm")
+        if not any(self.direction):
+            raise ValueError("direction: must not be zero (the rail's axis)")
+        return self
+
+
+class HttpMoverConfig(MoverBase):
+    """A lab's robot server speaking the HTTP/JSON protocol of `acquisition.movers.http`."""
+
+    backend: Literal["http"]
+    url: str = Field(description="the robot server, e.g. http://robot.lab:8100")
+    request_timeout_s: float = Field(default=5.0, gt=0, le=600, allow_inf_nan=False)
+    margin_s: float = Field(default=2.0, ge=0, le=600, allow_inf_nan=False,
+                            description="beyond timeout_s before the client sends /stop")
+
+    @field_validator("url")
+    @classmethod
+    def _http_url(cls, url: str) -> str:
+        """An http(s) URL with a host, so the error names what is wrong."""
+        if not URL_RE.match(url):
+            raise ValueError(f"expected an http:// or https:// URL of the robot server "
+                             f"(http://host:port), got {url!r}")
+        return url
+
+
+SIMULATED_MOVERS = ("simulated-arm", "simulated-pan-tilt", "simulated-linear")
+MoverConfig = Annotated[SimulatedArmConfig | SimulatedPanTiltConfig | SimulatedLinearConfig
+                        | HttpMoverConfig, Field(discriminator="backend")]
+
+
 class RigConfig(_Strict):
     """A whole rig: `phasecal.rig/1`."""
 
@@ -206,6 +321,7 @@ class RigConfig(_Strict):
     settings: SettingsConfig | None = None
     trigger_box: TriggerBoxConfig | None = None
     panel: PanelConfig | None = None  # simulated rigs: a shaped panel behind cover glass
+    mover: MoverConfig | None = None  # a robot arm or stage that places camera or screen
 
     @model_validator(mode="before")
     @classmethod
@@ -257,6 +373,11 @@ class RigConfig(_Strict):
             raise ValueError("panel describes a simulated screen; a real monitor's shape and "
                              "glass are estimated by the fit (calibrate with options screen: "
                              "\"fit\")")
+        if (self.kind == "hardware" and self.mover is not None
+                and self.mover.backend in SIMULATED_MOVERS):
+            raise ValueError(f"mover: backend {self.mover.backend!r} is for simulated rigs; "
+                             "a hardware rig reaches its robot through its server (backend "
+                             "'http')")
         if self.kind == "hardware" and self.clock == "virtual":
             raise ValueError("clock 'virtual' is only for simulated rigs (hardware runs in "
                              "real time)")
@@ -299,7 +420,8 @@ class Rig:
 
     `camera` and `settings` are the reference camera's (a one-camera rig's only camera);
     `cameras` holds every camera by name, the reference first, and `camera_settings` the
-    settings of the others (`settings_for`)."""
+    settings of the others (`settings_for`). `mover` is the robot or stage that places the
+    camera or the screen, if the rig has one; `move_to` gives each move `move_timeout_s`."""
 
     display: Display
     camera: Camera
@@ -313,6 +435,8 @@ class Rig:
     latency_s: float | None = None  # flip-to-panel latency, measured on first capture
     cameras: dict[str, Camera] = field(default_factory=dict)  # {} -> {DEFAULT_CAMERA: camera}
     camera_settings: dict[str, CameraSettings] = field(default_factory=dict)
+    mover: Mover | None = None
+    move_timeout_s: float = MoverBase.model_fields["timeout_s"].default
     _closed: bool = field(default=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -335,12 +459,21 @@ class Rig:
             return self.settings
         return self.camera_settings.get(name, self.settings)
 
+    def move_to(self, pose: RobotPose) -> RobotPose:
+        """Move the rig's mover to the flange pose `pose` within `move_timeout_s`; the pose
+        it reports having reached (the `Mover` errors on failure)."""
+        if self.mover is None:
+            raise AcquisitionError("this rig has no mover: add a `mover` section to its "
+                                   "config")
+        return self.mover.move_to(pose, self.move_timeout_s)
+
     def close(self) -> None:
-        """Close the cameras, the display and the trigger box (once)."""
+        """Stop and close the mover, close the cameras, the display and the trigger box
+        (once)."""
         if self._closed:
             return
         self._closed = True
-        for part in (*self.cameras.values(), self.display, self.trigger):
+        for part in (self.mover, *self.cameras.values(), self.display, self.trigger):
             if part is not None:
                 part.close()
 
@@ -393,6 +526,28 @@ def open_camera(cfg: OpenCvConfig | AravisConfig, clock: Clock) -> Camera:
                         trigger_line=cfg.trigger_line, region=cfg.region, clock=clock)
 
 
+def open_mover(cfg: HttpMoverConfig) -> Mover:
+    """Connect to a robot server from its config section (MoverError if it does not answer
+    `GET /info`)."""
+    from acquisition.movers.http import HttpMover  # (httpx loads only for rigs with one)
+
+    return HttpMover(cfg.url, request_timeout_s=cfg.request_timeout_s, margin_s=cfg.margin_s)
+
+
+def _with_mover(rig: Rig, config: RigConfig) -> Rig:
+    """A simulated rig with its config's robot server (simulated movers come with the rig
+    from the simulator); the rig is closed if the server cannot be reached."""
+    if isinstance(config.mover, HttpMoverConfig):
+        try:
+            rig.mover = open_mover(config.mover)
+        except BaseException:
+            rig.close()
+            raise
+    if config.mover is not None:
+        rig.move_timeout_s = config.mover.timeout_s
+    return rig
+
+
 def _check_extras(config: RigConfig) -> None:
     """Refuse a hardware rig whose backends' pip extras are missing, naming the command."""
     from calibration.extras import installed, missing_message
@@ -418,7 +573,7 @@ def open_rig(config: RigConfig, clock: Clock | None = None, *,
         if simulator is None:
             raise RigConfigError("kind 'simulated': no simulator available here (pass "
                                  "hw_mocks.rig.open_simulated_rig as `simulator`)")
-        return simulator(config, clock)
+        return _with_mover(simulator(config, clock), config)
     _check_extras(config)
     clock = clock if clock is not None else RealClock()
     opened: list[Any] = []
@@ -437,6 +592,10 @@ def open_rig(config: RigConfig, clock: Clock | None = None, *,
             trigger = UsbTriggerBox(tb.vendor_id, tb.product_id, serial=tb.serial,
                                     request=tb.request, index=tb.index)
             opened.append(trigger)
+        mover = None
+        if config.mover is not None:
+            mover = open_mover(config.mover)  # type: ignore[arg-type]
+            opened.append(mover)
         info = display.info
         screen = ScreenGeometry(config.screen.width_px or info.width_px,
                                 config.screen.height_px or info.height_px, _pitch(config))
@@ -452,7 +611,9 @@ def open_rig(config: RigConfig, clock: Clock | None = None, *,
         if first[2] is not None:
             settings = first[2].to_settings()
         return Rig(display, next(iter(cameras.values())), clock, settings, screen,
-                   config=config, trigger=trigger, cameras=cameras, camera_settings=own)
+                   config=config, trigger=trigger, cameras=cameras, camera_settings=own,
+                   mover=mover, move_timeout_s=config.mover.timeout_s if config.mover
+                   else MoverBase.model_fields["timeout_s"].default)
     except BaseException:
         for part in reversed(opened):
             part.close()

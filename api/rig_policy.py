@@ -1,10 +1,12 @@
-"""What a rig created over REST may name: listed devices and recordings in the data directory.
+"""What a rig created over REST may name: listed devices and recordings in the data directory,
+and no robot server (a mover reached over HTTP).
 
 Each camera of a several-camera rig is checked as a one-camera rig's camera is; errors
 name it by its place (`config.cameras.1.source`).
 
 A request body must never make the server open or write an arbitrary path (a framebuffer
-"device" that is an ordinary file would be overwritten with pattern pixels). Rigs with
+"device" that is an ordinary file would be overwritten with pattern pixels), nor send
+requests (robot moves) to an address it names. Rigs with
 other devices or paths come only from files the operator gives the server
 (`serve --rig FILE`, `serve --rigs-dir DIR`).
 """
@@ -119,6 +121,9 @@ def check_client_rig(config: Any, data_dir: Path, *, dev_root: Path = Path("/dev
     `config` is a validated `acquisition.rig.RigConfig`; the returned copy has recording
     paths made absolute (inside the data directory).
     """
+    if config.mover is not None and config.mover.backend == "http":
+        raise _refuse("config.mover.url", "a robot server cannot be named over REST; "
+                      + OPERATOR_ONLY)
     if config.kind == "simulated":
         _check_simulated_size(config)
         return config

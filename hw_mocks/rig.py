@@ -3,7 +3,10 @@
 Built from a few settings (or a `phasecal.rig/1` config dict), with one camera or several
 (`cameras`: each its own lens, resolution, timing and place, `CameraMount`). The screen pose can be
 changed between poses (`set_pose`); ambient light, gain drift and panel brightness can
-be changed at any time, also mid-sequence via `at_frame`, to test integrity checks.
+be changed at any time, also mid-sequence via `at_frame`, to test integrity checks. A
+config's simulated mover (`mover = {backend = "simulated-arm" | ...}`) comes with the rig
+as `Rig.mover` (`hw_mocks.arm`); it moves in real time and does not move the screen
+(`set_pose` does).
 """
 
 from __future__ import annotations
@@ -17,9 +20,19 @@ import numpy as np
 
 from acquisition.clock import Clock, RealClock
 from acquisition.errors import DeviceSettingsError
+from acquisition.mover import Workspace
+from acquisition.movers.stage import StageKinematics
 from acquisition.protocols import CameraSettings
-from acquisition.rig import DEFAULT_CAMERA, Rig, RigConfig
+from acquisition.rig import (
+    DEFAULT_CAMERA,
+    Rig,
+    RigConfig,
+    SimulatedArmConfig,
+    SimulatedLinearConfig,
+    SimulatedPanTiltConfig,
+)
 from calibration.shared.plan import ScreenGeometry
+from hw_mocks.arm import SimulatedArm, SimulatedMover, SimulatedStage
 from hw_mocks.camera import CameraFaults, SimulatedCamera
 from hw_mocks.cameras import TruthCamera, make_truth_camera
 from hw_mocks.clock import VirtualClock
@@ -276,12 +289,38 @@ def _reject_unknown(part: str, params: dict[str, Any], allowed: set[str]) -> Non
                                   f"allowed: {sorted(allowed)}")
 
 
+def simulated_mover(cfg: SimulatedArmConfig | SimulatedPanTiltConfig | SimulatedLinearConfig
+                    ) -> SimulatedMover:
+    """The simulated arm or stage a rig config's `mover` section describes."""
+    motion = {"speed_mm_s": cfg.speed_mm_s, "speed_deg_s": cfg.speed_deg_s,
+              "settle_s": cfg.settle_s, "backlash_mm": cfg.backlash_mm,
+              "backlash_deg": cfg.backlash_deg, "rng": np.random.default_rng(cfg.seed),
+              **{k: v for k in ("repeatability_mm", "repeatability_deg")
+                 if (v := getattr(cfg, k)) is not None}}
+    if isinstance(cfg, SimulatedArmConfig):
+        ws = cfg.workspace
+        workspace = None if ws is None else Workspace(ws.min_mm, ws.max_mm,
+                                                      max_angle_deg=ws.max_angle_deg)
+        return SimulatedArm(workspace=workspace, **motion)
+    if isinstance(cfg, SimulatedPanTiltConfig):
+        kinematics = StageKinematics("pan-tilt", cfg.origin_mm,
+                                     {"pan": cfg.pan_deg, "tilt": cfg.tilt_deg})
+    else:
+        kinematics = StageKinematics("linear", cfg.origin_mm, {"travel": cfg.travel_mm},
+                                     direction=cfg.direction)
+    return SimulatedStage(kinematics, **motion)
+
+
 def open_simulated_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
     """The `acquisition.rig.SimulatorFactory` of this package: a `Rig` around a `SimulatedRig`
-    built from a `kind = "simulated"` config."""
+    built from a `kind = "simulated"` config, with its simulated mover if it names one (a
+    robot server, `http`, is connected by `acquisition.rig.open_rig`)."""
     sim = SimulatedRig.from_config(config.model_dump(mode="json", exclude_none=True),
                                    clock=clock)
     sim.rig.config = config
     if config.settings:
         sim.rig.settings = config.settings.to_settings()
+    if isinstance(config.mover, SimulatedArmConfig | SimulatedPanTiltConfig
+                  | SimulatedLinearConfig):
+        sim.rig.mover = simulated_mover(config.mover)
     return sim.rig

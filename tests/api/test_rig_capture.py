@@ -101,6 +101,23 @@ def test_rig_configs_over_rest_are_validated(service) -> None:
     assert bad.status_code == 422 and bad.json()["field"] == "config.cameras.1.width"
 
 
+def test_a_rig_over_rest_shows_its_mover_and_may_not_name_a_robot_server(service) -> None:
+    c, _ = service
+    arm = {"backend": "simulated-arm", "timeout_s": 20, "speed_mm_s": 500}
+    rig = c.post("/rigs", json={"name": "armed", "config": {**three_camera_rig(), "mover": arm}})
+    assert rig.status_code == 201, rig.text
+    shown = c.get(f"/rigs/{rig.json()['id']}").json()["config"]["mover"]
+    assert shown["backend"] == "simulated-arm" and shown["timeout_s"] == 20
+    assert shown["speed_mm_s"] == 500 and shown["workspace"] is None
+    http = {**three_camera_rig(), "mover": {"backend": "http", "url": "http://10.0.0.7:8100"}}
+    bad = c.post("/rigs", json={"name": "remote", "config": http})
+    assert bad.status_code == 422 and bad.json()["field"] == "config.mover.url"
+    assert "a robot server cannot be named over REST" in bad.json()["detail"]
+    wrong = {**three_camera_rig(), "mover": {"backend": "simulated-linear", "travel_mm": [5, 1]}}
+    bad = c.post("/rigs", json={"name": "rail", "config": wrong})
+    assert bad.status_code == 422 and "travel_mm: low 5 exceeds high 1" in bad.json()["detail"]
+
+
 def test_three_cameras_give_three_maps_matching_each_cameras_truth(service) -> None:
     c, data = service
     config = three_camera_rig()
