@@ -26,7 +26,7 @@ def test_warm_decode_task_primes_the_sums_of_the_coming_decodes(tmp_path) -> Non
     try:
         warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64))
         assert sums_cache.kept_bytes() > 0
-        kept = sums_cache._kept[0]
+        kept = sums_cache.kept_arrays()[0]
         dec = StreamingDecoder(plan, (48, 64), compiled=True)  # as the live decode task
         dec.prepare()
         assert dec._acc.block is kept and not kept.any()
@@ -49,7 +49,7 @@ def test_warm_decode_task_keeps_the_sums_a_worker_already_holds(tmp_path) -> Non
     sums_cache.keep([held])
     try:
         warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64))
-        assert sums_cache._kept == [held] and (held == 7.0).all()
+        assert sums_cache.kept_arrays() == [held] and (held == 7.0).all()
     finally:
         sums_cache.release()
 
