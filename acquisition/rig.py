@@ -26,13 +26,19 @@ from pydantic import (
     Field,
     PositiveFloat,
     ValidationError,
-    field_validator,
     model_validator,
 )
 
 from acquisition.clock import Clock, RealClock
 from acquisition.errors import AcquisitionError
 from acquisition.mover import Mover, RobotPose
+from acquisition.mover_config import (
+    SIMULATED_MOVERS,
+    HttpMoverConfig,
+    MoverBase,
+    MoverConfig,
+    open_mover,
+)
 from acquisition.patterns import DisplayResponse
 from acquisition.protocols import Camera, CameraSettings, Display, SimulatorControls
 from acquisition.usb.trigger_box import TriggerSink
@@ -41,7 +47,6 @@ from calibration.shared.plan import ScreenGeometry
 RIG_FORMAT = "phasecal.rig/1"
 DEFAULT_CAMERA = "cam0"  # the name of a one-camera rig's camera (`camera = {...}`)
 CAMERA_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$")  # also a folder name
-URL_RE = re.compile(r"^https?://[^\s/?#]+(/\S*)?$")  # a robot server's
 
 
 class RigConfigError(ValueError):
@@ -193,116 +198,6 @@ class TriggerBoxConfig(_Strict):
     serial: str | None = None
     request: int = Field(default=1, ge=0, le=0xFF)
     index: int = Field(default=0, ge=0, le=0xFFFF)
-
-
-Vec3 = tuple[float, float, float]
-Limits = tuple[float, float]
-
-
-def _ordered(limits: Limits, name: str) -> None:
-    """A (low, high) pair must be ordered."""
-    if limits[0] > limits[1]:
-        raise ValueError(f"{name}: low {limits[0]:g} exceeds high {limits[1]:g}")
-
-
-class WorkspaceConfig(_Strict):
-    """Where a simulated arm's flange may go: a box for its origin (base frame, mm) and
-    orientations within `max_angle_deg` of the identity."""
-
-    min_mm: Vec3
-    max_mm: Vec3
-    max_angle_deg: float = Field(default=180.0, gt=0, le=180)
-
-    @model_validator(mode="after")
-    def _box(self) -> WorkspaceConfig:
-        for axis, lo, hi in zip("xyz", self.min_mm, self.max_mm, strict=True):
-            _ordered((lo, hi), f"{axis} of min_mm/max_mm")
-        return self
-
-
-class MoverBase(_Strict):
-    """What every mover has: how long one move may take before it is stopped."""
-
-    timeout_s: float = Field(default=60.0, gt=0, le=3600, allow_inf_nan=False,
-                             description="a move not settled by then is stopped (MoveTimeout)")
-
-
-class SimulatedMotionConfig(MoverBase):
-    """A simulated mover's errors and pace (`hw_mocks.arm`); unset: the simulator's."""
-
-    repeatability_mm: float | None = Field(default=None, ge=0, le=10)
-    repeatability_deg: float | None = Field(default=None, ge=0, le=5)
-    backlash_mm: float = Field(default=0.0, ge=0, le=10)
-    backlash_deg: float = Field(default=0.0, ge=0, le=5)
-    speed_mm_s: float = Field(default=250.0, gt=0, allow_inf_nan=False)
-    speed_deg_s: float = Field(default=60.0, gt=0, allow_inf_nan=False)
-    settle_s: float = Field(default=0.05, ge=0, le=60)
-    seed: int = Field(default=0, ge=0, description="its random landing errors")
-
-
-class SimulatedArmConfig(SimulatedMotionConfig):
-    """A simulated six-axis arm (default workspace: +-1500 mm, any orientation)."""
-
-    backend: Literal["simulated-arm"]
-    workspace: WorkspaceConfig | None = None
-
-
-class SimulatedPanTiltConfig(SimulatedMotionConfig):
-    """A simulated pan-tilt head rotating about `origin_mm` (R = Rz(pan) Rx(tilt))."""
-
-    backend: Literal["simulated-pan-tilt"]
-    origin_mm: Vec3 = (0.0, 0.0, 0.0)
-    pan_deg: Limits = (-90.0, 90.0)
-    tilt_deg: Limits = (-45.0, 45.0)
-
-    @model_validator(mode="after")
-    def _limits(self) -> SimulatedPanTiltConfig:
-        _ordered(self.pan_deg, "pan_deg")
-        _ordered(self.tilt_deg, "tilt_deg")
-        if max(map(abs, self.pan_deg)) > 180 or max(map(abs, self.tilt_deg)) > 90:
-            raise ValueError("pan_deg must lie within [-180, 180] and tilt_deg within "
-                             "[-90, 90] degrees")
-        return self
-
-
-class SimulatedLinearConfig(SimulatedMotionConfig):
-    """A simulated linear rail: t = origin_mm + travel * direction (unit), orientation fixed."""
-
-    backend: Literal["simulated-linear"]
-    origin_mm: Vec3 = (0.0, 0.0, 0.0)
-    direction: Vec3 = (1.0, 0.0, 0.0)
-    travel_mm: Limits = (0.0, 1000.0)
-
-    @model_validator(mode="after")
-    def _axis(self) -> SimulatedLinearConfig:
-        _ordered(self.travel_mm, "travel_mm")
-        if not any(self.direction):
-            raise ValueError("direction: must not be zero (the rail's axis)")
-        return self
-
-
-class HttpMoverConfig(MoverBase):
-    """A lab's robot server speaking the HTTP/JSON protocol of `acquisition.movers.http`."""
-
-    backend: Literal["http"]
-    url: str = Field(description="the robot server, e.g. http://robot.lab:8100")
-    request_timeout_s: float = Field(default=5.0, gt=0, le=600, allow_inf_nan=False)
-    margin_s: float = Field(default=2.0, ge=0, le=600, allow_inf_nan=False,
-                            description="beyond timeout_s before the client sends /stop")
-
-    @field_validator("url")
-    @classmethod
-    def _http_url(cls, url: str) -> str:
-        """An http(s) URL with a host, so the error names what is wrong."""
-        if not URL_RE.match(url):
-            raise ValueError(f"expected an http:// or https:// URL of the robot server "
-                             f"(http://host:port), got {url!r}")
-        return url
-
-
-SIMULATED_MOVERS = ("simulated-arm", "simulated-pan-tilt", "simulated-linear")
-MoverConfig = Annotated[SimulatedArmConfig | SimulatedPanTiltConfig | SimulatedLinearConfig
-                        | HttpMoverConfig, Field(discriminator="backend")]
 
 
 class RigConfig(_Strict):
@@ -524,14 +419,6 @@ def open_camera(cfg: OpenCvConfig | AravisConfig, clock: Clock) -> Camera:
 
     return AravisCamera(cfg.device, buffers=cfg.buffers, bayer=cfg.bayer,
                         trigger_line=cfg.trigger_line, region=cfg.region, clock=clock)
-
-
-def open_mover(cfg: HttpMoverConfig) -> Mover:
-    """Connect to a robot server from its config section (MoverError if it does not answer
-    `GET /info`)."""
-    from acquisition.movers.http import HttpMover  # (httpx loads only for rigs with one)
-
-    return HttpMover(cfg.url, request_timeout_s=cfg.request_timeout_s, margin_s=cfg.margin_s)
 
 
 def _with_mover(rig: Rig, config: RigConfig) -> Rig:

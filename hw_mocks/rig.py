@@ -21,16 +21,14 @@ import numpy as np
 from acquisition.clock import Clock, RealClock
 from acquisition.errors import DeviceSettingsError
 from acquisition.mover import Workspace
-from acquisition.movers.stage import StageKinematics
-from acquisition.protocols import CameraSettings
-from acquisition.rig import (
-    DEFAULT_CAMERA,
-    Rig,
-    RigConfig,
+from acquisition.mover_config import (
     SimulatedArmConfig,
     SimulatedLinearConfig,
     SimulatedPanTiltConfig,
 )
+from acquisition.movers.stage import StageKinematics
+from acquisition.protocols import CameraSettings
+from acquisition.rig import DEFAULT_CAMERA, Rig, RigConfig
 from calibration.shared.plan import ScreenGeometry
 from hw_mocks.arm import SimulatedArm, SimulatedMover, SimulatedStage
 from hw_mocks.camera import CameraFaults, SimulatedCamera
