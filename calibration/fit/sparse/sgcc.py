@@ -60,10 +60,10 @@ PRIOR_ORIGIN_MM = 1.0  # second difference of the origin net (non-central)
 _START_SAMPLES_PER_CELL = 6  # ray samples along each axis of each cell with points
 
 
-def mesh_for(points: np.ndarray, image_size: tuple[int, int],
+def mesh_for(points: np.ndarray, image_size: tuple[int, int], n_views: int,
              cells: tuple[int, int] | str = "auto") -> tuple[tuple[int, int], dict[str, Any]]:
-    """(cu, cv) for the inlier pixels `points` (N, 2) and how it was chosen; the finest
-    candidate meeting `MIN_POINTS_PER_CELL`, or `cells` when given."""
+    """(cu, cv) for the inlier pixels `points` (N, 2) of `n_views` views and how it was
+    chosen; the finest candidate meeting `MIN_POINTS_PER_CELL`, or `cells` when given."""
     w, h = image_size
     rows = []
     shapes = ([tuple(cells)] if cells != "auto" else
@@ -80,12 +80,13 @@ def mesh_for(points: np.ndarray, image_size: tuple[int, int],
                                         "min_points_per_cell": MIN_POINTS_PER_CELL}
     coarsest = rows[-1]
     need = MIN_POINTS_PER_CELL * coarsest["cells_with_points"]
+    more = int(np.ceil((need - len(points)) * n_views / len(points)))
     raise ObservationFitError(
-        f"observations: {len(points)} points are too few for an sGCC mesh: its coarsest, "
-        f"{coarsest['cells'][0]}x{coarsest['cells'][1]} cells, needs >= "
-        f"{MIN_POINTS_PER_CELL} points per cell, >= {need} over the {coarsest['cells_with_points']}"
-        f" cells they cover (add views: about {int(np.ceil(need / len(points) - 1e-9))}x the "
-        f"points; or fit a parametric model)")
+        f"observations: {len(points)} points in {n_views} views are too few for an sGCC mesh: "
+        f"its coarsest, {coarsest['cells'][0]}x{coarsest['cells'][1]} cells, needs >= "
+        f"{MIN_POINTS_PER_CELL} points per cell, >= {need} over the "
+        f"{coarsest['cells_with_points']} cells they cover (add about {more} view{'s' * (more != 1)} like these, "
+        f"or fit a parametric model)")
 
 
 class _SgccProblem:  # a SparseProblem (calibration/fit/sparse/fit.py)
@@ -216,7 +217,7 @@ def fit_sgcc_observations(
         v.inlier = ~np.isin(v.rows, row["outliers"])
         v.sigma = row["sigma_px"]
     cells, mesh = mesh_for(np.concatenate([v.xy[v.inlier] for v in views]),
-                           start.model.image_size, opts.cells)
+                           start.model.image_size, len(views), opts.cells)
     model = _start(SGCC_MODELS[model_name], start, views, cells)
     problem = _SgccProblem(model, views, start.shape)
     nfev, rounds, converged = robust_fit(problem, opts, model_name, progress)

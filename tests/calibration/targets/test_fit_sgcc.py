@@ -81,6 +81,6 @@ def test_too_few_points_are_refused_with_the_count(simulated):
         keep = np.zeros(v.count)
         keep[::6] = 1.0
         sparse.append(dataclasses.replace(v, weight=keep))
-    with pytest.raises(ObservationFitError, match=r"\d+ points are too few for an sGCC mesh.*"
-                                                  r"needs >= 20 points per cell"):
+    with pytest.raises(ObservationFitError, match=r"\d+ points in 4 views are too few for an "
+                       r"sGCC mesh.*needs >= 20 points per cell.*add about \d+ views like these"):
         fit_sgcc_observations(sparse, "sgcc")
