@@ -85,8 +85,8 @@ def mesh_for(points: np.ndarray, image_size: tuple[int, int], n_views: int,
         f"observations: {len(points)} points in {n_views} views are too few for an sGCC mesh: "
         f"its coarsest, {coarsest['cells'][0]}x{coarsest['cells'][1]} cells, needs >= "
         f"{MIN_POINTS_PER_CELL} points per cell, >= {need} over the "
-        f"{coarsest['cells_with_points']} cells they cover (add about {more} view{'s' * (more != 1)} like these, "
-        f"or fit a parametric model)")
+        f"{coarsest['cells_with_points']} cells they cover (add about {more} "
+        f"view{'s' * (more != 1)} like these, or fit a parametric model)")
 
 
 class _SgccProblem:  # a SparseProblem (calibration/fit/sparse/fit.py)
