@@ -22,10 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from calibration.fit.classic.options import ParametricOptions
 from calibration.fit.correspondences import PointSet, point_set, subsample
 from calibration.fit.registry import PARAMETRIC
-from calibration.fit.result import PoseEstimate
 from calibration.guidance_placement import (
     Placement,
     candidate_placements,
@@ -34,11 +32,8 @@ from calibration.guidance_placement import (
     planned_points,
     screen_centre_mm,
 )
-from calibration.metrology.lm import fit_dense
 from calibration.metrology.refine import fit_parametric_dense
-from calibration.metrology.screen import ScreenModel
 from calibration.models.base import CameraModel
-from calibration.models.parametric import OpenCVRationalModel
 from calibration.shared.maps import DecodedMaps
 from calibration.shared.plan import ScreenGeometry
 from calibration.uncertainty import (
@@ -48,14 +43,12 @@ from calibration.uncertainty import (
     direction_jacobian,
     free_parameters,
     pose_information,
-    radial_pole_margin,
     ray_sigma,
     reachable,
     sensor_grid,
     worst_ray_sigma,
 )
 
-MIN_POLE_MARGIN = 0.25  # radial factor's numerator and denominator stay this far from 0
 MIN_VISIBLE = 0.5  # the least part of a suggested screen inside the image one may ask for
 NEAR_POSE_FRACTION = 0.05  # outlines this close (of the image diagonal) repeat a pose
 MIN_GAIN = 0.02  # a suggestion must lower the worst predicted sigma by this fraction
@@ -70,7 +63,7 @@ class SessionFit:
     poses: list[tuple[np.ndarray, np.ndarray]]  # (R, t) per pose
     points: list[PointSet]  # per pose (counted with at most RAY_SIGMA_POINTS_PER_POSE)
     param_std: dict[str, float] | None
-    note: str = ""  # how the fit was made, when it differs from the calibration's
+    note: str = ""  # the fit's own note (a rational fit refitted away from 0/0)
 
 
 @dataclass
@@ -123,42 +116,16 @@ class Suggestion:
 
 def fit_session(points: list[PointSet], image_size: tuple[int, int], screen: ScreenGeometry,
                 model_name: str = "opencv-rational") -> SessionFit:
-    """Fit `model_name` to the session's points (>= 3 poses) as its calibration would.
-
-    A rational fit that lands where its radial factor is near 0/0 inside the image
-    (`radial_pole_margin` under `MIN_POLE_MARGIN`) is refitted from the opencv5 solution
-    (k4..k6 = 0), where the first-order ray sigma means something; `note` says so.
-    """
+    """Fit `model_name` to the session's points (>= 3 poses) as its calibration would; a
+    rational fit near 0/0 is refitted there too (`fit_parametric_dense`), and its note is
+    this fit's `note`."""
     if model_name not in PARAMETRIC:
         raise ValueError(f"model: guidance predicts with a parametric model "
                          f"({', '.join(PARAMETRIC)}), got {model_name!r}")
     model, poses, _, stats, _ = fit_parametric_dense(points, image_size, model_name, screen)
-    note = ""
-    margin = radial_pole_margin(model)
-    if margin < MIN_POLE_MARGIN:
-        model, poses, std = _rational_from_opencv5(points, image_size, screen)
-        stats = {"param_std": std}
-        note = (f"the weighted {model_name} fit has its radial factor near 0/0 inside the "
-                f"image (margin {margin:.2g}), where its ray sigma is not meaningful; "
-                f"refitted from the opencv5 solution (margin {radial_pole_margin(model):.2g})")
     return SessionFit(model, [(p.rotation, p.translation) for p in poses],
                       [subsample(p, RAY_SIGMA_POINTS_PER_POSE) for p in points],
-                      stats.get("param_std"), note)
-
-
-def _rational_from_opencv5(points: list[PointSet], image_size: tuple[int, int],
-                           screen: ScreenGeometry
-                           ) -> tuple[CameraModel, list[PoseEstimate], dict[str, float]]:
-    """The weighted opencv-rational fit started from the weighted opencv5 fit."""
-    five, poses, _, _, _ = fit_parametric_dense(points, image_size, "opencv5", screen)
-    start = OpenCVRationalModel(image_size, five.camera_matrix,
-                                np.concatenate([five.dist, np.zeros(3)]))
-    free = np.ones(start.get_params().size, dtype=bool)
-    free[4 + 8:] = False  # thin prism, as the calibration's default
-    flat = ScreenModel(screen, "flat", ParametricOptions().glass_index)
-    dense = fit_dense(start, poses, points, flat, free)
-    names = dense.model.param_names()
-    return dense.model, dense.poses, dict(zip(names, dense.param_std.tolist(), strict=True))
+                      stats.get("param_std"), stats.get("fit_note", ""))
 
 
 def suggest_next_pose(fit: SessionFit, screen: ScreenGeometry,

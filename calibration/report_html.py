@@ -156,7 +156,9 @@ def _numbers(data: ReportData) -> str:
                + f'<p class="explain">A parameter is flagged undetermined when its 1-sigma '
                  f"exceeds {PARAM_SIGMA_FRACTION:.0%} of its value.</p>"
                if params else "")
-            + (f"<h3>Warnings of the fit</h3><ul>{warnings}</ul>" if warnings else ""))
+            + (f"<h3>Warnings of the fit</h3><ul>{warnings}</ul>" if warnings else "")
+            + (f'<h3>How the fit was made</h3><p class="fit-note">'
+               f'{html.escape(st["fit_note"])}</p>' if st.get("fit_note") else ""))
 
 
 def write_report(data: ReportData, out_dir: str | Path, header: ReportHeader,

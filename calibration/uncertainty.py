@@ -26,6 +26,7 @@ from calibration.models.base import CameraModel
 _POSE_PARAMS = 6
 RAY_SIGMA_GRID = (48, 36)  # (nx, ny) sensor grid of the ray-sigma map
 RAY_SIGMA_POINTS_PER_POSE = 800  # points per training pose counted in the information
+MIN_POLE_MARGIN = 0.25  # radial factor's numerator and denominator stay this far from 0
 MAX_FIELD_ANGLE_DEG = 70.0  # the worst sigma is taken over pixels this close to the axis
 
 

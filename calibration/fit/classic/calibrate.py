@@ -83,4 +83,6 @@ def calibrate_parametric(
                                           "screen", "reduced_chi2")}
     if held:
         fitted.stats["heldout"] = stats["heldout"]
+    if "fit_note" in stats:  # a rational fit moved away from 0/0 (metrology.refine)
+        fitted.stats["fit_note"] = stats["fit_note"]
     return result
