@@ -1,22 +1,33 @@
 """Rig calibration jobs: every camera of a several-camera session's poses fitted jointly on a
 worker (api/worker/rig_tasks.py); this server moves rig.json and result.json into the
-calibration's folder."""
+calibration's folder and draws the rig's report as the job's last step (a report that cannot
+be drawn does not fail the fit: its first request draws it again)."""
 
 from __future__ import annotations
 
+import logging
+import shutil
+import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy.orm import Session
 
-from api.db import CalibrationRecord
+from api.db import CalibrationRecord, SessionRecord
 from api.jobs.model import Job, JobKind
 from api.pose_path import camera_maps_path, pose_camera_names
+from api.problems import Problem
+from api.version import phasecal_version
 from api.worker.rig_tasks import RIG_OUTPUTS, rig_calibrate_task
+from calibration import ReportHeader, RigReportInputs, draw_rig_report, load_rig, rig_downloads
 from calibration.shared.progress import TaskContext
 
 if TYPE_CHECKING:
     from api.services import Services
+
+RIG_REPORT_DIR = "report"
+log = logging.getLogger("phasecal.reports")
 
 
 @dataclass(kw_only=True)
@@ -55,6 +66,11 @@ class RigCalibrateJob(Job):
             result = fut.result()
             ctx.check_cancelled()
             svc.store.commit(staged, RIG_OUTPUTS, svc.store.dir_for(self.cal_id))
+        try:
+            draw_rig_report_now(svc, self.cal_id)
+        # Whatever went wrong, the fit stands; the report is drawn again on its first request.
+        except Exception as exc:
+            log.warning("calibration %s: rig report not drawn: %s", self.cal_id, exc)
         return result
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:
@@ -64,3 +80,63 @@ class RigCalibrateJob(Job):
     def ended(self, s: Session, status: str, error: str) -> None:
         c = s.get(CalibrationRecord, self.cal_id)
         c.status, c.error = status, error
+
+
+def rig_report_inputs(svc: Services, rec: CalibrationRecord) -> RigReportInputs:
+    """What a rig calibration's report is drawn from: its stored files and its record."""
+    cal_dir = svc.store.dir_for(rec.id)
+    maps: dict[str, list[str]] = {}
+    for pid in rec.pose_ids:
+        pose_dir = svc.store.dir_for(pid)
+        for cam in pose_camera_names(pose_dir):
+            path = camera_maps_path(pose_dir, cam)
+            if path.is_file():
+                maps.setdefault(cam, []).append(str(path))
+    with svc.db.session() as s:
+        ses = s.get(SessionRecord, rec.session_id)
+        session = f"{ses.name or 'unnamed'} ({rec.session_id})" if ses else rec.session_id
+    models = (rec.options or {}).get("rig", {}).get("camera_models", {})
+    header = ReportHeader(
+        title=f"Rig calibration {rec.id}", session=session,
+        cameras=", ".join(f"{c} ({m})" for c, m in models.items()) or "not recorded",
+        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(rec.created_at)),
+        software=f"phasecal {phasecal_version()}", poses_used=list(rec.pose_ids),
+        heldout=list(rec.heldout_pose_ids))
+    rig_json = cal_dir / "rig.json"
+    return RigReportInputs(str(rig_json), str(cal_dir / "result.json"), maps, header,
+                           rig_downloads(load_rig(rig_json), rec.id))
+
+
+def draw_rig_report_now(svc: Services, cal_id: str) -> Path:
+    """Draw a rig calibration's report on the executor, wait, move it into place; its folder."""
+    with svc.db.session() as s:
+        rec = s.get(CalibrationRecord, cal_id)
+    inputs = rig_report_inputs(svc, rec)
+    tmp = svc.store.temp_dir()
+    try:
+        svc.executor.submit(draw_rig_report, inputs, str(tmp)).result()
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    final = svc.store.dir_for(cal_id) / RIG_REPORT_DIR
+    svc.store.replace_dir(tmp, final)
+    return final
+
+
+def is_rig_calibration(rec: CalibrationRecord) -> bool:
+    """Whether a calibration record is of a rig (its options name the cameras' models)."""
+    return "rig" in (rec.options or {})
+
+
+def rig_report_folder(svc: Services, rec: CalibrationRecord) -> Path | None:
+    """The folder of a rig calibration's report; None while the fit runs. Drawn here when
+    the job could not draw it."""
+    if rec.status in ("queued", "running"):
+        return None
+    if rec.status != "succeeded":
+        raise Problem(409, "not-ready", f"calibration {rec.id} is {rec.status}; a report "
+                      "exists only for a calibration that succeeded")
+    folder = svc.store.dir_for(rec.id) / RIG_REPORT_DIR
+    if (folder / "report.html").is_file():
+        return folder
+    return draw_rig_report_now(svc, rec.id)

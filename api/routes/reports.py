@@ -8,6 +8,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query
 from fastapi.responses import HTMLResponse, Response
 
+from api.jobs.rig_calibrations import is_rig_calibration, rig_report_folder
 from api.problems import Problem
 from api.reports import (
     calibration,
@@ -36,14 +37,18 @@ def report_page(cal_id: str, svc: Svc, download: Annotated[bool, Query(
                 ) -> HTMLResponse:
     """The calibration report: verdict against stated thresholds, downloads of the model and
     its exports, numbers, residual fields per pose, histogram, radial profile, ray-uncertainty
-    map, coverage, held-out poses. Drawn by the calibration job; until it is in place (202)
-    a page that says so and reloads itself."""
-    folder = ready_report(svc, cal_id)
+    map, coverage, held-out poses (a rig's: every camera and the extrinsics with their
+    sigma). Drawn by the calibration job; until it is in place (202) a page that says so and
+    reloads itself."""
+    rec = calibration(svc, cal_id)
+    rig = is_rig_calibration(rec)
+    folder = rig_report_folder(svc, rec) if rig else ready_report(svc, cal_id)
     if folder is None:
-        return HTMLResponse(drawing_page(cal_id, calibration(svc, cal_id).status),
+        return HTMLResponse(drawing_page(cal_id, rec.status),
                             status_code=202, headers={"Retry-After": "2"})
-    page = with_links((folder / "report.html").read_text(encoding="utf-8"),
-                      compare_links(svc, cal_id))
+    page = (folder / "report.html").read_text(encoding="utf-8")
+    if not rig:  # a rig has no single-camera model to compare with
+        page = with_links(page, compare_links(svc, cal_id))
     if download:
         return HTMLResponse(self_contained(page, folder), headers={
             "Content-Disposition": f'attachment; filename="{cal_id}-report.html"'})
@@ -58,7 +63,8 @@ def report_file(cal_id: str, name: str, svc: Svc) -> Response:
     if name != "report.html" and not _PNG.fullmatch(name):
         raise Problem(404, "not-found", f"report file {name!r}: expected report.html or a "
                       "PNG named in it")
-    folder = ready_report(svc, cal_id)
+    rec = calibration(svc, cal_id)
+    folder = rig_report_folder(svc, rec) if is_rig_calibration(rec) else ready_report(svc, cal_id)
     if folder is None:
         raise Problem(409, "not-ready", f"calibration {cal_id}'s report is being drawn; "
                       "ask again in a few seconds")
