@@ -30,6 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from calibration.fit.registry import model_spec
 from calibration.fit.sgcc.gauge import GaugeBasis
 from calibration.fit.sgcc.initial import gauge_rotation
 from calibration.fit.sgcc.lm import gauge_constraints
@@ -47,17 +48,20 @@ from calibration.fit.sparse.options import MIN_VIEWS, ObservationOptions
 from calibration.fit.sparse.ray_residual import ray_residual
 from calibration.fit.sparse.target_shape import TargetShape
 from calibration.models.bspline import SplineGrid, second_differences
-from calibration.models.sgcc import SGCCBase, SGCCModel, SGCCNonCentralModel, logmap
+from calibration.models.sgcc import SGCCBase, logmap
 from calibration.shared.observations import TargetObservations
 
-SGCC_MODELS: dict[str, type[SGCCBase]] = {"sgcc": SGCCModel,
-                                          "sgcc-noncentral": SGCCNonCentralModel}
 MESH_CELLS = (10, 8, 6, 5, 4)  # candidate cells along the longer side, finest first
 MIN_POINTS_PER_CELL = 20  # 40 residuals for about one new control point (2-4 values) a cell
 START_MODEL = "opencv5"
 PRIOR_RELATIVE = 0.1  # second difference of the direction net, in cell angular sizes
 PRIOR_ORIGIN_MM = 1.0  # second difference of the origin net (non-central)
 _START_SAMPLES_PER_CELL = 6  # ray samples along each axis of each cell with points
+
+
+def is_sgcc(model_name: str) -> bool:
+    """Whether the registry's `model_name` is an sGCC model (family "sgcc")."""
+    return model_spec(model_name).family == "sgcc"
 
 
 def mesh_for(points: np.ndarray, image_size: tuple[int, int], n_views: int,
@@ -205,7 +209,7 @@ def fit_sgcc_observations(
 ) -> SparseFit:
     """Fit `model_name` (sgcc or sgcc-noncentral) to the views; see the module docstring."""
     opts = options or ObservationOptions()
-    if model_name not in SGCC_MODELS:
+    if not is_sgcc(model_name):
         raise ObservationFitError(f"model: {model_name!r} is not an sGCC model")
     if len(observations) < MIN_VIEWS:
         raise ObservationFitError(f"observations: {model_name} needs >= {MIN_VIEWS} views, "
@@ -218,7 +222,7 @@ def fit_sgcc_observations(
         v.sigma = row["sigma_px"]
     cells, mesh = mesh_for(np.concatenate([v.xy[v.inlier] for v in views]),
                            start.model.image_size, len(views), opts.cells)
-    model = _start(SGCC_MODELS[model_name], start, views, cells)
+    model = _start(model_spec(model_name).model_class, start, views, cells)
     problem = _SgccProblem(model, views, start.shape)
     nfev, rounds, converged = robust_fit(problem, opts, model_name, progress)
     cov = covariance_of(problem)
@@ -245,5 +249,5 @@ def fit_sparse(observations: list[TargetObservations], model_name: str,
                progress: Callable[[int, int, str], None] | None = None) -> SparseFit:
     """The pixel-space fit of any model that takes observations: sGCC here, a parametric
     model in `fit_observations`."""
-    fit = fit_sgcc_observations if model_name in SGCC_MODELS else fit_observations
+    fit = fit_sgcc_observations if is_sgcc(model_name) else fit_observations
     return fit(observations, model_name, options, progress)
