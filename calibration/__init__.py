@@ -88,6 +88,8 @@ _EXPORTS = {
     "stereo_rectify": "undistort",
     # evaluate and guide
     "plan_next_pose": "guidance",
+    "plan_step": "auto_plan",
+    "starting_moves": "auto_plan",
     "session_points": "guidance",
     "NominalCamera": "guidance_start",
     "nominal_camera": "guidance_start",

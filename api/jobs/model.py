@@ -33,6 +33,7 @@ class JobKind(StrEnum):
     CALIBRATE = "calibrate"
     INTRINSICS = "intrinsics"
     HANDEYE = "handeye"
+    AUTO = "auto"  # the closed loop: a robot places, phasecal plans, captures, refits
 
 
 ACTIVE_JOB_STATES = (JobStatus.QUEUED.value, JobStatus.RUNNING.value)
