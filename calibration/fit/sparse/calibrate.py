@@ -54,8 +54,7 @@ def calibrate_observations(
         if progress is not None:
             progress(min(done, total), total, stage)
 
-    fit = fit_sparse(observations, model, opts,
-                           lambda i, n, s: report(0, steps, s))
+    fit = fit_sparse(observations, model, opts, lambda i, n, s: report(0, steps, s))
     report(1, steps, f"{model}: projection uncertainty")
     fit.stats["projection_sigma_px"] = projection_sigma_map(fit.model, fit.intrinsics_covariance)
     if cross_validate_folds:
