@@ -23,6 +23,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from api.worker.lifetime import die_with_parent, guard_args
 from api.worker.task_runner import TaskRunner, Ticket
+from calibration import warm_up
 from calibration.shared.progress import ProgressFn, TaskContext
 
 DASK_ENV = "PHASECAL_DASK"
@@ -105,6 +106,27 @@ def _run_remote(task_fn: Callable[..., Any], job_id: str, queue: Any, cancel_eve
     return task_fn(_RemoteContext(job_id, queue, cancel_event), *args, **kwargs)
 
 
+def start_worker(parent_pid: int, use_pdeathsig: bool, warm_kernels: bool) -> None:
+    """Worker-process initializer: the lifetime guards (`die_with_parent`), then, with
+    `warm_kernels`, a daemon thread that loads the decoder's compiled kernels while the
+    worker waits for its first task, so its first live decode does not pay the load
+    (~0.4 CPU s from numba's cache) while that pose's frames arrive."""
+    die_with_parent(parent_pid, use_pdeathsig)  # first: it needs a process of one thread
+    if warm_kernels:
+        threading.Thread(target=warm_kernels_quietly, name="phasecal-warm-kernels",
+                         daemon=True).start()
+
+
+def warm_kernels_quietly() -> None:
+    """`warm_up`, logging a failure (the first decode then loads the kernels itself and
+    reports what is wrong) instead of ending the thread with a traceback on stderr."""
+    try:
+        warm_up()
+    except Exception:
+        log.warning("loading the decoder's kernels ahead of the first decode failed",
+                    exc_info=True)
+
+
 class ManagedFlag:
     """A job's cancel flag kept by the manager process (`event`, what the worker polls).
 
@@ -136,13 +158,16 @@ class ProcessExecutor(TaskRunner):
     #: are killed (a task in a long step that does not poll its cancel flag)
     stop_grace_s = 5.0
 
-    def __init__(self, max_workers: int | None = None) -> None:
+    def __init__(self, max_workers: int | None = None, warm_kernels: bool = False) -> None:
+        """`warm_kernels`: each worker loads the decoder's compiled kernels in the background
+        as it starts (`start_worker`; `make_executor("processes")`, the service's, does)."""
         super().__init__()
         ctx = mp.get_context("spawn")
         workers = max_workers or max(1, min(2, os.cpu_count() or 1))
         guard = guard_args()  # workers and the manager die with this process (kill -9 too)
         self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                         initializer=die_with_parent, initargs=guard)
+                                         initializer=start_worker,
+                                         initargs=(*guard, warm_kernels))
         # Spawn every worker now, from this thread: PDEATHSIG follows the spawning thread,
         # and a worker spawned lazily by a short-lived job thread would die with it.
         before = set(mp.active_children())
@@ -253,15 +278,16 @@ class ProcessExecutor(TaskRunner):
 
 
 def make_executor(address: str | None = None) -> Executor:
-    """Threads (default), worker processes ("processes"), or Dask for `tcp://...`.
+    """Threads (default), worker processes ("processes", loading the decoder's kernels as
+    they start), or Dask for `tcp://...`.
 
     The address comes from the argument or env PHASECAL_DASK.
     """
     address = address or os.environ.get(DASK_ENV) or None
     if address is None or address in ("inprocess", "threads"):
         return InProcessExecutor()
-    if address == "processes":
-        return ProcessExecutor()
+    if address == "processes":  # the service's workers: each loads the kernels as it starts
+        return ProcessExecutor(warm_kernels=True)
     if not address.startswith(("tcp://", "tls://", "inproc://", "local")):
         raise ValueError(
             f"executor address {address!r}: expected 'tcp://host:port' of a Dask scheduler, "

@@ -1,0 +1,30 @@
+"""The service's worker processes load the decoder's kernels as they start
+(`ProcessExecutor(warm_kernels=True)`), so a fresh worker's first decode does not."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from api.worker.executor import ProcessExecutor
+
+
+def kernels_loaded_once_idle() -> bool:
+    """In a worker: wait for the start-up warm thread (if any), then whether the finish
+    kernel has machine code loaded."""
+    for thread in threading.enumerate():
+        if thread.name == "phasecal-warm-kernels":
+            thread.join(300)
+    from calibration.decode.kernel_sums import finish_sums
+
+    return bool(finish_sums.signatures)
+
+
+@pytest.mark.parametrize("warm", [True, False])
+def test_a_fresh_worker_loads_the_kernels_only_when_asked(warm: bool) -> None:
+    ex = ProcessExecutor(max_workers=1, warm_kernels=warm)
+    try:
+        assert ex.submit(kernels_loaded_once_idle).result(timeout=300) is warm
+    finally:
+        ex.shutdown()
