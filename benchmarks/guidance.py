@@ -6,8 +6,8 @@ The guided arms call the functions the routes call (not HTTP: 2 x 2 x 10 fits an
 over HTTP with rendered captures would take far longer on 2 cores, and the numerics are the
 same): `starting_poses` with the camera's nominal pinhole (GET starting-poses) for the first
 3 poses, then `plan_next_pose` (GET next-pose) and the simulator executes each suggestion;
-one arm asks for the whole screen in view (`min_screen_visible` 1, the route's default),
-the other lets the screen reach past the image's edge (0.6).
+one arm asks for the whole screen in view (`min_screen_visible` 1), the other lets the
+screen reach past the image's edge (`DEFAULT_MIN_VISIBLE`, the route's default).
 A capture is `hw_mocks.synthetic.synthetic_maps` (exact screen points plus Gaussian
 decoding noise of 0.05 screen px; no pattern rendering). The fixed arm takes the demo's
 list (`random_poses(..., seed 7)`). At each pose count both arms are scored as the report
@@ -36,6 +36,7 @@ from calibration.fit.classic.calibrate import calibrate_parametric
 from calibration.fit.classic.options import ParametricOptions
 from calibration.fit.correspondences import point_set
 from calibration.guidance import plan_next_pose, session_points
+from calibration.guidance_placement import DEFAULT_MIN_VISIBLE
 from calibration.guidance_start import nominal_camera, starting_poses
 from calibration.shared.maps import DecodedMaps
 from calibration.uncertainty import ray_sigma_map, worst_ray_sigma
@@ -50,7 +51,8 @@ from hw_mocks.synthetic import synthetic_maps
 CAMERAS = (("mild_pinhole", (160, 120), "opencv5", 60.0, False),
            ("wide_fisheye", (320, 240), "fisheye", 150.0, True))
 RISE = 1.02
-VISIBLE = (1.0, 0.6)  # the guided arms' least part of the screen inside the image
+VISIBLE = (1.0, DEFAULT_MIN_VISIBLE)  # the guided arms' least part of the screen in view
+PART = f">= {100 * DEFAULT_MIN_VISIBLE:.0f} % (default)"
 
 
 def report_worst(maps: list[DecodedMaps], model_name: str) -> float:
@@ -111,17 +113,17 @@ def main() -> int:
     for camera, size, model, hfov, fisheye in CAMERAS:
         arms = {v: run_camera(camera, size, model, hfov, fisheye, args.max_poses, args.seed, v)
                 for v in VISIBLE}
-        whole, part = arms[1.0]["rows"], arms[0.6]["rows"]
+        whole, part = arms[1.0]["rows"], arms[DEFAULT_MIN_VISIBLE]["rows"]
         print(f"\n{camera} {size[0]}x{size[1]} ({model}; starting set planned with a "
               f"{hfov:.0f} deg {'fisheye' if fisheye else 'pinhole'}); planning "
               f"{np.mean([a['plan_cpu_s'] for a in arms.values()]):.1f} CPU s per suggestion")
         print("| poses | fixed list: report | whole screen: predicted | report | "
-              "valid px | >= 60 % of the screen: predicted | report | valid px |")
+              f"valid px | {PART}: predicted | report | valid px |")
         print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
         prev: dict[float, float] = {}
         for w, p in zip(whole, part, strict=True):
             cells = [f"{w['poses']}", f"{w['fixed']:.3g}"]
-            for v, r in ((1.0, w), (0.6, p)):
+            for v, r in ((1.0, w), (DEFAULT_MIN_VISIBLE, p)):
                 rise = " (rise)" if v in prev and r["predicted"] > RISE * prev[v] else ""
                 agree = "" if abs(r["predicted"] / r["report"] - 1) <= 0.2 else " (differs)"
                 cells += [f"{r['predicted']:.3g}{rise}", f"{r['report']:.3g}{agree}",
@@ -132,8 +134,8 @@ def main() -> int:
         for target in (fixed[len(fixed) // 2], fixed[-1]):
             print(f"poses to reach {target:.3g} urad: fixed list {poses_to(fixed, target)}, "
                   f"guided whole screen {poses_to([r['report'] for r in whole], target)}, "
-                  f"guided >= 60 % {poses_to([r['report'] for r in part], target)}")
-        for name, rows in (("whole screen", whole), (">= 60 %", part)):
+                  f"guided {PART} {poses_to([r['report'] for r in part], target)}")
+        for name, rows in (("whole screen", whole), (PART, part)):
             last = rows[-1]
             print(f"last advice, {name}: {'helps' if last['helps'] else 'no pose helps'} "
                   f"({last['predicted']:.3g} -> {last['after']:.3g} urad)")

@@ -25,6 +25,7 @@ import numpy as np
 from calibration.fit.correspondences import PointSet, point_set, subsample
 from calibration.fit.registry import PARAMETRIC
 from calibration.guidance_placement import (
+    DEFAULT_MIN_VISIBLE,
     Placement,
     candidate_placements,
     outline_distance,
@@ -129,12 +130,12 @@ def fit_session(points: list[PointSet], image_size: tuple[int, int], screen: Scr
 
 
 def suggest_next_pose(fit: SessionFit, screen: ScreenGeometry,
-                      min_visible: float = 1.0) -> Suggestion:
+                      min_visible: float = DEFAULT_MIN_VISIBLE) -> Suggestion:
     """The candidate placement that most lowers the worst predicted ray sigma, among those
-    that show at least `min_visible` of the screen (1: all of it; less lets a screen reach
-    past the image's edge and put data in its corners) and do not repeat a pose already
-    taken. `fit` may be a calibration's own (its model, fitted poses, training points and
-    `param_std`)."""
+    that show at least `min_visible` of the screen (1: all of it; less, as by default, lets
+    a screen reach past the image's edge and put data in its corners) and do not repeat a
+    pose already taken. `fit` may be a calibration's own (its model, fitted poses, training
+    points and `param_std`)."""
     if not MIN_VISIBLE <= min_visible <= 1.0:
         raise ValueError(f"min_screen_visible: expected {MIN_VISIBLE}..1, got {min_visible}")
     model = fit.model
@@ -157,8 +158,9 @@ def suggest_next_pose(fit: SessionFit, screen: ScreenGeometry,
                              for r, t in fit.poses]))
     cands = candidate_placements(model, screen, dist0, min_visible=min_visible)
     if not cands:
-        raise ValueError("guidance: no candidate pose shows the whole screen; the screen may be "
-                         "too large for this camera's view at the session's distances")
+        raise ValueError(f"guidance: no candidate pose shows {100 * min_visible:.0f} % of the "
+                         "screen; the screen may be too large for this camera's view at the "
+                         "session's distances")
     best: tuple[float, Placement, float, float, np.ndarray] | None = None
     repeats = 0
     for placement, tilt, az in cands:
@@ -221,8 +223,8 @@ def session_points(maps: list[DecodedMaps], screen: ScreenGeometry) -> list[Poin
 
 
 def plan_next_pose(points: list[PointSet], image_size: tuple[int, int], screen: ScreenGeometry,
-                   model_name: str = "opencv-rational", min_visible: float = 1.0
-                   ) -> tuple[Suggestion, CameraModel]:
+                   model_name: str = "opencv-rational",
+                   min_visible: float = DEFAULT_MIN_VISIBLE) -> tuple[Suggestion, CameraModel]:
     """Fit `model_name` to the session's points (>= 3 poses) as its calibration would and
     suggest the next pose (`suggest_next_pose`). Returns the suggestion and the fitted model
     it was planned with."""

@@ -26,6 +26,14 @@ MIN_IMAGE_FRACTION = 0.08  # part of the image the screen must cover
 CENTRE_FRACTIONS = (0.15, 0.33, 0.5, 0.67, 0.85)  # where candidate centres appear, per axis
 DISTANCE_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0)
 TILTS = ((0.0, 0.0), *((t, a) for t in (25.0, 45.0, 60.0) for a in (0.0, 90.0, 180.0, 270.0)))
+# The least part of a suggested next screen inside the image, unless asked otherwise. A
+# phase-shifted screen is decoded pixel by pixel: each pixel that sees it is a full
+# correspondence whether or not the screen's edges are in view (unlike a checkerboard,
+# whose detector needs the whole grid), so a next pose may reach past the image's edge to
+# put data into its corners, where the worst ray sigma is. With 60 % in view the seen part
+# still spans most of the screen, so its pose (tilt included) is measured over a wide
+# baseline and the operator recognizes the outline.
+DEFAULT_MIN_VISIBLE = 0.6
 
 
 def screen_centre_mm(screen: ScreenGeometry) -> np.ndarray:

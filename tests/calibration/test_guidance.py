@@ -18,7 +18,7 @@ from calibration.guidance import (
     session_points,
     suggest_next_pose,
 )
-from calibration.guidance_placement import outline_distance
+from calibration.guidance_placement import DEFAULT_MIN_VISIBLE, outline_distance
 from calibration.guidance_start import nominal_camera, starting_poses
 from calibration.guidance_variety import captured_by, observe, pose_variety
 from calibration.uncertainty import (
@@ -120,11 +120,11 @@ def test_guided_poses_lower_the_worst_sigma_the_calibration_reports(truth) -> No
     assert planned_now == pytest.approx(reported, rel=0.05)
     assert nows[0] > nows[1] > planned_now
     # a screen that may reach past the image's edge has every whole-screen choice and more
-    whole = suggest_next_pose(fit, DEFAULT_SCREEN)
-    part = suggest_next_pose(fit, DEFAULT_SCREEN, 0.6)
+    whole = suggest_next_pose(fit, DEFAULT_SCREEN, 1.0)
+    part = suggest_next_pose(fit, DEFAULT_SCREEN)  # the default lets it reach past the edge
     assert whole.placement.visible_fraction == 1.0
     assert part.worst_after_rad <= whole.worst_after_rad
-    assert part.placement.visible_fraction >= 0.6
+    assert part.placement.visible_fraction >= DEFAULT_MIN_VISIBLE
 
 
 def test_starting_poses_are_varied_and_recognized_once_captured(truth) -> None:
