@@ -91,6 +91,7 @@ _EXPORTS = {
     "plan_step": "auto_plan",
     "starting_moves": "auto_plan",
     "session_points": "guidance",
+    "DEFAULT_MIN_VISIBLE": "guidance_placement",
     "NominalCamera": "guidance_start",
     "nominal_camera": "guidance_start",
     "starting_poses": "guidance_start",
