@@ -16,6 +16,7 @@ from api.config import ServiceConfig
 from api.idempotency import IdempotencyMiddleware
 from api.problems import UnhandledErrorMiddleware, install_handlers
 from api.routes import (
+    auto,
     batch,
     calibrations,
     deletion,
@@ -77,6 +78,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         intrinsics,
         calibrations,
         handeye,
+        auto,
         observations,
         rig_calibrations,
         reports,
