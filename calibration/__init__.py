@@ -88,6 +88,7 @@ _EXPORTS = {
     "stereo_rectify": "undistort",
     # evaluate and guide
     "plan_next_pose": "guidance",
+    "plan_rig_next_pose": "guidance_rig",
     "plan_step": "auto_plan",
     "starting_moves": "auto_plan",
     "session_points": "guidance",

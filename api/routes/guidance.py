@@ -18,6 +18,7 @@ from sqlalchemy import select
 from api.db import PoseRecord, SessionRecord
 from api.jobs.intrinsics import RESULT as INTRINSICS_RESULT
 from api.problems import Problem
+from api.rig_guidance import rig_next_pose
 from api.routes.common import PROBLEM_RESPONSES, get_session
 from api.services import Services, get_services
 from api.worker.guidance_task import guidance_task
@@ -174,6 +175,9 @@ def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational",
     the predicted worst 1-sigma now and after, `helps` and `advice` (whether any pose still
     helps), and `image`, the URL of its picture (it changes whenever the plan does).
     `min_screen_visible` below 1 lets the suggested screen reach past the image's edge."""
+    rig = rig_next_pose(svc, session_id, model, min_screen_visible)
+    if rig is not None:  # several cameras: `cameras` says what the pose does for each
+        return JSONResponse(rig, headers={"Cache-Control": "no-cache", "ETag": f'"{rig["key"]}"'})
     folder, key = _guidance_dir(svc, session_id, model, min_screen_visible)
     out = json.loads((folder / "next-pose.json").read_text())
     out["image"] = f"/sessions/{session_id}/next-pose.png?model={model}&key={key}"

@@ -1,13 +1,22 @@
-"""The worker task of a rig calibration: every camera's maps of the chosen poses, fitted
-jointly; writes rig.json (phasecal.rig/1) and result.json into the job's staging folder."""
+"""The worker tasks of a rig: its calibration (every camera's maps of the chosen poses, fitted
+jointly; writes rig.json (phasecal.rig/1) and result.json into the job's staging folder) and
+its next-pose plan (every camera's own fit; run off the server that paces captures)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
-from calibration import calibrate_rig_files, save_rig, split_rig_options
+from calibration import (
+    calibrate_rig_files,
+    plan_rig_next_pose,
+    save_rig,
+    session_points,
+    split_rig_options,
+)
 from calibration.shared.atomic import write_json_atomic
+from calibration.shared.maps import load_maps
+from calibration.shared.plan import read_plan
 from calibration.shared.progress import TaskContext
 
 RIG_OUTPUTS = ["rig.json", "result.json"]
@@ -35,3 +44,20 @@ def rig_calibrate_task(
     if "heldout" in stats:
         summary["heldout"] = stats["heldout"]
     return {"stats": summary, "exports": list(RIG_OUTPUTS)}
+
+
+def rig_guidance_task(plan_path: str, maps: dict[str, dict[str, str]], reference: str,
+                      model: str, out_dir: str, header: dict[str, Any],
+                      min_visible: float = 1.0) -> None:
+    """Plan a rig's next pose from every camera's maps (camera -> pose -> path) and write
+    next-pose.json (`header` plus the suggestion) into `out_dir`; ValueError when the poses
+    do not support it."""
+    screen = read_plan(plan_path).screen
+    points, sizes = {}, {}
+    for cam, views in maps.items():
+        decoded = [load_maps(p) for p in views.values()]
+        points[cam] = dict(zip(views, session_points(decoded, screen), strict=True))
+        h, w = decoded[0].shape
+        sizes[cam] = (w, h)
+    sug = plan_rig_next_pose(points, sizes, screen, reference, model, min_visible)
+    write_json_atomic(Path(out_dir) / "next-pose.json", {**header, **sug.to_json()})
