@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from acquisition.mover import MoverInfo, RobotPose
+from acquisition.mover import MoverInfo, RobotPose, Workspace
 from api.app import create_app
 from api.config import ServiceConfig
-from hw_mocks.arm import HandEyeRig, SimulatedMover, handeye_rig
+from hw_mocks.arm import HandEyeRig, SimulatedArm, SimulatedMover, handeye_rig
 
 FAST = {"speed_mm_s": 20000.0, "speed_deg_s": 5000.0, "settle_s": 0.0}
 RIG = {"kind": "simulated", "camera": {"width": 160, "height": 120},
@@ -60,19 +60,27 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClie
         yield c, app.state.services
 
 
-def _arm_rig(c: TestClient, svc: Any, seed: int) -> tuple[str, HandEyeRig]:
+def _arm_rig(c: TestClient, svc: Any, seed: int, reach_mm: float | None = None,
+             **motion: float) -> tuple[str, HandEyeRig]:
     """A session on a new simulated rig whose arm carries the camera (eye-in-hand), standing
-    where the camera sees the screen."""
+    where the camera sees the screen; with `reach_mm` (or `motion`) the rig's arm is
+    replaced by one whose workspace is a box of that half-width around that pose (or that
+    moves at that pace)."""
     rig_id = c.post("/rigs", json={"name": f"arm{seed}", "config": RIG}).json()["id"]
     handle = svc.rigs.handle(rig_id)
     arm = handle.rig.mover
     assert isinstance(arm, SimulatedMover)
     rng = np.random.default_rng(seed)
     made = handeye_rig("eye-in-hand", handle.simulated.truth_camera, handle.rig.screen, rng)
+    start = made.view_plan(1, rng)[0]
+    if reach_mm is not None or motion:
+        reach = 1500.0 if reach_mm is None else reach_mm
+        box = Workspace(tuple(start.translation_mm - reach), tuple(start.translation_mm + reach))
+        arm = SimulatedArm(workspace=box, start=start, rng=rng, **{**FAST, **motion})
     truth = HandEyeRig("eye-in-hand", arm, made.camera, made.screen, made.hand_eye,
                        made.world_target)
     handle.rig.mover = ScreenFollowsArm(truth, handle.simulated)
-    handle.rig.mover.move_to(truth.view_plan(1, rng)[0], 5.0)
+    handle.rig.mover.move_to(start, 5.0)
     sid = c.post("/sessions", json={"rig_id": rig_id, "preset": "fast"}).json()["id"]
     return sid, truth
 
@@ -121,3 +129,57 @@ def test_a_rig_without_a_mover_is_409_naming_the_fix(service) -> None:
                                               "budget": 8, "mount": "eye-in-hand",
                                               "workspace": {"min_mm": [0, 0, 0]}})
     assert r.status_code == 422 and "workspace" in r.json()["detail"]
+
+
+def _start(c: TestClient, sid: str, **body: Any) -> str:
+    r = c.post(f"/sessions/{sid}/auto", json={"target": {"worst_ray_sigma_urad": 1e-3},
+                                              "budget": 6, "mount": "eye-in-hand", **body})
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
+def test_auto_stops_at_a_met_target(service) -> None:
+    c, svc = service
+    sid, _ = _arm_rig(c, svc, 2)
+    job = _wait(c, _start(c, sid, target={"worst_ray_sigma_urad": 1e6,
+                                          "handeye_sigma_mm": 100}))
+    assert job["status"] == "succeeded", job
+    log = job["result"]
+    assert log["stop_reason"] == "target met" and len(log["poses"]) == 4
+    assert log["handeye"]["sigma"]["translation_mm"] <= 100
+
+
+def test_poses_the_mover_cannot_reach_are_skipped_and_the_next_best_taken(service) -> None:
+    c, svc = service
+    sid, truth = _arm_rig(c, svc, 3, reach_mm=60.0)
+    job = _wait(c, _start(c, sid, budget=5))
+    assert job["status"] == "succeeded", job
+    log = job["result"]
+    assert log["skipped"] and all("outside the workspace" in s["why"] for s in log["skipped"])
+    box = truth.arm.info.workspace
+    for pose in log["poses"]:
+        assert box.why_unreachable(RobotPose.from_json(pose["flange"])) is None
+    assert log["stop_reason"] in ("budget spent",
+                                  "no reachable pose lowers the worst ray sigma further")
+
+
+def test_cancel_mid_move_stops_the_arm_and_keeps_the_poses_taken(service) -> None:
+    c, svc = service
+    sid, truth = _arm_rig(c, svc, 4, speed_mm_s=1.0, speed_deg_s=0.5)  # a move takes 16 s
+    job_id = _start(c, sid)
+    end = time.monotonic() + 120
+    while "pose 2/6: moving" not in c.get(f"/jobs/{job_id}").json()["stage"]:
+        assert time.monotonic() < end, "the second pose's move never started"
+        time.sleep(0.05)
+    time.sleep(0.3)
+    assert c.post(f"/jobs/{job_id}/cancel").status_code in (200, 202)
+    job = _wait(c, job_id)
+    assert job["status"] == "cancelled", job
+    arm = truth.arm
+    assert arm.moves == 2  # set-up and the first pose's; the second was stopped midway
+    log = c.get(f"/sessions/{sid}/auto").json()
+    target = RobotPose.from_json(log["poses"][0]["flange"])
+    assert 0 < arm.current_pose().angle_to_deg(target) < 7.9  # it stands where it stopped
+    poses = c.get(f"/sessions/{sid}/poses").json()
+    assert [p["status"] for p in poses] == ["ready"]
+    assert log["poses"][0]["pose_id"] == poses[0]["id"]
