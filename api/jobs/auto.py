@@ -16,13 +16,21 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import func, select
 
-from acquisition.mover import Mover, MoveRefused, MoveStopped, RobotPose, Workspace
+from acquisition.mover import (
+    Mover,
+    MoveRefused,
+    MoverInfo,
+    MoveStopped,
+    RobotPose,
+    Workspace,
+)
 from acquisition.rig import Rig
 from api.db import PoseRecord
 from api.jobs.handeye import RESULT as HANDEYE_RESULT
@@ -74,55 +82,53 @@ class PoseContext(TaskContext):
         return self.outer.cancelled()
 
 
-@dataclass(kw_only=True)
-class AutoJob(Job):
-    """Plan, move, capture and refit on the session's rig until the target or the budget."""
+@dataclass
+class AutoLoop:
+    """The loop itself, for the service's job and the CLI alike: they differ in where a
+    pose is captured (`capture`: a pose at the robot's current pose, its name back), where
+    the refit runs and its hand-eye is kept (`refit`: `auto_plan_task`'s result for the
+    robot poses so far) and where the log goes (`save`)."""
 
-    kind = JobKind.AUTO
-    svc: Services
-    rig_id: str
-    plan: Plan
+    rig: Rig
     mount: str
     model: str
     budget: int
     target_urad: float
+    capture: Callable[[TaskContext], str]
+    refit: Callable[[TaskContext, dict[str, Any]], dict[str, Any]]
+    save: Callable[[dict[str, Any]], None]
     target_handeye_mm: float | None = None
     target_handeye_mrad: float | None = None
     workspace: Workspace | None = None
-    noise_dn: float | None = None
     log: dict[str, Any] = field(default_factory=dict)
-    robot: dict[str, dict[str, Any]] = field(default_factory=dict)  # pose id -> flange pose
-
-    def __post_init__(self) -> None:
-        self.resource = f"/sessions/{self.session_id}/auto"
-        self.claims = (f"{self.session_id}:auto",)
-        self.total = self.budget
+    robot: dict[str, dict[str, Any]] = field(default_factory=dict)  # pose -> flange pose
 
     def run(self, ctx: TaskContext) -> dict[str, Any]:
-        rig = self.svc.rigs.handle(self.rig_id).rig
-        mover = rig_mover(rig)
+        """Starting moves, then refit and the best reachable planned pose, until the target
+        is met, the budget spent or no reachable pose helps; the log."""
+        mover = rig_mover(self.rig)
         if mover is None:
-            raise RuntimeError(f"rig {self.rig_id} has no mover: add a `mover` section to its "
-                               "config")
+            raise RuntimeError("the rig has no mover: add a `mover` section to its config")
         self.log = {"mount": self.mount, "model": self.model, "budget": self.budget,
                     "target": self.target(), "mover": mover.info.name, "poses": [],
-                    "skipped": [], "handeye": None, "stop_reason": None}
+                    "skipped": [], "handeye": None, "worst_ray_sigma_urad": None,
+                    "stop_reason": None}
         current = mover.current_pose()
         for move in starting_moves(current.rotation, current.translation_mm,
                                    min(MIN_HANDEYE_VIEWS, self.budget)):
-            self.take(ctx, rig, RobotPose(move.flange.rotation, move.flange.translation),
+            self.take(ctx, RobotPose(move.flange.rotation, move.flange.translation),
                       move.reason, None)
         while True:
             if len(self.robot) < MIN_HANDEYE_VIEWS:
                 return self.stop(f"only {len(self.robot)} of the {MIN_HANDEYE_VIEWS} starting "
                                  "poses could be taken: move the robot where the camera sees "
                                  "the whole screen, with room to turn, and start again")
-            step = self.refit(ctx)
+            step = self.refit_now(ctx, mover.info)
             if self.met(step):
                 return self.stop("target met")
             if len(self.robot) >= self.budget:
                 return self.stop("budget spent")
-            if not self.next_pose(ctx, rig, step["candidates"]):
+            if not self.next_pose(ctx, step["candidates"]):
                 return self.stop("no reachable pose lowers the worst ray sigma further")
 
     def target(self) -> dict[str, float]:
@@ -142,18 +148,18 @@ class AutoJob(Job):
                          or sigma.get("rotation_mrad", float("inf"))
                          <= self.target_handeye_mrad))
 
-    def next_pose(self, ctx: TaskContext, rig: Rig, candidates: list[dict[str, Any]]) -> bool:
+    def next_pose(self, ctx: TaskContext, candidates: list[dict[str, Any]]) -> bool:
         """Take the best candidate the robot can reach (skipping the others); False when
         none can be reached."""
         for cand in candidates:
             flange = RobotPose.from_json(cand["flange"], "candidate")
             reason = (f"planned: {cand['placement']}, predicted worst ray sigma "
                       f"{cand['predicted_worst_ray_sigma_urad']:.3g} urad")
-            if self.take(ctx, rig, flange, reason, cand):
+            if self.take(ctx, flange, reason, cand):
                 return True
         return False
 
-    def take(self, ctx: TaskContext, rig: Rig, flange: RobotPose, reason: str,
+    def take(self, ctx: TaskContext, flange: RobotPose, reason: str,
              cand: dict[str, Any] | None) -> bool:
         """Move to `flange` and capture a pose there; False (and a skipped entry) when the
         workspace or the mover refuses the pose, or the budget is spent."""
@@ -168,25 +174,25 @@ class AutoJob(Job):
         if why is None:
             ctx.progress(number - 1, self.budget, f"{label}: moving")
             try:
-                reached = self.move(ctx, rig, flange)
+                reached = self.move(ctx, flange)
             except MoveRefused as exc:
                 why = str(exc)
         if why is not None:
             self.log["skipped"].append({**entry, "why": why})
-            self.save()
+            self.save(self.log)
             return False
-        pose_id = self.capture(PoseContext(ctx, label, number - 1, self.budget))
-        self.robot[pose_id] = reached.to_json()
-        self.log["poses"].append({"pose_id": pose_id, **entry, "reached": reached.to_json(),
+        name = self.capture(PoseContext(ctx, label, number - 1, self.budget))
+        self.robot[name] = reached.to_json()
+        self.log["poses"].append({"pose_id": name, **entry, "reached": reached.to_json(),
                                   "worst_ray_sigma_urad": None})
-        self.save()
+        self.save(self.log)
         ctx.progress(number, self.budget, f"{label}: captured")
         return True
 
-    def move(self, ctx: TaskContext, rig: Rig, flange: RobotPose) -> RobotPose:
+    def move(self, ctx: TaskContext, flange: RobotPose) -> RobotPose:
         """`rig.move_to`, stopped at once (`Mover.stop`) when the job is cancelled."""
         done = threading.Event()
-        mover = rig.mover
+        mover = self.rig.mover
 
         def watch() -> None:
             while not done.wait(STOP_POLL_S):
@@ -197,13 +203,65 @@ class AutoJob(Job):
         watcher = threading.Thread(target=watch, name="auto-stop", daemon=True)
         watcher.start()
         try:
-            return rig.move_to(flange)
+            return self.rig.move_to(flange)
         except MoveStopped:
             ctx.check_cancelled()
             raise
         finally:
             done.set()
             watcher.join()
+
+    def refit_now(self, ctx: TaskContext, info: MoverInfo) -> dict[str, Any]:
+        """Refit on the poses so far; the log takes the worst sigma and the hand-eye."""
+        ctx.progress(len(self.robot), self.budget, f"refit on {len(self.robot)} poses")
+        step = self.refit(ctx, {"format": ROBOT_POSES_FORMAT, "poses": self.robot,
+                                "repeatability": {"mm": info.repeatability_mm,
+                                                  "deg": info.repeatability_deg}})
+        ctx.check_cancelled()
+        if step["handeye"] is not None:
+            self.log["handeye"] = {"hand_eye": step["handeye"]["hand_eye"],
+                                   "sigma": step["handeye_sigma"],
+                                   "heldout_rms_mm": step["handeye"]["heldout"].get("rms_mm")}
+        self.log["poses"][-1]["worst_ray_sigma_urad"] = step["worst_ray_sigma_urad"]
+        self.log["worst_ray_sigma_urad"] = step["worst_ray_sigma_urad"]
+        self.log["note"] = step["note"]
+        self.save(self.log)
+        return step
+
+    def stop(self, reason: str) -> dict[str, Any]:
+        self.log["stop_reason"] = reason
+        self.save(self.log)
+        return self.log
+
+
+@dataclass(kw_only=True)
+class AutoJob(Job):
+    """The loop on the session's rig as a job: each pose a capture of the session, the
+    refit on the executor, the hand-eye and the log kept in the session folder."""
+
+    kind = JobKind.AUTO
+    svc: Services
+    rig_id: str
+    plan: Plan
+    mount: str
+    model: str
+    budget: int
+    target_urad: float
+    target_handeye_mm: float | None = None
+    target_handeye_mrad: float | None = None
+    workspace: Workspace | None = None
+    noise_dn: float | None = None
+
+    def __post_init__(self) -> None:
+        self.resource = f"/sessions/{self.session_id}/auto"
+        self.claims = (f"{self.session_id}:auto",)
+        self.total = self.budget
+
+    def run(self, ctx: TaskContext) -> dict[str, Any]:
+        loop = AutoLoop(self.svc.rigs.handle(self.rig_id).rig, self.mount, self.model,
+                        self.budget, self.target_urad, self.capture, self.refit, self.save,
+                        self.target_handeye_mm, self.target_handeye_mrad, self.workspace)
+        return loop.run(ctx)
 
     def capture(self, ctx: TaskContext) -> str:
         """One pose by the capture job's path, recorded as a capture of this session."""
@@ -229,40 +287,20 @@ class AutoJob(Job):
             cap.succeeded(s, result)
         return cap.pose_id
 
-    def refit(self, ctx: TaskContext) -> dict[str, Any]:
-        """Refit on the executor; the latest hand-eye is stored as the session's."""
+    def refit(self, ctx: TaskContext, robot: dict[str, Any]) -> dict[str, Any]:
+        """Refit on the executor; the latest hand-eye is kept as the session's."""
         svc = self.svc
         folder = svc.store.dir_for(self.session_id or "")
-        ctx.progress(len(self.robot), self.budget, f"refit on {len(self.robot)} poses")
-        robot = {"format": ROBOT_POSES_FORMAT, "poses": self.robot,
-                 "repeatability": self.repeatability()}
         step = svc.executor.run_task(
             auto_plan_task, str(folder / "plan.json"),
-            {p: str(svc.store.file(p, "maps.npz")) for p in self.robot}, robot, self.mount,
-            self.model, job_id=ctx.job_id).result()
-        ctx.check_cancelled()
+            {p: str(svc.store.file(p, "maps.npz")) for p in robot["poses"]}, robot,
+            self.mount, self.model, job_id=ctx.job_id).result()
         if step["handeye"] is not None:
             svc.store.write_bytes(folder / HANDEYE_RESULT,
                                   json.dumps(step["handeye"], indent=1).encode())
-            self.log["handeye"] = {"hand_eye": step["handeye"]["hand_eye"],
-                                   "sigma": step["handeye_sigma"],
-                                   "heldout": step["handeye"]["heldout"].get("rms_mm")}
-        self.log["poses"][-1]["worst_ray_sigma_urad"] = step["worst_ray_sigma_urad"]
-        self.log["worst_ray_sigma_urad"] = step["worst_ray_sigma_urad"]
-        self.log["note"] = step["note"]
-        self.save()
         return step
 
-    def repeatability(self) -> dict[str, float]:
-        info = self.svc.rigs.handle(self.rig_id).rig.mover.info  # type: ignore[union-attr]
-        return {"mm": max(info.repeatability_mm, 1e-6), "deg": max(info.repeatability_deg, 1e-6)}
-
-    def stop(self, reason: str) -> dict[str, Any]:
-        self.log["stop_reason"] = reason
-        self.save()
-        return self.log
-
-    def save(self) -> None:
+    def save(self, log: dict[str, Any]) -> None:
         """The log so far, in the session folder (a cancelled run keeps it)."""
         path: Path = self.svc.store.dir_for(self.session_id or "") / LOG
-        self.svc.store.write_bytes(path, json.dumps(self.log, indent=1).encode())
+        self.svc.store.write_bytes(path, json.dumps(log, indent=1).encode())
