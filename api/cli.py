@@ -54,6 +54,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                          "maps), opencv-fit"),
     "handeye": ("handeye", "where the camera sits on (or beside) a robot: hand-eye from robot "
                            "poses and maps or observations (phasecal.handeye/1)"),
+    "auto": ("auto", "the closed loop on a rig with a mover: move, capture, refit until a "
+                     "target ray sigma (and hand-eye sigma) or the pose budget"),
     "undistort-points": ("undistort_points", "map pixels.npy (N,2) of a model to a virtual "
                                              "pinhole camera (like cv2.undistortPoints)"),
 }
