@@ -5,8 +5,10 @@ outside the workspace, stops the arm at once on cancel, and a rig without a move
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,7 +16,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from acquisition.mover import MoverInfo, RobotPose, Workspace
+from acquisition.rig import open_rig
 from api.app import create_app
+from api.cli import main
+from api.commands import auto as auto_command
 from api.config import ServiceConfig
 from hw_mocks.arm import HandEyeRig, SimulatedArm, SimulatedMover, handeye_rig
 
@@ -60,18 +65,16 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClie
         yield c, app.state.services
 
 
-def _arm_rig(c: TestClient, svc: Any, seed: int, reach_mm: float | None = None,
-             **motion: float) -> tuple[str, HandEyeRig]:
-    """A session on a new simulated rig whose arm carries the camera (eye-in-hand), standing
-    where the camera sees the screen; with `reach_mm` (or `motion`) the rig's arm is
-    replaced by one whose workspace is a box of that half-width around that pose (or that
-    moves at that pace)."""
-    rig_id = c.post("/rigs", json={"name": f"arm{seed}", "config": RIG}).json()["id"]
-    handle = svc.rigs.handle(rig_id)
-    arm = handle.rig.mover
+def _follow(rig: Any, seed: int, reach_mm: float | None = None,
+            **motion: float) -> HandEyeRig:
+    """Make the simulated screen follow `rig`'s arm (eye-in-hand, a random hand-eye truth)
+    and stand the arm where the camera sees the screen; with `reach_mm` (or `motion`) the
+    rig's arm is replaced by one whose workspace is a box of that half-width around that
+    pose (or that moves at that pace)."""
+    arm = rig.mover
     assert isinstance(arm, SimulatedMover)
     rng = np.random.default_rng(seed)
-    made = handeye_rig("eye-in-hand", handle.simulated.truth_camera, handle.rig.screen, rng)
+    made = handeye_rig("eye-in-hand", rig.simulated.truth_camera, rig.screen, rng)
     start = made.view_plan(1, rng)[0]
     if reach_mm is not None or motion:
         reach = 1500.0 if reach_mm is None else reach_mm
@@ -79,8 +82,16 @@ def _arm_rig(c: TestClient, svc: Any, seed: int, reach_mm: float | None = None,
         arm = SimulatedArm(workspace=box, start=start, rng=rng, **{**FAST, **motion})
     truth = HandEyeRig("eye-in-hand", arm, made.camera, made.screen, made.hand_eye,
                        made.world_target)
-    handle.rig.mover = ScreenFollowsArm(truth, handle.simulated)
-    handle.rig.mover.move_to(start, 5.0)
+    rig.mover = ScreenFollowsArm(truth, rig.simulated)
+    rig.mover.move_to(start, 5.0)
+    return truth
+
+
+def _arm_rig(c: TestClient, svc: Any, seed: int, reach_mm: float | None = None,
+             **motion: float) -> tuple[str, HandEyeRig]:
+    """A session on a new simulated rig with an arm the screen follows (`_follow`)."""
+    rig_id = c.post("/rigs", json={"name": f"arm{seed}", "config": RIG}).json()["id"]
+    truth = _follow(svc.rigs.handle(rig_id).rig, seed, reach_mm, **motion)
     sid = c.post("/sessions", json={"rig_id": rig_id, "preset": "fast"}).json()["id"]
     return sid, truth
 
@@ -183,3 +194,42 @@ def test_cancel_mid_move_stops_the_arm_and_keeps_the_poses_taken(service) -> Non
     poses = c.get(f"/sessions/{sid}/poses").json()
     assert [p["status"] for p in poses] == ["ready"]
     assert log["poses"][0]["pose_id"] == poses[0]["id"]
+
+
+def test_cli_auto_writes_poses_handeye_and_log(tmp_path: Path, monkeypatch, capsys) -> None:
+    rig_toml = tmp_path / "rig.toml"
+    rig_toml.write_text('kind = "simulated"\ncamera = {width = 160, height = 120}\n'
+                        '[mover]\nbackend = "simulated-arm"\nspeed_mm_s = 20000\n'
+                        'speed_deg_s = 5000\nsettle_s = 0\n')
+    opened: list[HandEyeRig] = []
+
+    def open_following(config: Any, **kwargs: Any) -> Any:
+        rig = open_rig(config, **kwargs)
+        opened.append(_follow(rig, 5))
+        return rig
+
+    monkeypatch.setattr(auto_command, "open_rig", open_following)
+    out = tmp_path / "run"
+    assert main(["auto", "--rig", str(rig_toml), "--target-sigma-urad", "1e6",
+                 "--handeye-sigma-mm", "100", "--budget", "5", "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "stopped: target met" in printed and "hand-eye t_mm" in printed
+    log = json.loads((out / "auto.json").read_text())
+    assert [p["pose_id"] for p in log["poses"]] == [f"pose-{k:02d}" for k in range(4)]
+    assert all((out / f"pose-{k:02d}" / "maps.npz").is_file() for k in range(4))
+    assert json.loads((out / "handeye.json").read_text())["format"] == "phasecal.handeye/1"
+    assert set(json.loads((out / "robot-poses.json").read_text())["poses"]) == \
+        {f"pose-{k:02d}" for k in range(4)}
+
+
+def test_cli_auto_refusals_are_one_line(tmp_path: Path, capsys) -> None:
+    plain = tmp_path / "plain.toml"
+    plain.write_text('kind = "simulated"\ncamera = {width = 32, height = 24}\n')
+    cases = [(["--budget", "3"], "--budget: the starting set alone takes 4 poses"),
+             (["--budget", "6"], "the rig has no mover: add a `mover` section")]
+    for extra, needle in cases:
+        assert main(["auto", "--rig", str(plain), "--target-sigma-urad", "50", *extra,
+                     "-o", str(tmp_path / "x")]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "x").exists()
