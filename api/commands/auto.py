@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         plan = read_plan(args.plan) if args.plan else build_plan(
             screen.width_px, screen.height_px, list(screen.pitch_mm), preset="fast")
         out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out / "plan.json", plan.to_dict())
+        if any(out.glob("pose-*")):
+            raise UserError(f"{out}: holds poses of an earlier run; give a new folder")
         return _loop(args, rig, plan, out)
     finally:
         rig.close()
@@ -86,42 +87,55 @@ def _loop(args: argparse.Namespace, rig: Any, plan: Plan, out: Path) -> int:
     """Run the loop with Ctrl-C as its cancel; print what it did."""
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
-    taken = [0]
-
-    def capture(ctx: TaskContext) -> str:
-        name = f"pose-{taken[0]:02d}"
-        pose_dir = out / name
-        pose_dir.mkdir(exist_ok=True)
-        write_json_atomic(pose_dir / "plan.json", plan.to_dict())
-        decode = ThreadDecode(pose_dir / "plan.json", pose_dir, pose_dir / MAPS,
-                              noise=args.noise_dn, meta={"camera": rig.camera.info.name})
-        capture_live(ctx, rig, plan, pose_dir, decode)
-        decode.result()
-        taken[0] += 1
-        return name
-
-    def refit(ctx: TaskContext, robot: dict[str, Any]) -> dict[str, Any]:
-        write_json_atomic(out / "robot-poses.json", robot)
-        step = auto_plan_task(ctx, str(out / "plan.json"),
-                              {p: str(out / p / MAPS) for p in robot["poses"]}, robot,
-                              args.mount, args.model)
-        if step["handeye"] is not None:
-            write_json_atomic(out / "handeye.json", step["handeye"])
-        return step
-
-    loop = AutoLoop(rig, args.mount, args.model, args.budget, args.target_sigma_urad, capture,
-                    refit, lambda log: write_json_atomic(out / "auto.json", log),
-                    args.handeye_sigma_mm, args.handeye_sigma_mrad)
     try:
         with progress_bar("auto") as update:
-            log = loop.run(TaskContext("auto", update, stop))
+            log = auto_run(rig, plan, out, TaskContext("auto", update, stop), mount=args.mount,
+                           model=args.model, budget=args.budget,
+                           target_urad=args.target_sigma_urad,
+                           handeye_mm=args.handeye_sigma_mm,
+                           handeye_mrad=args.handeye_sigma_mrad, noise_dn=args.noise_dn)
     except Cancelled:
-        raise UserError(f"cancelled: the mover was stopped; {taken[0]} poses kept in {out}, "
+        kept = sum((pose / MAPS).is_file() for pose in out.glob("pose-*"))
+        raise UserError(f"cancelled: the mover was stopped; {kept} poses kept in {out}, "
                         "the log in auto.json") from None
     finally:
         signal.signal(signal.SIGINT, previous)
     _report(log, out)
     return 0
+
+
+def auto_run(rig: Any, plan: Plan, out: Path, ctx: TaskContext, *, mount: str, model: str,
+             budget: int, target_urad: float, handeye_mm: float | None = None,
+             handeye_mrad: float | None = None, noise_dn: float | None = None
+             ) -> dict[str, Any]:
+    """The loop on an opened rig with a mover, each pose captured and decoded into
+    `out`/pose-NN (plan.json beside them), the refit on this thread; the log."""
+    write_json_atomic(out / "plan.json", plan.to_dict())
+
+    def capture(ctx: TaskContext) -> str:
+        name = f"pose-{len(list(out.glob('pose-*'))):02d}"
+        pose_dir = out / name
+        pose_dir.mkdir()
+        write_json_atomic(pose_dir / "plan.json", plan.to_dict())
+        decode = ThreadDecode(pose_dir / "plan.json", pose_dir, pose_dir / MAPS,
+                              noise=noise_dn, meta={"camera": rig.camera.info.name})
+        capture_live(ctx, rig, plan, pose_dir, decode)
+        decode.result()
+        return name
+
+    def refit(ctx: TaskContext, robot: dict[str, Any]) -> dict[str, Any]:
+        write_json_atomic(out / "robot-poses.json", robot)
+        step = auto_plan_task(ctx, str(out / "plan.json"),
+                              {p: str(out / p / MAPS) for p in robot["poses"]}, robot, mount,
+                              model)
+        if step["handeye"] is not None:
+            write_json_atomic(out / "handeye.json", step["handeye"])
+        return step
+
+    loop = AutoLoop(rig, mount, model, budget, target_urad, capture, refit,
+                    lambda log: write_json_atomic(out / "auto.json", log), handeye_mm,
+                    handeye_mrad)
+    return loop.run(ctx)
 
 
 def _report(log: dict[str, Any], out: Path) -> None:
