@@ -183,10 +183,12 @@ def _round_trip(model: CameraModel, cam: np.ndarray, px: np.ndarray) -> bool:
 
 
 def _visible_fraction(model: CameraModel, screen: ScreenGeometry, rotation: np.ndarray,
-                      translation: np.ndarray, nx: int = 16, ny: int = 10) -> float:
-    """Part of an even grid of screen points that lands inside the image."""
+                      translation: np.ndarray, nx: int = 32, ny: int = 20) -> float:
+    """Part of the screen's area inside the image: the share of the centres of an even
+    grid of cells over the screen that land inside it (cell centres, not the border's
+    points, which would count a sliver past the edge as a whole row of cells)."""
     c = screen_corners_mm(screen)
-    sx, sy = np.meshgrid(np.linspace(0, c[1, 0], nx), np.linspace(0, c[2, 1], ny))
+    sx, sy = np.meshgrid((np.arange(nx) + 0.5) / nx * c[1, 0], (np.arange(ny) + 0.5) / ny * c[2, 1])
     pts = np.stack([sx.ravel(), sy.ravel(), np.zeros(sx.size)], 1) @ rotation.T + translation
     px = model.project(pts)
     w, h = model.image_size

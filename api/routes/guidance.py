@@ -23,6 +23,7 @@ from api.routes.common import PROBLEM_RESPONSES, get_session
 from api.services import Services, get_services
 from api.worker.guidance_task import guidance_task
 from calibration import (
+    DEFAULT_MIN_VISIBLE,
     MODELS,
     NominalCamera,
     ObservedPose,
@@ -46,10 +47,11 @@ Hfov = Annotated[float | None, Query(
 Lens = Annotated[Literal["pinhole", "fisheye"], Query(
     description="the nominal lens: a pinhole, or an equidistant fisheye for a wide-angle lens")]
 Visible = Annotated[float, Query(
-    ge=0.5, le=1.0, description="the least part of the suggested screen inside the image: 1 "
-    "(default) the whole screen; less lets it reach past the image's edge, which puts data "
-    "in the image's corners and lowers the worst sigma faster")]
-PLAN_VERSION = 3  # part of every cache key: a changed planner never serves an older plan
+    ge=0.5, le=1.0, description=f"the least part of the suggested screen inside the image "
+    f"(default {DEFAULT_MIN_VISIBLE}): below 1 it may reach past the image's edge, which puts "
+    "data in the image's corners (every pixel that sees the screen decodes) and lowers the "
+    "worst sigma faster; 1 asks for the whole screen in view")]
+PLAN_VERSION = 4  # part of every cache key: a changed planner never serves an older plan
 _IMMUTABLE = "private, max-age=31536000, immutable"  # a keyed URL's content never changes
 _locks: dict[str, threading.Lock] = {}  # one per cached plan: a plan is computed once, while
 _locks_guard = threading.Lock()  # other sessions' (and models') plans go on at the same time
@@ -167,14 +169,15 @@ def _guidance_dir(svc: Services, session_id: str, model: str,
 
 @router.get("/sessions/{session_id}/next-pose")
 def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational",
-              min_screen_visible: Visible = 1.0) -> JSONResponse:
+              min_screen_visible: Visible = DEFAULT_MIN_VISIBLE) -> JSONResponse:
     """The screen pose that most reduces the worst predicted ray uncertainty over the sensor,
     planned from the session's own varied ready poses (>= 3; 409 with the reason otherwise):
     `screen_pose` (rvec rad, tvec_mm) for `POST /sessions/{id}/poses` on a simulated or
     robotic rig, `placement` in words, `outline_px` (the screen's corners in camera pixels),
     the predicted worst 1-sigma now and after, `helps` and `advice` (whether any pose still
     helps), and `image`, the URL of its picture (it changes whenever the plan does).
-    `min_screen_visible` below 1 lets the suggested screen reach past the image's edge."""
+    `min_screen_visible` (by default below 1) lets the suggested screen reach past the image's
+    edge; `screen_visible_fraction` says how much of it the camera sees."""
     rig = rig_next_pose(svc, session_id, model, min_screen_visible)
     if rig is not None:  # several cameras: `cameras` says what the pose does for each
         return JSONResponse(rig, headers={"Cache-Control": "no-cache", "ETag": f'"{rig["key"]}"'})
@@ -188,7 +191,7 @@ def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational",
 @router.get("/sessions/{session_id}/next-pose.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}})
 def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational",
-                    min_screen_visible: Visible = 1.0,
+                    min_screen_visible: Visible = DEFAULT_MIN_VISIBLE,
                     key: Annotated[str | None, Query(
                         pattern="^[0-9a-f]{16}$",
                         description="the plan's key from GET next-pose: that plan's picture, "

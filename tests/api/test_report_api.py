@@ -305,21 +305,25 @@ def test_decode_previews_have_colour_bars(service) -> None:
 def test_next_pose_is_visible_and_captures(service) -> None:
     client, ses, poses, _, _ = service
     g = client.get(f"/sessions/{ses['id']}/next-pose", model="opencv5")
-    assert g["poses_used"] == poses and g["full_screen_visible"]
+    assert g["poses_used"] == poses
+    assert g["full_screen_visible"] == (g["screen_visible_fraction"] == 1.0)
     pred = g["predicted_worst_ray_sigma_urad"]
     assert 0 < pred["after"] < pred["now"]
     _png(client.request("GET", g["image"]).content)
-    # The simulator's truth (from outside the product) sees the whole screen there.
+    # The simulator's truth (from outside the product) sees the part of the screen the
+    # answer says (by default at least 60 % of it; the rest may reach past the image).
     from hw_mocks.scene import ScreenPose
     from tests.api.test_api_session import SCREEN, truth_camera
 
     pose = ScreenPose.from_rvec(np.array(g["screen_pose"]["rvec"]),
                                 np.array(g["screen_pose"]["tvec_mm"]))
     cam = truth_camera()
-    corners = np.array([[0, 0], [SCREEN.width_px - 1, 0], [0, SCREEN.height_px - 1],
-                        [SCREEN.width_px - 1, SCREEN.height_px - 1]], float)
-    px = cam.project(pose.screen_px_to_camera(SCREEN, corners[:, 0], corners[:, 1]))
-    assert np.all((px >= 0) & (px <= [cam.width - 1, cam.height - 1]))
+    cells = (np.arange(80) + 0.5) / 80, (np.arange(50) + 0.5) / 50  # the screen's area
+    sx, sy = np.meshgrid(cells[0] * (SCREEN.width_px - 1), cells[1] * (SCREEN.height_px - 1))
+    px = cam.project(pose.screen_px_to_camera(SCREEN, sx.ravel(), sy.ravel()))
+    seen = float(np.all((px >= 0) & (px <= [cam.width - 1, cam.height - 1]), axis=1).mean())
+    assert g["screen_visible_fraction"] >= 0.6
+    assert abs(seen - g["screen_visible_fraction"]) < 0.04
     job = client.wait(client.post(f"/sessions/{ses['id']}/poses",
                                   {"screen_pose": g["screen_pose"]}))
     assert job["status"] == "succeeded"
