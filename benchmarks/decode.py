@@ -1,7 +1,7 @@
 """Decoder throughput: a 2448x2048, 64-frame uint8 stack, versus a memory-bandwidth floor.
 
 Run: .venv/bin/python benchmarks/decode.py [--xp numpy|cupy] [--repeats N] [--cli-only]
-       [--read-noise DN] [--gain E_PER_DN]
+       [--breakdown] [--read-noise DN] [--gain E_PER_DN]
 The stacks carry camera noise, by default that of hw_mocks' default sensor (10,000 e-
 full well over 8 bits, 3 e- read noise: read 0.08 DN, 40 e-/DN, ~1.6 DN at mid grey;
 `--read-noise 1.5 --gain 4`: a noisy camera, ~5 DN); the "noise given" rows get that
@@ -18,6 +18,8 @@ floor's CPU seconds too: on a loaded machine, compare configurations by CPU seco
 Last, `phasecal decode` on the same stack in a fresh process against the library's read +
 decode (best of N each), with the command's stage breakdown (`--timings`): startup,
 imports, plan, read + decode (including the kernels' load), write, fsync, rename, summary.
+`--breakdown` instead splits each configuration's `decode_stack` CPU seconds into the
+accumulation kernel, the finish kernel and the rest (noise line, tables, Python).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import argparse
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -34,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from acquisition.patterns import build_plan
-from calibration.decode import StreamingDecoder, decode_stack
+from calibration.decode import StreamingDecoder, batch, decode_stack, kernel_sums
 from calibration.decode.noise import NoiseModel
 from calibration.shared.plan import Plan, plan_from_dict
 
@@ -151,6 +154,55 @@ def run_stack(plan: Plan, stack: np.ndarray, repeats: int, noise: NoiseModel | f
     return best, cpu
 
 
+class KernelClock:
+    """CPU seconds (each calling thread's own) spent in the accumulation kernel and the
+    finish kernel while it is entered: their module attributes wrapped, restored on exit
+    (`--breakdown`; the calls are the decoder's, so the maps are unchanged)."""
+
+    TARGETS = ((batch, "accumulate_block", "accumulate"), (kernel_sums, "finish_sums", "finish"))
+
+    def __init__(self) -> None:
+        self.cpu = {stage: 0.0 for *_, stage in self.TARGETS}
+        self._lock = threading.Lock()
+        self._saved: list[tuple] = []
+
+    def __enter__(self) -> KernelClock:
+        for module, attr, stage in self.TARGETS:
+            fn = getattr(module, attr)
+            self._saved.append((module, attr, fn))
+            setattr(module, attr, self._timed(fn, stage))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for module, attr, fn in self._saved:
+            setattr(module, attr, fn)
+        self._saved.clear()
+
+    def _timed(self, fn, stage: str):
+        def call(*args, **kwargs):
+            c0 = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                with self._lock:
+                    self.cpu[stage] += time.thread_time() - c0
+        return call
+
+
+def breakdown(plan: Plan, stack: np.ndarray, repeats: int, noise: NoiseModel | float | None
+              ) -> tuple[float, dict[str, float]]:
+    """CPU seconds of `decode_stack` and of its kernels (`KernelClock`), its cheapest run."""
+    best: tuple[float, dict[str, float]] = (float("inf"), {})
+    for _ in range(repeats):
+        with KernelClock() as clock:
+            c0 = time.process_time()
+            decode_stack(plan, stack, noise=noise, prepare=True)
+            total = time.process_time() - c0
+        if total < best[0]:
+            best = (total, dict(clock.cpu))
+    return best
+
+
 def run_cupy(plan: Plan, stack: np.ndarray, repeats: int) -> list[tuple[str, float]]:
     """Accumulation times on the GPU: frames already on the device, and from pinned host memory."""
     import cupy as cp
@@ -246,6 +298,9 @@ def main() -> int:
     ap.add_argument("--no-cli", action="store_true", help="skip the phasecal decode comparison")
     ap.add_argument("--cli-only", action="store_true",
                     help="only the phasecal decode comparison (about 20 s on an idle machine)")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="only decode_stack's CPU seconds split into the accumulation "
+                         "kernel, the finish kernel and the rest, per configuration")
     ap.add_argument("--read-noise", type=float, default=0.08, metavar="DN",
                     help="camera read noise added to the stacks (std, DN; default 0.08)")
     ap.add_argument("--gain", type=float, default=40.0, metavar="E_PER_DN",
@@ -263,6 +318,9 @@ def main() -> int:
               f"({time.process_time() - c0:.2f} CPU s; once per process, not in the rows)")
         if args.cli_only:
             cli_report(plan, args.repeats, cli_stack(plan, args))
+            return 0
+        if args.breakdown:
+            breakdown_report(plan, args)
             return 0
     rows: list[tuple[str, float]] = []
     finishes: list[tuple[str, float, float]] = []  # (config, finish s, end-to-end s)
@@ -328,6 +386,22 @@ def main() -> int:
     if args.xp == "numpy" and not args.no_cli:
         cli_report(plan, args.repeats, cli_stack(plan, args))
     return 0
+
+
+def breakdown_report(plan: Plan, args: argparse.Namespace) -> None:
+    """`--breakdown`: per configuration, decode_stack's CPU seconds (its cheapest of
+    `--repeats` runs) and how much of them the two kernels take."""
+    print(f"decode_stack CPU seconds by kernel, {W}x{H}, {len(plan.frames)} uint8 frames, "
+          f"best of {args.repeats} (load {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs)")
+    print(f"{'stack, noise':40s} {'CPU s':>7s} {'accumulate':>11s} {'finish':>7s} {'rest':>7s}")
+    for clip, border, partly in CONFIGS:
+        stack = make_stack(plan, border, partly, args.read_noise, args.gain)
+        for noise in (given_noise(args, partly), None):
+            total, cpu = breakdown(plan, stack, args.repeats, noise)
+            rest = total - cpu["accumulate"] - cpu["finish"]
+            tag = f"{clip}, {'given' if noise else 'from residuals'}"
+            print(f"{tag:40s} {total:7.3f} {cpu['accumulate']:11.3f} {cpu['finish']:7.3f} "
+                  f"{rest:7.3f}", flush=True)
 
 
 def cli_stack(plan: Plan, args: argparse.Namespace) -> np.ndarray:
