@@ -74,6 +74,7 @@ class Pose(TypedDict):
     screen_pose: dict[str, Any] | None
     error: str | None
     created_at: float
+    cameras: list[dict[str, Any]] | None  # a pose of several cameras: each one's status
 
 
 class Calibration(TypedDict):

@@ -17,10 +17,17 @@ from api.db import PoseRecord, SessionRecord
 from api.frames_upload import store_images, store_npy
 from api.jobs.poses import CaptureJob, ImportDecodeJob, PoseJob
 from api.maps_upload import validated_maps
-from api.pose_path import camera_maps_path, pose_cameras
+from api.pose_path import camera_maps_path
 from api.previews import PREVIEW_KINDS, preview_png
 from api.problems import Problem
-from api.routes.common import PROBLEM_RESPONSES, accepted, get_pose, get_session, pose_to_dict
+from api.routes.common import (
+    PROBLEM_RESPONSES,
+    CameraQuery,
+    accepted,
+    get_pose,
+    get_session,
+    pose_to_dict,
+)
 from api.schemas import MAX_OFFSET, CaptureRequest, Pose, Session, SessionCreate
 from api.services import Services, get_services
 from api.store import new_id
@@ -221,25 +228,15 @@ def list_poses(session_id: str, svc: Svc) -> list[dict[str, Any]]:
         get_session(s, session_id)
         recs = s.scalars(select(PoseRecord).where(PoseRecord.session_id == session_id)
                          .order_by(PoseRecord.index)).all()
-        return [_pose_dict(svc, p) for p in recs]
-
-
-def _pose_dict(svc: Services, rec: PoseRecord) -> dict[str, Any]:
-    """A pose as API data, with each camera of a several-camera pose."""
-    cameras = pose_cameras(svc.store.dir_for(rec.id, create=False), rec.status, rec.error)
-    return {**pose_to_dict(rec), "cameras": cameras}
+        return [pose_to_dict(p, svc.store.dir_for(p.id, create=False)) for p in recs]
 
 
 @router.get("/sessions/{session_id}/poses/{pose_id}", response_model=Pose)
 def read_pose(session_id: str, pose_id: str, svc: Svc) -> dict[str, Any]:
     """One pose (a several-camera pose lists its cameras and each one's status)."""
     with svc.db.session() as s:
-        return _pose_dict(svc, get_pose(s, session_id, pose_id))
-
-
-CameraQuery = Annotated[str | None, Query(
-    pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$",
-    description="the camera of a pose captured on several cameras (see the pose's cameras)")]
+        pose = get_pose(s, session_id, pose_id)
+        return pose_to_dict(pose, svc.store.dir_for(pose.id, create=False))
 
 
 def _ready_maps_path(svc: Services, session_id: str, pose_id: str,
