@@ -97,9 +97,9 @@ class DiffInputs:
 
 
 def ray_sigma_map(model: CameraModel, fit: FitFiles | None) -> RaySigmaMap | None:
-    """A fit's ray-sigma map for a comparison after the best rotation: parametric models from
-    their fit's files without the rotation-like part (None without the files); sGCC from the
-    model's own covariance, that part included."""
+    """A fit's ray-sigma map for a comparison after the best rotation, without the part a
+    rotation of every ray explains: parametric models from their fit's files (None without
+    the files), sGCC from the model's own coefficient covariance."""
     nx, ny = RAY_SIGMA_GRID
     if getattr(model, "covariance", None) is not None:
         sigma, method = model_ray_sigma(model, sensor_grid(model.image_size, nx, ny),

@@ -22,6 +22,7 @@ import numpy as np
 from calibration.evaluate import screen_jacobian
 from calibration.fit.correspondences import PointSet, subsample
 from calibration.models.base import CameraModel
+from calibration.models.sgcc import SGCCBase
 
 _POSE_PARAMS = 6
 RAY_SIGMA_GRID = (48, 36)  # (nx, ny) sensor grid of the ray-sigma map
@@ -132,6 +133,60 @@ def ray_sigma(jd: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(var, 0.0, None))
 
 
+def rotation_matrices(directions: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) A with omega x d = A @ omega for each direction d (A = -[d]x); zero where
+    not `ok`, so those pixels take no part in the rotation's least squares."""
+    d = np.where(ok[:, None], directions, 0.0)
+    a = np.zeros((len(d), 3, 3))
+    a[:, 0, 1], a[:, 0, 2] = d[:, 2], -d[:, 1]
+    a[:, 1, 0], a[:, 1, 2] = -d[:, 2], d[:, 0]
+    a[:, 2, 0], a[:, 2, 1] = d[:, 1], -d[:, 0]
+    return a
+
+
+def spline_ray_sigma_without_rotation(model: SGCCBase, pixels: np.ndarray,
+                                      chunk: int = 4096) -> np.ndarray:
+    """(N,) ray sigma (rad) of an sGCC model from its coefficient covariance, without what a
+    rotation of every ray explains: `without_rotation` on its sparse direction Jacobian
+    (`direction_jacobian`: 16 controls per pixel), never forming the dense pixels x
+    coefficients matrix; pixels are taken `chunk` at a time.
+
+    With J the Jacobian, S the covariance, A the pixels' rotation matrices and R the
+    rotation fitted to J over all pixels, the variance of J - A R is
+    J S J' - 2 J (S R') A' + A (R S R') A', each term local to the pixel's controls."""
+    cov = model.covariance
+    c = model.n_components
+    npar = cov.shape[0]
+    _, d = model.unproject(pixels)
+    jac, idx, w = model.direction_jacobian(pixels)
+    ok = np.isfinite(d).all(axis=1) & np.isfinite(jac).all(axis=(1, 2))
+    a = rotation_matrices(d, ok)
+    jac = np.where(ok[:, None, None], jac, 0.0)
+    cols = (idx[:, :, None] * c + np.arange(2)).reshape(len(idx), -1)  # (N, 32) direction cols
+    rhs = np.zeros((3, npar))  # sum over pixels of A' J
+    for s in range(0, len(idx), chunk):
+        g = np.einsum("nai,nab->nib", a[s:s + chunk], jac[s:s + chunk])  # (n, 3, 2)
+        vals = g[:, :, None, :] * w[s:s + chunk, None, :, None]  # (n, 3, 16, 2)
+        for i in range(3):
+            rhs[i] += np.bincount(cols[s:s + chunk].ravel(), vals[:, i].reshape(-1),
+                                  minlength=npar)
+    rotation = np.linalg.lstsq(np.einsum("nai,naj->ij", a, a), rhs, rcond=None)[0]  # (3, P)
+    cov_rt = cov @ rotation.T  # (P, 3)
+    rsr = rotation @ cov_rt  # (3, 3)
+    var = np.empty(len(idx))
+    for s in range(0, len(idx), chunk):
+        sl = slice(s, s + chunk)
+        comp = model.component_covariance(pixels[sl])[:, :2, :2]
+        whole = np.einsum("nab,nbc,nac->n", jac[sl], comp, jac[sl])
+        local = (cov_rt[cols[sl]].reshape(-1, 16, 2, 3) * w[sl, :, None, None]).sum(axis=1)
+        cross = np.einsum("nab,nbj,naj->n", jac[sl], local, a[sl])  # trace(J S R' A')
+        rot = np.einsum("nij,jk,nik->n", a[sl], rsr, a[sl])
+        var[sl] = whole - 2 * cross + rot
+    out = np.sqrt(np.clip(var, 0.0, None))
+    out[~ok] = np.nan
+    return out
+
+
 def without_rotation(jd: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """`jd` with the part a rigid rotation of all rays explains taken out (least squares over
     the pixels with a finite ray). Two fits compared after their best rotation differ only in
@@ -139,12 +194,7 @@ def without_rotation(jd: np.ndarray, directions: np.ndarray) -> np.ndarray:
     rotation-like error (which, with the poses free, is much of its ray sigma) is no error of
     the lens model."""
     ok = np.isfinite(directions).all(axis=1) & np.isfinite(jd).all(axis=(1, 2))
-    d = np.where(ok[:, None], directions, 0.0)
-    # omega x d = A @ omega with A = -[d]x, for every pixel
-    a = np.zeros((len(d), 3, 3))
-    a[:, 0, 1], a[:, 0, 2] = d[:, 2], -d[:, 1]
-    a[:, 1, 0], a[:, 1, 2] = -d[:, 2], d[:, 0]
-    a[:, 2, 0], a[:, 2, 1] = d[:, 1], -d[:, 0]
+    a = rotation_matrices(directions, ok)
     j = np.where(ok[:, None, None], jd, 0.0)
     normal = np.einsum("nai,naj->ij", a, a)
     rotation = np.linalg.lstsq(normal, np.einsum("nai,nap->ip", a, j), rcond=None)[0]
@@ -170,11 +220,13 @@ def model_ray_sigma(model: CameraModel, pixels: np.ndarray,
                     param_std: dict[str, float] | None = None,
                     rotation_free: bool = False) -> tuple[np.ndarray, str]:
     """Ray sigma (rad) at pixels and how it was obtained: sGCC covariance or parametric Fisher;
-    `rotation_free` (parametric models) leaves out what a rotation of every ray explains."""
+    `rotation_free` leaves out what a rotation of every ray explains."""
     if hasattr(model, "ray_std") and getattr(model, "covariance", None) is not None:
+        if rotation_free:
+            return (spline_ray_sigma_without_rotation(model, pixels),
+                    "sGCC full coefficient covariance, rotation of every ray taken out")
         ang, _ = model.ray_std(pixels)
-        return ang, ("sGCC full coefficient covariance" if not rotation_free else
-                     "sGCC full coefficient covariance, its rotation-like part included")
+        return ang, "sGCC full coefficient covariance"
     if poses and points and hasattr(model, "param_names"):
         free = free_parameters(model, param_std)
         return (parametric_ray_sigma(model, poses, points, pixels, free,

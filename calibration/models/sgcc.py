@@ -218,6 +218,18 @@ class SGCCBase(CameraModel):
         )
         return ang, org
 
+    def direction_jacobian(self, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                              np.ndarray]:
+        """The derivative of each pixel's unit ray direction over the coefficients, sparse:
+        (exp-map Jacobian (N, 3, 2), control indices (N, 16), basis weights (N, 16)); the
+        column of coefficient `idx * C + a` (a = 0, 1) is `jac[:, :, a] * weight` at the
+        pixel's 16 controls and zero elsewhere (a dense one is pixels x coefficients)."""
+        p = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        (comps,) = self.components(p)
+        _, jac = expmap_jacobian(comps[:, :2])
+        idx, w = self.grid.basis(p[:, 0], p[:, 1])
+        return jac, idx, w
+
     def component_covariance(self, pixels: np.ndarray) -> np.ndarray:
         """Covariance (N, C, C) of the spline components at pixels, from the coefficients'."""
         if self.covariance is None:
