@@ -65,7 +65,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClie
         yield c, app.state.services
 
 
-def _follow(rig: Any, seed: int, reach_mm: float | None = None,
+def follow_arm(rig: Any, seed: int, reach_mm: float | None = None,
             **motion: float) -> HandEyeRig:
     """Make the simulated screen follow `rig`'s arm (eye-in-hand, a random hand-eye truth)
     and stand the arm where the camera sees the screen; with `reach_mm` (or `motion`) the
@@ -89,9 +89,9 @@ def _follow(rig: Any, seed: int, reach_mm: float | None = None,
 
 def _arm_rig(c: TestClient, svc: Any, seed: int, reach_mm: float | None = None,
              **motion: float) -> tuple[str, HandEyeRig]:
-    """A session on a new simulated rig with an arm the screen follows (`_follow`)."""
+    """A session on a new simulated rig with an arm the screen follows (`follow_arm`)."""
     rig_id = c.post("/rigs", json={"name": f"arm{seed}", "config": RIG}).json()["id"]
-    truth = _follow(svc.rigs.handle(rig_id).rig, seed, reach_mm, **motion)
+    truth = follow_arm(svc.rigs.handle(rig_id).rig, seed, reach_mm, **motion)
     sid = c.post("/sessions", json={"rig_id": rig_id, "preset": "fast"}).json()["id"]
     return sid, truth
 
@@ -205,7 +205,7 @@ def test_cli_auto_writes_poses_handeye_and_log(tmp_path: Path, monkeypatch, caps
 
     def open_following(config: Any, **kwargs: Any) -> Any:
         rig = open_rig(config, **kwargs)
-        opened.append(_follow(rig, 5))
+        opened.append(follow_arm(rig, 5))
         return rig
 
     monkeypatch.setattr(auto_command, "open_rig", open_following)
