@@ -153,7 +153,8 @@ def place(model: CameraModel, screen: ScreenGeometry, rotation: np.ndarray,
     if not _round_trip(model, cam, border):
         return None  # beyond where the model projects one-to-one
     w, h = model.image_size
-    visible = _visible_fraction(model, screen, rotation, translation)
+    whole = bool(np.all((border >= 0) & (border <= [w - 1, h - 1])))
+    visible = _visible_fraction(model, screen, rotation, translation, whole)
     if visible < min_visible - 1e-9:
         return None
     hull = cv2.convexHull(border.astype(np.float32))
@@ -183,10 +184,14 @@ def _round_trip(model: CameraModel, cam: np.ndarray, px: np.ndarray) -> bool:
 
 
 def _visible_fraction(model: CameraModel, screen: ScreenGeometry, rotation: np.ndarray,
-                      translation: np.ndarray, nx: int = 32, ny: int = 20) -> float:
+                      translation: np.ndarray, whole: bool, nx: int = 32, ny: int = 20
+                      ) -> float:
     """Part of the screen's area inside the image: the share of the centres of an even
     grid of cells over the screen that land inside it (cell centres, not the border's
-    points, which would count a sliver past the edge as a whole row of cells)."""
+    points, which would count a sliver past the edge as a whole row of cells); 1 only when
+    the `whole` border is inside, else at most one cell short of it."""
+    if whole:
+        return 1.0
     c = screen_corners_mm(screen)
     sx, sy = np.meshgrid((np.arange(nx) + 0.5) / nx * c[1, 0], (np.arange(ny) + 0.5) / ny * c[2, 1])
     pts = np.stack([sx.ravel(), sy.ravel(), np.zeros(sx.size)], 1) @ rotation.T + translation
@@ -195,7 +200,7 @@ def _visible_fraction(model: CameraModel, screen: ScreenGeometry, rotation: np.n
     with np.errstate(invalid="ignore"):
         inside = ((px[:, 0] >= 0) & (px[:, 0] <= w - 1) & (px[:, 1] >= 0)
                   & (px[:, 1] <= h - 1))
-    return float(inside.mean())
+    return min(float(inside.mean()), 1.0 - 1.0 / inside.size)
 
 
 def candidate_placements(model: CameraModel, screen: ScreenGeometry, distance_mm: float,
