@@ -27,6 +27,7 @@ from calibration import warm_up
 from calibration.shared.progress import ProgressFn, TaskContext
 
 DASK_ENV = "PHASECAL_DASK"
+WARM_ENV = "PHASECAL_WARM_KERNELS"  # "0": worker processes leave the kernels to their first decode
 
 
 @runtime_checkable
@@ -279,7 +280,7 @@ class ProcessExecutor(TaskRunner):
 
 def make_executor(address: str | None = None) -> Executor:
     """Threads (default), worker processes ("processes", loading the decoder's kernels as
-    they start), or Dask for `tcp://...`.
+    they start unless env PHASECAL_WARM_KERNELS is "0"), or Dask for `tcp://...`.
 
     The address comes from the argument or env PHASECAL_DASK.
     """
@@ -287,7 +288,7 @@ def make_executor(address: str | None = None) -> Executor:
     if address is None or address in ("inprocess", "threads"):
         return InProcessExecutor()
     if address == "processes":  # the service's workers: each loads the kernels as it starts
-        return ProcessExecutor(warm_kernels=True)
+        return ProcessExecutor(warm_kernels=os.environ.get(WARM_ENV, "1") != "0")
     if not address.startswith(("tcp://", "tls://", "inproc://", "local")):
         raise ValueError(
             f"executor address {address!r}: expected 'tcp://host:port' of a Dask scheduler, "

@@ -8,6 +8,7 @@ import threading
 import pytest
 
 from api.worker.executor import ProcessExecutor
+from calibration.decode.kernel_sums import finish_sums
 
 
 def kernels_loaded_once_idle() -> bool:
@@ -16,8 +17,6 @@ def kernels_loaded_once_idle() -> bool:
     for thread in threading.enumerate():
         if thread.name == "phasecal-warm-kernels":
             thread.join(300)
-    from calibration.decode.kernel_sums import finish_sums
-
     return bool(finish_sums.signatures)
 
 
