@@ -7,6 +7,7 @@ import threading
 
 import pytest
 
+from api.worker import executor
 from api.worker.executor import ProcessExecutor
 from calibration.decode.kernel_sums import finish_sums
 
@@ -27,3 +28,16 @@ def test_a_fresh_worker_loads_the_kernels_only_when_asked(warm: bool) -> None:
         assert ex.submit(kernels_loaded_once_idle).result(timeout=300) is warm
     finally:
         ex.shutdown()
+
+
+@pytest.mark.parametrize(("env", "warm"), [(None, True), ("0", False), ("1", True)])
+def test_the_services_workers_warm_unless_turned_off(monkeypatch, env: str | None,
+                                                     warm: bool) -> None:
+    made: list[bool] = []
+    monkeypatch.setattr(executor, "ProcessExecutor",
+                        lambda warm_kernels: made.append(warm_kernels) or "pool")
+    if env is None:
+        monkeypatch.delenv(executor.WARM_ENV, raising=False)
+    else:
+        monkeypatch.setenv(executor.WARM_ENV, env)
+    assert executor.make_executor("processes") == "pool" and made == [warm]
