@@ -105,14 +105,22 @@ class AutoLoop:
 
     def run(self, ctx: TaskContext) -> dict[str, Any]:
         """Starting moves, then refit and the best reachable planned pose, until the target
-        is met, the budget spent or no reachable pose helps; the log."""
+        is met, the budget spent or no reachable pose helps; the log. A cancel is logged
+        (`stop_reason` "cancelled") and raised."""
+        try:
+            return self.loop(ctx)
+        except Cancelled:
+            self.stop("cancelled")
+            raise
+
+    def loop(self, ctx: TaskContext) -> dict[str, Any]:
         mover = rig_mover(self.rig)
         if mover is None:
             raise RuntimeError("the rig has no mover: add a `mover` section to its config")
         self.log = {"mount": self.mount, "model": self.model, "budget": self.budget,
                     "target": self.target(), "mover": mover.info.name, "poses": [],
-                    "skipped": [], "handeye": None, "worst_ray_sigma_urad": None,
-                    "stop_reason": None}
+                    "skipped": [], "moving_to": None, "handeye": None,
+                    "worst_ray_sigma_urad": None, "stop_reason": None}
         current = mover.current_pose()
         for move in starting_moves(current.rotation, current.translation_mm,
                                    min(MIN_HANDEYE_VIEWS, self.budget)):
@@ -172,11 +180,16 @@ class AutoLoop:
         why = None if self.workspace is None else self.workspace.why_unreachable(flange)
         label = f"pose {number}/{self.budget}"
         if why is None:
-            ctx.progress(number - 1, self.budget, f"{label}: moving")
+            predicted = "" if cand is None else \
+                f" (predicted {cand['predicted_worst_ray_sigma_urad']:.3g} urad)"
+            self.log["moving_to"] = entry  # the planned pose, readable while the robot moves
+            self.save(self.log)
+            ctx.progress(number - 1, self.budget, f"{label}: moving{predicted}")
             try:
                 reached = self.move(ctx, flange)
             except MoveRefused as exc:
                 why = str(exc)
+            self.log["moving_to"] = None  # (kept when a cancel stops the move: where it went)
         if why is not None:
             self.log["skipped"].append({**entry, "why": why})
             self.save(self.log)

@@ -182,6 +182,8 @@ def test_cancel_mid_move_stops_the_arm_and_keeps_the_poses_taken(service) -> Non
     while "pose 2/6: moving" not in c.get(f"/jobs/{job_id}").json()["stage"]:
         assert time.monotonic() < end, "the second pose's move never started"
         time.sleep(0.05)
+    moving = c.get(f"/sessions/{sid}/auto").json()["moving_to"]
+    assert moving["reason"].startswith("starting set: turn")  # the planned pose, while moving
     time.sleep(0.3)
     assert c.post(f"/jobs/{job_id}/cancel").status_code in (200, 202)
     job = _wait(c, job_id)
@@ -189,6 +191,7 @@ def test_cancel_mid_move_stops_the_arm_and_keeps_the_poses_taken(service) -> Non
     arm = truth.arm
     assert arm.moves == 2  # set-up and the first pose's; the second was stopped midway
     log = c.get(f"/sessions/{sid}/auto").json()
+    assert log["stop_reason"] == "cancelled" and log["moving_to"] == moving  # where it went
     target = RobotPose.from_json(log["poses"][0]["flange"])
     assert 0 < arm.current_pose().angle_to_deg(target) < 7.9  # it stands where it stopped
     poses = c.get(f"/sessions/{sid}/poses").json()
