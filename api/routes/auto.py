@@ -15,6 +15,7 @@ from acquisition.mover import Workspace
 from api.jobs.auto import LOG, AutoJob, rig_mover
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted, get_session
+from api.schemas import strict_config
 from api.services import Services, get_services
 from calibration.shared.plan import plan_from_dict
 
@@ -26,7 +27,7 @@ MAX_BUDGET = 100
 class AutoTarget(BaseModel):
     """When the loop may stop: every given figure at or below its value."""
 
-    model_config = {"extra": "forbid"}
+    model_config = strict_config({"worst_ray_sigma_urad": 50, "handeye_sigma_mm": 0.2})
     worst_ray_sigma_urad: float = Field(gt=0, allow_inf_nan=False, description=(
         "the worst predicted 1-sigma ray direction uncertainty over the sensor (urad)"))
     handeye_sigma_mm: float | None = Field(default=None, gt=0, allow_inf_nan=False)
@@ -36,10 +37,10 @@ class AutoTarget(BaseModel):
 class AutoCreate(BaseModel):
     """A closed-loop run on the session's rig, whose config has a `mover` (docs/robots.md)."""
 
-    model_config = {"extra": "forbid", "json_schema_extra": {"examples": [{
+    model_config = strict_config({
         "target": {"worst_ray_sigma_urad": 50, "handeye_sigma_mm": 0.2},
         "budget": 12, "model": "opencv5", "mount": "eye-in-hand",
-        "workspace": {"min_mm": [-800, -800, 0], "max_mm": [800, 800, 1200]}}]}}
+        "workspace": {"min_mm": [-800, -800, 0], "max_mm": [800, 800, 1200]}})
     target: AutoTarget
     budget: int = Field(ge=4, le=MAX_BUDGET, description="the most poses to take")
     model: Literal["opencv5", "opencv-rational", "fisheye"] = Field(
