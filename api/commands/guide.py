@@ -11,6 +11,7 @@ from typing import Any
 
 from api.cli import UserError
 from calibration import (
+    DEFAULT_MIN_VISIBLE,
     MODELS,
     PARAMETRIC,
     captured_by,
@@ -42,8 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the nominal lens's horizontal field of view (default 60)")
     p.add_argument("--lens", choices=["pinhole", "fisheye"], default="pinhole",
                    help="the nominal lens of --starting and of the variety check")
-    p.add_argument("--min-screen-visible", type=float, default=1.0,
-                   help="the least part of the suggested screen inside the image (0.5..1)")
+    p.add_argument("--min-screen-visible", type=float, default=DEFAULT_MIN_VISIBLE,
+                   help="the least part of the suggested screen inside the image (0.5..1; "
+                        f"default {DEFAULT_MIN_VISIBLE:g}, as the service's)")
     p.add_argument("-o", "--output", help="write the answer as JSON (default: stdout)")
     p.add_argument("--image", metavar="PNG", help="also draw the next-pose picture")
 

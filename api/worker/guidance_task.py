@@ -7,13 +7,13 @@ import json
 from pathlib import Path
 from typing import Any
 
-from calibration import guidance_png, plan_next_pose, session_points
+from calibration import DEFAULT_MIN_VISIBLE, guidance_png, plan_next_pose, session_points
 from calibration.shared.maps import load_maps
 from calibration.shared.plan import read_plan
 
 
 def guidance_task(plan_path: str, maps_paths: list[str], model: str, out_dir: str,
-                  header: dict[str, Any], min_visible: float = 1.0) -> None:
+                  header: dict[str, Any], min_visible: float = DEFAULT_MIN_VISIBLE) -> None:
     """Fit `model` to the poses' maps, plan the next pose and write `next-pose.json`
     (`header` plus the suggestion) and `next-pose.png` into `out_dir`; `min_visible`: the
     least part of the suggested screen inside the image. ValueError when the poses do not
