@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -32,6 +33,7 @@ from api.inprocess import running_service
 from calibration import load_model
 from calibration.mrcal_io import read_cameramodel
 from tests.api.test_api_session import small_rig
+from tests.calibration.test_exports import SYSTEM_PYTHON, mrcal_available
 
 CHROMIUM, DRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 TOKEN = "page-test-token"
@@ -255,8 +257,18 @@ def test_calibration_from_the_page_alone(service, browser, downloads: Path) -> N
     fs.release()
     _click(d, "#downloads li[data-format='mrcal'] a")
     _feedback(d, "#downloads-feedback", ".cameramodel")
-    model = read_cameramodel(_downloaded(downloads, ".cameramodel"))
-    np.testing.assert_allclose(model.camera_matrix, k, rtol=1e-9)
+    cameramodel = _downloaded(downloads, ".cameramodel")
+    np.testing.assert_allclose(read_cameramodel(cameramodel).camera_matrix, k, rtol=1e-9)
+    if os.environ.get("CI") or mrcal_available():  # in CI always: mrcal itself (Debian's
+        # python3-mrcal, in the system Python) reads the download
+        script = ("import mrcal, sys\n"
+                  "lens, p = mrcal.cameramodel(sys.argv[1]).intrinsics()\n"
+                  "print(lens, *p[:4])")
+        out = subprocess.run([SYSTEM_PYTHON, "-c", script, str(cameramodel)], check=True,
+                             capture_output=True, text=True).stdout.split()
+        assert out[0].startswith("LENSMODEL_")
+        np.testing.assert_allclose([float(v) for v in out[1:5]],
+                                   [k[0, 0], k[1, 1], k[0, 2], k[1, 2]], rtol=1e-9)
     _click(d, "#downloads a[href$='download=1']")
     _feedback(d, "#downloads-feedback", ".html")
     page = _downloaded(downloads, ".html").read_text(encoding="utf-8")

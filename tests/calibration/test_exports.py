@@ -58,7 +58,7 @@ def _points(n: int = 2000, seed: int = 1) -> np.ndarray:
     return np.c_[rng.uniform(-300, 300, (n, 2)), rng.uniform(400, 900, n)]
 
 
-def _mrcal_available() -> bool:
+def mrcal_available() -> bool:
     if not Path(SYSTEM_PYTHON).exists():
         return False
     probe = subprocess.run([SYSTEM_PYTHON, "-c", "import mrcal"], capture_output=True)
@@ -66,7 +66,7 @@ def _mrcal_available() -> bool:
 
 
 # Skipped locally without mrcal; in CI (CI set) never skipped, so a missing install step fails.
-needs_mrcal = pytest.mark.skipif(not os.environ.get("CI") and not _mrcal_available(),
+needs_mrcal = pytest.mark.skipif(not os.environ.get("CI") and not mrcal_available(),
                                  reason="python3-mrcal (scripts/install-system-deps.sh) missing")
 
 
