@@ -1,9 +1,9 @@
 """The closed loop against a fixed pose list on the simulated arm: poses, wall and CPU time
 to reach a worst-ray-sigma target.
 
-Per seed, a simulated rig (160x120 camera, the 'fast' plan) with a six-axis arm carrying the
-camera, the screen following the arm through a random hand-eye truth
-(`tests.api.test_auto.follow_arm`), the arm standing where the camera sees the screen:
+Per seed (the arm's landing errors), a simulated rig (160x120 camera, the 'fast' plan)
+whose six-axis arm carries the camera (the simulator's own coupling, `hw_mocks.rig`), the
+arm at its home pose, where the camera sees the screen:
 
 - auto: `phasecal auto`'s loop (`api.commands.auto.auto_run`: starting moves, hand-eye,
   planned poses, each captured and decoded from simulated frames) until the target or
@@ -39,15 +39,17 @@ from calibration.shared.atomic import write_json_atomic
 from calibration.shared.plan import Plan
 from calibration.shared.progress import TaskContext
 from hw_mocks.arm import HandEyeRig
-from hw_mocks.rig import open_simulated_rig
-from tests.api.test_auto import RIG, follow_arm
+from hw_mocks.rig import SimulatedRig, open_simulated_rig
+from tests.api.test_auto import RIG
 
 MOUNT, MODEL = "eye-in-hand", "opencv5"
 
 
 def _rig(seed: int) -> tuple[Any, HandEyeRig, Plan]:
-    rig = open_rig(parse_rig_config(RIG, "benchmark rig"), simulator=open_simulated_rig)
-    truth = follow_arm(rig, seed)
+    config = {**RIG, "mover": {**RIG["mover"], "seed": seed}}
+    rig = open_rig(parse_rig_config(config, "benchmark rig"), simulator=open_simulated_rig)
+    assert isinstance(rig.simulated, SimulatedRig) and rig.simulated.handeye is not None
+    truth = rig.simulated.handeye
     s = rig.screen
     return rig, truth, build_plan(s.width_px, s.height_px, list(s.pitch_mm), preset="fast")
 

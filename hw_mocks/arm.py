@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -68,6 +69,9 @@ class SimulatedMover:
         self._lock = threading.Lock()
         self._closed = False
         self.moves = 0  # completed moves (tests and benchmarks count them)
+        # called with the true flange pose after every move, finished or cut short (what a
+        # simulated rig uses to carry the camera or the screen along)
+        self.on_moved: list[Callable[[RobotPose], None]] = []
 
     @property
     def info(self) -> MoverInfo:
@@ -99,16 +103,22 @@ class SimulatedMover:
             stopped = self._stop.wait(min(duration, timeout_s))
             if stopped or duration > timeout_s:
                 fraction = min(1.0, (time.monotonic() - began) / duration)
-                self._reported = self._true = _between(start, pose, fraction)
+                self._arrive(_between(start, pose, fraction), None)
                 if stopped:
                     raise MoveStopped(f"{self._info.name}: stopped {fraction:.0%} of the way")
                 raise MoveTimeout(f"{self._info.name}: the move needs {duration:.3g} s, more "
                                   f"than its {timeout_s:.3g} s timeout; stopped "
                                   f"{fraction:.0%} of the way")
-            self._reported = pose
-            self._true = self._landed(start, pose)
+            self._arrive(pose, self._landed(start, pose))
             self.moves += 1
             return pose
+
+    def _arrive(self, reported: RobotPose, true: RobotPose | None) -> None:
+        """Stand at `reported` (really at `true`; None: exactly there) and tell `on_moved`."""
+        self._reported = reported
+        self._true = reported if true is None else true
+        for listener in self.on_moved:
+            listener(self._true)
 
     def _landed(self, start: RobotPose, pose: RobotPose) -> RobotPose:
         """Where the flange really ends up: backlash against the approach, then the random
@@ -193,7 +203,10 @@ class HandEyeRig:
 
     def screen_pose(self) -> ScreenPose:
         """Where the screen is in the camera frame at the arm's true pose."""
-        flange = self.arm.true_pose()
+        return self.screen_pose_at(self.arm.true_pose())
+
+    def screen_pose_at(self, flange: RobotPose) -> ScreenPose:
+        """Where the screen is in the camera frame with the flange at `flange`."""
         if self.mount == "eye-in-hand":  # X_cam = (F X)^-1 Y S
             pose = (flange @ self.hand_eye).inverse() @ self.world_target
         else:  # X_cam = X^-1 F Y S

@@ -5,8 +5,12 @@ Built from a few settings (or a `phasecal.rig/1` config dict), with one camera o
 changed between poses (`set_pose`); ambient light, gain drift and panel brightness can
 be changed at any time, also mid-sequence via `at_frame`, to test integrity checks. A
 config's simulated mover (`mover = {backend = "simulated-arm" | ...}`) comes with the rig
-as `Rig.mover` (`hw_mocks.arm`); it moves in real time and does not move the screen
-(`set_pose` does).
+as `Rig.mover` (`hw_mocks.arm`) and carries the camera (eye-in-hand: the screen stands in the
+base frame) or the screen (eye-to-hand: the camera stands in the base frame): after each
+move the screen pose follows from its true flange pose (`carry_on_mover`), so a closed loop
+runs on the simulator as on a robot. The hand-eye and world-target transforms are fixed
+(`SimulatedRig.handeye`, the truth) and put the screen where the rig starts it at the
+mover's home pose.
 """
 
 from __future__ import annotations
@@ -17,10 +21,11 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from acquisition.clock import Clock, RealClock
 from acquisition.errors import DeviceSettingsError
-from acquisition.mover import Workspace
+from acquisition.mover import RobotPose, Workspace
 from acquisition.mover_config import (
     SimulatedArmConfig,
     SimulatedLinearConfig,
@@ -30,7 +35,7 @@ from acquisition.movers.stage import StageKinematics
 from acquisition.protocols import CameraSettings
 from acquisition.rig import DEFAULT_CAMERA, Rig, RigConfig
 from calibration.shared.plan import ScreenGeometry
-from hw_mocks.arm import SimulatedArm, SimulatedMover, SimulatedStage
+from hw_mocks.arm import HandEyeRig, Mount, SimulatedArm, SimulatedMover, SimulatedStage
 from hw_mocks.camera import CameraFaults, SimulatedCamera
 from hw_mocks.cameras import TruthCamera, make_truth_camera
 from hw_mocks.clock import VirtualClock
@@ -50,6 +55,11 @@ _CAMERA_KEYS = {"trigger_modes", "default_frame_rate_hz", "max_frame_rate_hz", "
 _FAULT_KEYS = {"lost_triggers"}  # triggers (1-based) whose frame arrives incomplete
 _MOUNT_KEYS = {"extrinsics"}  # several cameras: {rvec, t_mm}, reference frame -> this camera's
 BASELINE_FRACTION = 0.15  # default spacing of a rig's cameras, times the screen distance
+DEFAULT_MOUNT: Mount = "eye-in-hand"  # what a simulated mover carries: the camera
+# eye-in-hand: the camera ~110 mm off the flange, tilted a few degrees, as a bracket holds it
+CAMERA_ON_FLANGE = RobotPose(Rotation.from_rotvec(np.radians([2.0, -3.0, 1.5])).as_matrix(),
+                             np.array([40.0, -25.0, 100.0]))
+SCREEN_STANDOFF_MM = 60.0  # eye-to-hand: the screen's centre this far in front of the flange
 
 
 @dataclass
@@ -151,6 +161,7 @@ class SimulatedRig:
         self.rig = Rig(self.display, self.camera, self.clock, self.camera_settings, screen,
                        simulated=self, cameras=dict(self.cameras),
                        camera_settings={n: st for n, st in all_settings.items() if n != name})
+        self.handeye: HandEyeRig | None = None  # set by `carry_on_mover`: the mover's truth
 
     @classmethod
     def from_config(cls, config: dict[str, Any], clock: Clock | None = None) -> SimulatedRig:
@@ -228,6 +239,30 @@ class SimulatedRig:
         a lost packet on a GigE link does (`FrameLost`)."""
         cam = self.cameras[camera]
         cam.faults.lost_triggers = cam.faults.lost_triggers | {cam.triggers_fired + n}
+
+    def carry_on_mover(self, mover: SimulatedMover, mount: Mount = DEFAULT_MOUNT) -> HandEyeRig:
+        """Put the reference camera (eye-in-hand) or the screen (eye-to-hand) on `mover`'s
+        flange so the screen pose follows every move; the fixed transforms are chosen so that
+        the screen stands where it is now at the mover's present pose. Returns the truth."""
+        home = mover.true_pose()
+        view = RobotPose(self.pose.rotation, self.pose.translation)
+        if mount == "eye-in-hand":  # view = (F X)^-1 Y  ->  Y = F X view
+            hand_eye = CAMERA_ON_FLANGE
+            world_target = home @ hand_eye @ view
+        else:  # view = X^-1 F Y  ->  X = F Y view^-1, the screen centred before the flange
+            world_target = RobotPose(np.eye(3), np.array([0.0, 0.0, SCREEN_STANDOFF_MM])
+                                     - _screen_centre(self.screen))
+            hand_eye = home @ world_target @ view.inverse()
+        self.handeye = HandEyeRig(mount, mover, self.truth_camera, self.screen, hand_eye,
+                                  world_target)
+        mover.on_moved.append(self._follow_mover)
+        return self.handeye
+
+    def _follow_mover(self, flange: RobotPose) -> None:
+        """Place the screen where the camera sees it with the mover's flange at `flange`."""
+        assert self.handeye is not None
+        seen = self.handeye.screen_pose_at(flange)
+        self.set_pose(seen.rotation, seen.translation)
 
     def truth(self, camera: str | None = None) -> dict[str, Any]:
         """Optical ground truth of the current pose (screen point per pixel, visibility, ...)
@@ -320,5 +355,7 @@ def open_simulated_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
         sim.rig.settings = config.settings.to_settings()
     if isinstance(config.mover, SimulatedArmConfig | SimulatedPanTiltConfig
                   | SimulatedLinearConfig):
-        sim.rig.mover = simulated_mover(config.mover)
+        mover = simulated_mover(config.mover)
+        sim.carry_on_mover(mover)
+        sim.rig.mover = mover
     return sim.rig

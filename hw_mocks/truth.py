@@ -15,11 +15,13 @@ from typing import Any
 import cv2
 import numpy as np
 
+from acquisition.rig import parse_rig_config
 from calibration.shared.maps import DecodedMaps
 from calibration.shared.plan import ScreenGeometry
+from hw_mocks.arm import HandEyeRig
 from hw_mocks.cameras import TruthCamera
 from hw_mocks.poses import random_poses
-from hw_mocks.rig import SimulatedRig
+from hw_mocks.rig import SimulatedRig, open_simulated_rig
 from hw_mocks.scene import ScreenPose
 
 
@@ -35,12 +37,23 @@ class SimulatorTruth:
 
     sim: SimulatedRig
     start: ScreenPose  # where the screen is before any screen_pose moved it
+    config: dict[str, Any]
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> SimulatorTruth:
         """The truth of the simulated rig the service builds from `config`."""
         sim = SimulatedRig.from_config(config)
-        return cls(sim, sim.pose)
+        return cls(sim, sim.pose, config)
+
+    def handeye(self) -> HandEyeRig:
+        """The true hand-eye and world-target transforms of the config's simulated mover
+        (what a closed loop's hand-eye result is compared with)."""
+        rig = open_simulated_rig(parse_rig_config(self.config, "simulator truth"))
+        rig.close()
+        if rig.simulated is None or not isinstance(rig.simulated, SimulatedRig) \
+                or rig.simulated.handeye is None:
+            raise ValueError("the rig config has no simulated mover")
+        return rig.simulated.handeye
 
     @property
     def camera(self) -> TruthCamera:

@@ -1,5 +1,6 @@
-"""The closed loop over REST on a simulated rig with an arm: the screen follows the arm
-through a known hand-eye (the truth the hand-eye result is checked against from outside);
+"""The closed loop over REST and the CLI on a simulated rig whose arm carries the camera
+(the simulator's coupling; its hand-eye truth, `SimulatorTruth.handeye`, is what the
+result is checked against from outside);
 the loop stops at the target or the budget and reports its planned poses, skips poses
 outside the workspace, stops the arm at once on cancel, and a rig without a mover is a 409."""
 
@@ -7,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -15,46 +17,16 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from acquisition.mover import MoverInfo, RobotPose, Workspace
-from acquisition.rig import open_rig
+from acquisition.mover import RobotPose
 from api.app import create_app
 from api.cli import main
-from api.commands import auto as auto_command
 from api.config import ServiceConfig
-from hw_mocks.arm import HandEyeRig, SimulatedArm, SimulatedMover, handeye_rig
+from hw_mocks.truth import SimulatorTruth
 
 FAST = {"speed_mm_s": 20000.0, "speed_deg_s": 5000.0, "settle_s": 0.0}
 RIG = {"kind": "simulated", "camera": {"width": 160, "height": 120},
        "mover": {"backend": "simulated-arm", "repeatability_mm": 0.01,
                  "repeatability_deg": 0.002, **FAST}}
-
-
-class ScreenFollowsArm:
-    """The rig's simulated arm, with the simulated screen placed after each move where the
-    camera would see it through the hand-eye truth (the simulator's own set_pose)."""
-
-    def __init__(self, truth: HandEyeRig, sim: Any) -> None:
-        self.truth, self.sim = truth, sim
-
-    @property
-    def info(self) -> MoverInfo:
-        return self.truth.arm.info
-
-    def move_to(self, pose: RobotPose, timeout_s: float) -> RobotPose:
-        try:
-            return self.truth.arm.move_to(pose, timeout_s)
-        finally:
-            seen = self.truth.screen_pose()
-            self.sim.set_pose(seen.rotation, seen.translation)
-
-    def current_pose(self) -> RobotPose:
-        return self.truth.arm.current_pose()
-
-    def stop(self) -> None:
-        self.truth.arm.stop()
-
-    def close(self) -> None:
-        self.truth.arm.close()
 
 
 @pytest.fixture(scope="module")
@@ -65,35 +37,18 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClie
         yield c, app.state.services
 
 
-def follow_arm(rig: Any, seed: int, reach_mm: float | None = None,
-            **motion: float) -> HandEyeRig:
-    """Make the simulated screen follow `rig`'s arm (eye-in-hand, a random hand-eye truth)
-    and stand the arm where the camera sees the screen; with `reach_mm` (or `motion`) the
-    rig's arm is replaced by one whose workspace is a box of that half-width around that
-    pose (or that moves at that pace)."""
-    arm = rig.mover
-    assert isinstance(arm, SimulatedMover)
-    rng = np.random.default_rng(seed)
-    made = handeye_rig("eye-in-hand", rig.simulated.truth_camera, rig.screen, rng)
-    start = made.view_plan(1, rng)[0]
-    if reach_mm is not None or motion:
-        reach = 1500.0 if reach_mm is None else reach_mm
-        box = Workspace(tuple(start.translation_mm - reach), tuple(start.translation_mm + reach))
-        arm = SimulatedArm(workspace=box, start=start, rng=rng, **{**FAST, **motion})
-    truth = HandEyeRig("eye-in-hand", arm, made.camera, made.screen, made.hand_eye,
-                       made.world_target)
-    rig.mover = ScreenFollowsArm(truth, rig.simulated)
-    rig.mover.move_to(start, 5.0)
-    return truth
-
-
-def _arm_rig(c: TestClient, svc: Any, seed: int, reach_mm: float | None = None,
-             **motion: float) -> tuple[str, HandEyeRig]:
-    """A session on a new simulated rig with an arm the screen follows (`follow_arm`)."""
-    rig_id = c.post("/rigs", json={"name": f"arm{seed}", "config": RIG}).json()["id"]
-    truth = follow_arm(svc.rigs.handle(rig_id).rig, seed, reach_mm, **motion)
+def _arm_rig(c: TestClient, seed: int, reach_mm: float | None = None,
+             **motion: float) -> tuple[str, dict[str, Any]]:
+    """A session on a new simulated rig whose arm carries the camera (the rig's own
+    coupling); with `reach_mm` the arm's workspace is a box of that half-width around its
+    home pose (the origin), with `motion` it moves at that pace. Returns the rig config."""
+    mover: dict[str, Any] = {**RIG["mover"], **motion, "seed": seed}
+    if reach_mm is not None:
+        mover["workspace"] = {"min_mm": [-reach_mm] * 3, "max_mm": [reach_mm] * 3}
+    config = {**RIG, "mover": mover}
+    rig_id = c.post("/rigs", json={"name": f"arm{seed}", "config": config}).json()["id"]
     sid = c.post("/sessions", json={"rig_id": rig_id, "preset": "fast"}).json()["id"]
-    return sid, truth
+    return sid, config
 
 
 def _wait(c: TestClient, job_id: str, timeout_s: float = 600) -> dict:
@@ -107,8 +62,9 @@ def _wait(c: TestClient, job_id: str, timeout_s: float = 600) -> dict:
 
 
 def test_auto_reaches_the_budget_with_planned_poses_and_a_true_hand_eye(service) -> None:
-    c, svc = service
-    sid, truth = _arm_rig(c, svc, 1)
+    c, _ = service
+    sid, config = _arm_rig(c, 1)
+    truth = SimulatorTruth.from_config(config).handeye()
     r = c.post(f"/sessions/{sid}/auto", json={
         "target": {"worst_ray_sigma_urad": 1e-3}, "budget": 6, "mount": "eye-in-hand",
         "model": "opencv5"})
@@ -150,8 +106,8 @@ def _start(c: TestClient, sid: str, **body: Any) -> str:
 
 
 def test_auto_stops_at_a_met_target(service) -> None:
-    c, svc = service
-    sid, _ = _arm_rig(c, svc, 2)
+    c, _ = service
+    sid, _ = _arm_rig(c, 2)
     job = _wait(c, _start(c, sid, target={"worst_ray_sigma_urad": 1e6,
                                           "handeye_sigma_mm": 100}))
     assert job["status"] == "succeeded", job
@@ -161,8 +117,9 @@ def test_auto_stops_at_a_met_target(service) -> None:
 
 
 def test_poses_the_mover_cannot_reach_are_skipped_and_the_next_best_taken(service) -> None:
-    c, svc = service
-    sid, truth = _arm_rig(c, svc, 3, reach_mm=60.0)
+    c, _ = service
+    sid, config = _arm_rig(c, 3, reach_mm=60.0)
+    truth = SimulatorTruth.from_config(config).handeye()
     job = _wait(c, _start(c, sid, budget=5))
     assert job["status"] == "succeeded", job
     log = job["result"]
@@ -176,7 +133,8 @@ def test_poses_the_mover_cannot_reach_are_skipped_and_the_next_best_taken(servic
 
 def test_cancel_mid_move_stops_the_arm_and_keeps_the_poses_taken(service) -> None:
     c, svc = service
-    sid, truth = _arm_rig(c, svc, 4, speed_mm_s=1.0, speed_deg_s=0.5)  # a move takes 16 s
+    sid, _ = _arm_rig(c, 4, speed_mm_s=1.0, speed_deg_s=0.5)  # a move takes 16 s
+    rig_id = c.get(f"/sessions/{sid}").json()["rig_id"]
     job_id = _start(c, sid)
     end = time.monotonic() + 120
     while "pose 2/6: moving" not in c.get(f"/jobs/{job_id}").json()["stage"]:
@@ -188,8 +146,8 @@ def test_cancel_mid_move_stops_the_arm_and_keeps_the_poses_taken(service) -> Non
     assert c.post(f"/jobs/{job_id}/cancel").status_code in (200, 202)
     job = _wait(c, job_id)
     assert job["status"] == "cancelled", job
-    arm = truth.arm
-    assert arm.moves == 2  # set-up and the first pose's; the second was stopped midway
+    arm = svc.rigs.handle(rig_id).rig.mover
+    assert arm.moves == 1  # the first pose's (where it stood); the second was stopped midway
     log = c.get(f"/sessions/{sid}/auto").json()
     assert log["stop_reason"] == "cancelled" and log["moving_to"] == moving  # where it went
     target = RobotPose.from_json(log["poses"][0]["flange"])
@@ -204,14 +162,6 @@ def test_cli_auto_writes_poses_handeye_and_log(tmp_path: Path, monkeypatch, caps
     rig_toml.write_text('kind = "simulated"\ncamera = {width = 160, height = 120}\n'
                         '[mover]\nbackend = "simulated-arm"\nspeed_mm_s = 20000\n'
                         'speed_deg_s = 5000\nsettle_s = 0\n')
-    opened: list[HandEyeRig] = []
-
-    def open_following(config: Any, **kwargs: Any) -> Any:
-        rig = open_rig(config, **kwargs)
-        opened.append(follow_arm(rig, 5))
-        return rig
-
-    monkeypatch.setattr(auto_command, "open_rig", open_following)
     out = tmp_path / "run"
     assert main(["auto", "--rig", str(rig_toml), "--target-sigma-urad", "1e6",
                  "--handeye-sigma-mm", "100", "--budget", "5", "-o", str(out)]) == 0
@@ -220,7 +170,11 @@ def test_cli_auto_writes_poses_handeye_and_log(tmp_path: Path, monkeypatch, caps
     log = json.loads((out / "auto.json").read_text())
     assert [p["pose_id"] for p in log["poses"]] == [f"pose-{k:02d}" for k in range(4)]
     assert all((out / f"pose-{k:02d}" / "maps.npz").is_file() for k in range(4))
-    assert json.loads((out / "handeye.json").read_text())["format"] == "phasecal.handeye/1"
+    handeye = json.loads((out / "handeye.json").read_text())
+    assert handeye["format"] == "phasecal.handeye/1"
+    truth = SimulatorTruth.from_config(tomllib.loads(rig_toml.read_text())).handeye()
+    error = np.linalg.norm(np.asarray(handeye["hand_eye"]["t_mm"]) - truth.hand_eye.translation_mm)
+    assert error < 5 * handeye["stats"]["hand_eye_sigma"]["translation_mm"]
     assert set(json.loads((out / "robot-poses.json").read_text())["poses"]) == \
         {f"pose-{k:02d}" for k in range(4)}
 
