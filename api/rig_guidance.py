@@ -78,3 +78,11 @@ def _plan(svc: Services, session_id: str, maps: dict[str, dict[str, str]], model
         raise
     final.parent.mkdir(parents=True, exist_ok=True)
     svc.store.replace_dir(tmp, final)
+
+
+def pose_maps_path(svc: Services, pose_id: str) -> Path:
+    """A pose's maps for the single-camera views (variety, starting poses, coverage): the
+    reference camera's on a pose of several cameras."""
+    pose_dir = svc.store.dir_for(pose_id)
+    names = pose_camera_names(pose_dir)
+    return camera_maps_path(pose_dir, names[0]) if names else svc.store.file(pose_id, "maps.npz")

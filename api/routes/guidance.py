@@ -18,7 +18,7 @@ from sqlalchemy import select
 from api.db import PoseRecord, SessionRecord
 from api.jobs.intrinsics import RESULT as INTRINSICS_RESULT
 from api.problems import Problem
-from api.rig_guidance import rig_next_pose
+from api.rig_guidance import pose_maps_path, rig_next_pose
 from api.routes.common import PROBLEM_RESPONSES, get_session
 from api.services import Services, get_services
 from api.worker.guidance_task import guidance_task
@@ -114,7 +114,7 @@ def _observed(svc: Services, sess: SessionRecord, poses: list[PoseRecord],
             out.append((p.id, ObservedPose.from_json(json.loads(cached.read_text()))))
             continue
         try:
-            seen = observe(load_maps(svc.store.file(p.id, "maps.npz")), screen, k)
+            seen = observe(load_maps(pose_maps_path(svc, p.id)), screen, k)
         except ValueError:
             continue  # too few valid points to tell: neither a repeat nor variety
         folder.mkdir(parents=True, exist_ok=True)
@@ -258,6 +258,6 @@ def coverage_image(session_id: str, svc: Svc) -> Response:
             PoseRecord.status.in_(("ready", "flagged")))))
     if not ids:
         raise Problem(409, "not-enough-poses", f"session {session_id} has no decoded poses yet")
-    counts = np.sum([load_maps(svc.store.file(p, "maps.npz")).mask for p in ids], axis=0)
+    counts = np.sum([load_maps(pose_maps_path(svc, p)).mask for p in ids], axis=0)
     return Response(count_png(counts, f"sensor coverage by {len(ids)} poses"),
                     media_type="image/png", headers={"Cache-Control": "no-cache"})

@@ -6,6 +6,8 @@
 import { $, el, fmt } from "/ui/dom.js";
 import { CameraView, rigCameras } from "/ui/camera_view.js";
 import { ServiceError, api, explain, explainJob, request, setToken, token } from "/ui/service.js";
+import { isRigCalibration, modelChoosers, poseCameraCell, rigCalibrationBody, rigDownloads,
+         rigMaps, rigNextPose, rigResult } from "/ui/rig_panel.js";
 
 const STARTING_COUNT = 5;      // starting poses asked for: enough for guidance and opencv fits
 const EXPORT_FORMATS = [       // the REST export formats and what each is for
@@ -138,7 +140,23 @@ async function openSession(id) {
   $("#use-suggestion-label").hidden = !simulated;
   showSimHint();
   if (state.rig) showCameras(state.rig);
+  showRigModels();
   await Promise.all([loadSessions(), refreshSession()]);
+}
+
+// The rig's cameras when the session's rig has several (else null).
+function rigCameraNames() {
+  const names = state.rig ? rigCameras(state.rig).map((c) => c.name) : [];
+  return names.length > 1 ? names : null;
+}
+
+function showRigModels() {
+  const names = rigCameraNames();
+  $("#rig-models").hidden = !names;
+  $("#rig-models").replaceChildren(...(names ? modelChoosers(names, $("#calibrate-model").value) : []));
+  $("#calibrate-model").hidden = !!names;
+  $("label[for=calibrate-model]").hidden = !!names;
+  $("#calibrate-btn").textContent = names ? "Calibrate rig" : "Calibrate";
 }
 
 async function refreshSession() {
@@ -163,7 +181,7 @@ async function loadPoses() {
     return el("tr", { "data-pose": p.id },
       el("td", {}, p.index), el("td", {}, p.id),
       el("td", { class: BAD_POSE.includes(p.status) ? "bad" : "" }, p.status + (p.error ? `: ${p.error}` : "")),
-      el("td", {}, p.valid_pixels ?? "-"),
+      el("td", {}, poseCameraCell(p)),
       el("td", {}, held),
       el("td", {}, decoded ? el("button", { onclick: () => showMaps(p.id) }, "show maps") : "-"),
       el("td", {}, el("button", { class: "danger", "aria-label": `delete pose ${p.index}`,
@@ -197,12 +215,14 @@ function showHeldout() {
 function showMaps(poseId) {
   const base = `/sessions/${state.session.id}/poses/${poseId}/preview`;
   const box = $("#pose-maps");
+  const pose = state.poses.find((p) => p.id === poseId);
   box.dataset.pose = poseId;
   setUrl({ pose: poseId });
   box.replaceChildren(el("h4", {}, `Decoded maps of ${poseId}`),
     el("p", { class: "explain" }, "x and y: the screen pixel each camera pixel sees; sigma: " +
        "how uncertain that is; mask: where the screen was decoded at all."),
-    ...["x", "y", "sigma", "mask"].map((k) => el("img", { src: `${base}/${k}.png`, alt: `${k} map of ${poseId}` })));
+    ...(pose && pose.cameras ? rigMaps(base, pose)
+      : ["x", "y", "sigma", "mask"].map((k) => el("img", { src: `${base}/${k}.png`, alt: `${k} map of ${poseId}` }))));
 }
 
 async function deletePose(p) {
@@ -409,6 +429,11 @@ async function loadNextPose() {
     const g = await api("GET", `/sessions/${state.session.id}/next-pose?model=${model}`);
     if (asked !== state.nextPoseAsked) return;
     state.suggestion = g;
+    if (g.cameras) {  // a rig: which cameras the pose serves
+      text.replaceChildren(...rigNextPose(g));
+      img.hidden = true;
+      return;
+    }
     const p = g.predicted_worst_ray_sigma_urad;
     const [u, v] = g.screen_center_px;
     const where = g.placement ||
@@ -463,10 +488,11 @@ async function loadCalibrations() {
 async function calibrate(ev) {
   ev.preventDefault();
   clear("calibrate-feedback");
-  const model = $("#calibrate-model").value;
-  const body = { model };
-  if (state.heldout.size) body.heldout_pose_ids = [...state.heldout];
-  const job = await api("POST", `/sessions/${state.session.id}/calibrations`, body);
+  const rig = rigCameraNames();
+  const body = rig ? rigCalibrationBody($("#rig-models"), [...state.heldout]) : { model: $("#calibrate-model").value };
+  const model = rig ? `rig (${Object.entries(body.camera_models).map(([c, m]) => `${c}: ${m}`).join(", ")})` : body.model;
+  if (!rig && state.heldout.size) body.heldout_pose_ids = [...state.heldout];
+  const job = await api("POST", `/sessions/${state.session.id}/${rig ? "rig-calibrations" : "calibrations"}`, body);
   tell("calibrate-feedback", "info", `Calibrating with ${model} (${job.id}).`);
   await loadCalibrations();
   const end = await follow(job, PANELS.calibrate, `Calibrate ${model}`);
@@ -475,7 +501,7 @@ async function calibrate(ev) {
   const cal = end.resource.split("/").pop();
   const rec = state.calibrations.find((c) => c.id === cal);
   tell("calibrate-feedback", "ok", `Calibration ${cal} succeeded` +
-       (rec && rec.stats ? `: RMS ${fmt(rec.stats.rms_px, 3)} px` : "") +
+       (rec && rec.stats && rec.stats.rms_px != null ? `: RMS ${fmt(rec.stats.rms_px, 3)} px` : "") +
        ". Its report and model files are below.");
   selectCalibration(cal);
 }
@@ -541,6 +567,13 @@ function selectCalibration(cal) {
     el("li", {}, el("a", { href: `/calibrations/${cal}/report.html`, target: "_blank" }, "open the report"),
       el("span", { class: "explain" }, " numbers, residuals per pose, uncertainty; "),
       downloadLink(`/calibrations/${cal}/report.html?download=1`, "save the report as one file", "one HTML file with its pictures inside")));
+  const rig = rec && isRigCalibration(rec);
+  $("#rig-result").replaceChildren();
+  for (const id of ["#single-downloads", "#compare-box"]) $(id).style.display = rig ? "none" : "";
+  if (rig) {
+    showRig(cal).catch((e) => tell("downloads-feedback", "error", explain(e), e));
+    return;
+  }
   renderDownloads();
   $("#remap-pinhole").oninput = renderDownloads;
   $("#mrcal-approximate").onchange = renderDownloads;
@@ -549,6 +582,19 @@ function selectCalibration(cal) {
   $("#compare-btn").disabled = others.length === 0;
   $("#compare-result").textContent = others.length ? "" : "calibrate again (another model or poses) to compare";
   clear("compare-feedback");
+}
+
+// A rig calibration: the extrinsics with their sigma and every rig download.
+async function showRig(cal) {
+  const rig = await api("GET", `/calibrations/${cal}/rig`);
+  $("#rig-result").replaceChildren(
+    el("h4", {}, `Extrinsics in ${rig.reference}'s frame`), rigResult(rig),
+    el("p", { class: "explain" }, "1-sigma from each camera's covariance: translation in mm, rotation in mrad."));
+  $("#downloads").replaceChildren(
+    ...rigDownloads(cal, rig).map(([path, label, what]) => el("li", { "data-rig-download": label },
+      downloadLink(path, label, what), el("span", { class: "explain" }, ` ${what}`))),
+    el("li", {}, el("a", { href: `/calibrations/${cal}/report.html`, target: "_blank" }, "open the report"),
+      el("span", { class: "explain" }, " every camera, the extrinsics with sigma, the verdict")));
 }
 
 async function compare() {
