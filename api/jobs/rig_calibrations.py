@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy.orm import Session
 
-from api.db import CalibrationRecord, SessionRecord
+from api.db import CalibrationRecord, RigRecord, SessionRecord
 from api.jobs.model import Job, JobKind
 from api.pose_path import camera_maps_path, pose_camera_names
 from api.problems import Problem
@@ -95,9 +95,12 @@ def rig_report_inputs(svc: Services, rec: CalibrationRecord) -> RigReportInputs:
     with svc.db.session() as s:
         ses = s.get(SessionRecord, rec.session_id)
         session = f"{ses.name or 'unnamed'} ({rec.session_id})" if ses else rec.session_id
+        rig = s.get(RigRecord, ses.rig_id) if ses is not None and ses.rig_id else None
+        rig_text = (f"{rig.name} ({rig.id}, {rig.config.get('kind', 'simulated')})" if rig
+                    else "none")
     models = (rec.options or {}).get("rig", {}).get("camera_models", {})
     header = ReportHeader(
-        title=f"Rig calibration {rec.id}", session=session,
+        title=f"Rig calibration {rec.id}", session=session, rig=rig_text,
         cameras=", ".join(f"{c} ({m})" for c, m in models.items()) or "not recorded",
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(rec.created_at)),
         software=f"phasecal {phasecal_version()}", poses_used=list(rec.pose_ids),
