@@ -2,14 +2,17 @@
 phasecal plans, captures, refits and stops when good enough).
 
 Before the hand-eye is known the loop cannot say which flange pose shows the screen where,
-so it starts with `starting_moves`: small moves around the flange pose the operator left
-the robot in (which shows the screen), each a rotation about a different axis of the
-flange, as hand-eye needs rotations about non-parallel axes. Once `MIN_HANDEYE_VIEWS`
-poses exist, `plan_step` fits the session as its calibration would (the guidance fit),
-fits the hand-eye on the same maps, and ranks every candidate screen placement of the
-guidance planner by its predicted worst ray sigma, each converted to the flange pose that
-shows it through the hand-eye estimate (`flange_for_view`). The caller keeps the first one
-its robot can reach: the planner's candidates constrained to the reachable set.
+so it starts with `probe_moves`: the flange pose the operator left the robot in (which
+shows the screen) and a step back along the tool axis, whose change of scale tells how far
+the screen is (`screen_distance_mm`); then `starting_moves`, large turns about a point at
+that distance about different axes of the flange, as
+hand-eye needs rotations about non-parallel axes and the fit needs tilted views. Once
+`MIN_HANDEYE_VIEWS` poses exist, `plan_step` fits the session as its calibration would
+(the guidance fit), fits the hand-eye on the same maps, and ranks every candidate screen
+placement of the guidance planner by its predicted worst ray sigma, each converted to the
+flange pose that shows it through the hand-eye estimate (`flange_for_view`). The caller
+keeps the first one its robot can reach: the planner's candidates constrained to the
+reachable set.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -55,11 +59,15 @@ from calibration.uncertainty import (
 )
 
 Mount = Literal["eye-in-hand", "eye-to-hand"]
-START_TURN_DEG = 8.0  # small enough that a screen in view stays in view
-START_SHIFT_MM = 15.0
-# rotation axes of the starting moves in the flange frame: pairwise non-parallel
-START_AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 1.0, 0.0),
-              (1.0, -1.0, 1.0), (0.0, 1.0, -1.0))
+START_TURN_DEG = 30.0  # the screen's tilt changes a lot, as a well-spread pose list's does
+# the starting turns: axis in the flange's x-y plane (deg from x), sign, and the distance to
+# the screen as a fraction of the first pose's (closer, farther); the axes pairwise
+# non-parallel, as hand-eye needs rotations about different axes
+START_TURNS = ((0.0, 1.0, 1.0), (90.0, -1.0, 0.85), (135.0, 1.0, 1.15), (45.0, -1.0, 1.0),
+               (22.5, 1.0, 0.85), (112.5, -1.0, 1.15))
+MIN_SCREEN_COVERAGE = 0.05  # a capture whose valid pixels cover less has lost the screen
+START_STEP_MM = -40.0  # the second starting pose: back along the flange's z axis, no turn
+_DISTANCE_POINTS = 2000  # decoded pixels a first pose's distance estimate uses
 _SAMPLE_GRID = (32, 24)  # image samples per candidate, as the guidance planner's
 
 
@@ -101,28 +109,82 @@ class PlanStep:
         return None if self.handeye is None else dict(self.handeye["stats"]["hand_eye_sigma"])
 
 
-def starting_moves(rotation: np.ndarray, translation_mm: np.ndarray, count: int,
-                   turn_deg: float = START_TURN_DEG,
-                   shift_mm: float = START_SHIFT_MM) -> list[StartMove]:
-    """`count` flange poses around the current one (`rotation`, `translation_mm` in the
-    robot's base frame): the first is the current pose itself, each later one
-    turned by `turn_deg` about a different flange axis (`START_AXES`) and shifted sideways
-    by `shift_mm`, alternating in sign, so the motions between them are rotations about
-    non-parallel axes."""
-    if not 1 <= count <= len(START_AXES) + 1:
-        raise ValueError(f"count: expected 1..{len(START_AXES) + 1} starting moves, got {count}")
+def probe_moves(rotation: np.ndarray, translation_mm: np.ndarray,
+                step_mm: float = START_STEP_MM) -> list[StartMove]:
+    """The first two starting poses: the flange pose the robot stands in (`rotation`,
+    `translation_mm` in its base frame) and that pose moved `step_mm` along the flange's z
+    axis without turning, from which `screen_distance_mm` tells how far the screen is."""
     current = Rigid(np.asarray(rotation, np.float64), np.asarray(translation_mm, np.float64))
-    moves = [StartMove(current, "the flange pose the robot stood in")]
-    for k, axis in enumerate(START_AXES[:count - 1]):
-        sign = 1.0 if k % 2 == 0 else -1.0
-        unit = np.asarray(axis) / np.linalg.norm(axis)
+    return [StartMove(current, "the flange pose the robot stood in"),
+            StartMove(current @ Rigid(np.eye(3), np.array([0.0, 0.0, step_mm])),
+                      f"starting set: {step_mm:+g} mm along the flange's z axis, no turn "
+                      "(how far the screen is)")]
+
+
+def starting_moves(rotation: np.ndarray, translation_mm: np.ndarray, count: int,
+                   pivot_mm: float, distance_mm: float,
+                   turn_deg: float = START_TURN_DEG) -> list[StartMove]:
+    """`count` turns of the flange from the pose it stood in (`rotation`, `translation_mm`
+    in the robot's base frame) by `turn_deg` about the point `pivot_mm` along the flange's
+    z axis (`START_TURNS`), so a screen seen there stays in view while its tilt changes a
+    lot, each moved along that axis to a varied fraction of `distance_mm` (the screen's
+    signed distance along it, `screen_distance_mm`). Eye-in-hand, the pivot is the screen
+    (a camera looking along the tool axis); eye-to-hand, the flange origin (a screen on the
+    flange turns about itself)."""
+    if not 1 <= count <= len(START_TURNS):
+        raise ValueError(f"count: expected 1..{len(START_TURNS)} starting turns, got {count}")
+    current = Rigid(np.asarray(rotation, np.float64), np.asarray(translation_mm, np.float64))
+    pivot = np.array([0.0, 0.0, pivot_mm])
+    moves = []
+    for angle, sign, fraction in START_TURNS[:count]:
+        unit = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle)), 0.0])
         turn = Rotation.from_rotvec(sign * np.radians(turn_deg) * unit).as_matrix()
-        shift = sign * shift_mm * np.cross(unit, (0.0, 0.0, 1.0) if abs(unit[2]) < 0.9
-                                           else (1.0, 0.0, 0.0))
-        local = Rigid(turn, shift)
+        closer = np.array([0.0, 0.0, (1.0 - fraction) * distance_mm])
+        local = Rigid(turn, pivot - turn @ pivot + turn @ closer)  # closer along the new z
         moves.append(StartMove(current @ local, f"starting set: turn {sign * turn_deg:+g} deg "
-                               f"about flange axis {np.round(unit, 3).tolist()}"))
+                               f"about flange axis {np.round(unit, 3).tolist()} through "
+                               f"{pivot_mm:.0f} mm along z, {fraction:.0%} of the distance"))
     return moves
+
+
+def covers_screen(maps: DecodedMaps) -> bool:
+    """Whether a capture still shows the screen: valid pixels over `MIN_SCREEN_COVERAGE` of
+    the image."""
+    h, w = maps.shape
+    return bool(maps.mask.sum() >= MIN_SCREEN_COVERAGE * w * h)
+
+
+def mm_per_px_at_centre(maps: DecodedMaps, screen: ScreenGeometry) -> float:
+    """Screen millimetres per image pixel at the image centre (the screen plane's homography
+    from the decoded pixels): proportional to the screen's distance along the central ray."""
+    h, w = maps.shape
+    vs, us = np.nonzero(maps.mask)
+    pick = np.linspace(0, len(us) - 1, min(len(us), _DISTANCE_POINTS)).astype(int)
+    vs, us = vs[pick], us[pick]
+    img = np.stack([us, vs], axis=1).astype(np.float64)
+    obj = np.stack([maps.x[vs, us] * screen.pitch_mm[0], maps.y[vs, us] * screen.pitch_mm[1]],
+                   axis=1)
+    homography, _ = cv2.findHomography(img, obj, cv2.LMEDS)
+    if homography is None:
+        raise ValueError("the decoded pixels do not fit a screen plane")
+    cu, cv = (w - 1) / 2, (h - 1) / 2
+    near = np.array([[[cu, cv]], [[cu + 1.0, cv]], [[cu, cv + 1.0]]])
+    at = cv2.perspectiveTransform(near, homography).reshape(3, 2)
+    jacobian = np.stack([at[1] - at[0], at[2] - at[0]], axis=1)
+    return float(np.sqrt(abs(np.linalg.det(jacobian))))
+
+
+def screen_distance_mm(before: DecodedMaps, after: DecodedMaps, screen: ScreenGeometry,
+                       step_mm: float) -> float:
+    """The screen's distance along the flange's z axis in `before`, from the change of scale
+    after the flange moved `step_mm` along its z axis without turning (`after`): positive
+    when moving along +z brings the screen closer. Assumes the camera looks along that
+    axis; needs neither the focal length nor the distortion."""
+    m0, m1 = mm_per_px_at_centre(before, screen), mm_per_px_at_centre(after, screen)
+    if abs(m0 - m1) < 1e-6 * m0:
+        raise ValueError("the step along the flange's z axis did not change the screen's "
+                         "scale: the camera does not look along it")
+    return step_mm * m0 / (m0 - m1)
 
 
 def flange_for_view(mount: Mount, hand_eye: Rigid, world_target: Rigid,

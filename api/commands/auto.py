@@ -133,7 +133,8 @@ def auto_run(rig: Any, plan: Plan, out: Path, ctx: TaskContext, *, mount: str, m
         return step
 
     loop = AutoLoop(rig, mount, model, budget, target_urad, capture, refit,
-                    lambda log: write_json_atomic(out / "auto.json", log), handeye_mm,
+                    lambda log: write_json_atomic(out / "auto.json", log),
+                    lambda name: out / name / MAPS, handeye_mm,
                     handeye_mrad)
     return loop.run(ctx)
 

@@ -37,7 +37,18 @@ from api.jobs.handeye import RESULT as HANDEYE_RESULT
 from api.jobs.model import Job, JobKind
 from api.jobs.poses import CaptureJob
 from api.store import new_id
-from calibration import MIN_HANDEYE_VIEWS, ROBOT_POSES_FORMAT, plan_step, starting_moves
+from calibration import (
+    MIN_HANDEYE_VIEWS,
+    MIN_SCREEN_COVERAGE,
+    ROBOT_POSES_FORMAT,
+    START_STEP_MM,
+    START_TURNS,
+    covers_screen,
+    plan_step,
+    probe_moves,
+    screen_distance_mm,
+    starting_moves,
+)
 from calibration.shared.maps import load_maps
 from calibration.shared.plan import Plan, read_plan
 from calibration.shared.progress import Cancelled, TaskContext
@@ -87,7 +98,8 @@ class AutoLoop:
     """The loop itself, for the service's job and the CLI alike: they differ in where a
     pose is captured (`capture`: a pose at the robot's current pose, its name back), where
     the refit runs and its hand-eye is kept (`refit`: `auto_plan_task`'s result for the
-    robot poses so far) and where the log goes (`save`)."""
+    robot poses so far), where a pose's maps are (`maps_path`) and where the log goes
+    (`save`)."""
 
     rig: Rig
     mount: str
@@ -97,6 +109,7 @@ class AutoLoop:
     capture: Callable[[TaskContext], str]
     refit: Callable[[TaskContext, dict[str, Any]], dict[str, Any]]
     save: Callable[[dict[str, Any]], None]
+    maps_path: Callable[[str], Path]
     target_handeye_mm: float | None = None
     target_handeye_mrad: float | None = None
     workspace: Workspace | None = None
@@ -121,11 +134,7 @@ class AutoLoop:
                     "target": self.target(), "mover": mover.info.name, "poses": [],
                     "skipped": [], "moving_to": None, "handeye": None,
                     "worst_ray_sigma_urad": None, "stop_reason": None}
-        current = mover.current_pose()
-        for move in starting_moves(current.rotation, current.translation_mm,
-                                   min(MIN_HANDEYE_VIEWS, self.budget)):
-            self.take(ctx, RobotPose(move.flange.rotation, move.flange.translation),
-                      move.reason, None)
+        self.starting_set(ctx, mover.current_pose())
         while True:
             if len(self.robot) < MIN_HANDEYE_VIEWS:
                 return self.stop(f"only {len(self.robot)} of the {MIN_HANDEYE_VIEWS} starting "
@@ -138,6 +147,43 @@ class AutoLoop:
                 return self.stop("budget spent")
             if not self.next_pose(ctx, step["candidates"]):
                 return self.stop("no reachable pose lowers the worst ray sigma further")
+
+    def starting_set(self, ctx: TaskContext, current: RobotPose) -> None:
+        """The pose the robot stands in and a step back (`probe_moves`), then turns about
+        the screen (`starting_moves`) until `MIN_HANDEYE_VIEWS` poses show it; a turn whose
+        capture lost the screen is dropped from the loop (logged as skipped; its capture
+        stays)."""
+        for move in probe_moves(current.rotation, current.translation_mm):
+            flange = RobotPose(move.flange.rotation, move.flange.translation)
+            if not (self.take(ctx, flange, move.reason, None) and self.shows_screen()):
+                return
+        before, after = (load_maps(self.maps_path(p["pose_id"])) for p in self.log["poses"])
+        try:
+            distance = screen_distance_mm(before, after, self.rig.screen, START_STEP_MM)
+        except ValueError as exc:
+            self.log["note"] = f"no starting turns: {exc}"
+            return
+        pivot = distance if self.mount == "eye-in-hand" else 0.0
+        for move in starting_moves(current.rotation, current.translation_mm,
+                                   len(START_TURNS), pivot, distance):
+            if len(self.robot) >= min(MIN_HANDEYE_VIEWS, self.budget):
+                return
+            flange = RobotPose(move.flange.rotation, move.flange.translation)
+            if self.take(ctx, flange, move.reason, None):
+                self.shows_screen()
+
+    def shows_screen(self) -> bool:
+        """Whether the last pose's capture shows the screen; if not, the pose is dropped
+        from the loop and logged as skipped."""
+        entry = self.log["poses"][-1]
+        if covers_screen(load_maps(self.maps_path(entry["pose_id"]))):
+            return True
+        self.log["poses"].pop()
+        del self.robot[entry["pose_id"]]
+        self.log["skipped"].append({**entry, "why": "the capture lost the screen (under "
+                                    f"{MIN_SCREEN_COVERAGE:.0%} of the image decoded)"})
+        self.save(self.log)
+        return False
 
     def target(self) -> dict[str, float]:
         out = {"worst_ray_sigma_urad": self.target_urad}
@@ -273,6 +319,7 @@ class AutoJob(Job):
     def run(self, ctx: TaskContext) -> dict[str, Any]:
         loop = AutoLoop(self.svc.rigs.handle(self.rig_id).rig, self.mount, self.model,
                         self.budget, self.target_urad, self.capture, self.refit, self.save,
+                        lambda pose_id: self.svc.store.file(pose_id, "maps.npz"),
                         self.target_handeye_mm, self.target_handeye_mrad, self.workspace)
         return loop.run(ctx)
 
