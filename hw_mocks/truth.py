@@ -31,6 +31,15 @@ def screen_pose_dict(pose: ScreenPose) -> dict[str, list[float]]:
     return {"rvec": rvec.ravel().tolist(), "tvec_mm": np.asarray(pose.translation, float).tolist()}
 
 
+def perfect_maps(sim: SimulatedRig) -> DecodedMaps:
+    """What a perfect decode of the reference camera's current view gives (true screen px
+    per pixel, zero sigma): checks of code that only reads where the screen is seen."""
+    truth = sim.truth()
+    mask = np.isfinite(truth["x_true"]) & np.isfinite(truth["y_true"])
+    zero = np.zeros(mask.shape, np.float32)
+    return DecodedMaps(truth["x_true"], truth["y_true"], zero, zero, mask, zero, zero)
+
+
 @dataclass
 class SimulatorTruth:
     """Ground truth of a simulated rig built from its config (the service's rig is its twin)."""

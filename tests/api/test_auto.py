@@ -18,10 +18,15 @@ import pytest
 from fastapi.testclient import TestClient
 
 from acquisition.mover import RobotPose
+from acquisition.rig import open_rig, parse_rig_config
 from api.app import create_app
 from api.cli import main
 from api.config import ServiceConfig
-from hw_mocks.truth import SimulatorTruth
+from api.jobs.auto import AutoLoop
+from calibration.shared.maps import save_maps
+from calibration.shared.progress import TaskContext
+from hw_mocks.rig import open_simulated_rig
+from hw_mocks.truth import SimulatorTruth, perfect_maps
 
 FAST = {"speed_mm_s": 20000.0, "speed_deg_s": 5000.0, "settle_s": 0.0}
 RIG = {"kind": "simulated", "camera": {"width": 160, "height": 120},
@@ -190,3 +195,30 @@ def test_cli_auto_refusals_are_one_line(tmp_path: Path, capsys) -> None:
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and needle in err[0], err
     assert not (tmp_path / "x").exists()
+
+
+def test_a_starting_turn_that_lost_the_screen_is_dropped_and_the_next_taken(
+        tmp_path: Path) -> None:
+    rig = open_rig(parse_rig_config(RIG), simulator=open_simulated_rig)
+    taken: list[str] = []
+
+    def capture(ctx: TaskContext) -> str:  # the first turn's capture decodes nothing
+        maps = perfect_maps(rig.simulated)
+        if len(taken) == 2:
+            maps.mask[:] = False
+        taken.append(f"pose-{len(taken)}")
+        save_maps(maps, tmp_path / f"{taken[-1]}.npz")
+        return taken[-1]
+
+    def refit(ctx: TaskContext, robot: dict[str, Any]) -> dict[str, Any]:
+        return {"worst_ray_sigma_urad": 1.0, "handeye": None, "handeye_sigma": None,
+                "note": "", "candidates": []}
+
+    loop = AutoLoop(rig, "eye-in-hand", "opencv5", 6, 10.0, capture, refit, lambda log: None,
+                    lambda name: tmp_path / f"{name}.npz")
+    log = loop.run(TaskContext("auto"))
+    rig.close()
+    assert [p["pose_id"] for p in log["poses"]] == ["pose-0", "pose-1", "pose-3", "pose-4"]
+    assert [s["pose_id"] for s in log["skipped"]] == ["pose-2"]
+    assert "lost the screen" in log["skipped"][0]["why"]
+    assert log["stop_reason"] == "target met"

@@ -23,10 +23,10 @@ from calibration.auto_plan import (
 )
 from calibration.guidance_placement import screen_centre_mm
 from calibration.handeye.rigid import Rigid
-from calibration.shared.maps import DecodedMaps
 from hw_mocks.arm import handeye_rig
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.rig import SimulatedRig, open_simulated_rig
+from hw_mocks.truth import perfect_maps
 
 PLAN = build_plan(320, 180, 1.0, preset="fast")
 
@@ -65,26 +65,18 @@ def test_a_step_back_tells_the_screen_distance_and_a_lost_screen_is_seen() -> No
     sim = rig.simulated
     assert isinstance(sim, SimulatedRig)
     centre = sim.pose.rotation @ screen_centre_mm(rig.screen) + sim.pose.translation
-    before = _true_maps(sim)
+    before = perfect_maps(sim)
     here, back = probe_moves(rig.mover.current_pose().rotation,
                              rig.mover.current_pose().translation_mm)
     rig.move_to(RobotPose(back.flange.rotation, back.flange.translation))
-    after = _true_maps(sim)
+    after = perfect_maps(sim)
     distance = screen_distance_mm(before, after, rig.screen, START_STEP_MM)
     assert distance == pytest.approx(centre[2], rel=0.05)  # the camera looks along +z
     assert covers_screen(before) and covers_screen(after)
     turned = here.flange @ Rigid(Rotation.from_rotvec([0.0, 1.2, 0.0]).as_matrix(), np.zeros(3))
     rig.move_to(RobotPose(turned.rotation, turned.translation))
-    assert not covers_screen(_true_maps(sim))
+    assert not covers_screen(perfect_maps(sim))
     rig.close()
-
-
-def _true_maps(sim: SimulatedRig) -> DecodedMaps:
-    """What a perfect decode of the current view would give (the simulator's truth)."""
-    truth = sim.truth()
-    mask = np.isfinite(truth["x_true"])
-    zero = np.zeros(mask.shape, np.float32)
-    return DecodedMaps(truth["x_true"], truth["y_true"], zero, zero, mask, zero, zero)
 
 
 @pytest.mark.parametrize("mount", ["eye-in-hand", "eye-to-hand"])
