@@ -33,6 +33,7 @@ from calibration.guidance import (
     session_points,
 )
 from calibration.guidance_placement import (
+    DEFAULT_MIN_VISIBLE,
     Placement,
     candidate_placements,
     outline_distance,
@@ -202,7 +203,8 @@ def _rigid(doc: dict[str, Any]) -> Rigid:
 
 
 def ranked_placements(fit: SessionFit, screen: ScreenGeometry,
-                      min_visible: float = 1.0) -> tuple[float, list[tuple[float, Placement]]]:
+                      min_visible: float = DEFAULT_MIN_VISIBLE
+                      ) -> tuple[float, list[tuple[float, Placement]]]:
     """The worst predicted ray sigma now and every candidate placement that does not repeat
     a pose taken, with its predicted worst sigma, best first; the prediction is the guidance
     planner's (`calibration.guidance.suggest_next_pose` keeps only the first of these)."""
@@ -240,7 +242,7 @@ def ranked_placements(fit: SessionFit, screen: ScreenGeometry,
 
 
 def plan_step(maps: dict[str, DecodedMaps], plan: Plan, robot_poses: dict[str, Any],
-              mount: Mount, model: str, min_visible: float = 1.0) -> PlanStep:
+              mount: Mount, model: str, min_visible: float = DEFAULT_MIN_VISIBLE) -> PlanStep:
     """Refit the session (`maps` keyed by pose id, `robot_poses` phasecal.robot-poses/1 with
     the same keys), fit the hand-eye once there are `MIN_HANDEYE_VIEWS` poses, and rank the
     next flange poses that would lower the worst ray sigma by `MIN_GAIN` or more."""
