@@ -66,6 +66,10 @@ class SimulatedMotionConfig(MoverBase):
     speed_deg_s: float = Field(default=60.0, gt=0, allow_inf_nan=False)
     settle_s: float = Field(default=0.05, ge=0, le=60)
     seed: int = Field(default=0, ge=0, description="its random landing errors")
+    mount: Literal["eye-in-hand", "eye-to-hand"] = Field(
+        default="eye-in-hand",
+        description="what the simulated mover carries: the camera (the screen stands still) "
+                    "or the screen (the camera stands still)")
 
 
 class SimulatedArmConfig(SimulatedMotionConfig):

@@ -356,6 +356,6 @@ def open_simulated_rig(config: RigConfig, clock: Clock | None = None) -> Rig:
     if isinstance(config.mover, SimulatedArmConfig | SimulatedPanTiltConfig
                   | SimulatedLinearConfig):
         mover = simulated_mover(config.mover)
-        sim.carry_on_mover(mover)
+        sim.carry_on_mover(mover, config.mover.mount)
         sim.rig.mover = mover
     return sim.rig

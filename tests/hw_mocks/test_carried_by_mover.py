@@ -40,6 +40,20 @@ def test_a_configured_arm_carries_the_camera_and_the_truth_is_readable() -> None
     rig.close()
 
 
+def test_a_configured_arm_can_carry_the_screen_instead() -> None:
+    config = {**CONFIG, "mover": {**CONFIG["mover"], "mount": "eye-to-hand"}}
+    rig = open_simulated_rig(parse_rig_config(config))
+    sim = rig.simulated
+    assert isinstance(sim, SimulatedRig) and sim.handeye is not None
+    assert sim.handeye.mount == SimulatorTruth.from_config(config).handeye().mount == "eye-to-hand"
+    start = sim.pose
+    rig.move_to(rig.mover.current_pose() @ RobotPose(np.eye(3), np.array([0.0, 0.0, 20.0])))
+    assert not np.allclose(sim.pose.translation, start.translation)  # the screen moved
+    rig.close()
+    with pytest.raises(ValueError, match="mount"):
+        parse_rig_config({**CONFIG, "mover": {**CONFIG["mover"], "mount": "on-the-wall"}})
+
+
 @pytest.mark.parametrize("mount", ["eye-in-hand", "eye-to-hand"])
 def test_the_screen_pose_follows_the_flange_through_the_hand_eye(mount: str) -> None:
     sim = SimulatedRig.from_config({"kind": "simulated", "camera": {"width": 64, "height": 48}})
