@@ -9,11 +9,12 @@
 #   pyusb: libusb-1.0-0
 #   mrcal export tests (the real mrcal loads and projects .cameramodel files; it runs
 #     under the system Python /usr/bin/python3): python3-mrcal
+#   hand-eye methods checked against OpenCV 4's own (system Python): python3-opencv
 #   web page end-to-end test (selenium): chromium chromium-driver
 set -euo pipefail
 packages=(
   gir1.2-aravis-0.8 libaravis-0.8-0 libgirepository1.0-dev libcairo2-dev pkg-config
-  gcc python3-dev xvfb libusb-1.0-0 python3-mrcal
+  gcc python3-dev xvfb libusb-1.0-0 python3-mrcal python3-opencv
   chromium chromium-driver
 )
 missing=()
