@@ -6,6 +6,7 @@
 import { $, el, fmt } from "/ui/dom.js";
 import { CameraView, rigCameras } from "/ui/camera_view.js";
 import { ServiceError, api, explain, explainJob, request, setToken, token } from "/ui/service.js";
+import { autoBody, autoLog, hasMover } from "/ui/auto_panel.js";
 import { isRigCalibration, modelChoosers, poseCameraCell, rigCalibrationBody, rigDownloads,
          rigMaps, rigNextPose, rigResult } from "/ui/rig_panel.js";
 
@@ -141,7 +142,9 @@ async function openSession(id) {
   showSimHint();
   if (state.rig) showCameras(state.rig);
   showRigModels();
-  await Promise.all([loadSessions(), refreshSession()]);
+  $("#auto-panel").hidden = !hasMover(state.rig);
+  $("#auto-log").replaceChildren();
+  await Promise.all([loadSessions(), refreshSession(), loadAutoLog()]);
 }
 
 // The rig's cameras when the session's rig has several (else null).
@@ -238,6 +241,7 @@ async function deletePose(p) {
 const PANELS = {
   capture: { bar: "#progress", text: "#progress-text", box: "#capture-job", cancel: "#cancel-btn" },
   calibrate: { bar: "#cal-progress", text: "#cal-progress-text", box: "#calibrate-job", cancel: "#cal-cancel-btn" },
+  auto: { bar: "#auto-progress", text: "#auto-progress-text", box: "#auto-job", cancel: "#auto-cancel-btn" },
 };
 
 function setBusy(busy, jobId, panel) {
@@ -245,7 +249,7 @@ function setBusy(busy, jobId, panel) {
   state.capturing = busy && panel === PANELS.capture;
   state.job = busy ? jobId : null;
   for (const p of Object.values(PANELS)) $(p.cancel).disabled = !(busy && p === panel);
-  for (const b of ["#capture-btn", "#calibrate-btn", "#new-session-btn"]) $(b).disabled = busy;
+  for (const b of ["#capture-btn", "#calibrate-btn", "#new-session-btn", "#auto-btn"]) $(b).disabled = busy;
   $("#starting-btn").disabled = busy || !state.starting.some((p) => !p.captured_by);
   for (const b of document.querySelectorAll(".capture-one")) b.disabled = busy;
 }
@@ -506,6 +510,29 @@ async function calibrate(ev) {
   selectCalibration(cal);
 }
 
+// --- the closed loop on a rig with a mover ---------------------------------------------------
+async function loadAutoLog() {
+  if (!hasMover(state.rig)) return;
+  try {
+    $("#auto-log").replaceChildren(...autoLog(await api("GET", `/sessions/${state.session.id}/auto`)));
+  } catch (e) {
+    if (!(e instanceof ServiceError && e.status === 404)) throw e;  // no run yet
+  }
+}
+
+async function runAuto(ev) {
+  ev.preventDefault();
+  clear("auto-feedback");
+  const job = await api("POST", `/sessions/${state.session.id}/auto`, autoBody($("#auto-form")));
+  tell("auto-feedback", "info", `Running (${job.id}): the robot moves, then each pose is captured.`);
+  const timer = setInterval(() => loadAutoLog().catch(() => {}), 2000);
+  let end;
+  try { end = await follow(job, PANELS.auto, "Automatic run"); } finally { clearInterval(timer); }
+  await Promise.all([loadAutoLog(), refreshSession()]);
+  if (end.status !== "succeeded") { tell("auto-feedback", "error", explainJob(end)); return; }
+  tell("auto-feedback", "ok", "The run ended: its poses are in the table; calibrate them below.");
+}
+
 async function deleteCalibration(c) {
   if (!confirm(`Delete calibration ${c.id} (${c.model}) and its files?`)) return;
   await api("DELETE", `/calibrations/${c.id}`);
@@ -640,6 +667,8 @@ $("#cancel-btn").onclick = act("capture-feedback", cancel);
 $("#cal-cancel-btn").onclick = act("calibrate-feedback", cancel);
 $("#starting-btn").onclick = act("starting-feedback", captureStarting);
 $("#calibrate-form").onsubmit = act("calibrate-feedback", calibrate);
+$("#auto-form").onsubmit = act("auto-feedback", runAuto);
+$("#auto-cancel-btn").onclick = act("auto-feedback", cancel);
 $("#calibrate-model").onchange = act("calibrate-feedback", async () => { if (state.session) await loadNextPose(); });
 $("#compare-btn").onclick = act("compare-feedback", compare);
 window.addEventListener("resize", () => { for (const v of state.cameras.values()) v.draw(); });
