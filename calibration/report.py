@@ -83,9 +83,11 @@ def write_residual_report(result: CalibrationResult, path: str | Path) -> None:
            title="radial residual profile")
     ax.legend()
     flag = "OK" if stats.get("model_adequate") else "MODEL INADEQUATE"
+    screen = stats.get("noise_floor_ratio_screen")  # only a screen's maps have a screen plane
     fig.suptitle(f"{result.model.type_name}: RMS {stats.get('rms_px', float('nan')):.4g} px, "
                  f"noise floor {stats.get('expected_rms_px', float('nan')):.4g} px, "
-                 f"ratio {stats.get('noise_floor_ratio', float('nan')):.3g} (screen plane "
-                 f"{stats.get('noise_floor_ratio_screen', float('nan')):.3g}) -> {flag}")
+                 f"ratio {stats.get('noise_floor_ratio', float('nan')):.3g}"
+                 + (f" (screen plane {screen:.3g})" if screen is not None
+                    and np.isfinite(screen) else "") + f" -> {flag}")
     fig.tight_layout()
     fig.savefig(str(path), dpi=90)
