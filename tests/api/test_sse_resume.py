@@ -62,14 +62,18 @@ def test_sse_client_that_hangs_up_frees_its_stream_slot(tmp_path: Path) -> None:
             url, app):
         limiter = stream_limiter(app, EVENTS)
         client = PhasecalClient(url)
-        rig = client.post("/rigs", {"name": "slow", "config": small_rig(slow=True)})
-        # (74 frames on the slow rig: the job outlives the hang-up by seconds, where the 38 of
-        # "fast" took ~1.5 s and could end first on a quick machine)
+        # 74 frames rendered at 8x8 samples a pixel (~0.1 s or more each): the job outlives
+        # the hang-up by several seconds even on a quick, idle machine (the slow rig's 4x4
+        # once finished before its first event on one)
+        config = small_rig(slow=True)
+        config["camera"]["supersample"] = 8
+        rig = client.post("/rigs", {"name": "slow", "config": config})
         ses = client.post("/sessions", {"name": "sse", "rig_id": rig["id"],
                                         "preset": "precise"})
         job = client.post(f"/sessions/{ses['id']}/poses", {})
         with httpx.stream("GET", f"{url}/jobs/{job['id']}/events", timeout=120) as r:
-            assert _events(r, limit=1)
+            first = _events(r, limit=1)
+            assert first and first[0][1] == "progress", first
             assert limiter.active() == 1
         deadline = time.monotonic() + 5  # released at the hang-up, not at the job's end
         while limiter.active() and time.monotonic() < deadline:
