@@ -93,7 +93,7 @@ def _reports(client: PhasecalClient, rows: list[DemoRow]) -> list[tuple[str, str
         a, b = done[0].calibration_id, done[1].calibration_id
         client.get(f"/calibrations/{a}/diff/{b}")
         links.append((f"diff {done[0].model} vs {done[1].model}",
-                      f"/calibrations/{a}/diff/{b}/diff.png"))
+                      f"/calibrations/{a}/diff/{b}/diff.html"))
     return links
 
 
