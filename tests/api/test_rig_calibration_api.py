@@ -22,7 +22,8 @@ CONFIG = {"kind": "simulated", "screen": {"width_px": 320, "height_px": 240,
 POSES = 5
 
 
-def _finished(c: TestClient, job_id: str, timeout_s: float = 600) -> dict:
+def finished(c: TestClient, job_id: str, timeout_s: float = 600) -> dict:
+    """The job's final state (the rig tests' one waiting loop)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         job = c.get(f"/jobs/{job_id}").json()
@@ -40,13 +41,13 @@ def rig_session(tmp_path_factory: pytest.TempPathFactory):
         rig = c.post("/rigs", json={"name": "pair", "config": CONFIG}).json()
         sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
         for pose in SimulatorTruth.from_config(CONFIG).screen_poses(POSES, seed=3):
-            job = _finished(c, c.post(f"/sessions/{sess['id']}/poses",
+            job = finished(c, c.post(f"/sessions/{sess['id']}/poses",
                                       json={"screen_pose": pose}).json()["id"])
             assert job["status"] == "succeeded", job["error"]
         r = c.post(f"/sessions/{sess['id']}/rig-calibrations",
                    json={"model": "opencv5", "options": {"max_points_per_view": 500}})
         assert r.status_code == 202, r.text
-        job = _finished(c, r.json()["id"])
+        job = finished(c, r.json()["id"])
         assert job["status"] == "succeeded", job["error"]
         yield c, sess["id"], job["resource"]
 

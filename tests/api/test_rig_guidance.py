@@ -5,29 +5,13 @@ names (checked through the service, the poses placed by the simulator's truth)."
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.config import ServiceConfig
 from hw_mocks.truth import SimulatorTruth
-
-CONFIG = {"kind": "simulated", "screen": {"width_px": 320, "height_px": 240,
-                                          "pitch_mm": [0.5, 0.5]},
-          "cameras": [{"name": "left", "model": "mild_pinhole", "width": 96, "height": 72},
-                      {"name": "right", "model": "mild_pinhole", "width": 96, "height": 72}]}
-
-
-def _finished(c: TestClient, job_id: str, timeout_s: float = 600) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job = c.get(f"/jobs/{job_id}").json()
-        if job["status"] not in ("queued", "running"):
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} did not finish")
+from tests.api.test_rig_calibration_api import CONFIG, finished
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +24,7 @@ def rig_session(tmp_path_factory: pytest.TempPathFactory):
 
 
 def _capture(c: TestClient, sid: str, pose: dict) -> dict:
-    job = _finished(c, c.post(f"/sessions/{sid}/poses", json={"screen_pose": pose}).json()["id"])
+    job = finished(c, c.post(f"/sessions/{sid}/poses", json={"screen_pose": pose}).json()["id"])
     assert job["status"] == "succeeded", job["error"]
     return c.get(job["resource"]).json()
 

@@ -5,7 +5,6 @@ matching the rig model, a verdict with thresholds, and links to every rig export
 from __future__ import annotations
 
 import re
-import time
 
 import numpy as np
 import pytest
@@ -14,21 +13,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from api.config import ServiceConfig
 from hw_mocks.truth import SimulatorTruth
-
-CONFIG = {"kind": "simulated", "screen": {"width_px": 320, "height_px": 240,
-                                          "pitch_mm": [0.5, 0.5]},
-          "cameras": [{"name": "left", "model": "mild_pinhole", "width": 96, "height": 72},
-                      {"name": "right", "model": "mild_pinhole", "width": 96, "height": 72}]}
-
-
-def _finished(c: TestClient, job_id: str, timeout_s: float = 600) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job = c.get(f"/jobs/{job_id}").json()
-        if job["status"] not in ("queued", "running"):
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} did not finish")
+from tests.api.test_rig_calibration_api import CONFIG, finished
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +25,7 @@ def rig_cal(tmp_path_factory: pytest.TempPathFactory):
         sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
         pose_ids = []
         for pose in SimulatorTruth.from_config(CONFIG).screen_poses(5, seed=3):
-            job = _finished(c, c.post(f"/sessions/{sess['id']}/poses",
+            job = finished(c, c.post(f"/sessions/{sess['id']}/poses",
                                       json={"screen_pose": pose}).json()["id"])
             assert job["status"] == "succeeded", job["error"]
             pose_ids.append(job["resource"].rsplit("/", 1)[-1])
@@ -48,7 +33,7 @@ def rig_cal(tmp_path_factory: pytest.TempPathFactory):
                    json={"model": "opencv5", "heldout_pose_ids": pose_ids[-1:],
                          "options": {"max_points_per_view": 400}})
         assert r.status_code == 202, r.text
-        job = _finished(c, r.json()["id"])
+        job = finished(c, r.json()["id"])
         assert job["status"] == "succeeded", job["error"]
         yield c, job["resource"]
 
