@@ -105,7 +105,8 @@ def _verdict(verdict: Verdict) -> str:
             f"{rows}</table></div>{suggestion}</div>")
 
 
-def _downloads(downloads: list[Download]) -> str:
+def downloads_html(downloads: list[Download]) -> str:
+    """The downloads as a list of links; one not available says why."""
     items = []
     for d in downloads:
         note = f" ({html.escape(d.note)})" if d.note else ""
@@ -196,7 +197,7 @@ def write_report(data: ReportData, out_dir: str | Path, header: ReportHeader,
                     for k, v in GLOSSARY.items())
     body = (f"<h1>{html.escape(header.title)}</h1>" + _header(header, data)
             + "<h2>Verdict</h2>" + _verdict(verdict)
-            + ("<h2>Downloads</h2>" + _downloads(downloads) if downloads else "")
+            + ("<h2>Downloads</h2>" + downloads_html(downloads) if downloads else "")
             + "<h2>Numbers</h2><p>Every number and image below is recomputed from the "
               "stored model, fitted poses and decoded maps.</p>" + _numbers(data)
             + "<h2>Residuals</h2>" + figure(*head[0]) + explain("whitened residual")

@@ -26,7 +26,7 @@ from calibration.models.base import ModelError
 from calibration.models.parametric import PinholeFamily
 from calibration.report_data import COVERAGE_CELLS, Download, ReportHeader
 from calibration.report_downloads import export_offers
-from calibration.report_html import REPORT_PAGE, STYLE, figure, fmt, table
+from calibration.report_html import REPORT_PAGE, STYLE, downloads_html, figure, fmt, table
 from calibration.report_verdict import (
     EMPTY_CELLS_FAIL,
     FAIL,
@@ -266,18 +266,6 @@ def _verdict_html(verdict: Verdict) -> str:
             f"<th>threshold</th><th>what to do</th></tr>{rows}</table></div></div>")
 
 
-def _downloads_html(downloads: list[Download]) -> str:
-    items = []
-    for d in downloads:
-        note = f" ({html.escape(d.note)})" if d.note else ""
-        if d.href is None:
-            items.append(f"<li>{html.escape(d.label)}: not available{note}</li>")
-        else:
-            items.append(f'<li><a class="download" href="{html.escape(d.href)}" download>'
-                         f"{html.escape(d.label)}</a>{note}</li>")
-    return f"<ul>{''.join(items)}</ul>"
-
-
 def _header_html(head: ReportHeader, rig: RigModel) -> str:
     rows = [["session", head.session], ["rig", head.rig], ["cameras", head.cameras],
             ["reference camera", rig.reference], ["calibrated", head.date],
@@ -333,7 +321,7 @@ def rig_report_html(inputs: RigReportInputs, rig: RigModel, stats: dict[str, Any
         f"<title>{html.escape(head.title)}</title><style>{STYLE}</style></head><body>"
         f"<h1>{html.escape(head.title)}</h1>{_header_html(head, rig)}"
         f"<h2>Verdict</h2>{_verdict_html(verdict)}"
-        f"<h2>Downloads</h2>{_downloads_html(inputs.downloads)}"
+        f"<h2>Downloads</h2>{downloads_html(inputs.downloads)}"
         f"<h2>Cameras</h2>"
         + table(["camera", "model", "image", *keys, "views", "RMS residual", "whitened RMS",
                  "cells covered"], cam_rows).replace("<table", "<table id='cameras'", 1)
