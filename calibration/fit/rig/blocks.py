@@ -1,12 +1,17 @@
 """One camera's data of one view as whitened residual terms of the joint fit.
 
-Two kinds, both weighted by the data's own uncertainty:
+Three kinds, all weighted by the data's own uncertainty:
 
 - pixel blocks (a camera whose parameters are fitted): target points projected by the
   model compared with the observed pixels. Decoded maps measure the screen point of a
   pixel, so their screen sigma is carried into the camera image through the local
   Jacobian of the projection (a full 2x2 covariance per point); target observations carry
   `sigma_px / weight`.
+- spline blocks: pixel blocks of an sGCC camera. The same pixel residual and weights, but
+  in the closed form of the single-camera sparse fit (`sparse/ray_residual.py`: the angle
+  between the point and the pixel's ray, turned into pixels by the spline's local
+  Jacobian), which needs no iterative projection and gives exact derivatives over the
+  spline's coefficients.
 - ray blocks (a generic camera whose rays are held from its own fit): each pixel's ray,
   carried into the target's frame, meets the target plane; the miss in mm is divided by
   the decoded sigma in mm. Works for non-central models, and needs no projection.
@@ -20,7 +25,9 @@ import numpy as np
 
 from calibration.evaluate import screen_jacobian
 from calibration.fit.correspondences import PointSet
+from calibration.fit.sparse.ray_residual import ray_residual, residual_pixels
 from calibration.models.base import CameraModel
+from calibration.models.sgcc import SGCCBase
 
 
 @dataclass
@@ -29,13 +36,14 @@ class Block:
 
     camera: str
     view: str
-    kind: str  # "pixel" or "ray"
+    kind: str  # "pixel", "spline" or "ray"
     target: np.ndarray  # (N, 3) mm in the target's frame
     pixels: np.ndarray  # (N, 2) camera px
     whiten: np.ndarray  # pixel: (N, 2, 2) inverse Cholesky factor; ray: (N, 2) 1 / sigma mm
     origins: np.ndarray | None = None  # ray: (N, 3) mm, camera frame
     directions: np.ndarray | None = None  # ray: (N, 3) unit, camera frame
     sigma_known: bool = True  # False: observations without sigma_px (scaled from residuals)
+    basis: tuple[np.ndarray, ...] | None = None  # spline: the spline basis at the pixels
 
     def __len__(self) -> int:
         """Number of points (each gives two residuals)."""
@@ -47,7 +55,8 @@ class Block:
                      self.whiten[keep],
                      None if self.origins is None else self.origins[keep],
                      None if self.directions is None else self.directions[keep],
-                     self.sigma_known)
+                     self.sigma_known,
+                     None if self.basis is None else tuple(b[keep] for b in self.basis))
 
     def residuals(self, model: CameraModel, to_camera: tuple[np.ndarray, np.ndarray]
                   ) -> np.ndarray:
@@ -57,6 +66,10 @@ class Block:
         if self.kind == "pixel":
             uv = model.project(self.target @ rot.T + t)
             return np.einsum("nij,nj->ni", self.whiten, uv - self.pixels)
+        if self.kind == "spline":
+            assert isinstance(model, SGCCBase)
+            miss = residual_pixels(model, self.pixels, self.target @ rot.T + t, self.basis)
+            return np.einsum("nij,nj->ni", self.whiten, miss)
         assert self.origins is not None and self.directions is not None
         o = (self.origins - t) @ rot  # R^T (o - t), row-wise
         d = self.directions @ rot
@@ -73,6 +86,15 @@ class Block:
             return w / self.whiten
         return np.linalg.solve(self.whiten, w[:, :, None])[:, :, 0]
 
+    def spline_jacobian(self, model: SGCCBase, to_camera: tuple[np.ndarray, np.ndarray]
+                        ) -> np.ndarray:
+        """(N, 2, size*C) whitened derivatives of a spline block's residuals over
+        `model.get_params()`, exact (the sparse fit's)."""
+        assert self.kind == "spline"
+        rot, t = to_camera
+        rr = ray_residual(model, self.pixels, self.target @ rot.T + t, self.basis)
+        return np.einsum("nij,njp->nip", self.whiten, rr.d_coeffs)
+
 
 def _inverse_cholesky(cov: np.ndarray) -> np.ndarray:
     """(N, 2, 2) L^-1 of each 2x2 covariance C = L L^T (lower triangular L)."""
@@ -86,16 +108,28 @@ def _inverse_cholesky(cov: np.ndarray) -> np.ndarray:
     return out
 
 
+def _pixel_kind(model: CameraModel, pixels: np.ndarray
+                ) -> tuple[str, tuple[np.ndarray, ...] | None]:
+    """The kind of pixel terms `model` takes: spline (with the spline basis at the pixels)
+    for an sGCC model, else pixel."""
+    if isinstance(model, SGCCBase):
+        return "spline", model.grid.basis(pixels[:, 0], pixels[:, 1], derivatives=True)
+    return "pixel", None
+
+
 def maps_pixel_block(camera: str, view: str, model: CameraModel,
                      pose: tuple[np.ndarray, np.ndarray], points: PointSet) -> Block:
-    """Pixel terms of decoded points; the screen sigma is carried into the image through the
-    projection's local Jacobian at the start pose (it changes little over the fit)."""
+    """Pixel (or spline) terms of decoded points; the screen sigma is carried into the image
+    through the projection's local Jacobian at the start pose (it changes little over the
+    fit)."""
     jac = screen_jacobian(model, pose[0], pose[1], points)
     cov = np.einsum("nij,nj,nkj->nik", jac, points.sigma_px**2, jac)
     ok = np.all(np.isfinite(cov.reshape(-1, 4)), axis=1) & (cov[:, 0, 0] > 0)
     ok &= np.linalg.det(np.where(ok[:, None, None], cov, np.eye(2))) > 0
     pts = points.subset(ok)
-    return Block(camera, view, "pixel", pts.screen_mm, pts.pixels, _inverse_cholesky(cov[ok]))
+    kind, basis = _pixel_kind(model, pts.pixels)
+    return Block(camera, view, kind, pts.screen_mm, pts.pixels, _inverse_cholesky(cov[ok]),
+                 basis=basis)
 
 
 def maps_ray_block(camera: str, view: str, model: CameraModel, points: PointSet) -> Block:
@@ -108,10 +142,12 @@ def maps_ray_block(camera: str, view: str, model: CameraModel, points: PointSet)
                  origins[ok], directions[ok])
 
 
-def observation_block(camera: str, view: str, pixels: np.ndarray, target: np.ndarray,
-                      weights: np.ndarray, sigma_px: float | None) -> Block:
-    """Pixel terms of target observations: sigma `sigma_px / weight` (1 / weight when the
-    file states no sigma; the fit then scales it from its residuals)."""
+def observation_block(camera: str, view: str, model: CameraModel, pixels: np.ndarray,
+                      target: np.ndarray, weights: np.ndarray, sigma_px: float | None) -> Block:
+    """Pixel (or spline) terms of target observations: sigma `sigma_px / weight` (1 / weight
+    when the file states no sigma; the fit then scales it from its residuals)."""
     inv = weights / (sigma_px if sigma_px is not None else 1.0)
     whiten = inv[:, None, None] * np.eye(2)[None]
-    return Block(camera, view, "pixel", target, pixels, whiten, sigma_known=sigma_px is not None)
+    kind, basis = _pixel_kind(model, pixels)
+    return Block(camera, view, kind, target, pixels, whiten, sigma_known=sigma_px is not None,
+                 basis=basis)

@@ -63,7 +63,7 @@ def _block(inp: RigInput, start: CameraStart, to_camera: Transform,
     if inp.observations is not None:
         obs = inp.observations
         used = obs.used()
-        return observation_block(inp.camera, inp.view, obs.image_xy[used],
+        return observation_block(inp.camera, inp.view, start.model, obs.image_xy[used],
                                  obs.target_xyz[used], obs.weights()[used], obs.sigma_px)
     assert inp.maps is not None and screen is not None
     pts = subsample(point_set(inp.maps, screen), max_points)
@@ -75,7 +75,7 @@ def _block(inp: RigInput, start: CameraStart, to_camera: Transform,
 def heldout_block(inp: RigInput, model: CameraModel, screen: ScreenGeometry | None,
                    max_points: int, estimated_sigma: float | None) -> Block:
     """A held-out input's block through the fitted model: decoded maps as rays (their miss on
-    the screen in mm needs no pose to weight it), observations in pixels."""
+    the screen in mm needs no pose to weight it), observations in pixels (as in the fit)."""
     if inp.maps is not None:
         assert screen is not None
         return maps_ray_block(inp.camera, inp.view, model,
@@ -84,8 +84,8 @@ def heldout_block(inp: RigInput, model: CameraModel, screen: ScreenGeometry | No
     assert obs is not None
     used = obs.used()
     sigma = obs.sigma_px if obs.sigma_px is not None else estimated_sigma
-    return observation_block(inp.camera, inp.view, obs.image_xy[used], obs.target_xyz[used],
-                             obs.weights()[used], sigma)
+    return observation_block(inp.camera, inp.view, model, obs.image_xy[used],
+                             obs.target_xyz[used], obs.weights()[used], sigma)
 
 
 def _robust_keep(blocks: list[Block], residuals: list[np.ndarray], k: float) -> list[Block]:
@@ -128,7 +128,7 @@ def _block_stats(blocks: list[Block], problem: RigProblem, x: np.ndarray) -> lis
         w, raw = b.residuals(model, tf), b.raw_residuals(model, tf)
         ok = np.all(np.isfinite(w), axis=1)
         rows.append({"camera": b.camera, "view": b.view,
-                     ("rms_px" if b.kind == "pixel" else "rms_mm"):
+                     ("rms_mm" if b.kind == "ray" else "rms_px"):
                          float(np.sqrt(np.mean(np.sum(raw[ok] ** 2, axis=1)))),
                      "whitened_rms": float(np.sqrt(np.mean(w[ok] ** 2))),
                      "n_points": int(ok.sum())})
@@ -181,19 +181,22 @@ def calibrate_rig(
         raise ValueError(f"views {unposed}: no camera's own fit placed the target in them")
     blocks = [_block(i, starts[i.camera], compose(ext[i.camera], poses[i.view]), screen,
                      opts.max_points_per_view) for i in train]
-    states = {c: RigCameraState(starts[c].model, starts[c].free) for c in cameras}
+    states = {c: RigCameraState.of(starts[c].model, starts[c].free) for c in cameras}
     problem = RigProblem(states, reference, views, blocks)
     step(len(cameras), n_steps, "joint fit")
     x, info = problem.solve(problem.pack(ext, poses), max_iterations=opts.max_iterations)
     residuals = problem.block_residuals(x)
     estimated = _rescale_unknown_sigma(blocks, residuals)
     blocks = _robust_keep(blocks, problem.block_residuals(x), opts.outlier_sigmas)
-    dropped = problem.n_residuals // 2 - sum(len(b) for b in blocks)
+    dropped = problem.n_data // 2 - sum(len(b) for b in blocks)
     problem = RigProblem(states, reference, views, blocks)
     step(len(cameras) + 1, n_steps, "joint fit without outliers")
     x, info = problem.solve(x, max_iterations=opts.max_iterations)
     step(len(cameras) + 2, n_steps, "covariance")
     cov, chi2 = problem.covariance(x)
+    for cam in cameras:
+        idx = problem.intrinsics[cam]
+        states[cam].set_covariance(cov[np.ix_(idx, idx)])
     rig_cams: dict[str, RigCamera] = {}
     extr_stats: dict[str, Any] = {}
     for cam in cameras:

@@ -59,7 +59,7 @@ def score_view(view: str, blocks: list[Block], models: dict[str, CameraModel],
         w = b.residuals(models[b.camera], tf)
         raw = b.raw_residuals(models[b.camera], tf)
         ok = np.all(np.isfinite(w), axis=1)
-        unit = "rms_px" if b.kind == "pixel" else "rms_mm"
+        unit = "rms_mm" if b.kind == "ray" else "rms_px"
         out["cameras"][b.camera] = {
             unit: float(np.sqrt(np.mean(np.sum(raw[ok] ** 2, axis=1)))) if ok.any() else None,
             "whitened_rms": float(np.sqrt(np.mean(w[ok] ** 2))) if ok.any() else None,

@@ -1,13 +1,17 @@
 """The joint least squares of a rig: every camera's free model parameters, each camera's pose
 in the reference camera's frame and each view's target pose, over whitened residual blocks.
 
-Parameters: per camera its free intrinsics (a camera held fixed has none) and, except for
-the reference camera, its extrinsics (rotation vector rad, t mm; X_cam = R X_ref + t); per
-view the target pose in the reference frame (X_ref = R S + t). A block depends on one
-camera and one view only, so the Jacobian is built with columns perturbed together across
-cameras (and across views): 2 x (largest camera's parameter count + 6) residual
-evaluations by central differences. The covariance is the inverse of the whitened normal
-matrix scaled by the reduced chi-square, as in the single-camera fits.
+Parameters: per camera its free intrinsics (a camera held fixed has none; an sGCC spline
+fitted here moves in the free directions of its gauge) and, except for the reference
+camera, its extrinsics (rotation vector rad, t mm; X_cam = R X_ref + t); per view the
+target pose in the reference frame (X_ref = R S + t). A block depends on one camera and one
+view only, so the Jacobian is built with columns perturbed together across cameras (and
+across views): 2 x (largest camera's parameter count + 6) residual evaluations by central
+differences. A spline's coefficients are the exception: their columns are the spline
+blocks' exact derivatives, and the spline's prior rows (the single-camera sparse fit's)
+follow the data's residuals. The covariance is the inverse of the whitened normal matrix
+scaled by the reduced chi-square, as in the single-camera fits; the degrees of freedom
+count the parameters the data fix (all of them without a prior).
 """
 
 from __future__ import annotations
@@ -19,9 +23,17 @@ from scipy.optimize import least_squares
 
 from calibration.fit.rig.blocks import Block
 from calibration.fit.rig.transforms import Transform, compose, from_rvec, to_rvec
+from calibration.fit.sgcc.gauge import GaugeBasis
+from calibration.fit.sparse.sgcc import spline_gauge, spline_prior
 from calibration.models.base import CameraModel
+from calibration.models.sgcc import SGCCBase
 
 _RELATIVE_STEP = 1e-6  # central-difference step, relative to |parameter| (floor 0.01)
+
+
+def _gauge_columns(a: np.ndarray, gauge: GaugeBasis) -> np.ndarray:
+    """A @ Z: columns over the full parameter vector turned into the gauge's directions."""
+    return np.concatenate([a[..., gauge.keep], a[..., gauge.mixed] @ gauge.basis], axis=-1)
 
 
 @dataclass
@@ -30,6 +42,44 @@ class RigCameraState:
 
     model: CameraModel
     free: np.ndarray  # bool mask over model.get_params(); all False: the model is held
+    gauge: GaugeBasis | None = None  # a fitted spline: the directions it moves in
+    prior: np.ndarray | None = None  # a fitted spline: whitened prior rows over `gauge`
+
+    @classmethod
+    def of(cls, model: CameraModel, free: np.ndarray) -> RigCameraState:
+        """An sGCC model with free parameters moves its whole spline in its gauge's free
+        directions under the spline's prior (the extrinsics then carry the camera frame);
+        any other model moves the parameters `free` selects."""
+        if not isinstance(model, SGCCBase) or not free.any():
+            return cls(model, free)
+        gauge = spline_gauge(model)
+        return cls(model, np.ones_like(free), gauge, _gauge_columns(spline_prior(model), gauge))
+
+    @property
+    def size(self) -> int:
+        """Number of parameters the fit moves."""
+        return self.gauge.size if self.gauge is not None else int(np.count_nonzero(self.free))
+
+    def params(self) -> np.ndarray:
+        """The moved parameters' current values."""
+        p = self.model.get_params()
+        return self.gauge.reduce_vector(p) if self.gauge is not None else p[self.free]
+
+    def set_params(self, values: np.ndarray) -> None:
+        """Put the moved parameters' values into the model."""
+        if self.gauge is not None:
+            self.model.set_params(self.gauge.expand(values))
+            return
+        p = self.model.get_params()
+        p[self.free] = values
+        self.model.set_params(p)
+
+    def set_covariance(self, cov: np.ndarray) -> None:
+        """A fitted spline's model takes the covariance of its moved directions (`cov`, the
+        joint fit's, poses and extrinsics marginalized), so its ray sigma is the rig's."""
+        if self.gauge is not None:
+            assert isinstance(self.model, SGCCBase)
+            self.model.covariance = self.gauge.expand_matrix(cov)
 
 
 class RigProblem:
@@ -43,7 +93,7 @@ class RigProblem:
         self.poses: dict[str, np.ndarray] = {}
         n = 0
         for name, cam in cameras.items():
-            k = int(np.count_nonzero(cam.free))
+            k = cam.size
             self.intrinsics[name] = np.arange(n, n + k)
             n += k
             if name != reference:
@@ -58,6 +108,12 @@ class RigProblem:
             rows.append(np.arange(start, start + 2 * len(b)))
             start += 2 * len(b)
         self.rows = rows
+        self.n_data = start
+        self.prior_rows: dict[str, np.ndarray] = {}
+        for name, cam in cameras.items():
+            if cam.prior is not None:
+                self.prior_rows[name] = np.arange(start, start + cam.prior.shape[0])
+                start += cam.prior.shape[0]
         self.n_residuals = start
 
     # -- the parameter vector ------------------------------------------------------------
@@ -65,7 +121,7 @@ class RigProblem:
         """The vector of the models' current parameters, these extrinsics and view poses."""
         x = np.zeros(self.size)
         for name, cam in self.cameras.items():
-            x[self.intrinsics[name]] = cam.model.get_params()[cam.free]
+            x[self.intrinsics[name]] = cam.params()
             if name in self.extrinsics:
                 r, t = extrinsics[name]
                 x[self.extrinsics[name]] = np.concatenate([to_rvec(r), t])
@@ -77,10 +133,8 @@ class RigProblem:
     def set_models(self, x: np.ndarray) -> None:
         """Put the vector's intrinsics into the models."""
         for name, cam in self.cameras.items():
-            if cam.free.any():
-                p = cam.model.get_params()
-                p[cam.free] = x[self.intrinsics[name]]
-                cam.model.set_params(p)
+            if cam.size:
+                cam.set_params(x[self.intrinsics[name]])
 
     def extrinsic(self, x: np.ndarray, name: str) -> Transform:
         """Camera `name`'s reference-to-camera transform."""
@@ -104,9 +158,12 @@ class RigProblem:
                 for b in self.blocks]
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        """All whitened residuals as one vector; a point the model cannot see counts zero."""
-        out = np.concatenate([r.ravel() for r in self.block_residuals(x)]) if self.blocks \
-            else np.zeros(0)
+        """All whitened residuals as one vector (the data's, then the priors'); a point the
+        model cannot see counts zero."""
+        parts = [r.ravel() for r in self.block_residuals(x)]
+        parts += [self.cameras[name].prior @ x[self.intrinsics[name]]
+                  for name in self.prior_rows]
+        out = np.concatenate(parts) if parts else np.zeros(0)
         return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
 
     def _column_groups(self) -> list[list[tuple[int, np.ndarray]]]:
@@ -119,9 +176,10 @@ class RigProblem:
             view_rows[b.view].append(rows)
         cat = {k: (np.concatenate(v) if v else np.zeros(0, dtype=np.intp))
                for k, v in {**cam_rows, **view_rows}.items()}
-        per_camera = {name: np.concatenate([self.intrinsics[name],
-                                            self.extrinsics.get(name, np.zeros(0, np.intp))])
-                      for name in self.cameras}
+        per_camera = {name: np.concatenate([
+            self.intrinsics[name] if cam.gauge is None else np.zeros(0, np.intp),
+            self.extrinsics.get(name, np.zeros(0, np.intp))])
+            for name, cam in self.cameras.items()}
         groups = []
         for k in range(max((c.size for c in per_camera.values()), default=0)):
             groups.append([(int(cols[k]), cat[name]) for name, cols in per_camera.items()
@@ -147,7 +205,25 @@ class RigProblem:
             for (c, rows), hc in zip(cols, h, strict=True):
                 jac[rows, c] = diff[rows] / (2 * hc)
         self.set_models(x)
+        self._spline_columns(x, jac)
         return jac if free is None else jac[:, free]
+
+    def _spline_columns(self, x: np.ndarray, jac: np.ndarray) -> None:
+        """The exact columns of every fitted spline's coefficients: its blocks' derivatives
+        and its prior rows."""
+        for name, cam in self.cameras.items():
+            if cam.gauge is None:
+                continue
+            assert isinstance(cam.model, SGCCBase) and cam.prior is not None
+            cols = self.intrinsics[name]
+            ext = self.extrinsic(x, name)
+            for b, rows in zip(self.blocks, self.rows, strict=True):
+                if b.camera == name:
+                    d = b.spline_jacobian(cam.model, compose(ext, self.pose(x, b.view)))
+                    d = np.nan_to_num(_gauge_columns(d, cam.gauge), nan=0.0, posinf=0.0,
+                                      neginf=0.0)
+                    jac[np.ix_(rows, cols)] = d.reshape(rows.size, cols.size)
+            jac[np.ix_(self.prior_rows[name], cols)] = cam.prior
 
     # -- solve and covariance ------------------------------------------------------------
     def solve(self, x0: np.ndarray, free: np.ndarray | None = None,
@@ -171,17 +247,22 @@ class RigProblem:
                    "cost": float(2 * sol.cost)}
 
     def covariance(self, x: np.ndarray) -> tuple[np.ndarray, float]:
-        """(parameter covariance, reduced chi-square) at x."""
-        res = self.residuals(x)
+        """(parameter covariance, reduced chi-square) at x. The chi-square is the data's over
+        its degrees of freedom: the data's residuals less the parameters they fix,
+        trace(J_d^T J_d (J^T J)^-1), which is every parameter when no prior takes part."""
+        res = self.residuals(x)[:self.n_data]
         jac = self.jacobian(x)
-        dof = max(res.size - self.size, 1)
-        chi2 = float(res @ res) / dof
         scale = np.linalg.norm(jac, axis=0)
         scale[scale == 0] = 1.0
         jn = jac / scale
+        normal = jn.T @ jn
         try:
-            cov = np.linalg.inv(jn.T @ jn) / np.outer(scale, scale) * chi2
-            cov = 0.5 * (cov + cov.T)
+            inv = np.linalg.inv(normal)
         except np.linalg.LinAlgError:
-            cov = np.full((self.size, self.size), np.inf)
-        return cov, chi2
+            dof = max(res.size - self.size, 1)
+            return np.full((self.size, self.size), np.inf), float(res @ res) / dof
+        jp = jn[self.n_data:]
+        fixed = float(np.sum(inv * (normal - jp.T @ jp))) if jp.size else float(self.size)
+        chi2 = float(res @ res) / max(res.size - fixed, 1.0)
+        cov = inv / np.outer(scale, scale) * chi2
+        return 0.5 * (cov + cov.T), chi2

@@ -15,9 +15,12 @@ from calibration.fit.classic.parametric import fit_parametric
 from calibration.fit.correspondences import PointSet
 from calibration.fit.dispatch import calibrate
 from calibration.fit.registry import model_spec
+from calibration.fit.result import PoseEstimate
 from calibration.fit.rig.graph import chain_order, views_by_camera
 from calibration.fit.rig.inputs import RigInput
 from calibration.fit.rig.transforms import Transform, compose, invert, mean_transform
+from calibration.fit.sparse.calibrate import REFUSED, parse_observation_options
+from calibration.fit.sparse.sgcc import fit_sgcc_observations
 from calibration.models.base import CameraModel
 from calibration.shared.plan import ScreenGeometry
 
@@ -36,10 +39,14 @@ class CameraStart:
     stats: dict[str, Any]
 
 
-def _free_mask(model: CameraModel, family: str, options: dict[str, Any]) -> np.ndarray:
+def _free_mask(model: CameraModel, family: str, options: dict[str, Any],
+               from_observations: bool) -> np.ndarray:
     """The parameters the joint fit moves: all of a parametric model's (less the thin prism
-    unless asked for), none of a generic model's (its rays stay as its own fit left them)."""
-    free = np.full(model.get_params().size, family == "classic")
+    unless asked for), all of an sGCC model's fitted to observations (its spline, in its
+    gauge), none of a generic model's fitted to maps (its rays stay as its own fit left
+    them)."""
+    moved = family == "classic" or (family == "sgcc" and from_observations)
+    free = np.full(model.get_params().size, moved)
     if model.type_name == "opencv-rational" and not options.get("thin_prism", False):
         free[4 + 8:] = False
     return free
@@ -59,6 +66,21 @@ def _observation_points(inp: RigInput) -> PointSet:
     return PointSet(obs.image_xy[used], xyz[:, :2], np.column_stack([sigma, sigma]), (1.0, 1.0))
 
 
+def _generic_start(obs: list[RigInput], model_name: str, n_maps: int,
+                   options: dict[str, Any]
+                   ) -> tuple[CameraModel, list[PoseEstimate], dict[str, Any]]:
+    """A generic model's start from observations: the single-camera sparse sGCC fit of the
+    camera's own views (its mesh chosen for their points); raygrid is refused."""
+    spec = model_spec(model_name)
+    if model_name in REFUSED:
+        raise ValueError(f"{model_name}: a rig fits it from decoded maps only (this camera "
+                         f"has {n_maps} views of maps, it needs >= {spec.min_poses}): "
+                         f"{REFUSED[model_name]}")
+    fit = fit_sgcc_observations([i.observations for i in obs], model_name,
+                                parse_observation_options(model_name, options))
+    return fit.model, fit.poses, fit.stats
+
+
 def start_camera(camera: str, inputs: list[RigInput], model_name: str,
                  screen: ScreenGeometry | None, options: dict[str, Any]) -> CameraStart:
     """Fit one camera on its own views (decoded maps if it has enough, else observations)."""
@@ -68,6 +90,7 @@ def start_camera(camera: str, inputs: list[RigInput], model_name: str,
     opts = dict(options)
     if spec.family == "classic":
         opts.setdefault("points", "sampled")  # the joint fit is the weighted one
+    from_observations = False
     try:
         if len(maps) >= spec.min_poses or not obs:
             if screen is None:
@@ -75,10 +98,12 @@ def start_camera(camera: str, inputs: list[RigInput], model_name: str,
             res = calibrate([i.maps for i in maps], screen, model_name, options=opts)
             model, poses, stats = res.model, res.poses, res.stats
             views = [i.view for i in maps]
+        elif spec.family != "classic":
+            from_observations = True
+            model, poses, stats = _generic_start(obs, model_name, len(maps), opts)
+            views = [i.view for i in obs]
         else:
-            if spec.family != "classic":
-                raise ValueError(f"{model_name}: a rig fits generic models from decoded maps "
-                                 "only (give this camera's maps, or a parametric model)")
+            from_observations = True
             if len(obs) < CLASSIC_MIN_POSES:
                 raise ValueError(f"needs >= {CLASSIC_MIN_POSES} views, got {len(obs)}")
             size = obs[0].image_size
@@ -91,7 +116,7 @@ def start_camera(camera: str, inputs: list[RigInput], model_name: str,
             views = [i.view for i in obs]
     except ValueError as exc:  # DegenerateError included: say which camera
         raise ValueError(f"camera {camera}: {exc}") from None
-    return CameraStart(model, _free_mask(model, spec.family, opts),
+    return CameraStart(model, _free_mask(model, spec.family, opts, from_observations),
                        {v: (p.rotation, p.translation) for v, p in zip(views, poses, strict=True)},
                        stats)
 

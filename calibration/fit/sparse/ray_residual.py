@@ -42,14 +42,24 @@ def logmap_jacobian(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ab, lj
 
 
-def ray_residual(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
-                 basis: tuple[np.ndarray, ...] | None = None) -> RayResidual:
-    """Residuals of camera-frame `points` (N, 3) mm observed at `pixels` (N, 2);
-    `basis` is `model.grid.basis(u, v, derivatives=True)` at the pixels when cached."""
+@dataclass
+class _Miss:
+    """The pieces of the residual at N pixels that its derivatives reuse."""
+
+    basis: tuple[np.ndarray, ...]  # (idx, w, wdu, wdv) of the pixels
+    minv: np.ndarray  # (N, 2, 2) M^-1, px/rad
+    lj: np.ndarray  # (N, 2, 3) d logmap / d (point - origin)
+    pixels: np.ndarray  # (N, 2) r
+
+
+def _miss(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
+          basis: tuple[np.ndarray, ...] | None) -> _Miss:
+    """r = M(q)^-1 (logmap(P - o(q)) - ab(q)) with what its derivatives need."""
     q = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
     n, c = len(q), model.n_components
-    idx, w, wdu, wdv = basis if basis is not None else model.grid.basis(
-        q[:, 0], q[:, 1], derivatives=True)
+    basis = basis if basis is not None else model.grid.basis(q[:, 0], q[:, 1],
+                                                             derivatives=True)
+    idx, w, wdu, wdv = basis
     ctrl = model.coeffs[idx]  # (N, 16, C)
     comps = np.einsum("nk,nkc->nc", w, ctrl)
     jac_uv = np.stack([np.einsum("nk,nkc->nc", wdu, ctrl[:, :, :2]),
@@ -59,13 +69,30 @@ def ray_residual(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
         origin[:, :2] = comps[:, 2:4]
     target, lj = logmap_jacobian(points - origin)
     minv = np.linalg.inv(jac_uv)
-    r = np.einsum("nij,nj->ni", minv, target - comps[:, :2])
+    return _Miss(basis, minv, lj, np.einsum("nij,nj->ni", minv, target - comps[:, :2]))
+
+
+def residual_pixels(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
+                    basis: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
+    """(N, 2) residuals (px) of camera-frame `points` observed at `pixels`, without the
+    derivatives (for fits that difference them numerically)."""
+    return _miss(model, pixels, points, basis).pixels
+
+
+def ray_residual(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
+                 basis: tuple[np.ndarray, ...] | None = None) -> RayResidual:
+    """Residuals of camera-frame `points` (N, 3) mm observed at `pixels` (N, 2);
+    `basis` is `model.grid.basis(u, v, derivatives=True)` at the pixels when cached."""
+    m = _miss(model, pixels, points, basis)
+    idx, w, wdu, wdv = m.basis
+    r, minv, c = m.pixels, m.minv, model.n_components
+    n = len(r)
     d_coeffs = np.zeros((n, 2, model.coeffs.size))
     rows = np.arange(n)[:, None]
     moved = w + r[:, :1] * wdu + r[:, 1:] * wdv  # (N, 16)
     for comp in range(2):
         d_coeffs[rows, :, idx * c + comp] = -minv[:, None, :, comp] * moved[:, :, None]
     for comp in range(2, c):  # origin components move the target direction
-        d_dir = -np.einsum("nij,nj->ni", minv, lj[:, :, comp - 2])
+        d_dir = -np.einsum("nij,nj->ni", minv, m.lj[:, :, comp - 2])
         d_coeffs[rows, :, idx * c + comp] = d_dir[:, None, :] * w[:, :, None]
-    return RayResidual(r, d_coeffs, minv @ lj)
+    return RayResidual(r, d_coeffs, minv @ m.lj)

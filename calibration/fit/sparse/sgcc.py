@@ -93,34 +93,44 @@ def mesh_for(points: np.ndarray, image_size: tuple[int, int], n_views: int,
         f"view{'s' * (more != 1)} like these, or fit a parametric model)")
 
 
+def spline_gauge(model: SGCCBase) -> GaugeBasis:
+    """The free directions of the model's coefficients: those that keep the sGCC gauge (the
+    ray at the sensor centre +z, the row through it in the x-z plane; the origin there 0),
+    so that a fit moving them cannot also turn or shift the camera frame."""
+    cons = gauge_constraints(model.grid, model.n_components, model.coeffs.size)
+    return GaugeBasis.null_space_of(cons)
+
+
+def spline_prior(model: SGCCBase) -> np.ndarray:
+    """Whitened prior rows (rows, size*C) over `model.get_params()`: each component's second
+    differences over the control net divided by its sigma (`PRIOR_RELATIVE` of one cell's
+    angular size for directions, `PRIOR_ORIGIN_MM` for origins). They define the control
+    points no observed point reaches."""
+    c = model.n_components
+    d = second_differences(model.grid)
+    cell = max(model.grid.cell_px)
+    _, du, dv = model.components(np.array([[(s - 1) / 2 for s in model.image_size]]),
+                                 derivatives=True)
+    rad_per_px = float(np.hypot(du[0, 0], dv[0, 1]) / np.sqrt(2))
+    sigmas = [PRIOR_RELATIVE * cell * rad_per_px] * 2 + [PRIOR_ORIGIN_MM] * (c - 2)
+    rows = np.zeros((d.shape[0] * c, model.coeffs.size))
+    for comp, s in enumerate(sigmas):
+        rows[comp * d.shape[0]:(comp + 1) * d.shape[0], comp::c] = d / s
+    return rows
+
+
 class _SgccProblem:  # a SparseProblem (calibration/fit/sparse/fit.py)
     """Parameter vector [spline in the gauge's free directions, target shape, (rvec, tvec)
     per view]; whitened pixel residuals of the inliers, then the prior's rows."""
 
     def __init__(self, model: SGCCBase, views: list[View], shape: TargetShape) -> None:
         self.model, self.views, self.shape = model, views, shape
-        c = model.n_components
-        cons = gauge_constraints(model.grid, c, model.coeffs.size)
-        self.gauge = GaugeBasis.null_space_of(cons)
+        self.gauge = spline_gauge(model)
         self.z = np.stack([self.gauge.expand(e) for e in np.eye(self.gauge.size)], axis=1)
         self.nz, self.ns = self.gauge.size, shape.n_free
         self.basis = [model.grid.basis(v.xy[:, 0], v.xy[:, 1], derivatives=True)
                       for v in views]
-        self.prior = self._prior_rows() @ self.z
-
-    def _prior_rows(self) -> np.ndarray:
-        """Second differences of each component over its prior sigma (rows, size*C)."""
-        model, c = self.model, self.model.n_components
-        d = second_differences(model.grid)
-        cell = max(model.grid.cell_px)
-        _, du, dv = model.components(np.array([[(s - 1) / 2 for s in model.image_size]]),
-                                           derivatives=True)
-        rad_per_px = float(np.hypot(du[0, 0], dv[0, 1]) / np.sqrt(2))
-        sigmas = [PRIOR_RELATIVE * cell * rad_per_px] * 2 + [PRIOR_ORIGIN_MM] * (c - 2)
-        rows = np.zeros((d.shape[0] * c, model.coeffs.size))
-        for comp, s in enumerate(sigmas):
-            rows[comp * d.shape[0]:(comp + 1) * d.shape[0], comp::c] = d / s
-        return rows
+        self.prior = spline_prior(model) @ self.z
 
     def pack(self) -> np.ndarray:
         return np.concatenate([self.gauge.reduce_vector(self.model.get_params()), self.shape.params,
