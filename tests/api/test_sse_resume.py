@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -15,10 +16,12 @@ from api.stream_limits import EVENTS, stream_limiter
 from tests.api.test_api_session import small_rig
 
 
-def _events(response: httpx.Response, limit: int | None = None) -> list[tuple[str, str, dict]]:
-    """(id, event, data) of each event until `end` or `limit` events."""
+def _events(lines: Iterator[str], limit: int | None = None) -> list[tuple[str, str, dict]]:
+    """(id, event, data) of each event until `end` or `limit` events, read from `lines`
+    (a response's `iter_lines()`, which the caller holds: once the last reference to that
+    iterator goes, httpx closes the connection, which the server sees as a hang-up)."""
     out, ev, eid = [], {}, ""
-    for line in response.iter_lines():
+    for line in lines:
         if line.startswith("id: "):
             eid = line[4:]
         elif line.startswith("event: "):
@@ -41,19 +44,19 @@ def test_sse_ids_and_resume_from_last_event_id(tmp_path: Path) -> None:
         job = client.post(f"/sessions/{ses['id']}/poses", {})
         path = f"{url}/jobs/{job['id']}/events"
         with httpx.stream("GET", path, timeout=120) as r:
-            first = _events(r, limit=3)
+            first = _events(r.iter_lines(), limit=3)
         ids = [int(e[0]) for e in first]
         assert ids == sorted(ids) and len(set(ids)) == len(ids), first
         last = ids[-1]
         with httpx.stream("GET", path, timeout=300, headers={"Last-Event-ID": str(last)}) as r:
-            rest = _events(r)
+            rest = _events(r.iter_lines())
         assert rest[-1][:2] == ("end", "end") and rest[-1][2]["status"] == "succeeded"
         numeric = [int(e[0]) for e in rest[:-1]]
         assert all(i > last for i in numeric), (last, numeric)  # nothing replayed
         assert numeric == sorted(numeric)
         # Once the job is over, a reconnect gets just the final state.
         with httpx.stream("GET", path, timeout=30, headers={"Last-Event-ID": str(last)}) as r:
-            assert [e[:2] for e in _events(r)] == [("end", "end")]
+            assert [e[:2] for e in _events(r.iter_lines())] == [("end", "end")]
         client.close()
 
 
@@ -72,7 +75,8 @@ def test_sse_client_that_hangs_up_frees_its_stream_slot(tmp_path: Path) -> None:
                                         "preset": "precise"})
         job = client.post(f"/sessions/{ses['id']}/poses", {})
         with httpx.stream("GET", f"{url}/jobs/{job['id']}/events", timeout=120) as r:
-            first = _events(r, limit=1)
+            lines = r.iter_lines()  # held open: the client hangs up only when the block ends
+            first = _events(lines, limit=1)
             assert first and first[0][1] == "progress", first
             assert limiter.active() == 1
         deadline = time.monotonic() + 5  # released at the hang-up, not at the job's end
