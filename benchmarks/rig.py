@@ -6,7 +6,10 @@ pinhole and a 150-degree fisheye 150 mm apart. Per seed, every camera sees the s
 8 views per group of cameras, and records
 - sparse data: the corners of an 11 x 8 chessboard drawn on the screen, 0.1 px noise;
 - dense data: decoded maps, 0.05 screen-px noise (the decoder's sigma), of which the joint
-  fit takes `--dense-points` pixels per camera and view.
+  fit takes `--dense-points` pixels per camera and view;
+- the sparse data again with every camera fitted as sgcc (row "sgcc"): each camera's frame
+  is then its sGCC gauge (the ray at the sensor centre +z), so the truth is turned into the
+  gauges taken from the true cameras' own rays before comparing.
 For each camera pair it prints the extrinsics error against the truth (rotation mrad,
 translation mm; RMS over seeds), the predicted 1-sigma, the std of the normalized errors
 (error / predicted sigma over the 6 components and the seeds: honest near 1), and OpenCV on
@@ -33,7 +36,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration import RigInput, calibrate_rig
+from calibration.fit.sgcc.initial import gauge_rotation
 from calibration.shared.plan import ScreenGeometry
+from hw_mocks.camera_base import TruthCamera
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.fisheye_camera import wide_fisheye
 from hw_mocks.rig_truth import (
@@ -92,6 +97,24 @@ def pose_error(rot: np.ndarray, t: np.ndarray, r_true: np.ndarray, t_true: np.nd
                ) -> np.ndarray:
     """(rotation vector error rad, translation error mm) as 6 numbers."""
     return np.concatenate([cv2.Rodrigues(rot @ r_true.T)[0].ravel(), t - t_true])
+
+
+def gauge_frame(cam: TruthCamera) -> np.ndarray:
+    """Rotation from a true camera's frame to its sGCC gauge's (the ray at the sensor centre
+    +z, the row through it in the x-z plane), from the camera's own rays."""
+    cu, cv = (cam.width - 1) / 2, (cam.height - 1) / 2
+    _, d = cam.rays(np.array([cu, cu + 1e-3]), np.array([cv, cv]))
+    return gauge_rotation(d[0], (d[1] - d[0]) / 1e-3)
+
+
+def truth_relative(truth: RigTruth, first: str, second: str, gauges: bool
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(R, T) of the pair from the truth, in the sGCC gauges' frames if `gauges`."""
+    rot, t = truth.relative(first, second)
+    if not gauges:
+        return rot, t
+    q1, q2 = gauge_frame(truth.cameras[first]), gauge_frame(truth.cameras[second])
+    return q2 @ rot @ q1.T, q2 @ t
 
 
 # -- OpenCV on the same sparse points -----------------------------------------------------
@@ -173,14 +196,17 @@ def run_seed(case: Case, seed: int, dense_points: int) -> dict:
             dense.append(RigInput(c, f"v{k}", maps=view_maps(
                 truth, c, view, SCREEN, sigma_px=DENSE_SIGMA_SCREEN_PX, rng=rng)))
     out: dict = {"cpu": {}}
-    for kind, inputs, opts in (("sparse", sparse, {}),
-                               ("dense", dense, {"max_points_per_view": dense_points})):
+    sgcc = {c: "sgcc" for c in case.cameras}
+    for kind, inputs, opts, models in (
+            ("sparse", sparse, {}, case.models),
+            ("dense", dense, {"max_points_per_view": dense_points}, case.models),
+            ("sgcc", sparse, {}, sgcc)):
         t0 = time.process_time()
-        res = calibrate_rig(inputs, case.models, SCREEN, options=opts, reference="A")
+        res = calibrate_rig(inputs, models, SCREEN, options=opts, reference="A")
         out["cpu"][kind] = time.process_time() - t0
         for first, second in case.pairs:
             rot, t = res.rig.relative(first, second)
-            err = pose_error(rot, t, *truth.relative(first, second))
+            err = pose_error(rot, t, *truth_relative(truth, first, second, kind == "sgcc"))
             sd = np.sqrt(np.diag(res.rig.camera(second).covariance))  # first is "A"
             out[(kind, first, second)] = (err, sd)
     t0 = time.process_time()
@@ -215,7 +241,7 @@ def main() -> None:
         runs = [run_seed(case, s, args.dense_points) for s in range(args.seeds)]
         for first, second in case.pairs:
             cv = [r[("opencv", first, second)][0] for r in runs]
-            for kind in ("sparse", "dense"):
+            for kind in ("sparse", "dense", "sgcc"):
                 errs = [r[(kind, first, second)][0] for r in runs]
                 sds = [r[(kind, first, second)][1] for r in runs]
                 z = np.concatenate([e / s for e, s in zip(errs, sds, strict=True)])
