@@ -1,14 +1,18 @@
 """The compiled finish kernel (`kernel_sums.finish_sums`) against another revision's, A/B.
 
 Run: .venv/bin/python benchmarks/finish_kernel.py [--against main] [--repeats 5]
-     [--configs clean,partly,border] [--frames F.npy --plan P.json]
+     [--configs clean,partly,border] [--read-noise DN] [--gain E_PER_DN]
+     [--frames F.npy --plan P.json]
 Builds a 2448x2048 pose with the decode benchmark's generator (benchmarks/decode.py: its
-64-frame plan and tilted-screen stack, plus seeded Gaussian noise of 1.5 DN), streams it
-into `StreamingDecoder` and records every `finish_sums` call of its finish (the noise
-given, estimated from the residuals (photon-transfer line), and the same calls with the
-pixels' own residual variance). Then both kernels (this worktree's and `--against`'s,
+64-frame plan and tilted-screen stack with its camera noise, by default hw_mocks' default
+sensor), streams it into `StreamingDecoder` and records every `finish_sums` call of its
+finish (the noise given: decode.py's camera model, 1.5 DN for a --frames pose; estimated
+from the residuals (photon-transfer line); and the same calls with the pixels' own
+residual variance). Then both kernels (this worktree's and `--against`'s,
 imported from a `git archive` copy under another package name) decode each recorded
-range in one thread, alternating call by call, `--repeats` times; the table shows the sum
+range in one thread, alternating call by call, `--repeats` times (each with the clipped
+pixels' pattern tables built by its own kernel_clipped.py: the table layout may differ
+between revisions); the table shows the sum
 over the calls of each call's best thread CPU in ns per pixel (the pixels of every recorded
 range), the ratio new / base, and whether the outputs make byte-identical maps (reason,
 modulation; position, sigma, blur of valid pixels: the decoder masks the others). One
@@ -32,10 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from decode import H, W, bench_plan, make_stack  # noqa: E402
+from decode import H, W, bench_plan, given_noise, make_stack  # noqa: E402
 
+import calibration.decode.kernel_clipped as kernel_clipped  # noqa: E402
 import calibration.decode.kernel_sums as kernel_sums  # noqa: E402
 from calibration.decode import StreamingDecoder  # noqa: E402
+from calibration.decode.accumulate import FrameAccumulator  # noqa: E402
 from calibration.decode.kernel_clipped import linear_line  # noqa: E402
 from calibration.decode.kernel_sets import MODE_OWN  # noqa: E402
 from calibration.shared.plan import read_plan  # noqa: E402
@@ -43,12 +49,13 @@ from calibration.shared.plan import read_plan  # noqa: E402
 KERNEL_FILES = ("kernel.py", "kernel_sums.py", "kernel_sets.py", "kernel_unwrap.py",
                 "kernel_clipped.py", "vecmath.py", "kernel_cache.py")
 OUTPUTS = (20, 21, 22, 23)  # finish_sums argument positions: position, sigma, modulation, blur
-O0, REASON = 24, 25
+O0, REASON, TABLES = 24, 25, 26  # (bits: 1, c0: 5)
 
 
 def base_kernel(rev: str):
-    """`finish_sums` of revision `rev`: its kernel files under a package named after their
-    contents, in a folder kept between runs (numba's cache: compiled once per version)."""
+    """(`finish_sums`, its `kernel_clipped` module) of revision `rev`: its kernel files under
+    a package named after their contents, in a folder kept between runs (numba's cache:
+    compiled once per version), and the digest."""
     tree = subprocess.run(["git", "ls-tree", rev, "calibration/decode/"], cwd=ROOT, check=True,
                           capture_output=True, text=True).stdout
     blobs = {line.split()[3].rsplit("/", 1)[1]: line.split()[2] for line in tree.splitlines()}
@@ -67,7 +74,28 @@ def base_kernel(rev: str):
         (pkg / "__init__.py").write_text("")
     sys.path.insert(0, str(home))
     module = __import__(f"{name}.kernel_sums", fromlist=["finish_sums"])
-    return module.finish_sums, digest[:12]
+    clipped = __import__(f"{name}.kernel_clipped", fromlist=["pattern_tables"])
+    return (module.finish_sums, clipped), digest[:12]
+
+
+def with_own_tables(calls: list[tuple], clipped, plan, residual: bool) -> list[tuple]:
+    """`calls` with their `tables` argument built by the kernel_clipped module `clipped`
+    (revisions before `kernel_tables` take (index, rows, basis))."""
+    sets = FrameAccumulator(plan, (1, 1), saturation_dn=None, need_squares=residual).sets
+    tables = clipped.pattern_tables(sets)
+    empty = clipped.no_tables() if hasattr(clipped, "no_tables") else (
+        np.zeros((0, 1), np.int64), np.zeros((0, 1)), np.zeros((0, 1, 1)))
+    out = []
+    for a in calls:
+        a = list(a)
+        if a[TABLES][0].shape[0] == 0 or tables is None:
+            a[TABLES] = empty
+        elif hasattr(tables, "kernel_tables"):
+            a[TABLES] = tables.kernel_tables(a[1], a[5], a[REASON].shape[0])
+        else:
+            a[TABLES] = (*tables.tables(a[1], a[5], a[REASON].shape[0]), tables.basis)
+        out.append(tuple(a))
+    return out
 
 
 def pose(args: argparse.Namespace, config: str) -> tuple:
@@ -75,13 +103,8 @@ def pose(args: argparse.Namespace, config: str) -> tuple:
     if args.frames:
         return read_plan(args.plan), np.ascontiguousarray(np.load(args.frames))
     plan = bench_plan()
-    stack = make_stack(plan, border=config == "border", partly=config == "partly")
-    rng = np.random.default_rng(15)
-    for frame in stack:  # temporal noise: residuals and a photon-transfer line to fit
-        noisy = frame + rng.normal(0.0, 1.5, frame.shape).astype(np.float32)
-        np.clip(np.rint(noisy), 0, 255, out=noisy)
-        frame[:] = noisy.astype(np.uint8)
-    return plan, stack
+    return plan, make_stack(plan, border=config == "border", partly=config == "partly",
+                            read_dn=args.read_noise, gain_e_per_dn=args.gain)
 
 
 def record(plan, stack, noise) -> tuple[list[tuple], StreamingDecoder]:
@@ -126,20 +149,22 @@ def call(kernel, a: tuple, outs: tuple) -> float:
     return time.thread_time() - t0
 
 
-def compare(calls: list[tuple], kernels: list, repeats: int) -> tuple[list[float], bool, int]:
+def compare(calls: list[tuple], kernels: list, repeats: int, plan, residual: bool
+            ) -> tuple[list[float], bool, int]:
     """Each kernel's CPU seconds over all calls (the sum of each call's best of `repeats`,
     the kernels alternating call by call), identical outputs, pixels."""
     npix = calls[0][20].shape[1]
+    own = [with_own_tables(calls, clipped, plan, residual) for _, clipped in kernels]
     outs = []
     for _ in kernels:
         planes = [np.full((2, npix + 16), np.nan, calls[0][i].dtype)[:, :npix] for i in OUTPUTS]
         outs.append((planes, np.full(npix, 77, np.uint8)))
     best = np.full((len(kernels), len(calls)), np.inf)
     for rep in range(repeats):
-        for c, a in enumerate(calls):
+        for c in range(len(calls)):
             order = range(len(kernels)) if (rep + c) % 2 == 0 else reversed(range(len(kernels)))
             for i in order:
-                best[i, c] = min(best[i, c], call(kernels[i], a, outs[i]))
+                best[i, c] = min(best[i, c], call(kernels[i][0], own[i][c], outs[i]))
     return list(best.sum(axis=1)), same_maps(*outs), sum(a[REASON].shape[0] for a in calls)
 
 
@@ -167,9 +192,13 @@ def main() -> int:
     ap.add_argument("--configs", default="clean,partly", help="clean, partly, border")
     ap.add_argument("--frames", help="a (F, H, W) uint8 .npy pose instead (with --plan)")
     ap.add_argument("--plan")
+    ap.add_argument("--read-noise", type=float, default=0.08, metavar="DN",
+                    help="the generated stacks' read noise (std, DN; as decode.py)")
+    ap.add_argument("--gain", type=float, default=40.0, metavar="E_PER_DN",
+                    help="the generated stacks' conversion gain (shot noise; as decode.py)")
     args = ap.parse_args()
     base, sha = base_kernel(args.against)
-    new = base_kernel(args.new)[0] if args.new else kernel_sums.finish_sums
+    new = base_kernel(args.new)[0] if args.new else (kernel_sums.finish_sums, kernel_clipped)
     kernels = [base, new]
     print(f"finish_sums A/B: base {args.against} (kernel files {sha}) vs "
           f"{args.new or 'worktree'}; "
@@ -180,11 +209,12 @@ def main() -> int:
     ok = True
     for config in ([Path(args.frames).stem] if args.frames else args.configs.split(",")):
         plan, stack = pose(args, config)
-        given, _ = record(plan, stack, 1.5)
+        noise = 1.5 if args.frames else given_noise(args, config == "partly")
+        given, _ = record(plan, stack, noise)
         resid, dec = record(plan, stack, None)
         for label, calls in (("given", given), ("residual", resid), ("own", own_mode(resid))):
             t0 = time.perf_counter()
-            best, same, npix = compare(calls, kernels, args.repeats)
+            best, same, npix = compare(calls, kernels, args.repeats, plan, label != "given")
             ok &= same
             print(f"{config:>8} {label:>9} {len(calls):>6} {npix / 1e6:>5.2f} "
                   f"{best[0] / npix * 1e9:>10.1f} {best[1] / npix * 1e9:>9.1f} "

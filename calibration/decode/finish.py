@@ -109,14 +109,16 @@ def _inputs(chunk: ChunkSums, acc: FrameAccumulator) -> tuple[Any, ...]:
 
 
 def _tables(inputs: FinishInputs, bits: np.ndarray, c0: int, n: int) -> tuple[np.ndarray, ...]:
-    """(index, rows, basis) of the pattern tables covering columns c0..c0+n of `bits`;
+    """The kernels' pattern tables covering columns c0..c0+n of `bits` (`kernel_tables`);
     empty arrays when the plan has more steps than the tables take, or when no step of the
     range clipped (the kernels then fit nothing: same results, without the scalar scan of
     the range's patterns, ~3 % of a finish's kernel time)."""
+    from calibration.decode.kernel_clipped import no_tables  # (a numba module, as above)
+
     tables = inputs.tables
     if tables is None or not bits[:, c0:c0 + n].any():
-        return np.zeros((0, 1), np.int64), np.zeros((0, 1)), np.zeros((0, 1, 1))
-    return (*tables.tables(bits, c0, n), tables.basis)
+        return no_tables()
+    return tables.kernel_tables(bits, c0, n)
 
 
 def residual_stats(inputs: FinishInputs, chunk: ChunkSums, lazy: bool = False

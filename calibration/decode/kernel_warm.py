@@ -97,7 +97,7 @@ def _run_kernels() -> None:
                              flats[1], np.zeros(1), i64(1))
             planes = [output_planes(n, ["x", "y"])[name] for name in  # (their strides)
                       ("position", "sigma", "modulation", "blur")]
-            tables = (np.full((1, 16), -1), np.zeros((0, 30)), np.zeros((1, 4, 3)))
+            tables = (np.full((1, 16), -1), np.zeros((0, 30)), np.zeros((1, 4, 3)), i64(1))
             unknown_patterns(bits, 0, n, tables[0], one * 4)
             finish_sums(sums, bits, squares, flats[0], flats[1], 0, i64(1), one * 3, one * 4,
                         np.array([0.0, 1, 0, 0, 0, 0.1, 0]), np.zeros(3), np.zeros(1), np.ones(2),

@@ -11,13 +11,17 @@ from calibration.decode.phase import design_matrix, normal_inverse
 
 # offset, slope, black, clamp, floor: a sensor line with a black level (clamped below it)
 LINE = (0.8, 0.05, 6.0, True, 1.0 / 12.0)
+# a photon-transfer line (no black level, not clamped) that reaches its floor at 6.0
+FLOORED = (-0.22, 0.05, 0.0, False, 0.08)
 PATTERNS = (0b0000000111, 0b1100000001, 0b0000110000)  # clipped steps (bit i: step i)
 
 
-def _table_fit(col, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov, lin, line):
+def _table_fit(col, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, cov, lin, line,
+               fw=5):
     """The kernel's fit of one pixel (column jc of `col`) whose set has clipped pattern q and
-    table row t: (ok, mean, level, alpha, beta, c_aa, c_bb, c_ab, explained, dof, the
-    use_step_levels numerators aa, bb, ab, a step clipped at the dark end)."""
+    table row t (`fw` columns fitted): (ok, mean, level, alpha, beta, c_aa, c_bb, c_ab,
+    explained, dof, the use_step_levels numerators aa, bb, ab, a step clipped at the dark
+    end)."""
     bits = np.zeros((1, col.shape[1]), dtype=np.uint16)
     bits[0, jc] = q
     index = np.full((1, 1 << n), -1, dtype=np.int64)
@@ -26,22 +30,24 @@ def _table_fit(col, r0, nrow, n, jc, rows, t, basis, p, residual, want_low, q, c
     fitted, partial = np.zeros((1, 1), bool), np.zeros((1, 1), bool)
     covs, expl, dofk, levk = np.zeros((6, 1, 1)), np.zeros(1), np.zeros(1), np.zeros(1)
     low = np.zeros(1, bool)
-    _table_fits(col, bits, 0, jc, 1, r0, nrow, n, rows, index, basis, p, residual, want_low,
-                cov, np.asarray(lin, dtype=np.float64), line, np.zeros(1, bool), fits, fitted,
-                partial, covs, expl, dofk, levk, low)
+    _table_fits(col, bits, 0, jc, 1, r0, nrow, fw, n, rows, index, basis, p, residual,
+                want_low, cov, np.asarray(lin, dtype=np.float64), line, np.zeros(1, bool), fits,
+                fitted, partial, covs, expl, dofk, levk, low)
     return (bool(fitted[0, 0]), fits[2, 0, 0], levk[0], fits[0, 0, 0], fits[1, 0, 0],
             *covs[:3, 0, 0], expl[0], dofk[0], *covs[3:, 0, 0], bool(low[0]))
 
 
-def expected(n: int, harmonics: tuple[int, ...], q: int, v: np.ndarray) -> tuple:
-    """(coefficients, use_step_levels numerators aa, bb, ab) from phase.py's tables."""
+def expected(n: int, harmonics: tuple[int, ...], q: int, v: np.ndarray, line=LINE) -> tuple:
+    """(coefficients, use_step_levels numerators aa, bb, ab) from phase.py's tables, with
+    each step's variance from the noise `line`."""
     pat = normal_inverse(n, q, harmonics)
     basis = design_matrix(n, harmonics)
     kept = np.array([(q >> i) & 1 == 0 for i in range(n)])
     sums = (basis[kept].T @ v[kept]).astype(np.float32).astype(np.float64)
     p = pat.minv @ sums
-    offset, slope, black, _, floor = LINE
-    var = np.maximum(offset + slope * np.maximum(np.maximum(basis @ p, 0.0) - black, 0.0), floor)
+    offset, slope, black, clamp, floor = line
+    above = np.maximum(basis @ p, 0.0) - black
+    var = np.maximum(offset + slope * (np.maximum(above, 0.0) if clamp else above), floor)
     ga, gb = pat.gains
     return sums, p, np.array([var @ (ga * ga), var @ (gb * gb), var @ (ga * gb)])
 
@@ -57,16 +63,18 @@ def _first_set_tables(noise):
     return (acc, tables, *tables.tables(bits, 0, bits.shape[1]))
 
 
+@pytest.mark.parametrize("line", [LINE, FLOORED], ids=["black-level", "floor"])
 @pytest.mark.parametrize("noise", [None, 1.5])  # residual mode (7 rows) / given (5 rows)
-def test_table_fit_matches_phase_tables_and_step_levels(noise):
+def test_table_fit_matches_phase_tables_and_step_levels(noise, line):
     """Coefficients and `use_step_levels`' numerators of the kernel's fit equal NumPy's on
     phase.py's tables, both where the noise line is linear over the fitted steps (the
     kernel's shortcut through the pattern's summed tables) and where some fitted steps lie
-    below the black level (each step's own variance); taking the shortcut there is wrong."""
+    below the black level or the line's floor (the summed tables corrected at those steps,
+    and each step's own variance); the uncorrected shortcut there is wrong."""
     acc, tables, index, rows = _first_set_tables(noise)
     k, s = 0, acc.sets[0]
-    n, nrow = s.layout.steps, s.rows
-    lin = linear_line(np.array([*LINE[:3], 1.0, LINE[4]]))
+    n, nrow, fw = s.layout.steps, s.rows, int(tables.widths[k])
+    lin = linear_line(np.array([*line[:3], float(line[3]), line[4]]))
     never = np.array([lin[0], lin[1], np.inf])  # the shortcut never taken
     always = np.array([lin[0], lin[1], -np.inf])  # the shortcut always taken
     rng = np.random.default_rng(7)
@@ -75,10 +83,10 @@ def test_table_fit_matches_phase_tables_and_step_levels(noise):
     for q in PATTERNS:
         for level, amp, linear in ((200.0, 80.0, True), (7.0, 5.0, False)):
             v = level + amp * np.cos(psi + 0.3) + rng.normal(0.0, 1.0, n)
-            sums, p, num = expected(n, s.harmonics, q, v)
+            sums, p, num = expected(n, s.harmonics, q, v, line)
             col = sums.astype(np.float32)[:, None]
             fits = {name: _table_fit(col, 0, nrow, n, 0, rows, index[k, q], tables.basis[k],
-                                     p_scratch, noise is None, True, q, True, thr, LINE)
+                                     p_scratch, noise is None, True, q, True, thr, line, fw)
                     for name, thr in (("auto", lin), ("never", never), ("always", always))}
             got = fits["auto"]
             assert got[0]
@@ -87,6 +95,33 @@ def test_table_fit_matches_phase_tables_and_step_levels(noise):
             np.testing.assert_allclose(fits["never"][10:13], num, rtol=1e-9)
             shortcut = np.allclose(fits["always"][10:13], num, rtol=1e-9)
             assert shortcut == linear  # (the shortcut is wrong below the black level)
+
+
+def test_partial_fits_read_only_the_columns_they_model():
+    """Fits on partial steps model harmonics up to phase.PARTIAL_MAX_ORDER: in residual mode
+    (harmonic 3 modelled, 7 rows) `widths` is 5, every pattern's inverse is zero past it,
+    the kernels' tables carry it, and the kernel's fit over those columns equals its fit
+    over every row of the set to the bit (residuals, dark-end test, step variances)."""
+    acc, tables, index, rows = _first_set_tables(None)
+    k, s = 0, acc.sets[0]
+    n, nrow, f = s.layout.steps, s.rows, tables.width
+    assert (nrow, int(tables.widths[k])) == (7, 5)
+    bits = np.zeros((len(acc.sets), 1), dtype=acc.bits_dtype)
+    bits[0, 0] = PATTERNS[0]
+    kernel_tables = tables.kernel_tables(bits, 0, 1)
+    assert len(kernel_tables) == 4 and kernel_tables[3] is tables.widths
+    lin = linear_line(np.array([*LINE[:3], 1.0, LINE[4]]))
+    psi = np.asarray(s.layout.psi)
+    p_scratch = np.empty(tables.basis.shape[2])
+    for q in PATTERNS:
+        minv = rows[index[k, q], :f * f].reshape(f, f)
+        assert not minv[5:].any() and not minv[:, 5:].any() and minv[4, 4] != 0.0
+        v = 7.0 + 5.0 * np.cos(psi + 0.3) + 0.4 * np.cos(3 * psi)  # steps below black
+        col = expected(n, s.harmonics, q, v)[0].astype(np.float32)[:, None]
+        narrow, wide = (_table_fit(col, 0, nrow, n, 0, rows, index[k, q], tables.basis[k],
+                                   p_scratch, True, True, q, True, lin, LINE, fw)
+                        for fw in (5, nrow))
+        assert narrow == wide
 
 
 @pytest.mark.parametrize("cov", [True, False])
