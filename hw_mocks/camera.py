@@ -323,10 +323,7 @@ class SimulatedCamera:
         """Replay cache key of a pure frame (one image on every row), else None."""
         if self.replay is None or len(shown) != 1:
             return None
-        import hashlib
-
-        digest = hashlib.blake2b(np.ascontiguousarray(shown[0].codes).tobytes(),
-                                 digest_size=16).digest()
+        digest = shown[0].digest
         pose = self.optics.pose  # the whole screen pose and the stray light: the same
         # translation with another rotation, or a changed ambient, is another image
         return (digest, exposure_s, self._settings.gain_db + self.gain_drift_db,

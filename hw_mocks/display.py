@@ -8,6 +8,8 @@ flip + latency*P + (r/H)*P. The display keeps a history of shown images so that
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
 import threading
 from dataclasses import dataclass
@@ -26,6 +28,12 @@ class ShownImage:
     image_id: int
     flip_s: float
     codes: np.ndarray
+
+    @functools.cached_property
+    def digest(self) -> bytes:
+        """A hash of the codes: the same content shown again is the same image to a camera's
+        replay cache. Computed once per image, however many cameras look at it."""
+        return hashlib.blake2b(np.ascontiguousarray(self.codes).tobytes(), digest_size=16).digest()
 
 
 class SimulatedDisplay:
