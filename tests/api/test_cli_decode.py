@@ -17,7 +17,7 @@ from api.cli import main as cli_main
 from calibration.decode import read_frames
 from calibration.shared.maps import load_maps
 from calibration.shared.plan import Plan, write_plan
-from tests.calibration.test_npz_store import disk_full_on_write
+from tests.calibration.shared.test_npz_store import disk_full_on_write
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -70,7 +70,7 @@ def test_npy_stack_decoded_into_the_laid_out_file(plan, tmp_path, monkeypatch, c
     import calibration.decode.decoder as decoder_module
     from calibration.decode import decode_stack
     from calibration.shared.maps import save_maps
-    from tests.calibration.test_maps_file import _same_npz
+    from tests.calibration.shared.test_maps_file import _same_npz
 
     if compiled:  # (the compiled whole-stack path of large images)
         monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)

@@ -32,7 +32,7 @@ from calibration.shared.plan import write_plan
 from calibration.shared.progress import Cancelled, TaskContext
 from tests.calibration.decode.test_decode import H, W, render
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 META = {"pose_id": "pose_1"}
 
 

@@ -16,7 +16,7 @@ import pytest
 from calibration.shared import npz_store
 from calibration.shared.npz_store import write_npz_stored
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def disk_full_on_write(monkeypatch: pytest.MonkeyPatch, nth: int) -> None:
