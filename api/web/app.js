@@ -529,6 +529,7 @@ async function runAuto(ev) {
   let end;
   try { end = await follow(job, PANELS.auto, "Automatic run"); } finally { clearInterval(timer); }
   await Promise.all([loadAutoLog(), refreshSession()]);
+  loadNextPose();  // the run added poses: the old suggestion no longer holds
   if (end.status !== "succeeded") { tell("auto-feedback", "error", explainJob(end)); return; }
   tell("auto-feedback", "ok", "The run ended: its poses are in the table; calibrate them below.");
 }
