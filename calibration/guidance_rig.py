@@ -12,6 +12,10 @@ that shares fewer than `MIN_SHARED_VIEWS` views with the others is tied weakly, 
 is, only candidates it sees together with another camera are offered (a pose seen by one
 camera alone adds nothing to the extrinsics). Otherwise the candidate that most lowers the
 rig's worst predicted ray sigma (the worst over its cameras) wins.
+
+The suggestion keeps, for each camera the pose serves, where that camera would see the
+screen (its `Placement`: the corners an operator lines the screen up with on that camera's
+preview), and each camera's ray-sigma map now, so a picture per camera can be drawn.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import numpy as np
 from calibration.fit.correspondences import PointSet, subsample
 from calibration.guidance import MIN_GAIN, MIN_VISIBLE, NEAR_POSE_FRACTION, fit_session
 from calibration.guidance_placement import (
+    Placement,
     candidate_placements,
     outline_distance,
     place,
@@ -43,6 +48,7 @@ from calibration.uncertainty import (
     free_parameters,
     pose_information,
     ray_sigma,
+    reachable,
     sensor_grid,
     worst_ray_sigma,
 )
@@ -69,6 +75,7 @@ class CameraState:
     samples: np.ndarray
     rays: tuple[np.ndarray, np.ndarray]
     taken: list[np.ndarray]  # outlines of its views, camera px
+    map_before: np.ndarray  # (ny, nx) ray sigma now, rad; nan beyond the reachable field
 
     def worst_after(self, rot: np.ndarray, t: np.ndarray, screen: ScreenGeometry
                     ) -> float | None:
@@ -102,10 +109,12 @@ def camera_state(name: str, points: dict[str, PointSet], image_size: tuple[int, 
     samples = sensor_grid(model.image_size, *_SAMPLE_GRID)
     taken = [found.outline_px for r, t in fit.poses
              if (found := place(model, screen, r, t, 0.0)) is not None]
+    reach = np.where(reachable(model, grid), 1.0, np.nan)
     return CameraState(name, model, dict(zip(views, fit.poses, strict=True)), free, grid, jd,
                        info, float(worst_ray_sigma(model, grid, before)),
                        np.nanmedian(np.concatenate([p.sigma_px for p in pts]), axis=0),
-                       samples, model.unproject(samples), taken)
+                       samples, model.unproject(samples), taken,
+                       (before * reach).reshape(RAY_SIGMA_GRID[1], RAY_SIGMA_GRID[0]))
 
 
 def shared_views(cameras: dict[str, CameraState]) -> dict[tuple[str, str], int]:
@@ -167,14 +176,22 @@ class RigSuggestion:
     advice: str
     candidates: int
     rejected_repeats: int
+    placements: dict[str, Placement]  # where each served camera sees the screen
+    maps_before: dict[str, np.ndarray]  # camera -> (ny, nx) ray sigma now, rad
+    image_sizes: dict[str, tuple[int, int]]  # camera -> (w, h)
 
     def to_json(self) -> dict[str, Any]:
         """JSON for the API: the pose for `screen_pose`, the cameras it serves with each
-        camera's predicted worst sigma now and after, and the shared views per pair."""
+        camera's predicted worst sigma now and after and `outline_px` (the screen's corners
+        in that camera's pixels, null where it does not serve), and the shared views per
+        pair."""
         rvec = cv2.Rodrigues(self.rotation)[0].ravel()
+        cameras = [{**c, "outline_px": np.round(self.placements[c["camera"]].outline_px, 2)
+                    .tolist() if c["camera"] in self.placements else None}
+                   for c in self.per_camera]
         return {
             "screen_pose": {"rvec": rvec.tolist(), "tvec_mm": self.translation.tolist()},
-            "serves": self.served, "cameras": self.per_camera,
+            "serves": self.served, "cameras": cameras,
             "shared_views": [{"cameras": [a, b], "views": n} for (a, b), n in
                              self.shared.items()],
             "weakly_tied": self.weak, "min_shared_views": MIN_SHARED_VIEWS,
@@ -215,10 +232,12 @@ def plan_rig_next_pose(points: dict[str, dict[str, PointSet]],
     weak = [c for c in cameras if c != reference and
             sum(n for pair, n in shared.items() if c in pair) < MIN_SHARED_VIEWS]
     worst_before = max(c.worst_before for c in cameras.values())
-    best: tuple[tuple[float, float], Transform, dict[str, float | None]] | None = None
+    best: tuple[tuple[float, float], Transform, dict[str, float | None],
+                dict[str, Placement]] | None = None
     scored = repeats = 0
     for rot, t in _candidates(cameras, extr, screen, min_visible):
         after: dict[str, float | None] = {}
+        seen: dict[str, Placement] = {}
         near = []
         for name, cam in cameras.items():
             r_c, t_c = extr[name]
@@ -226,6 +245,7 @@ def plan_rig_next_pose(points: dict[str, dict[str, PointSet]],
             found = place(cam.model, screen, rc, tc, 0.0)
             after[name] = cam.worst_after(rc, tc, screen) if found is not None else None
             if after[name] is not None:
+                seen[name] = found
                 near.append(any(outline_distance(found.outline_px, o, cam.model.image_size)
                                 < NEAR_POSE_FRACTION for o in cam.taken))
         served = [c for c, v in after.items() if v is not None]
@@ -241,13 +261,13 @@ def plan_rig_next_pose(points: dict[str, dict[str, PointSet]],
                         for c, v in after.items())
         total = sum(v if v is not None else cameras[c].worst_before for c, v in after.items())
         if best is None or (rig_worst, total) < best[0]:
-            best = ((rig_worst, total), (rot, t), after)
+            best = ((rig_worst, total), (rot, t), after, seen)
     if best is None:
         why = (f"no candidate pose is seen by {', '.join(weak)} together with another camera"
                if weak else "every candidate pose repeats poses already taken")
         raise ValueError(f"guidance: {why}; place the screen by hand where the cameras' "
                          "views overlap")
-    (score, _), (rot, t), after = best
+    (score, _), (rot, t), after, seen = best
     served = [c for c, v in after.items() if v is not None]
     helps = bool(weak) or score < (1 - MIN_GAIN) * worst_before
     if weak:
@@ -267,7 +287,9 @@ def plan_rig_next_pose(points: dict[str, dict[str, PointSet]],
                        "after": (after[c] if after[c] is not None else cam.worst_before) * 1e6},
                    "views": len(cam.views)} for c, cam in cameras.items()]
     return RigSuggestion(rot, t, served, per_camera, shared, weak, worst_before, score, helps,
-                         advice, scored, repeats)
+                         advice, scored, repeats, seen,
+                         {c: cam.map_before for c, cam in cameras.items()},
+                         {c: cam.model.image_size for c, cam in cameras.items()})
 
 
 __all__ = ["MIN_SHARED_VIEWS", "RigSuggestion", "plan_rig_next_pose", "relative_poses"]
