@@ -141,6 +141,8 @@ _EXPORTS = {
     "write_residual_report": "report",
     "count_png": "report_plots",
     "guidance_png": "guidance_plot",
+    "rig_camera_guidance_png": "guidance_plot",
+    "rig_sigma_range": "guidance_plot",
     "one_at_a_time": "figures",
     "subplots": "figures",
 }
