@@ -1,6 +1,6 @@
 """The next pose of a session captured on several cameras: every camera's decoded maps of
 the ready poses, planned on a worker (api/worker/rig_tasks.py) and cached per set of poses,
-so a repeated request is a file read."""
+so a repeated request is a file read; the plan's folder also holds a picture per camera."""
 
 from __future__ import annotations
 
@@ -16,12 +16,12 @@ from sqlalchemy import select
 from api.db import PoseRecord
 from api.pose_path import camera_maps_path, pose_camera_names
 from api.problems import Problem
-from api.worker.rig_tasks import rig_guidance_task
+from api.worker.rig_tasks import RIG_PICTURE, rig_guidance_task
 
 if TYPE_CHECKING:
     from api.services import Services
 
-RIG_PLAN_VERSION = 1  # part of the cache key: a changed planner never serves an older plan
+RIG_PLAN_VERSION = 2  # part of the cache key: a changed planner never serves an older plan
 _lock = threading.Lock()  # one rig plan at a time: each is seconds of CPU on a worker
 
 
@@ -42,15 +42,34 @@ def rig_maps(svc: Services, session_id: str) -> tuple[list[str], dict[str, dict[
     return ids, maps
 
 
+def rig_plan_dir(svc: Services, session_id: str, key: str) -> Path:
+    """The folder of the rig plan with that key (next-pose.json and the pictures)."""
+    return svc.store.dir_for(session_id) / "guidance" / f"rig-{key}"
+
+
+def rig_picture(svc: Services, session_id: str, key: str, camera: str | None) -> Path:
+    """One camera's picture of the rig plan `key`; 404 naming the plan's cameras when
+    `camera` is missing or not one of them."""
+    folder = rig_plan_dir(svc, session_id, key)
+    names = [c["camera"] for c in json.loads((folder / "next-pose.json").read_text())["cameras"]]
+    if camera not in names:
+        said = "no camera given" if camera is None else f"no camera {camera!r}"
+        raise Problem(404, "not-found", f"camera: session {session_id}'s next-pose plan {key} "
+                      f"has {said}; it has a picture per camera: ?camera= one of "
+                      f"{', '.join(names)}")
+    return folder / RIG_PICTURE.format(camera=camera)
+
+
 def rig_next_pose(svc: Services, session_id: str, model: str, min_visible: float
                   ) -> dict[str, Any] | None:
-    """The rig's next-pose plan (None for a session of one camera)."""
+    """The rig's next-pose plan (None for a session of one camera), each camera with the URL
+    of its picture (keyed: it changes whenever the plan does)."""
     ids, maps = rig_maps(svc, session_id)
     if not maps:
         return None
     key = hashlib.sha1(json.dumps([RIG_PLAN_VERSION, model, min_visible, *ids]).encode()
                        ).hexdigest()[:16]
-    final = svc.store.dir_for(session_id) / "guidance" / f"rig-{key}"
+    final = rig_plan_dir(svc, session_id, key)
     with _lock:
         if not (final / "next-pose.json").is_file():
             _plan(svc, session_id, maps, model, min_visible, final,
@@ -58,6 +77,9 @@ def rig_next_pose(svc: Services, session_id: str, model: str, min_visible: float
                    "min_screen_visible": min_visible, "reference": next(iter(maps))})
     out = json.loads((final / "next-pose.json").read_text())
     out["key"] = key
+    for cam in out["cameras"]:
+        cam["image"] = (f"/sessions/{session_id}/next-pose.png?camera={cam['camera']}"
+                        f"&key={key}")
     return out
 
 

@@ -18,8 +18,8 @@ from sqlalchemy import select
 from api.db import PoseRecord, SessionRecord
 from api.jobs.intrinsics import RESULT as INTRINSICS_RESULT
 from api.problems import Problem
-from api.rig_guidance import pose_maps_path, rig_next_pose
-from api.routes.common import PROBLEM_RESPONSES, get_session
+from api.rig_guidance import pose_maps_path, rig_next_pose, rig_picture, rig_plan_dir
+from api.routes.common import PROBLEM_RESPONSES, CameraQuery, get_session
 from api.services import Services, get_services
 from api.worker.guidance_task import guidance_task
 from calibration import (
@@ -177,7 +177,10 @@ def next_pose(session_id: str, svc: Svc, model: Model = "opencv-rational",
     the predicted worst 1-sigma now and after, `helps` and `advice` (whether any pose still
     helps), and `image`, the URL of its picture (it changes whenever the plan does).
     `min_screen_visible` (by default below 1) lets the suggested screen reach past the image's
-    edge; `screen_visible_fraction` says how much of it the camera sees."""
+    edge; `screen_visible_fraction` says how much of it the camera sees. On a session of
+    several cameras `cameras` says what the pose does for each: `serves`, the worst sigma now
+    and after, `outline_px` in that camera's pixels (null where it does not see the screen)
+    and `image`, the URL of that camera's picture."""
     rig = rig_next_pose(svc, session_id, model, min_screen_visible)
     if rig is not None:  # several cameras: `cameras` says what the pose does for each
         return JSONResponse(rig, headers={"Cache-Control": "no-cache", "ETag": f'"{rig["key"]}"'})
@@ -195,18 +198,35 @@ def next_pose_image(session_id: str, svc: Svc, model: Model = "opencv-rational",
                     key: Annotated[str | None, Query(
                         pattern="^[0-9a-f]{16}$",
                         description="the plan's key from GET next-pose: that plan's picture, "
-                                    "cacheable for good; without it, the current plan's")] = None
-                    ) -> Response:
-    """Predicted ray-uncertainty maps now and after the suggested pose, with its outline."""
+                                    "cacheable for good; without it, the current plan's")] = None,
+                    camera: CameraQuery = None) -> Response:
+    """Predicted ray-uncertainty maps now and after the suggested pose, with its outline; on a
+    session of several cameras, `camera`'s ray uncertainty now with the suggested screen
+    where that camera sees it (404 naming the cameras when it is missing or unknown)."""
     if key is not None:
         with svc.db.session() as s:
             get_session(s, session_id)
+        if (rig_plan_dir(svc, session_id, key) / "next-pose.json").is_file():
+            return Response(rig_picture(svc, session_id, key, camera).read_bytes(),
+                            media_type="image/png",
+                            headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{key}"'})
         path = svc.store.dir_for(session_id) / "guidance" / key / "next-pose.png"
         if not path.is_file():
             raise Problem(404, "not-found", f"session {session_id} has no next-pose plan with "
                           f"key {key}; GET /sessions/{session_id}/next-pose for the current one")
+        if camera is not None:
+            raise Problem(404, "not-found", f"camera: session {session_id}'s next-pose plan "
+                          f"{key} is of one camera: leave camera out")
         return Response(path.read_bytes(), media_type="image/png",
                         headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{key}"'})
+    rig = rig_next_pose(svc, session_id, model, min_screen_visible)
+    if rig is not None:
+        return Response(rig_picture(svc, session_id, rig["key"], camera).read_bytes(),
+                        media_type="image/png",
+                        headers={"Cache-Control": "no-cache", "ETag": f'"{rig["key"]}"'})
+    if camera is not None:
+        raise Problem(404, "not-found", f"camera: session {session_id} was captured on one "
+                      "camera: leave camera out")
     folder, current = _guidance_dir(svc, session_id, model, min_screen_visible)
     return Response((folder / "next-pose.png").read_bytes(), media_type="image/png",
                     headers={"Cache-Control": "no-cache", "ETag": f'"{current}"'})

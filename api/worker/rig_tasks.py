@@ -1,6 +1,7 @@
 """The worker tasks of a rig: its calibration (every camera's maps of the chosen poses, fitted
 jointly; writes rig.json (phasecal.rig/1) and result.json into the job's staging folder) and
-its next-pose plan (every camera's own fit; run off the server that paces captures)."""
+its next-pose plan (every camera's own fit and a picture per camera; run off the server that
+paces captures)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from typing import Any
 from calibration import (
     calibrate_rig_files,
     plan_rig_next_pose,
+    rig_camera_guidance_png,
+    rig_sigma_range,
     save_rig,
     session_points,
     split_rig_options,
@@ -20,6 +23,7 @@ from calibration.shared.plan import read_plan
 from calibration.shared.progress import TaskContext
 
 RIG_OUTPUTS = ["rig.json", "result.json"]
+RIG_PICTURE = "next-pose-{camera}.png"  # one per camera, next to the plan's next-pose.json
 
 
 def rig_calibrate_task(
@@ -50,8 +54,9 @@ def rig_guidance_task(plan_path: str, maps: dict[str, dict[str, str]], reference
                       model: str, out_dir: str, header: dict[str, Any],
                       min_visible: float = 1.0) -> None:
     """Plan a rig's next pose from every camera's maps (camera -> pose -> path) and write
-    next-pose.json (`header` plus the suggestion) into `out_dir`; ValueError when the poses
-    do not support it."""
+    next-pose.json (`header` plus the suggestion) and a picture per camera (`RIG_PICTURE`:
+    its ray sigma now with the suggested screen where it sees it) into `out_dir`; ValueError
+    when the poses do not support it."""
     screen = read_plan(plan_path).screen
     points, sizes = {}, {}
     for cam, views in maps.items():
@@ -60,4 +65,17 @@ def rig_guidance_task(plan_path: str, maps: dict[str, dict[str, str]], reference
         h, w = decoded[0].shape
         sizes[cam] = (w, h)
     sug = plan_rig_next_pose(points, sizes, screen, reference, model, min_visible)
-    write_json_atomic(Path(out_dir) / "next-pose.json", {**header, **sug.to_json()})
+    out = Path(out_dir)
+    span = rig_sigma_range(list(sug.maps_before.values()))
+    for cam in sug.per_camera:
+        name = cam["camera"]
+        sigma = cam["predicted_worst_ray_sigma_urad"]
+        seen = sug.placements.get(name)
+        detail = (f"worst {sigma['now']:.3g} urad, {sigma['after']:.3g} after"
+                  if seen is not None else f"worst {sigma['now']:.3g} urad")
+        rig_camera_guidance_png(
+            sug.maps_before[name], None if seen is None else seen.border_px, sizes[name], span,
+            f"camera {name} ({model}): "
+            + ("serves the suggested pose" if seen is not None else "does not see it"),
+            detail, out / RIG_PICTURE.format(camera=name))
+    write_json_atomic(out / "next-pose.json", {**header, **sug.to_json()})

@@ -1,17 +1,26 @@
 """Next-pose guidance on a session of two simulated cameras: the suggestion names the
 cameras it serves with each camera's predicted worst ray sigma now and after, counts the
-views the pair shares, and the suggested pose, captured, is decoded by every camera it
-names (checked through the service, the poses placed by the simulator's truth)."""
+views the pair shares, gives each served camera the screen's outline in its pixels and each
+camera a picture, and the suggested pose, captured, is decoded by every camera it names
+where its outline said (checked through the service, the poses placed by the simulator's
+truth)."""
 
 from __future__ import annotations
 
+import io
+
+import cv2
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from PIL import Image
 
 from api.app import create_app
 from api.config import ServiceConfig
 from hw_mocks.truth import SimulatorTruth
 from tests.api.test_rig_calibration_api import CONFIG, finished
+
+SIZES = {c["name"]: (c["width"], c["height"]) for c in CONFIG["cameras"]}
 
 
 @pytest.fixture(scope="module")
@@ -23,13 +32,9 @@ def rig_session(tmp_path_factory: pytest.TempPathFactory):
         yield c, sess["id"]
 
 
-def _capture(c: TestClient, sid: str, pose: dict) -> dict:
-    job = finished(c, c.post(f"/sessions/{sid}/poses", json={"screen_pose": pose}).json()["id"])
-    assert job["status"] == "succeeded", job["error"]
-    return c.get(job["resource"]).json()
-
-
-def test_next_pose_on_a_rig_names_the_cameras_it_serves(rig_session) -> None:
+@pytest.fixture(scope="module")
+def planned(rig_session) -> dict:
+    """The next pose after four poses (and the refusal after two on the way)."""
     c, sid = rig_session
     poses = SimulatorTruth.from_config(CONFIG).screen_poses(4, seed=3)
     for pose in poses[:2]:
@@ -40,7 +45,26 @@ def test_next_pose_on_a_rig_names_the_cameras_it_serves(rig_session) -> None:
         _capture(c, sid, pose)
     r = c.get(f"/sessions/{sid}/next-pose", params={"model": "opencv5"})
     assert r.status_code == 200, r.text
-    out = r.json()
+    return r.json()
+
+
+def _capture(c: TestClient, sid: str, pose: dict) -> dict:
+    job = finished(c, c.post(f"/sessions/{sid}/poses", json={"screen_pose": pose}).json()["id"])
+    assert job["status"] == "succeeded", job["error"]
+    return c.get(job["resource"]).json()
+
+
+def _in_image(outline: list, size: tuple[int, int]) -> float:
+    """Pixels of the image inside the outline (its corners may reach past the edge)."""
+    w, h = size
+    frame = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float32)
+    hull = cv2.convexHull(np.asarray(outline, np.float32))
+    return float(cv2.intersectConvexConvex(hull, frame)[0])
+
+
+def test_next_pose_on_a_rig_names_the_cameras_it_serves(rig_session, planned) -> None:
+    c, sid = rig_session
+    out = planned
     assert [cam["camera"] for cam in out["cameras"]] == ["left", "right"]
     assert out["shared_views"] == [{"cameras": ["left", "right"], "views": 4}]
     assert out["weakly_tied"] == [] and out["serves"]
@@ -48,11 +72,38 @@ def test_next_pose_on_a_rig_names_the_cameras_it_serves(rig_session) -> None:
         sigma = cam["predicted_worst_ray_sigma_urad"]
         assert sigma["now"] > 0 and cam["views"] == 4
         assert cam["serves"] == (cam["camera"] in out["serves"])
+        assert (cam["outline_px"] is not None) == cam["serves"]
         if cam["serves"]:
             assert sigma["after"] < sigma["now"]
+            assert len(cam["outline_px"]) == 4
+            assert _in_image(cam["outline_px"], SIZES[cam["camera"]]) > 0.1 * np.prod(
+                SIZES[cam["camera"]])
     rig_worst = max(cam["predicted_worst_ray_sigma_urad"]["now"] for cam in out["cameras"])
     assert out["predicted_worst_ray_sigma_urad"]["now"] == pytest.approx(rig_worst)
     captured = _capture(c, sid, out["screen_pose"])
     valid = {cam["name"]: cam.get("valid_pixels", 0) for cam in captured["cameras"]}
-    for name in out["serves"]:
-        assert valid[name] > 200, (name, valid)
+    for cam in out["cameras"]:
+        if cam["serves"]:  # the camera decodes the screen where its outline put it
+            inside = _in_image(cam["outline_px"], SIZES[cam["camera"]])
+            assert 0.8 * inside < valid[cam["camera"]] < 1.1 * inside, (cam, valid)
+
+
+def test_rig_next_pose_pictures_one_per_camera(rig_session, planned) -> None:
+    c, sid = rig_session
+    key = planned["key"]
+    pictures = []
+    for cam in planned["cameras"]:
+        assert cam["image"] == f"/sessions/{sid}/next-pose.png?camera={cam['camera']}&key={key}"
+        r = c.get(cam["image"])
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
+        assert "immutable" in r.headers["cache-control"]
+        img = np.asarray(Image.open(io.BytesIO(r.content)).convert("RGB"), dtype=float)
+        assert img.shape[0] > 200 and img.std() > 20
+        pictures.append(img)
+    assert not np.array_equal(*pictures[:2])  # each camera its own map and title
+    for query, named in (({"camera": "middle", "key": key}, "left, right"),
+                         ({"key": key}, "left, right"),
+                         ({"camera": "left", "key": "0123456789abcdef"}, "no next-pose plan")):
+        r = c.get(f"/sessions/{sid}/next-pose.png", params=query)
+        assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json"
+        assert named in r.json()["detail"], r.text
