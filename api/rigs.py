@@ -47,14 +47,24 @@ class RigHandle:
         """The simulator-only controls of a simulated rig, else None."""
         return self.rig.simulated
 
-    def move_screen(self, screen_pose: dict[str, Any]) -> None:
-        """Place the simulated screen (`rvec`, `tvec_mm`); 409 on a real rig, where a person
-        or robot moves it."""
+    def placeable(self) -> Any:
+        """The simulated rig whose screen a request may place: 409 on a real rig, where a
+        person or robot moves it, and on a simulated one whose view follows its mover."""
         sim = self.simulated
         if sim is None:
             raise Problem(409, "not-simulated", f"rig {self.rig_id} is not simulated: move the "
                           "screen physically and capture without screen_pose")
+        if sim.handeye is not None:  # a placed screen would not be where the mover says
+            carried = "camera" if sim.handeye.mount == "eye-in-hand" else "screen"
+            raise Problem(409, "view-follows-mover",
+                          f"rig {self.rig_id} carries its {carried} on its mover, so the view "
+                          "follows the mover: move the mover (an automatic run, POST "
+                          "/sessions/{id}/auto) and capture without screen_pose")
+        return sim
 
+    def move_screen(self, screen_pose: dict[str, Any]) -> None:
+        """Place the simulated screen (`rvec`, `tvec_mm`); 409 where `placeable` refuses."""
+        sim = self.placeable()
         rot, _ = cv2.Rodrigues(np.asarray(screen_pose["rvec"], np.float64))
         sim.set_pose(rot, np.asarray(screen_pose["tvec_mm"], np.float64))
 

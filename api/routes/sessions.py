@@ -122,9 +122,8 @@ def capture_pose(session_id: str, svc: Svc, body: CaptureRequest | None = None) 
     if rig_id is None:
         raise Problem(409, "no-rig", f"session {session_id} has no rig; import frames instead")
     screen_pose = body.screen_pose.model_dump() if body and body.screen_pose else None
-    if screen_pose is not None and svc.rigs.handle(rig_id).simulated is None:
-        raise Problem(409, "not-simulated",
-                      f"rig {rig_id} is not simulated: screen_pose moves only a simulated screen")
+    if screen_pose is not None:
+        svc.rigs.handle(rig_id).placeable()  # 409 on hardware, or where the mover holds the view
     job = CaptureJob(svc=svc, session_id=session_id, pose_id=new_id("pose"), rig_id=rig_id,
                      plan=plan_from_dict(plan_data, f"session {session_id} plan"),
                      screen_pose=screen_pose, noise_dn=body.noise_dn if body else None)

@@ -136,9 +136,9 @@ async function openSession(id) {
   const rigName = state.rig ? `${state.rig.name} (${state.rig.simulated ? "simulated" : "hardware"})`
     : "the server's rig";
   $("#session-title").textContent = `Session ${s.name || ""} (${id}) on ${rigName}`;
-  const simulated = !!(state.rig && state.rig.simulated);
-  $("#starting-btn").hidden = !simulated;
-  $("#use-suggestion-label").hidden = !simulated;
+  const places = placesScreen(state.rig);
+  $("#starting-btn").hidden = !places;
+  $("#use-suggestion-label").hidden = !places;
   showSimHint();
   if (state.rig) showCameras(state.rig);
   showRigModels();
@@ -325,6 +325,10 @@ async function captureClicked() {
 }
 
 // --- starting poses and pose variety -------------------------------------------------------
+// The page places the screen itself only on a simulated rig without a mover: with one, the
+// view follows the robot (the automatic run moves it), as on hardware.
+function placesScreen(rig) { return !!(rig && rig.simulated && !hasMover(rig)); }
+
 async function loadStarting() {
   const list = $("#starting-list");
   try {
@@ -341,17 +345,22 @@ async function loadStarting() {
     tell("starting-feedback", "error", explain(e), e);
     return;
   }
-  const simulated = state.rig && state.rig.simulated;
+  const places = placesScreen(state.rig);
   const open = state.starting.filter((p) => !p.captured_by);
   $("#starting-btn").textContent = !open.length ? "All starting poses captured"
     : open.length === state.starting.length ? `Capture the ${state.starting.length} starting poses`
       : `Capture the ${open.length} remaining starting poses`;
   $("#starting-btn").disabled = state.busy || open.length === 0;
-  $("#starting-text").textContent = simulated
+  $("#starting-text").textContent = places
     ? "A calibration needs the screen seen from varied places. On the simulated rig the page " +
       "moves the screen through this varied set for you: capture them all, or one by one."
-    : "A calibration needs the screen seen from varied places. Put the screen where each " +
-      "line says (the dashed outline on the camera preview shows it), then press Capture.";
+    : hasMover(state.rig)
+      ? "A calibration needs the screen seen from varied places. This rig's robot carries the " +
+        "camera or the screen: the automatic run below moves it through varied poses and " +
+        "captures them. Or move the robot so the screen lies where a line's outline shows, " +
+        "then press Capture."
+      : "A calibration needs the screen seen from varied places. Put the screen where each " +
+        "line says (the dashed outline on the camera preview shows it), then press Capture.";
   if (state.assumedCamera) {
     $("#starting-text").append(el("span", { class: "explain", title: "what the plan assumed about the camera" },
       ` Planned for ${state.assumedCamera.assumed}.`));
@@ -359,14 +368,14 @@ async function loadStarting() {
   list.replaceChildren(...state.starting.map((p, i) => {
     const done = p.captured_by
       ? el("span", { class: "ok" }, ` captured (${p.captured_by})`)
-      : simulated
+      : places
         ? el("button", { class: "capture-one", disabled: state.busy,
                          onclick: act("starting-feedback", () => captureAt(p.screen_pose, `Starting pose ${i + 1}`, "starting-feedback")) },
              "capture this one")
         : el("button", { onclick: () => outlineOnCameras(p.outline_px, `starting pose ${i + 1}`) }, "show outline");
     return el("li", { "data-captured": p.captured_by ? "yes" : "no" }, p.placement, " ", done);
   }));
-  if (!simulated && !state.suggestion) {
+  if (!places && !state.suggestion) {
     const next = open[0];
     outlineOnCameras(next ? next.outline_px : null, next ? `starting pose ${state.starting.indexOf(next) + 1}` : "");
   }
@@ -433,9 +442,10 @@ async function loadNextPose() {
     const g = await api("GET", `/sessions/${state.session.id}/next-pose?model=${model}`);
     if (asked !== state.nextPoseAsked) return;
     state.suggestion = g;
-    if (g.cameras) {  // a rig: which cameras the pose serves
+    if (g.cameras) {  // a rig: which cameras the pose serves, and where each sees the screen
       text.replaceChildren(...rigNextPose(g));
       img.hidden = true;
+      for (const c of g.cameras) state.cameras.get(c.camera)?.setOutline(c.outline_px || null, "suggested next pose");
       return;
     }
     const p = g.predicted_worst_ray_sigma_urad;
@@ -529,7 +539,6 @@ async function runAuto(ev) {
   let end;
   try { end = await follow(job, PANELS.auto, "Automatic run"); } finally { clearInterval(timer); }
   await Promise.all([loadAutoLog(), refreshSession()]);
-  loadNextPose();  // the run added poses: the old suggestion no longer holds
   if (end.status !== "succeeded") { tell("auto-feedback", "error", explainJob(end)); return; }
   tell("auto-feedback", "ok", "The run ended: its poses are in the table; calibrate them below.");
 }

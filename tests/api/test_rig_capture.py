@@ -109,6 +109,15 @@ def test_a_rig_over_rest_shows_its_mover_and_may_not_name_a_robot_server(service
     shown = c.get(f"/rigs/{rig.json()['id']}").json()["config"]["mover"]
     assert shown["backend"] == "simulated-arm" and shown["timeout_s"] == 20
     assert shown["speed_mm_s"] == 500 and shown["workspace"] is None
+    # the arm carries the camera: the view follows it, so nothing places the screen by hand
+    placed = {"rvec": [0.0, 0.0, 0.0], "tvec_mm": [0.0, 0.0, 400.0]}
+    moved = c.put(f"/rigs/{rig.json()['id']}/screen-pose", json=placed)
+    assert moved.status_code == 409 and moved.json()["type"].endswith("view-follows-mover")
+    assert "carries its camera on its mover" in moved.json()["detail"]
+    sess = c.post("/sessions", json={"rig_id": rig.json()["id"]}).json()
+    refused = c.post(f"/sessions/{sess['id']}/poses", json={"screen_pose": placed})
+    assert refused.status_code == 409 and "automatic run" in refused.json()["detail"]
+    assert c.get(f"/sessions/{sess['id']}/poses").json() == []  # no pose, no job left behind
     http = {**three_camera_rig(), "mover": {"backend": "http", "url": "http://10.0.0.7:8100"}}
     bad = c.post("/rigs", json={"name": "remote", "config": http})
     assert bad.status_code == 422 and bad.json()["field"] == "config.mover.url"

@@ -35,11 +35,17 @@ def test_the_closed_loop_from_the_page(service, browser) -> None:  # noqa: F811
     assert not d.find_element(By.ID, "auto-panel").is_displayed()  # no mover: no panel
     _new_session(d, arm, "arm")
     _wait(d, lambda d: d.find_element(By.ID, "auto-panel").is_displayed())
+    # the arm holds the view: the page offers no screen placing of its own
+    assert not d.find_element(By.ID, "starting-btn").is_displayed()
+    _wait(d, lambda d: "automatic run below" in _text(d, "#starting-text"))
     budget = d.find_element(By.ID, "auto-budget")
     budget.clear()
     budget.send_keys("5")
+    before = _text(d, "#next-pose-text")  # no pose yet: guidance has nothing to plan from
     _click(d, "#auto-btn")
     _feedback(d, "#auto-feedback", "the run ended", 600)
+    # the suggestion is asked for again with the run's poses
+    _wait(d, lambda d: _text(d, "#next-pose-text") not in ("", before), 300)
     log = _text(d, "#auto-log")
     assert "stopped: budget spent" in log or "stopped: target met" in log, log
     assert "worst ray sigma then" in log and "flange at" in log
