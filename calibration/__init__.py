@@ -89,6 +89,7 @@ _EXPORTS = {
     # evaluate and guide
     "plan_next_pose": "guidance",
     "plan_rig_next_pose": "guidance_rig",
+    "RigSuggestion": "guidance_rig",
     "plan_step": "auto_plan",
     "starting_moves": "auto_plan",
     "screen_distance_mm": "auto_plan",
