@@ -49,13 +49,19 @@ export function rigCalibrationBody(box, heldout) {
   return body;
 }
 
-// The next pose's words on a rig: which cameras it serves, each camera's sigma now/after.
+// The next pose on a rig: which cameras it serves, each camera's sigma now/after beside its
+// picture (its ray sigma now with the suggested screen where that camera sees it).
 export function rigNextPose(g) {
   const rows = g.cameras.map((c) => {
     const s = c.predicted_worst_ray_sigma_urad;
-    return el("li", { "data-camera": c.camera, class: c.serves ? "" : "explain" },
-      `${c.camera}: ${c.serves ? "sees it" : "does not see it"}; worst ray sigma ` +
-      `${fmt(s.now, 3)} urad now, ${fmt(s.after, 3)} after`);
+    const words = `${c.camera}: ${c.serves ? "sees it" : "does not see it"}; worst ray sigma ` +
+      `${fmt(s.now, 3)} urad now, ${fmt(s.after, 3)} after` +
+      (c.serves ? " (the dashed outline on its preview shows where)" : "");
+    return el("li", { "data-camera": c.camera, class: `row ${c.serves ? "" : "explain"}` },
+      el("span", { class: "col" }, words),
+      c.image ? el("img", { src: c.image, style: "max-width: min(420px, 100%)",
+                            alt: `predicted ray uncertainty of camera ${c.camera} now` +
+                                 (c.serves ? ", with the suggested screen" : "") }) : null);
   });
   const shared = g.shared_views.map((p) => `${p.cameras.join("+")}: ${p.views}`).join(", ");
   return [

@@ -1,7 +1,8 @@
 """The operator page on a session of two simulated cameras, in headless Chromium (Debian
 chromium + chromium-driver through selenium, as the single-camera page test): the starting
 poses captured from the page, each camera's status, valid pixels and maps per pose, the next
-pose naming the cameras it serves, "Calibrate rig" (an error beside it first, with no poses),
+pose naming the cameras it serves with a picture per camera and its outline drawn over each
+served camera's preview, "Calibrate rig" (an error beside it first, with no poses),
 the extrinsics with their sigma, and the opencv-stereo download read back by OpenCV.
 Screenshots at 1400 and 800 px go to test-artifacts/web/ (rig-*.png)."""
 
@@ -93,6 +94,16 @@ def loaded(driver: Any, css: str) -> bool:
         "return !!i && i.complete && i.naturalWidth > 0;", css))
 
 
+def outline_pixels(driver: Any, camera: str) -> int:
+    """Pixels of the suggested screen's outline (the overlay's yellow) over a camera's preview."""
+    return int(driver.execute_script(
+        "const c = document.querySelector(`figure.camera[data-camera=${arguments[0]}] canvas`);"
+        "const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0;"
+        "for (let i = 0; i < d.length; i += 4) {"
+        "  if (d[i + 3] > 128 && d[i] > 200 && d[i + 1] > 150 && d[i + 2] < 90) n++; }"
+        "return n;", camera))
+
+
 def shots(driver: Any, name: str) -> None:
     """Full-page screenshots at 1400 and 800 px; none may be blank."""
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
@@ -147,6 +158,11 @@ def test_rig_session_from_the_page(service, browser) -> None:
     served = text(d, "#next-pose-serves").split(":", 1)[1]
     assert {s.strip() for s in served.split(",")} <= {"left", "right"}
     assert len(d.find_elements(By.CSS_SELECTOR, ".rig-next li")) == 2
+    for cam in ("left", "right"):  # each camera's picture beside its line
+        wait(d, lambda d, cam=cam: loaded(d, f".rig-next li[data-camera={cam}] img"), 60)
+    for cam in ("left", "right"):  # the screen's outline over each preview that sees it
+        drawn = outline_pixels(d, cam)
+        assert (drawn > 50) if cam in {s.strip() for s in served.split(",")} else drawn == 0, cam
     shots(d, "1-poses")
 
     click(d, "#calibrate-btn")
