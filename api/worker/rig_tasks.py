@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from calibration import (
+    RigSuggestion,
     calibrate_rig_files,
     plan_rig_next_pose,
     rig_camera_guidance_png,
@@ -50,13 +51,10 @@ def rig_calibrate_task(
     return {"stats": summary, "exports": list(RIG_OUTPUTS)}
 
 
-def rig_guidance_task(plan_path: str, maps: dict[str, dict[str, str]], reference: str,
-                      model: str, out_dir: str, header: dict[str, Any],
-                      min_visible: float = 1.0) -> None:
-    """Plan a rig's next pose from every camera's maps (camera -> pose -> path) and write
-    next-pose.json (`header` plus the suggestion) and a picture per camera (`RIG_PICTURE`:
-    its ray sigma now with the suggested screen where it sees it) into `out_dir`; ValueError
-    when the poses do not support it."""
+def plan_rig_files(plan_path: str, maps: dict[str, dict[str, str]], reference: str,
+                   model: str, min_visible: float = 1.0) -> RigSuggestion:
+    """A rig's next pose from every camera's maps (camera -> view -> path; views named alike
+    are one screen pose); ValueError when the poses do not support it."""
     screen = read_plan(plan_path).screen
     points, sizes = {}, {}
     for cam, views in maps.items():
@@ -64,18 +62,35 @@ def rig_guidance_task(plan_path: str, maps: dict[str, dict[str, str]], reference
         points[cam] = dict(zip(views, session_points(decoded, screen), strict=True))
         h, w = decoded[0].shape
         sizes[cam] = (w, h)
-    sug = plan_rig_next_pose(points, sizes, screen, reference, model, min_visible)
-    out = Path(out_dir)
+    return plan_rig_next_pose(points, sizes, screen, reference, model, min_visible)
+
+
+def write_rig_pictures(sug: RigSuggestion, model: str, out_dir: Path) -> dict[str, Path]:
+    """A picture per camera (`RIG_PICTURE`: its ray sigma now, on the rig's one colour range,
+    with the suggested screen where it sees it) in `out_dir`; camera -> path."""
     span = rig_sigma_range(list(sug.maps_before.values()))
+    written = {}
     for cam in sug.per_camera:
         name = cam["camera"]
         sigma = cam["predicted_worst_ray_sigma_urad"]
         seen = sug.placements.get(name)
         detail = (f"worst {sigma['now']:.3g} urad, {sigma['after']:.3g} after"
                   if seen is not None else f"worst {sigma['now']:.3g} urad")
+        written[name] = out_dir / RIG_PICTURE.format(camera=name)
         rig_camera_guidance_png(
-            sug.maps_before[name], None if seen is None else seen.border_px, sizes[name], span,
-            f"camera {name} ({model}): "
+            sug.maps_before[name], None if seen is None else seen.border_px,
+            sug.image_sizes[name], span, f"camera {name} ({model}): "
             + ("serves the suggested pose" if seen is not None else "does not see it"),
-            detail, out / RIG_PICTURE.format(camera=name))
-    write_json_atomic(out / "next-pose.json", {**header, **sug.to_json()})
+            detail, written[name])
+    return written
+
+
+def rig_guidance_task(plan_path: str, maps: dict[str, dict[str, str]], reference: str,
+                      model: str, out_dir: str, header: dict[str, Any],
+                      min_visible: float = 1.0) -> None:
+    """Plan a rig's next pose from every camera's maps (camera -> pose -> path) and write
+    next-pose.json (`header` plus the suggestion) and a picture per camera into `out_dir`;
+    ValueError when the poses do not support it."""
+    sug = plan_rig_files(plan_path, maps, reference, model, min_visible)
+    write_rig_pictures(sug, model, Path(out_dir))
+    write_json_atomic(Path(out_dir) / "next-pose.json", {**header, **sug.to_json()})

@@ -3,11 +3,13 @@ cameras it serves with each camera's predicted worst ray sigma now and after, co
 views the pair shares, gives each served camera the screen's outline in its pixels and each
 camera a picture, and the suggested pose, captured, is decoded by every camera it names
 where its outline said (checked through the service, the poses placed by the simulator's
-truth)."""
+truth); `phasecal guide` on the same maps as CAMERA/VIEW=PATH answers as the route."""
 
 from __future__ import annotations
 
 import io
+import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,6 +18,7 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from api.app import create_app
+from api.cli import main as cli_main
 from api.config import ServiceConfig
 from hw_mocks.truth import SimulatorTruth
 from tests.api.test_rig_calibration_api import CONFIG, finished
@@ -29,13 +32,13 @@ def rig_session(tmp_path_factory: pytest.TempPathFactory):
     with TestClient(create_app(ServiceConfig(data_dir=data, executor="threads"))) as c:
         rig = c.post("/rigs", json={"name": "pair", "config": CONFIG}).json()
         sess = c.post("/sessions", json={"rig_id": rig["id"], "preset": "fast"}).json()
-        yield c, sess["id"]
+        yield c, sess["id"], data
 
 
 @pytest.fixture(scope="module")
 def planned(rig_session) -> dict:
     """The next pose after four poses (and the refusal after two on the way)."""
-    c, sid = rig_session
+    c, sid, _ = rig_session
     poses = SimulatorTruth.from_config(CONFIG).screen_poses(4, seed=3)
     for pose in poses[:2]:
         _capture(c, sid, pose)
@@ -63,7 +66,7 @@ def _in_image(outline: list, size: tuple[int, int]) -> float:
 
 
 def test_next_pose_on_a_rig_names_the_cameras_it_serves(rig_session, planned) -> None:
-    c, sid = rig_session
+    c, sid, _ = rig_session
     out = planned
     assert [cam["camera"] for cam in out["cameras"]] == ["left", "right"]
     assert out["shared_views"] == [{"cameras": ["left", "right"], "views": 4}]
@@ -89,7 +92,7 @@ def test_next_pose_on_a_rig_names_the_cameras_it_serves(rig_session, planned) ->
 
 
 def test_rig_next_pose_pictures_one_per_camera(rig_session, planned) -> None:
-    c, sid = rig_session
+    c, sid, _ = rig_session
     key = planned["key"]
     pictures = []
     for cam in planned["cameras"]:
@@ -107,3 +110,24 @@ def test_rig_next_pose_pictures_one_per_camera(rig_session, planned) -> None:
         r = c.get(f"/sessions/{sid}/next-pose.png", params=query)
         assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json"
         assert named in r.json()["detail"], r.text
+
+
+def test_the_guide_command_plans_a_rig_as_the_route(rig_session, planned, tmp_path: Path
+                                                     ) -> None:
+    _, sid, data = rig_session
+    maps = [f"{cam}/{pid}={data / 'poses' / pid / 'cameras' / cam / 'maps.npz'}"
+            for pid in planned["poses_used"] for cam in SIZES]
+    plan = str(data / "sessions" / sid / "plan.json")
+    out, pictures = tmp_path / "guide.json", tmp_path / "pictures"
+    assert cli_main(["guide", "--plan", plan, "--maps", *maps, "--model", "opencv5",
+                     "--png-dir", str(pictures), "-o", str(out)]) == 0
+    body = json.loads(out.read_text())["next_pose"]
+    assert body["serves"] == planned["serves"] and body["reference"] == "left"
+    assert body["screen_pose"]["tvec_mm"] == pytest.approx(planned["screen_pose"]["tvec_mm"])
+    for cam, route in zip(body["cameras"], planned["cameras"], strict=True):
+        assert cam["outline_px"] == route["outline_px"]
+        assert Path(cam["image"]) == pictures / f"next-pose-{cam['camera']}.png"
+        assert Path(cam["image"]).read_bytes()[:4] == b"\x89PNG"
+    for wrong in (["--image", str(tmp_path / "n.png")], ["--reference", "middle"]):
+        assert cli_main(["guide", "--plan", plan, "--maps", *maps, *wrong]) == 1
+    assert cli_main(["guide", "--plan", plan, "--maps", *maps[:4]]) == 1  # 2 poses a camera
