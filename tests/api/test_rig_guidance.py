@@ -104,6 +104,10 @@ def test_rig_next_pose_pictures_one_per_camera(rig_session, planned) -> None:
         assert img.shape[0] > 200 and img.std() > 20
         pictures.append(img)
     assert not np.array_equal(*pictures[:2])  # each camera its own map and title
+    current = c.get(f"/sessions/{sid}/next-pose.png", params={"camera": "right",
+                                                              "model": "opencv5"})
+    assert current.status_code == 200 and current.headers["cache-control"] == "no-cache"
+    assert current.content[:4] == b"\x89PNG"
     for query, named in (({"camera": "middle", "key": key}, "left, right"),
                          ({"key": key}, "left, right"),
                          ({"camera": "left", "key": "0123456789abcdef"}, "no next-pose plan")):
