@@ -302,6 +302,8 @@ async function captureAt(screenPose, label, feedbackId, planNext = true) {
     tell(feedbackId, "error", explainJob(end));
     return false;
   }
+  // a refusal to calibrate (too few poses) said before this pose no longer holds
+  if ($("#calibrate-feedback").classList.contains("error")) clear("calibrate-feedback");
   const pose = (end.resource || "").split("/").pop();
   const rec = state.poses.find((p) => p.id === pose);
   const repeat = state.variety && state.variety.duplicates.find((d) => d.pose_id === pose);

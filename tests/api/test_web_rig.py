@@ -145,6 +145,8 @@ def test_rig_session_from_the_page(service, browser) -> None:
     wait(d, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#starting-list li")) >= 3)
     click(d, "#starting-btn")
     wait(d, lambda d: "starting poses captured" in text(d, "#starting-feedback"), 600)
+    # the refusal said before the poses no longer stands beside the button
+    assert "no ready poses" not in text(d, "#calibrate-feedback").lower()
     rows = d.find_elements(By.CSS_SELECTOR, "#poses tbody tr")
     assert len(rows) >= 3
     for row in rows:
