@@ -14,10 +14,9 @@ from acquisition.patterns import build_plan
 from api.cli import main
 from calibration.mrcal_io import read_cameramodel_with_extrinsics
 from calibration.shared.maps import save_maps
-from calibration.shared.observations import save_observations
 from calibration.shared.plan import write_plan
-from hw_mocks.rig_truth import grid_points, shared_views, view_maps, view_observations
-from tests.calibration.rig.conftest import two_pinholes
+from hw_mocks.rig_truth import shared_views, view_maps
+from tests.calibration.rig.conftest import board_view_files, two_pinholes
 from tests.calibration.test_exports import SYSTEM_PYTHON, needs_mrcal
 
 VIEWS = 5
@@ -139,14 +138,7 @@ def test_rig_from_target_observations_needs_no_plan(tmp_path, capsys) -> None:
     truth = two_pinholes()
     rng = np.random.default_rng(4)
     screen = build_plan(640, 400, 0.5).screen
-    board = grid_points(screen, 9, 6)
-    inputs = []
-    for k, (group, view) in enumerate(shared_views(truth, screen, [("A", "B")], 4, rng)):
-        for cam in group:
-            path = tmp_path / f"{cam}{k}.npz"
-            save_observations(view_observations(truth, cam, view, board, sigma_px=0.1,
-                                                rng=rng), path)
-            inputs.append(f"{cam}/v{k}={path}")
+    inputs = board_view_files(tmp_path, truth, screen, 4, rng, grid=(9, 6))
     out = tmp_path / "rig.json"
     assert main(["calibrate", "--observations", *inputs, "--model", "opencv5",
                  "--heldout-view", "v3", "-o", str(out)]) == 0

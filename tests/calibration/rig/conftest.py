@@ -4,6 +4,7 @@ and the fits of them, each fitted once per test session."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,9 +12,17 @@ import pytest
 from calibration.fit.rig.calibrate import calibrate_rig
 from calibration.fit.rig.inputs import RigInput
 from calibration.fit.rig.result import RigResult
+from calibration.shared.observations import save_observations
 from calibration.shared.plan import ScreenGeometry
 from hw_mocks.cameras import mild_pinhole
-from hw_mocks.rig_truth import RigTruth, camera_at, shared_views, view_maps
+from hw_mocks.rig_truth import (
+    RigTruth,
+    camera_at,
+    grid_points,
+    shared_views,
+    view_maps,
+    view_observations,
+)
 
 SCREEN = ScreenGeometry(640, 400, (0.5, 0.5))
 
@@ -31,6 +40,22 @@ def two_pinholes() -> RigTruth:
     rb, tb = camera_at((150.0, 0.0, 0.0), yaw_deg=-6.0)
     return RigTruth({"A": mild_pinhole(320, 240), "B": mild_pinhole(320, 240)},
                     {"A": ra, "B": rb}, {"A": ta, "B": tb})
+
+
+def board_view_files(folder: Path, truth: RigTruth, screen: ScreenGeometry, views: int,
+                     rng: np.random.Generator, grid: tuple[int, int] = (11, 8)) -> list[str]:
+    """`CAMERA/VIEW=PATH` arguments of `phasecal calibrate --observations`: A and B see
+    `views` shared views of a board's `grid` of corners on `screen` (0.1 px noise), one
+    observations file per camera and view, named `v0`, `v1`, ..."""
+    board = grid_points(screen, *grid)
+    inputs = []
+    for k, (group, view) in enumerate(shared_views(truth, screen, [("A", "B")], views, rng)):
+        for cam in group:
+            path = folder / f"{cam}{k}.npz"
+            save_observations(view_observations(truth, cam, view, board, sigma_px=0.1,
+                                                rng=rng), path)
+            inputs.append(f"{cam}/v{k}={path}")
+    return inputs
 
 
 @pytest.fixture(scope="session")

@@ -9,9 +9,7 @@ import json
 import numpy as np
 
 from api.cli import main
-from calibration.shared.observations import save_observations
-from hw_mocks.rig_truth import grid_points, shared_views, view_observations
-from tests.calibration.rig.conftest import SCREEN, two_pinholes
+from tests.calibration.rig.conftest import SCREEN, board_view_files, two_pinholes
 
 VIEWS = 6
 
@@ -19,14 +17,7 @@ VIEWS = 6
 def test_sgcc_camera_from_observations_through_the_cli(tmp_path, capsys) -> None:
     truth = two_pinholes()
     rng = np.random.default_rng(21)
-    board = grid_points(SCREEN, 11, 8)
-    inputs = []
-    for k, (group, view) in enumerate(shared_views(truth, SCREEN, [("A", "B")], VIEWS, rng)):
-        for cam in group:
-            path = tmp_path / f"{cam}{k}.npz"
-            save_observations(view_observations(truth, cam, view, board, sigma_px=0.1,
-                                                rng=rng), path)
-            inputs.append(f"{cam}/v{k}={path}")
+    inputs = board_view_files(tmp_path, truth, SCREEN, VIEWS, rng)
     out = tmp_path / "rig.json"
     assert main(["calibrate", "--observations", *inputs, "--model", "opencv5",
                  "--model", "B=sgcc", "--heldout-view", f"v{VIEWS - 1}", "-o", str(out)]) == 0
