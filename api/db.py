@@ -115,6 +115,25 @@ class TargetCalibrationRecord(Base):
     created_at: Mapped[float] = mapped_column(Float, default=time.time)
 
 
+class TargetRigCalibrationRecord(Base):
+    """A rig calibration from target sessions, one per camera, their views paired across
+    cameras by shot name (api/routes/target_rig.py); its folder holds rig.json."""
+
+    __tablename__ = "target_rig_calibrations"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    # camera -> {"session_id": ..., "views": {shot: view id}}
+    cameras: Mapped[dict[str, Any]] = mapped_column(JSON)
+    heldout_shots: Mapped[list[str]] = mapped_column(JSON, default=list)
+    reference: Mapped[str] = mapped_column(String(64))
+    camera_models: Mapped[dict[str, str]] = mapped_column(JSON)
+    options: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    status: Mapped[str] = mapped_column(String(16))
+    job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    stats: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    error: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    created_at: Mapped[float] = mapped_column(Float, default=time.time)
+
+
 class JobRecord(Base):
     """A long operation: capture, decode or calibrate, with progress and outcome."""
 
