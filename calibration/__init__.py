@@ -73,6 +73,7 @@ _EXPORTS = {
     "RigResult": "fit.rig.result",
     "calibrate_rig": "fit.rig.calibrate",
     "calibrate_rig_files": "fit.rig.files",
+    "check_connected": "fit.rig.graph",
     "RigModel": "shared.rig_model",
     "RigCamera": "shared.rig_model",
     "RigModelError": "shared.rig_model",
