@@ -21,10 +21,12 @@ from api.db import (
     PoseRecord,
     SessionRecord,
     TargetCalibrationRecord,
+    TargetRigCalibrationRecord,
     TargetSessionRecord,
     TargetViewRecord,
 )
 from api.jobs.model import ACTIVE_JOB_STATES
+from api.jobs.target_rig import used_view_ids
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, get_pose, get_session
 from api.services import Services, get_services
@@ -53,6 +55,17 @@ def _used_by_active_calibration(s: Any, session_id: str, pose_ids: set[str], wha
         if used:
             raise Problem(409, "job-active", f"{what}: pose {sorted(used)[0]} is read by "
                           f"calibration {c.id} ({c.status}, job {c.job_id})", job_id=c.job_id)
+
+
+def _read_by_active_target_rig(s: Any, view_ids: set[str], what: str) -> None:
+    """409 if a queued/running rig calibration from target sessions reads one of `view_ids`."""
+    for c in s.scalars(select(TargetRigCalibrationRecord).where(
+            TargetRigCalibrationRecord.status.in_(ACTIVE_JOB_STATES))):
+        used = view_ids & used_view_ids(c)
+        if used:
+            raise Problem(409, "job-active", f"{what}: view {sorted(used)[0]} is read by "
+                          f"rig calibration {c.id} ({c.status}, job {c.job_id})",
+                          job_id=c.job_id)
 
 
 def _remove_folders(svc: Services, ids: list[str]) -> None:
@@ -131,8 +144,8 @@ def _target_session(s: Any, session_id: str) -> TargetSessionRecord:
                response_class=Response)
 def delete_target_view(session_id: str, view_id: str, svc: Svc) -> Response:
     """Delete a view of a target session (record and observations file); 409 while a
-    hand-eye job of the session reads the views. Calibrations made from it stay: they hold
-    their own model and statistics."""
+    hand-eye job of the session or a rig calibration's job reads the views. Calibrations
+    made from it stay: they hold their own model and statistics."""
     check_id(view_id, "pose", "view")
 
     def forget() -> None:
@@ -143,6 +156,7 @@ def delete_target_view(session_id: str, view_id: str, svc: Svc) -> Response:
                 raise Problem(404, "not-found",
                               f"view {view_id!r} does not exist in target session {session_id}")
             _busy(s, [f"{session_id}:handeye"], f"view {view_id}")
+            _read_by_active_target_rig(s, {view_id}, f"view {view_id}")
             s.delete(view)
 
     svc.space.retrying(forget)
@@ -174,12 +188,17 @@ def delete_target_calibration(session_id: str, cal_id: str, svc: Svc) -> Respons
 @router.delete("/target-sessions/{session_id}", status_code=204, response_class=Response)
 def delete_target_session(session_id: str, svc: Svc) -> Response:
     """Delete a target session with its views, calibrations and hand-eye result; 409 while a
-    hand-eye job of the session runs."""
+    hand-eye job of the session or a rig calibration's job reading its views runs. Rig
+    calibrations made from it and other sessions stay (they hold their own rig model)."""
 
     def forget() -> list[str]:
         with svc.db.claim_session() as s:
             _target_session(s, session_id)
             _busy(s, [f"{session_id}:handeye"], f"target session {session_id}")
+            _read_by_active_target_rig(
+                s, set(s.scalars(select(TargetViewRecord.id).where(
+                    TargetViewRecord.session_id == session_id))),
+                f"target session {session_id}")
             cal_ids = list(s.scalars(select(TargetCalibrationRecord.id).where(
                 TargetCalibrationRecord.session_id == session_id)))
             s.execute(delete(TargetCalibrationRecord)
@@ -189,4 +208,24 @@ def delete_target_session(session_id: str, svc: Svc) -> Response:
         return cal_ids
 
     _remove_folders(svc, [*svc.space.retrying(forget), session_id])
+    return Response(status_code=204)
+
+
+@router.delete("/target-rig-calibrations/{cal_id}", status_code=204, response_class=Response)
+def delete_target_rig_calibration(cal_id: str, svc: Svc) -> Response:
+    """Delete a rig calibration from target sessions (record and rig model); 409 while its
+    job runs. The sessions and views it read stay."""
+    check_id(cal_id, "cal", "calibration")
+
+    def forget() -> None:
+        with svc.db.claim_session() as s:
+            cal = s.get(TargetRigCalibrationRecord, cal_id)
+            if cal is None:
+                raise Problem(404, "not-found",
+                              f"target rig calibration {cal_id!r} does not exist")
+            _busy(s, [cal_id], f"calibration {cal_id}")
+            s.delete(cal)
+
+    svc.space.retrying(forget)
+    _remove_folders(svc, [cal_id])
     return Response(status_code=204)

@@ -28,11 +28,12 @@ RIG_PICTURE = "next-pose-{camera}.png"  # one per camera, next to the plan's nex
 
 
 def rig_calibrate_task(
-    ctx: TaskContext, plan_path: str, entries: list[tuple[str, str, str, str]],
+    ctx: TaskContext, plan_path: str | None, entries: list[tuple[str, str, str, str]],
     models: dict[str, str], out_dir: str, *, options: dict[str, Any] | None = None,
     heldout_views: list[str] | None = None, reference: str | None = None,
 ) -> dict[str, Any]:
-    """Fit the rig to (camera, view, "maps", path) entries; the summary the job stores."""
+    """Fit the rig to (camera, view, "maps" | "observations", path) entries (the plan only
+    for maps); the summary the job stores."""
     rig_opts, model_opts = split_rig_options(options)
     result = calibrate_rig_files(
         plan_path, entries, models, reference=reference, options=rig_opts,

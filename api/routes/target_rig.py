@@ -1,0 +1,243 @@
+"""Rig calibrations from target sessions: one target session per camera (each its own image
+size, the same board), views paired across cameras by shot name, every camera fitted jointly
+as a job; the rig model (phasecal.rig/1) and its exports as a screen session's rig offers."""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Query
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, Field
+
+from api.db import TargetRigCalibrationRecord, TargetSessionRecord, TargetViewRecord
+from api.jobs.target_rig import TargetRigCalibrateJob
+from api.problems import Problem
+from api.routes.common import PROBLEM_RESPONSES, accepted
+from api.routes.rig_calibrations import INFO_HEADER, RigFormat
+from api.schemas import IdStr, ModelName, strict_config
+from api.services import Services, get_services
+from api.store import check_id, new_id
+from calibration import (
+    FILE_NAMES,
+    MEDIA_TYPES,
+    RIG_FILE_NAMES,
+    RIG_MEDIA_TYPES,
+    ExportOptions,
+    ModelError,
+    RigModel,
+    RigOptions,
+    check_connected,
+    load_rig,
+    model_spec,
+    rig_export_bytes,
+    split_rig_options,
+)
+
+router = APIRouter(tags=["target sessions"], responses=PROBLEM_RESPONSES)
+Svc = Annotated[Services, Depends(get_services)]
+MAX_SHOTS = 2000
+
+
+class TargetRigCamera(BaseModel):
+    """One camera of the rig: its target session and its views, each named by its shot."""
+
+    model_config = strict_config()
+    session_id: IdStr
+    views: dict[IdStr, IdStr] = Field(max_length=MAX_SHOTS, description=(
+        "shot name -> view id of this session; views of one shot name are one board "
+        "placement the cameras saw at once"))
+
+
+class TargetRigCalibrationCreate(BaseModel):
+    """Calibrate several cameras jointly from board observations (docs/rigs.md)."""
+
+    model_config = strict_config({
+        "cameras": {"left": {"session_id": "ses_…", "views": {"shot1": "pose_…"}},
+                    "right": {"session_id": "ses_…", "views": {"shot1": "pose_…"}}},
+        "reference": "left", "model": "opencv5", "camera_models": {"right": "sgcc"},
+        "heldout_shots": []})
+    cameras: dict[IdStr, TargetRigCamera] = Field(max_length=64)
+    reference: IdStr | None = Field(default=None, description="default: the first camera")
+    model: ModelName = Field(description="every camera's model unless camera_models names one")
+    camera_models: dict[IdStr, ModelName] = Field(default_factory=dict, max_length=64)
+    heldout_shots: list[IdStr] = Field(default_factory=list, max_length=MAX_SHOTS)
+    options: dict[IdStr, Any] = Field(
+        default_factory=dict, max_length=64,
+        description="the joint fit's options (max_points_per_view, outlier_sigmas, "
+                    "max_iterations, seed) and every camera's model options")
+
+
+class TargetRigCalibration(BaseModel):
+    """A rig calibration from target sessions: its inputs, status and statistics."""
+
+    id: str
+    cameras: dict[str, Any]
+    reference: str
+    camera_models: dict[str, str]
+    heldout_shots: list[str]
+    options: dict[str, Any]
+    status: str
+    job_id: str | None
+    stats: dict[str, Any] | None
+    error: str | None
+    created_at: float
+
+
+def _invalid(field: str, detail: str) -> Problem:
+    return Problem(422, "validation-error", f"{field}: {detail}", field=field)
+
+
+def _check_sessions(s: Any, body: TargetRigCalibrationCreate) -> None:
+    """Every camera's session exists, is no other camera's, holds its views and shows the
+    same target as the others; 422 naming the field otherwise."""
+    owner: dict[str, str] = {}
+    targets: dict[str, str] = {}
+    for cam, spec in body.cameras.items():
+        field = f"cameras.{cam}.session_id"
+        rec = s.get(TargetSessionRecord, spec.session_id)
+        if rec is None:
+            raise _invalid(field, f"target session {spec.session_id!r} does not exist")
+        if spec.session_id in owner:
+            raise _invalid(field, f"target session {spec.session_id} is also camera "
+                           f"{owner[spec.session_id]}'s; each camera has its own session")
+        owner[spec.session_id] = cam
+        targets[cam] = rec.target
+        if len(set(spec.views.values())) != len(spec.views):
+            raise _invalid(f"cameras.{cam}.views", "a view is named by two shots")
+        for shot, vid in spec.views.items():
+            view = s.get(TargetViewRecord, vid)
+            if view is None or view.session_id != spec.session_id:
+                raise _invalid(f"cameras.{cam}.views.{shot}",
+                               f"view {vid!r} is not a view of target session {spec.session_id}")
+    first = next(iter(targets))
+    for cam, target in targets.items():
+        if target != targets[first]:
+            raise _invalid(f"cameras.{cam}.session_id", f"its target {target!r} is not camera "
+                           f"{first}'s {targets[first]!r}; a rig's cameras see one board")
+
+
+def _check_fit(body: TargetRigCalibrationCreate, models: dict[str, str]) -> None:
+    """Shots, models and options the joint fit can use; 422 naming the field otherwise."""
+    shots = {shot for spec in body.cameras.values() for shot in spec.views}
+    unknown = sorted(set(body.heldout_shots) - shots)
+    if unknown:
+        raise _invalid("heldout_shots", f"{unknown[:5]} are no camera's shots")
+    held = set(body.heldout_shots)
+    training = {cam: set(spec.views) - held for cam, spec in body.cameras.items()}
+    for cam, name in models.items():
+        need, got = model_spec(name).min_poses, len(training[cam])
+        if got < need:
+            raise _invalid(f"cameras.{cam}.views", f"camera {cam} ({name}) needs >= {need} "
+                           f"training views, got {got}")
+    try:
+        check_connected(training)
+    except ValueError as exc:
+        raise _invalid("cameras", str(exc).removeprefix("cameras: ")) from None
+    rig_opts, model_opts = split_rig_options(body.options)
+    try:
+        RigOptions.model_validate(rig_opts)
+        for name in sorted(set(models.values())):
+            model_spec(name).parse_options(model_opts)
+    except ValueError as exc:  # pydantic's ValidationError included
+        raise _invalid("options", str(exc).splitlines()[0]) from None
+
+
+@router.post("/target-rig-calibrations", status_code=202, response_model=None,
+             responses={202: {"description": "rig calibration job accepted; Location: /jobs/<id>"}})
+def create_target_rig_calibration(body: TargetRigCalibrationCreate, svc: Svc) -> JSONResponse:
+    """Fit every camera's board observations jointly: one target session per camera, views
+    of one shot name seen at once; the result is a rig model (phasecal.rig/1)."""
+    cameras = list(body.cameras)
+    if len(cameras) < 2:
+        raise _invalid("cameras", f"a rig needs >= 2 cameras, got {len(cameras)}; calibrate "
+                       "one camera with POST /target-sessions/{id}/calibrations")
+    unknown = sorted(set(body.camera_models) - set(cameras))
+    if unknown:
+        raise _invalid("camera_models", f"{unknown} are not cameras of this rig ({cameras})")
+    reference = body.reference or cameras[0]
+    if reference not in cameras:
+        raise _invalid("reference", f"expected one of {cameras}, got {reference!r}")
+    models = {c: body.camera_models.get(c, body.model) for c in cameras}
+    _check_fit(body, models)
+    spec = {cam: c.model_dump() for cam, c in body.cameras.items()}
+    held = list(dict.fromkeys(body.heldout_shots))
+    cid = new_id("cal")
+    with svc.db.claim_session() as s:
+        _check_sessions(s, body)
+        job = TargetRigCalibrateJob(svc=svc, cal_id=cid, cameras=spec, models=models,
+                                    heldout_shots=held, options=body.options,
+                                    reference=reference)
+        state = svc.jobs.create(s, job)
+        s.add(TargetRigCalibrationRecord(
+            id=cid, cameras=spec, heldout_shots=held, reference=reference,
+            camera_models=models, options=body.options, status="queued", job_id=state.id,
+            created_at=time.time()))
+    return accepted(svc.jobs.start(state.id, job))
+
+
+def _record(svc: Services, cal_id: str) -> TargetRigCalibrationRecord:
+    check_id(cal_id, "cal", "calibration")
+    with svc.db.session() as s:
+        rec = s.get(TargetRigCalibrationRecord, cal_id)
+    if rec is None:
+        raise Problem(404, "not-found", f"target rig calibration {cal_id!r} does not exist")
+    return rec
+
+
+def _fitted_rig(svc: Services, cal_id: str) -> RigModel:
+    """The rig model of a succeeded calibration, or a 404/409 problem saying why not."""
+    rec = _record(svc, cal_id)
+    if rec.status != "succeeded":
+        raise Problem(409, "not-ready", f"calibration {cal_id} is {rec.status}; the rig model "
+                      "exists once it succeeded")
+    return load_rig(svc.store.file(cal_id, "rig.json"))
+
+
+@router.get("/target-rig-calibrations/{cal_id}", response_model=TargetRigCalibration)
+def read_target_rig_calibration(cal_id: str, svc: Svc) -> dict[str, Any]:
+    """The calibration: cameras, shots, status and (once it succeeded) the fit's summary:
+    each camera's extrinsics with their sigma, reduced chi2, held-out shots' scores."""
+    rec = _record(svc, cal_id)
+    return {k: getattr(rec, k) for k in TargetRigCalibration.model_fields}
+
+
+@router.get("/target-rig-calibrations/{cal_id}/rig", response_model=None)
+def read_target_rig(cal_id: str, svc: Svc) -> JSONResponse:
+    """The rig model (phasecal.rig/1): each camera's model and extrinsics with covariance."""
+    return JSONResponse(_fitted_rig(svc, cal_id).to_dict())
+
+
+@router.get("/target-rig-calibrations/{cal_id}/rig/export", response_class=Response,
+            responses={200: {"content": {"application/x-yaml": {}, "text/plain": {},
+                                         "application/octet-stream": {}},
+                             "description": f"the file; {INFO_HEADER}: JSON"}})
+def export_target_rig(
+    cal_id: str, svc: Svc, format: RigFormat,
+    camera: Annotated[str | None, Query(max_length=64,
+                                        description="single-camera formats: the camera")] = None,
+    cameras: Annotated[str | None, Query(max_length=130, description="opencv-stereo, "
+                                         "stereo-remap: the pair A,B (X2 = R X1 + T)")] = None,
+    approximate: Annotated[bool, Query(description="mrcal: spline fit of a fisheye")] = False,
+) -> Response:
+    """One camera in a single-camera format, a camera pair as opencv-stereo or stereo-remap,
+    or every camera's pose as ROS transforms (as /calibrations/{id}/rig/export)."""
+    rig = _fitted_rig(svc, cal_id)
+    pair = None
+    if cameras is not None:
+        names = [c.strip() for c in cameras.split(",")]
+        if len(names) != 2 or not all(names):
+            raise _invalid("cameras", f"expected A,B, got {cameras!r}")
+        pair = (names[0], names[1])
+    try:
+        data, info = rig_export_bytes(rig, format, camera=camera, cameras=pair,
+                                      opts=ExportOptions(approximate=approximate))
+    except ModelError as exc:
+        raise Problem(422, "export-refused", f"format {format}: {exc}") from None
+    name = RIG_FILE_NAMES.get(format) or f"{camera}-{FILE_NAMES[format]}"
+    media = RIG_MEDIA_TYPES.get(format) or MEDIA_TYPES[format]
+    return Response(data, media_type=media, headers={
+        "Content-Disposition": f'attachment; filename="{cal_id}-{name}"',
+        INFO_HEADER: json.dumps(info, separators=(",", ":"))})
