@@ -32,6 +32,7 @@ from api.routes import (
     rig_calibrations,
     rigs,
     sessions,
+    target_rig,
 )
 from api.security import BodyLimitMiddleware, TokenMiddleware, token_matches
 from api.services import Services
@@ -81,6 +82,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         auto,
         observations,
         rig_calibrations,
+        target_rig,
         reports,
         exports,
         batch,
