@@ -16,6 +16,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from api.cli import main
 from api.config import ServiceConfig
+from api.db import TargetRigCalibrationRecord
 from calibration import rig_from_dict
 from hw_mocks.rig_truth import RigTruth
 from tests.api.test_rig_calibration_api import finished
@@ -23,6 +24,7 @@ from tests.calibration.rig.conftest import SCREEN, board_view_files, two_pinhole
 
 VIEWS = 6
 HELD = f"v{VIEWS - 1}"
+RUNNING = "cal_00000000000000aa"
 
 
 def _upload(c: TestClient, sid: str, path: str) -> str:
@@ -91,6 +93,8 @@ def test_board_rig_over_rest_matches_the_truth_and_the_cli(board_rig) -> None:
                                                      "cameras": "A,B"})
     assert stereo.status_code == 200, stereo.text
     assert json.loads(stereo.headers["Phasecal-Export-Info"])
+    one = c.get(f"{resource}/rig/export", params={"format": "opencv-yaml", "camera": "B"})
+    assert one.status_code == 200 and b"camera_matrix" in one.content
     # the views it read can go; the calibration keeps its rig model
     view = cameras["B"]["views"][HELD]
     assert c.delete(f"/target-sessions/{cameras['B']['session_id']}/views/{view}"
@@ -145,3 +149,20 @@ def test_rig_requests_the_fit_cannot_use_are_refused(board_rig) -> None:
     assert field == "reference"
     field, _ = _refusal(c, {"cameras": {"A": a, "B": b}, "options": {"no_such": 1}})
     assert field == "options"
+
+
+def test_views_a_running_rig_calibration_reads_cannot_be_deleted(board_rig) -> None:
+    c, cameras, _, _, _ = board_rig
+    svc = c.app.state.services
+    with svc.db.session() as s:  # a rig calibration whose job is running
+        s.add(TargetRigCalibrationRecord(
+            id=RUNNING, cameras=cameras, reference="A", status="running",
+            camera_models={"A": "opencv5", "B": "opencv5"}, job_id="job_running"))
+    sid, view = cameras["A"]["session_id"], cameras["A"]["views"]["v0"]
+    r = c.delete(f"/target-sessions/{sid}/views/{view}")
+    assert r.status_code == 409 and f"read by rig calibration {RUNNING}" in r.json()["detail"]
+    assert c.delete(f"/target-sessions/{sid}").status_code == 409
+    assert c.get(f"/target-sessions/{sid}/views/{view}/observations.npz").status_code == 200
+    with svc.db.session() as s:
+        s.get(TargetRigCalibrationRecord, RUNNING).status = "failed"
+    assert c.delete(f"/target-rig-calibrations/{RUNNING}").status_code == 204
