@@ -210,6 +210,34 @@ def get_calibration(cal: str | t.Calibration) -> Op[t.Calibration]:
     return Op("GET", f"/calibrations/{ident(cal)}")
 
 
+def calibrate_target_rig(cameras: Mapping[str, Mapping[str, Any]], model: str,
+                         reference: str | None = None,
+                         camera_models: Mapping[str, str] | None = None,
+                         heldout_shots: list[str] | None = None,
+                         options: dict[str, Any] | None = None) -> Op[t.Job]:
+    """Start a rig calibration from target sessions: `cameras` maps each camera to
+    `{"session_id": ..., "views": {shot: view id}}`; views of one shot are one placement."""
+    body = _drop_none({"cameras": {k: dict(v) for k, v in cameras.items()}, "model": model,
+                       "reference": reference,
+                       "camera_models": None if camera_models is None else dict(camera_models),
+                       "heldout_shots": heldout_shots, "options": options})
+    return Op("POST", "/target-rig-calibrations", json=body)
+
+
+def get_target_rig_calibration(cal: str | Mapping[str, Any]) -> Op[dict[str, Any]]:
+    """A rig calibration from target sessions: its status and, once it succeeded, each
+    camera's extrinsics with their sigma."""
+    return Op("GET", f"/target-rig-calibrations/{ident(cal)}")
+
+
+def export_target_rig(cal: str | Mapping[str, Any], fmt: str, dest: str | Path,
+                      **params: Any) -> Op[dict[str, Any]]:
+    """`GET /target-rig-calibrations/{id}/rig/export` (`camera=` or `cameras="A,B"`) to
+    `dest`; returns the export info."""
+    return Op("GET", f"/target-rig-calibrations/{ident(cal)}/rig/export",
+              params={"format": fmt, **params}, save_to=Path(dest), answer=export_info)
+
+
 def project(cal: str | t.Calibration, points: Iterable[Sequence[float]]) -> Op[dict[str, Any]]:
     """Camera-frame points (mm) -> `{"pixels": ...}` (None rows where unseen)."""
     return Op("POST", f"/calibrations/{ident(cal)}/project",

@@ -9,12 +9,14 @@ import json
 from pathlib import Path
 
 import cv2
+import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.cli import main
+from api.client import PhasecalClient
 from api.config import ServiceConfig
 from api.db import TargetRigCalibrationRecord
 from calibration import rig_from_dict
@@ -166,3 +168,22 @@ def test_views_a_running_rig_calibration_reads_cannot_be_deleted(board_rig) -> N
     with svc.db.session() as s:
         s.get(TargetRigCalibrationRecord, RUNNING).status = "failed"
     assert c.delete(f"/target-rig-calibrations/{RUNNING}").status_code == 204
+
+
+def test_the_python_client_calibrates_a_board_rig(board_rig, tmp_path) -> None:
+    c, cameras, _, _, _ = board_rig
+
+    def through_the_app(request: httpx.Request) -> httpx.Response:
+        r = c.request(request.method, request.url.raw_path.decode(),
+                      content=request.content, headers=dict(request.headers))
+        return httpx.Response(r.status_code, headers=r.headers, content=r.content)
+
+    with PhasecalClient("http://service", transport=httpx.MockTransport(through_the_app)
+                        ) as client:
+        job = client.calibrate_target_rig(cameras, "opencv5", heldout_shots=[HELD])
+        assert finished(c, job["id"])["status"] == "succeeded"
+        cal = client.get_target_rig_calibration(job["resource"].rsplit("/", 1)[1])
+        assert cal["status"] == "succeeded" and cal["heldout_shots"] == [HELD]
+        info = client.export_target_rig(cal, "opencv-stereo", tmp_path / "stereo.yaml",
+                                        cameras="A,B")
+        assert info and (tmp_path / "stereo.yaml").stat().st_size > 0
