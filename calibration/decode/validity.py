@@ -78,23 +78,38 @@ def classify(
     return reason
 
 
+# Rows per band of `mark_screen_edges`: its temporaries (a few bytes per pixel of a band)
+# stay in cache and are reused, not allocated (and page-faulted) for the whole image.
+EDGE_BAND_ROWS = 64
+
+
 def mark_screen_edges(reason: np.ndarray) -> np.ndarray:
     """Pixels next to one that sees no screen straddle the screen's edge: mark them (in place)
     and return their flat indices (they were valid).
 
     `reason` is the (H, W) host array of codes; the footprint of such a pixel covers both
-    the screen and its dark surround, so its decoded point is biased.
+    the screen and its dark surround, so its decoded point is biased. A valid pixel is
+    marked where its 3x3 neighbourhood (cut at the image border) holds a `no_screen`
+    pixel: that set dilated by one pixel, row-wise then column-wise, band by band.
     """
-    sees = reason != REASONS.index("no_screen")
-    padded = np.pad(sees, 1, mode="edge")
-    h, w = sees.shape
-    interior = sees.copy()
-    for dv in range(3):  # 3x3 erosion: 9 shifted views, not a loop over pixels
-        for du in range(3):
-            interior &= padded[dv : dv + h, du : du + w]
-    marked = np.flatnonzero((reason == 0) & ~interior)
-    reason.reshape(-1)[marked] = REASONS.index("screen_edge")
-    return marked
+    dark, h = REASONS.index("no_screen"), reason.shape[0]
+    marked = []
+    for r0 in range(0, h, EDGE_BAND_ROWS):
+        r1 = min(r0 + EDGE_BAND_ROWS, h)
+        lo, hi = max(r0 - 1, 0), min(r1 + 1, h)  # the band and the rows either side
+        near = reason[lo:hi] == dark
+        if not near.any():
+            continue
+        wide = near.copy()
+        wide[:, 1:] |= near[:, :-1]
+        wide[:, :-1] |= near[:, 1:]
+        rows = np.arange(r0, r1)
+        touched = (wide[rows - lo] | wide[np.maximum(rows - 1, 0) - lo]
+                   | wide[np.minimum(rows + 1, h - 1) - lo])
+        marked.append(np.flatnonzero(touched & (reason[r0:r1] == 0)) + r0 * reason.shape[1])
+    edge = np.concatenate(marked) if marked else np.zeros(0, dtype=np.int64)
+    reason.reshape(-1)[edge] = REASONS.index("screen_edge")
+    return edge
 
 
 # the maps hidden (NaN) where a pixel is not valid; modulation stays (a diagnostic)
@@ -116,11 +131,12 @@ def hide_screen_edges(reason: np.ndarray, mask: np.ndarray, out: dict[str, np.nd
                       tallies: list[np.ndarray]) -> dict[str, int]:
     """After every range's `hide_invalid`: the screen-edge pass over the (H, W) `reason`, its
     pixels (valid until now) hidden too; the image's pixel counts by reason."""
-    edge = mark_screen_edges(reason)
-    mask[edge] = False
-    for key in HIDDEN:
-        out[key][edge] = np.nan
     tally = np.sum(tallies, axis=0)
-    tally[0] -= edge.size
-    tally[REASONS.index("screen_edge")] += edge.size
+    if tally[REASONS.index("no_screen")]:  # (else every pixel sees the screen: no edge)
+        edge = mark_screen_edges(reason)
+        mask[edge] = False
+        for key in HIDDEN:
+            out[key][edge] = np.nan
+        tally[0] -= edge.size
+        tally[REASONS.index("screen_edge")] += edge.size
     return {name: int(tally[code]) for code, name in enumerate(REASONS)}

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from calibration.decode.validity import (
+    EDGE_BAND_ROWS,
     HIDDEN,
     REASONS,
     hide_invalid,
@@ -41,3 +42,43 @@ def test_range_by_range_hiding_equals_hiding_the_whole_image_after_the_edges(see
     tally = np.bincount(want_reason.reshape(-1), minlength=len(REASONS))
     assert counts == {name: int(tally[code]) for code, name in enumerate(REASONS)}
     assert counts["screen_edge"] > 0 and counts["valid"] > 0
+
+
+def _edges_by_definition(reason):
+    """Valid pixels with a no_screen pixel among their 3x3 neighbours (the image's border
+    pixels repeated outside it): nine shifted views of the whole image."""
+    sees = np.pad(reason != REASONS.index("no_screen"), 1, mode="edge")
+    h, w = reason.shape
+    interior = np.ones((h, w), dtype=bool)
+    for dv in range(3):
+        for du in range(3):
+            interior &= sees[dv:dv + h, du:du + w]
+    return np.flatnonzero((reason == 0) & ~interior)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (9, 1), (EDGE_BAND_ROWS, 7),
+                                   (EDGE_BAND_ROWS + 1, 5), (2 * EDGE_BAND_ROWS + 3, 11)])
+def test_screen_edges_band_by_band_are_the_3x3_neighbourhood_of_no_screen(shape):
+    rng = np.random.default_rng(sum(shape))
+    for fraction in (0.002, 0.05, 0.5):  # lone dark pixels (some at band edges) to dark areas
+        reason = rng.choice(np.array([0, 0, 5], dtype=np.uint8), size=shape)
+        reason[rng.random(shape) < fraction] = REASONS.index("no_screen")
+        want = _edges_by_definition(reason)
+        got_reason = reason.copy()
+        edge = mark_screen_edges(got_reason)
+        assert np.array_equal(np.sort(edge), want)
+        expected = reason.reshape(-1).copy()
+        expected[want] = REASONS.index("screen_edge")
+        assert np.array_equal(got_reason.reshape(-1), expected)
+
+
+def test_an_image_that_sees_the_screen_everywhere_has_no_screen_edge():
+    reason = np.zeros((EDGE_BAND_ROWS + 2, 6), dtype=np.uint8)
+    reason[3, 2] = REASONS.index("off_screen")
+    flat, mask = reason.reshape(-1).copy(), np.empty(reason.size, dtype=bool)
+    out = {key: np.ones(reason.size) for key in HIDDEN}
+    counts = hide_screen_edges(flat.reshape(reason.shape), mask,
+                               out, [hide_invalid(out, mask, flat, slice(0, reason.size))])
+    assert counts["screen_edge"] == 0 and counts["off_screen"] == 1
+    assert counts["valid"] == reason.size - 1 == int(mask.sum())
+    assert np.array_equal(flat, reason.reshape(-1))
