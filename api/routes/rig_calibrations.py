@@ -42,9 +42,9 @@ RigFormat = Literal["opencv-yaml", "ros", "mrcal", "remap", "opencv-fit", "openc
 INFO_HEADER = "Phasecal-Export-Info"
 
 
-def _check_options(body: RigCalibrationCreate, models: dict[str, str]) -> None:
+def check_rig_options(options: dict[str, Any], models: dict[str, str]) -> None:
     """The joint fit's options and every camera model's options, or a 422 naming the key."""
-    rig_opts, model_opts = split_rig_options(body.options)
+    rig_opts, model_opts = split_rig_options(options)
     try:
         RigOptions.model_validate(rig_opts)
         for name in sorted(set(models.values())):
@@ -115,7 +115,7 @@ def create_rig_calibration(session_id: str, body: RigCalibrationCreate, svc: Svc
             if got < need:
                 raise Problem(422, "validation-error", f"pose_ids: camera {cam} ({name}) needs "
                               f">= {need} training poses, got {got}", field="pose_ids")
-        _check_options(body, models)
+        check_rig_options(body.options, models)
         job = RigCalibrateJob(svc=svc, session_id=session_id, cal_id=cid, models=models,
                               pose_ids=pose_ids, heldout_pose_ids=held, options=body.options,
                               reference=body.reference)
@@ -165,7 +165,14 @@ def export_rig(
 ) -> Response:
     """One camera in a single-camera format (mrcal with its extrinsics), a camera pair as
     opencv-stereo or stereo-remap, or every camera's pose as ROS transforms."""
-    rig = _fitted_rig(svc, cal_id)
+    return rig_export_response(_fitted_rig(svc, cal_id), cal_id, format, camera, cameras,
+                               approximate)
+
+
+def rig_export_response(rig: Any, cal_id: str, format: str, camera: str | None,
+                        cameras: str | None, approximate: bool) -> Response:
+    """A fitted rig's export as the export routes answer it (422 for a bad pair or a format
+    the rig's models cannot carry)."""
     pair = None
     if cameras is not None:
         names = [c.strip() for c in cameras.split(",")]

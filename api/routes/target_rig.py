@@ -4,7 +4,6 @@ as a job; the rig model (phasecal.rig/1) and its exports as a screen session's r
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Annotated, Any
 
@@ -16,24 +15,20 @@ from api.db import TargetRigCalibrationRecord, TargetSessionRecord, TargetViewRe
 from api.jobs.target_rig import TargetRigCalibrateJob
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted
-from api.routes.rig_calibrations import INFO_HEADER, RigFormat
+from api.routes.rig_calibrations import (
+    INFO_HEADER,
+    RigFormat,
+    check_rig_options,
+    rig_export_response,
+)
 from api.schemas import IdStr, ModelName, strict_config
 from api.services import Services, get_services
 from api.store import check_id, new_id
 from calibration import (
-    FILE_NAMES,
-    MEDIA_TYPES,
-    RIG_FILE_NAMES,
-    RIG_MEDIA_TYPES,
-    ExportOptions,
-    ModelError,
     RigModel,
-    RigOptions,
     check_connected,
     load_rig,
     model_spec,
-    rig_export_bytes,
-    split_rig_options,
 )
 
 router = APIRouter(tags=["target sessions"], responses=PROBLEM_RESPONSES)
@@ -136,13 +131,7 @@ def _check_fit(body: TargetRigCalibrationCreate, models: dict[str, str]) -> None
         check_connected(training)
     except ValueError as exc:
         raise _invalid("cameras", str(exc).removeprefix("cameras: ")) from None
-    rig_opts, model_opts = split_rig_options(body.options)
-    try:
-        RigOptions.model_validate(rig_opts)
-        for name in sorted(set(models.values())):
-            model_spec(name).parse_options(model_opts)
-    except ValueError as exc:  # pydantic's ValidationError included
-        raise _invalid("options", str(exc).splitlines()[0]) from None
+    check_rig_options(body.options, models)
 
 
 @router.post("/target-rig-calibrations", status_code=202, response_model=None,
@@ -224,20 +213,5 @@ def export_target_rig(
 ) -> Response:
     """One camera in a single-camera format, a camera pair as opencv-stereo or stereo-remap,
     or every camera's pose as ROS transforms (as /calibrations/{id}/rig/export)."""
-    rig = _fitted_rig(svc, cal_id)
-    pair = None
-    if cameras is not None:
-        names = [c.strip() for c in cameras.split(",")]
-        if len(names) != 2 or not all(names):
-            raise _invalid("cameras", f"expected A,B, got {cameras!r}")
-        pair = (names[0], names[1])
-    try:
-        data, info = rig_export_bytes(rig, format, camera=camera, cameras=pair,
-                                      opts=ExportOptions(approximate=approximate))
-    except ModelError as exc:
-        raise Problem(422, "export-refused", f"format {format}: {exc}") from None
-    name = RIG_FILE_NAMES.get(format) or f"{camera}-{FILE_NAMES[format]}"
-    media = RIG_MEDIA_TYPES.get(format) or MEDIA_TYPES[format]
-    return Response(data, media_type=media, headers={
-        "Content-Disposition": f'attachment; filename="{cal_id}-{name}"',
-        INFO_HEADER: json.dumps(info, separators=(",", ":"))})
+    return rig_export_response(_fitted_rig(svc, cal_id), cal_id, format, camera, cameras,
+                               approximate)
