@@ -44,6 +44,7 @@ _EXPORTS = {
     "ObservationOptions": "fit.sparse.options",
     "ObservationFitError": "fit.sparse.fit",
     "calibrate_observations": "fit.sparse.calibrate",
+    "observation_refusal": "fit.sparse.calibrate",
     "calibrate_observation_files": "pipeline",
     "write_uncertainty_png": "fit.sparse.figure",
     # hand-eye: robot poses and the camera's views -> the camera on (or beside) the robot

@@ -29,6 +29,7 @@ from calibration import (
     check_connected,
     load_rig,
     model_spec,
+    observation_refusal,
 )
 
 router = APIRouter(tags=["target sessions"], responses=PROBLEM_RESPONSES)
@@ -131,6 +132,11 @@ def _check_fit(body: TargetRigCalibrationCreate, models: dict[str, str]) -> None
         check_connected(training)
     except ValueError as exc:
         raise _invalid("cameras", str(exc).removeprefix("cameras: ")) from None
+    for cam, name in models.items():  # every camera of a target rig is fitted to observations
+        refusal = observation_refusal(name)
+        if refusal is not None:
+            raise _invalid(f"camera_models.{cam}" if cam in body.camera_models else "model",
+                           refusal)
     check_rig_options(body.options, models)
 
 

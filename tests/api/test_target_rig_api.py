@@ -157,6 +157,8 @@ def test_rig_requests_the_fit_cannot_use_are_refused(board_rig) -> None:
     assert field == "reference"
     field, _ = _refusal(c, {"cameras": {"A": a, "B": b}, "options": {"no_such": 1}})
     assert field == "options"
+    field, detail = _refusal(c, {"cameras": {"A": a, "B": b}, "camera_models": {"B": "raygrid"}})
+    assert field == "camera_models.B" and "dense decoded maps" in detail
 
 
 def test_views_a_running_rig_calibration_reads_cannot_be_deleted(board_rig) -> None:

@@ -23,8 +23,13 @@ from calibration.shared.progress import CancelCheck, ProgressFn, check_cancelled
 REFUSED: dict[str, str] = {
     "raygrid": "raygrid interpolates one ray per pixel from dense decoded maps; a few hundred "
                "target points cannot fill its grid (use a parametric model: opencv5, "
-               "opencv-rational, fisheye)",
+               "opencv-rational, fisheye; or sgcc, sgcc-noncentral)",
 }
+
+
+def observation_refusal(model: str) -> str | None:
+    """Why `model` cannot be fitted to target observations, or None if it can."""
+    return REFUSED.get(model)
 
 
 def parse_observation_options(model: str,
