@@ -55,7 +55,8 @@ def finish_sums(
     set_axis, periods, amps, chi2_limit, extents, params,  # as kernel.finish_pixels
     pos_out, sig_out, mod_out, blur_out, o0,  # (2, N_out) outputs from column o0
     reason,  # (n,) uint8 reason codes of the range
-    tables,  # kernel_clipped.PatternTables (index, rows, basis); empty index: none
+    tables,  # (index, rows, basis, widths): `kernel_clipped.PatternTables.kernel_tables`;
+    # empty index: none (`kernel_clipped.no_tables`)
 ) -> None:
     """Decode the pixels of a range from their sums: those with every step kept, those
     with every step clipped (no fit: `no_screen` or `clipped`) and, with `tables`, those
