@@ -121,10 +121,12 @@ def hide_invalid(out: dict[str, np.ndarray], mask: np.ndarray, reason: np.ndarra
     """For the flat pixel range `sl`, just decoded (its outputs still in cache): its `mask`
     (reason 0), NaN in the `HIDDEN` maps of `out` where not valid; returns the range's tally
     of reason codes."""
-    ok = np.equal(reason[sl], 0, out=mask[sl])
+    codes = reason[sl]
+    hidden = ~np.equal(codes, 0, out=mask[sl])
     for key in HIDDEN:
-        np.copyto(out[key][sl], np.nan, where=~ok)
-    return np.bincount(reason[sl], minlength=len(REASONS))
+        np.copyto(out[key][sl], np.nan, where=hidden)
+    # (one count per code: a fifth of bincount's time on uint8 codes, which it widens first)
+    return np.array([np.count_nonzero(codes == code) for code in range(len(REASONS))])
 
 
 def hide_screen_edges(reason: np.ndarray, mask: np.ndarray, out: dict[str, np.ndarray],
