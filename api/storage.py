@@ -189,8 +189,11 @@ class DiskSpace:
 
     def require(self, needed: int, what: str) -> None:
         """507 when `needed` bytes plus the margin do not fit in the free space (the reserve
-        is not counted as free: it belongs to the database)."""
-        free = self.free_bytes()
+        is not counted as free: it belongs to the database, also while it is released and
+        its bytes show as free on the disk; otherwise whether a request fits would depend on
+        whether some write happened to release it)."""
+        released = self.reserve_bytes if self.reserve_bytes > 0 and not self.reserve_held() else 0
+        free = max(self.free_bytes() - released, 0)
         want = needed + self.margin_bytes
         if free < want:
             self.shortfall = want

@@ -22,7 +22,8 @@ from sqlalchemy.exc import OperationalError
 
 from api.app import create_app
 from api.config import ServiceConfig
-from api.storage import is_no_space
+from api.problems import Problem
+from api.storage import DiskSpace, is_no_space
 from tests.api.test_api_session import screen_poses, small_rig
 
 MiB = 1 << 20
@@ -178,3 +179,24 @@ def test_a_request_that_meets_a_full_disk_gets_507_and_the_reserve_is_freed(tmp_
         assert body["title"] == "Insufficient storage" and "no space left" in body["detail"]
         assert not (tmp_path / "data" / "space.reserve").exists()  # the database may use it
         assert c.get("/health").status_code == 200  # same connection, still served
+
+
+def test_a_released_reserve_still_counts_as_the_databases(tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whether a request fits must not depend on whether some write happened to release the
+    reserve (its bytes then show as free on the disk until it is taken back)."""
+    space = DiskSpace(tmp_path, reserve_bytes=2 * MiB, margin_bytes=1 * MiB)
+    assert space.reserve_held()
+    disk = {"free": int(2.5 * MiB)}
+    monkeypatch.setattr(space, "free_bytes", lambda: disk["free"])
+    fits, too_big = int(1.5 * MiB), int(1.5 * MiB) + 1  # + the 1 MiB margin vs 2.5 MiB
+    space.require(fits, "a capture")
+    with pytest.raises(Problem) as held:
+        space.require(too_big, "a capture")
+    assert held.value.status == 507
+    assert space.release()
+    disk["free"] += 2 * MiB  # the reserve's bytes show as free on the disk
+    space.require(fits, "a capture")
+    with pytest.raises(Problem) as released:
+        space.require(too_big, "a capture")
+    assert released.value.status == 507 and released.value.extra["free_bytes"] == 2.5 * MiB
