@@ -6,12 +6,19 @@ from collections.abc import Callable
 
 from sqlalchemy import select
 
-from api.db import CalibrationRecord, Database, JobRecord, PoseRecord
+from api.db import (
+    CalibrationRecord,
+    Database,
+    JobRecord,
+    PoseRecord,
+    TargetRigCalibrationRecord,
+)
 
 
 def mark_interrupted(db: Database, job_ids: list[str], reason: str,
                      frames_on_disk: Callable[[str], int] | None = None) -> None:
-    """Poses and calibrations whose job was cut off become `interrupted` (poses can resume).
+    """Poses and calibrations (of screen sessions and target-session rigs) whose job was
+    cut off become `interrupted` (poses can resume).
 
     A cut-off capture's progress (pose `frames_done`, job `done`) is set to the frames
     actually on disk (`frames_on_disk(pose_id)`): the last persisted progress may lag.
@@ -28,9 +35,8 @@ def mark_interrupted(db: Database, job_ids: list[str], reason: str,
                 job = s.get(JobRecord, pose.job_id)
                 if job is not None and job.kind == "capture" and job.stage == "capture":
                     job.done = pose.frames_done
-        for cal in s.scalars(
-            select(CalibrationRecord).where(CalibrationRecord.job_id.in_(job_ids))
-        ):
-            if cal.status in ("queued", "running"):
-                cal.status = "interrupted"
-                cal.error = reason
+        for record in (CalibrationRecord, TargetRigCalibrationRecord):
+            for cal in s.scalars(select(record).where(record.job_id.in_(job_ids))):
+                if cal.status in ("queued", "running"):
+                    cal.status = "interrupted"
+                    cal.error = reason

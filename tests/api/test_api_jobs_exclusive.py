@@ -12,7 +12,13 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.config import ServiceConfig
-from api.db import Database, JobRecord, PoseRecord, SessionRecord
+from api.db import (
+    Database,
+    JobRecord,
+    PoseRecord,
+    SessionRecord,
+    TargetRigCalibrationRecord,
+)
 from api.jobs import JobManager
 from api.pose_path import stored_indices
 from api.problems import Problem
@@ -127,4 +133,18 @@ def test_recovery_sets_capture_progress_to_frames_on_disk(tmp_path: Path) -> Non
         assert s.get(PoseRecord, "pose_0000000000000001").frames_done == 14
         assert s.get(JobRecord, "job_0000000000000001").done == 14
         assert s.get(PoseRecord, "pose_0000000000000001").status == "interrupted"
+    db.close()
+
+
+def test_recovery_marks_a_target_rig_calibration_cut_off_by_a_restart(tmp_path: Path) -> None:
+    """Left `running`, it would read as working for ever and hold its views from deletion."""
+    db = Database(tmp_path / "x.db")
+    with db.session() as s:
+        s.add(TargetRigCalibrationRecord(
+            id="cal_0000000000000001", cameras={}, reference="A", camera_models={"A": "opencv5"},
+            status="running", job_id="job_0000000000000001", created_at=0.0))
+    mark_interrupted(db, ["job_0000000000000001"], "the server restarted")
+    with db.session() as s:
+        rec = s.get(TargetRigCalibrationRecord, "cal_0000000000000001")
+        assert (rec.status, rec.error) == ("interrupted", "the server restarted")
     db.close()
