@@ -40,6 +40,15 @@ Svc = Annotated[Services, Depends(get_services)]
 RigFormat = Literal["opencv-yaml", "ros", "mrcal", "remap", "opencv-fit", "opencv-stereo",
                     "stereo-remap", "ros-transforms"]
 INFO_HEADER = "Phasecal-Export-Info"
+# The rig export routes' query parameters and answer, alike for every kind of rig calibration.
+ExportCamera = Annotated[str | None, Query(max_length=64,
+                                           description="single-camera formats: the camera")]
+ExportPair = Annotated[str | None, Query(max_length=130, description="opencv-stereo, "
+                                         "stereo-remap: the pair A,B (X2 = R X1 + T)")]
+ExportApproximate = Annotated[bool, Query(description="mrcal: spline fit of a fisheye")]
+RIG_EXPORT_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"content": {"application/x-yaml": {}, "text/plain": {}, "application/octet-stream": {}},
+          "description": f"the file; {INFO_HEADER}: JSON"}}
 
 
 def check_rig_options(options: dict[str, Any], models: dict[str, str]) -> None:
@@ -152,16 +161,10 @@ def read_rig(cal_id: str, svc: Svc) -> JSONResponse:
 
 
 @router.get("/calibrations/{cal_id}/rig/export", response_class=Response,
-            responses={200: {"content": {"application/x-yaml": {}, "text/plain": {},
-                                         "application/octet-stream": {}},
-                             "description": f"the file; {INFO_HEADER}: JSON"}})
+            responses=RIG_EXPORT_RESPONSES)
 def export_rig(
-    cal_id: str, svc: Svc, format: RigFormat,
-    camera: Annotated[str | None, Query(max_length=64,
-                                        description="single-camera formats: the camera")] = None,
-    cameras: Annotated[str | None, Query(max_length=130, description="opencv-stereo, "
-                                         "stereo-remap: the pair A,B (X2 = R X1 + T)")] = None,
-    approximate: Annotated[bool, Query(description="mrcal: spline fit of a fisheye")] = False,
+    cal_id: str, svc: Svc, format: RigFormat, camera: ExportCamera = None,
+    cameras: ExportPair = None, approximate: ExportApproximate = False,
 ) -> Response:
     """One camera in a single-camera format (mrcal with its extrinsics), a camera pair as
     opencv-stereo or stereo-remap, or every camera's pose as ROS transforms."""

@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
@@ -16,7 +16,10 @@ from api.jobs.target_rig import TargetRigCalibrateJob
 from api.problems import Problem
 from api.routes.common import PROBLEM_RESPONSES, accepted
 from api.routes.rig_calibrations import (
-    INFO_HEADER,
+    RIG_EXPORT_RESPONSES,
+    ExportApproximate,
+    ExportCamera,
+    ExportPair,
     RigFormat,
     check_rig_options,
     rig_export_response,
@@ -206,16 +209,10 @@ def read_target_rig(cal_id: str, svc: Svc) -> JSONResponse:
 
 
 @router.get("/target-rig-calibrations/{cal_id}/rig/export", response_class=Response,
-            responses={200: {"content": {"application/x-yaml": {}, "text/plain": {},
-                                         "application/octet-stream": {}},
-                             "description": f"the file; {INFO_HEADER}: JSON"}})
+            responses=RIG_EXPORT_RESPONSES)
 def export_target_rig(
-    cal_id: str, svc: Svc, format: RigFormat,
-    camera: Annotated[str | None, Query(max_length=64,
-                                        description="single-camera formats: the camera")] = None,
-    cameras: Annotated[str | None, Query(max_length=130, description="opencv-stereo, "
-                                         "stereo-remap: the pair A,B (X2 = R X1 + T)")] = None,
-    approximate: Annotated[bool, Query(description="mrcal: spline fit of a fisheye")] = False,
+    cal_id: str, svc: Svc, format: RigFormat, camera: ExportCamera = None,
+    cameras: ExportPair = None, approximate: ExportApproximate = False,
 ) -> Response:
     """One camera in a single-camera format, a camera pair as opencv-stereo or stereo-remap,
     or every camera's pose as ROS transforms (as /calibrations/{id}/rig/export)."""
