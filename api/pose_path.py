@@ -249,7 +249,7 @@ def capture_camera_frames(ctx: TaskContext, rig: Rig, plan: Plan, dirs: dict[str
         ctx.progress(sum(len(k.have) for k in sinks.values()), total * len(sinks), "capture")
 
     for name, folder in dirs.items():
-        store = FrameStore(folder, total)
+        store = FrameStore(folder, total, stage=True)  # read by the live decode
         if (folder / LEGACY_FRAMES).is_dir():
             _import_legacy(store, folder)
         sinks[name] = StoreSink(store, ctx, total, on_frame if not sinks else None,

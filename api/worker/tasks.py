@@ -27,7 +27,7 @@ from calibration import (
 )
 from calibration.shared.frame_store import FrameStore
 from calibration.shared.maps import save_maps
-from calibration.shared.maps_file import MapsFile, prefaulted
+from calibration.shared.maps_file import MapsFile, prefaulted, warm_resident
 from calibration.shared.plan import read_plan
 from calibration.shared.progress import Cancelled, TaskContext
 
@@ -46,23 +46,6 @@ def _summary(maps: Any, t0: float) -> dict[str, Any]:
     h, w = maps.shape
     return {"valid_pixels": maps.valid_count(), "width": w, "height": h,
             "wall_s": round(time.perf_counter() - t0, 3)}
-
-
-DROP_DELAY_S = 0.25  # how long after a live decode returns its maps are unmapped
-
-
-def _drop_later(obj: Any) -> None:
-    """Drop `obj` in a daemon thread `DROP_DELAY_S` from now, once the caller (which drops its
-    own references) has returned: a 5 MP pose's maps are views of a 205 MB file mapping whose
-    unmapping takes ~0.03 s, which the pose's ready time need not include."""
-    box, delay_s = [obj], DROP_DELAY_S
-    del obj
-
-    def drop() -> None:
-        time.sleep(delay_s)
-        box.clear()
-
-    threading.Thread(target=drop, name="drop-maps", daemon=True).start()
 
 
 def _keep_heap(pixels: int) -> None:
@@ -115,10 +98,13 @@ def stream_decode_task(
     """Decode a pose while it is captured: follow its `FrameStore` and fold in each frame
     as soon as it is stored (frames stored before the task started, e.g. by an interrupted
     capture, come first). Ends with the maps once every plan frame is in; the capture side
-    cancels the job if it fails. Reports progress only for the final stage. The maps file is
-    laid out before the first frame and the decoder writes into it (`MapsFile`); its pages
-    are faulted in at idle priority while frames arrive. `durable=False` writes the maps without
-    fsync (the caller makes them durable after the pose is ready). `compiled`: the compiled
+    cancels the job if it fails. Reports progress only for the final stage. The frames are
+    read from the capture side's shared memory where it staged them (`FrameStore.sources`).
+    The maps file is laid out before the first frame in a buffer this worker keeps from pose
+    to pose (`MapsFile(resident=True)`), the decoder writes into it, and the commit writes it
+    to disk with O_DIRECT; a new buffer's pages are faulted in at idle priority while frames
+    arrive. `durable=False` writes the maps without fsync (the caller makes them durable
+    after the pose is ready). `compiled`: the compiled
     kernels at every image size (a long-lived worker loads them once: a 640x480 pose's finish
     ~3x faster; a one-off process would load them during the capture). Timings (wall, and CPU
     seconds of this process: all its threads) and the share of the maps file's pages faulted
@@ -131,28 +117,32 @@ def stream_decode_task(
     ctx.check_cancelled()
     added = np.zeros(total, dtype=bool)
     looks = 0
-    # the maps file, laid out now: the decoder writes into its pages, faulted in at idle
-    # priority while frames arrive (first-touch page faults: ~0.5 CPU s at 5 MP on a VM).
-    # (Not the frames' pages: an idle thread holding a page or ext4 lock of frames.npy could
-    # hold up the server's frame copies.)
-    out = MapsFile(out_path, store.shape, plan.axes())
+    # the maps file, laid out now in a resident buffer: a new one's pages are faulted in at
+    # idle priority while frames arrive (first-touch page faults: ~0.5 CPU s at 5 MP on a VM)
+    out = MapsFile(out_path, store.shape, plan.axes(), resident=True)
     with prefaulted(out) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts, compiled=compiled)
         decoder.prepare()
         _keep_heap(store.shape[0] * store.shape[1])
-        while not added.all():
-            if looks % 16 == 0:  # (a worker process's cancel flag is a round trip to a manager)
-                ctx.check_cancelled()
-            looks += 1
-            new = np.setdiff1d(store.stored(), np.flatnonzero(added), assume_unique=True)
-            # stored frames of complete period groups, in one cache-blocked pass per look
-            ready = decoder.ready_frames(new.tolist())
-            if not ready:
-                time.sleep(poll_s)
-                continue
-            decoder.add_frames(ready, store.array(), rows=ready)
-            added[ready] = True
+        try:
+            while not added.all():
+                if looks % 16 == 0:  # (a worker process's cancel flag: a round trip)
+                    ctx.check_cancelled()
+                looks += 1
+                new = np.setdiff1d(store.stored(), np.flatnonzero(added), assume_unique=True)
+                # stored frames of complete period groups, one cache-blocked pass per look,
+                # from the capture side's shared memory where it staged them
+                ready = decoder.ready_frames(new.tolist())
+                if not ready:
+                    time.sleep(poll_s)
+                    continue
+                for part, stack in store.sources(ready):
+                    decoder.add_frames(part, stack, rows=part)
+                store.verify()
+                added[ready] = True
+        finally:
+            store.reader_done()
         caught_up_at = time.time()  # wall clock: the capture side reports its last frame's
         t0 = time.perf_counter()  # the time after the last frame: what the pose waits for
         ahead.stop()  # the decoder faults in what is left, if anything
@@ -168,8 +158,8 @@ def stream_decode_task(
                "write_s": round(time.perf_counter() - t1, 3),
                "write_cpu_s": round(time.process_time() - c1, 3),
                "prefaulted": round(share_prefaulted, 3)}
-    _drop_later(maps)  # (unmapped after the summary is on its way)
     del maps
+    out.recycle()  # its buffer, resident, holds the next pose's maps
     return summary
 
 
@@ -223,26 +213,33 @@ def stream_decode_rig_task(
 
 
 def warm_decode_task(pixels: int, plan_path: str | None = None,
-                     shape: tuple[int, int] | None = None, noise: Any = None) -> None:
+                     shape: tuple[int, int] | None = None, noise: Any = None,
+                     sets: int = 1) -> None:
     """Load the decoder's compiled kernels in this worker (~1.4 CPU s once per process; live
     decodes use them at every image size): a live capture submits this next to its decode
     task, so the worker that decodes a later pose does not load them while that pose's
     frames arrive (under load, late enough to delay the pose). With `plan_path` and `shape`
-    (and the capture's `noise`) it also allocates that decode's sums and keeps them
-    (`sums_cache`) unless this worker already keeps a decode's sums of images this size
-    (another camera's, e.g. a preview camera's small ones, are replaced): ~1 GB at 5 MP, up to
-    ~2.3 CPU s of first-touch page faults, paid once per worker while a capture runs rather
-    than by the worker's first pose after its last frame. At normal CPU priority: a task at
-    idle priority is starved by any busy process, and the decode tasks queued behind it
-    with it (seen: poses ready 20-75 s late under load)."""
+    (and the capture's `noise`) it also allocates `sets` decodes' sums and maps buffers (a
+    rig's cameras of that size decode at once) and keeps them (`sums_cache`,
+    `resident_buffers`) unless this worker already keeps
+    as many of images this size (another camera's, e.g. a preview camera's small ones, are
+    replaced): ~1 GB a camera at 5 MP, ~2.3 CPU s of first-touch page faults or far more on a
+    VM whose host reclaimed the memory, paid once per worker while a capture runs rather than
+    by the worker's first pose after its last frame. At normal CPU priority: a task at idle
+    priority is starved by any busy process, and the decode tasks queued behind it with it
+    (seen: poses ready 20-75 s late under load)."""
     warm_up()
     _keep_heap(pixels)
-    if (plan_path is not None and shape is not None
-            and not holds_pixels(int(shape[0]) * int(shape[1]))):
-
-        decoder = StreamingDecoder(read_plan(plan_path), tuple(shape), noise=noise,
-                                   compiled=True)
+    if (plan_path is None or shape is None
+            or holds_pixels(int(shape[0]) * int(shape[1]), sets)):
+        return
+    plan = read_plan(plan_path)
+    warm_resident(tuple(shape), plan.axes(), sets)  # (buffers of the live decodes' maps)
+    decoders = [StreamingDecoder(plan, tuple(shape), noise=noise, compiled=True)
+                for _ in range(sets)]
+    for decoder in decoders:
         decoder.prepare()
+    for decoder in decoders:
         decoder.release()
 
 

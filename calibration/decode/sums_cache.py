@@ -86,11 +86,11 @@ def kept_arrays() -> list[np.ndarray]:
         return [a for s in _sets for a in s.arrays]
 
 
-def holds_pixels(pixels: int) -> bool:
-    """True when some kept arrays are a decode's of images of `pixels` pixels (those of
-    another camera would be dropped by the next `take`, not reused)."""
+def holds_pixels(pixels: int, sets: int = 1) -> bool:
+    """True when at least `sets` kept sets are decodes' of images of `pixels` pixels (those
+    of another camera would be dropped by the next `take`, not reused)."""
     with _lock:
-        return any(a.shape[-1] == pixels for s in _sets for a in s.arrays)
+        return sum(any(a.shape[-1] == pixels for a in s.arrays) for s in _sets) >= sets
 
 
 def kept_bytes() -> int:

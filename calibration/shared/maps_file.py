@@ -7,7 +7,11 @@ before the first frame (`MapsFile`), its pages are faulted in while frames arriv
 (`calibration.prefault`), and the decoder's outputs are views of the file's pages
 (`outputs`). After the decode only the CRC-32s, the local headers, `meta` and the central
 directory are written (`commit`) and the file is renamed into place whole: no copy of
-~200 MB of maps and no page faults after the last frame.
+~200 MB of maps and no page faults after the last frame. A long-lived worker lays the file
+out in a resident buffer instead (`resident=True`, `resident_buffers`): the file's image is
+then written from it with O_DIRECT at the commit (no page-cache pages to fault in, pose after
+pose: seconds of CPU on a VM for a 4-camera rig), and the buffer serves the next decode
+(`recycle`).
 A failed or cancelled decode removes the temporary file (`close`); np.load reads the result
 like any NPZ (docs/formats.md). POSIX: the file is renamed while the decoder's views of it may
 still be mapped.
@@ -15,6 +19,7 @@ still be mapped.
 
 from __future__ import annotations
 
+import errno
 import mmap
 import os
 import tempfile
@@ -39,11 +44,17 @@ from calibration.shared.npz_store import (
     npy_member,
     pwrite_all,
 )
+from calibration.shared.resident_buffers import RESIDENT
 
 if TYPE_CHECKING:
     from calibration.shared.maps import DecodedMaps
 
 _PAGE = mmap.PAGESIZE
+_BLOCK = 4096  # O_DIRECT writes whole blocks
+
+
+def _aligned(size: int) -> int:
+    return -(-size // _BLOCK) * _BLOCK
 # the decoder's (2, npix) output planes and the members of their rows x, y
 PLANES = {"position": ("x", "y"), "sigma": ("sigma_x", "sigma_y"),
           "modulation": ("modulation_x", "modulation_y"), "blur": ("blur_x", "blur_y")}
@@ -65,12 +76,25 @@ def _layout(shape: tuple[int, int], axes: list[str]) -> dict[str, NpyMember]:
     return members
 
 
+def warm_resident(shape: tuple[int, int], axes: list[str], count: int) -> None:
+    """Have this process keep `count` resident buffers for maps of `shape` and `axes`, their
+    pages faulted in now (a worker warming up for a rig's cameras, while a capture runs)."""
+    last = list(_layout((int(shape[0]), int(shape[1])), list(axes)).values())[-1]
+    size = _aligned(last.data_at + last.nbytes)
+    buffers = [RESIDENT.take(size) for _ in range(count)]
+    for buf in buffers:
+        np.frombuffer(buf, np.uint8)[::_PAGE] = 0
+    for buf in buffers:
+        RESIDENT.give(buf)
+
+
 class MapsFile:
     """The maps NPZ of one decode, created at `path`'s hidden temporary name and renamed to
     `path` by `commit`; its disk space is reserved at once (a full disk fails here, before
     any frame is decoded, never with a SIGBUS on a mapped page)."""
 
-    def __init__(self, path: str | Path, shape: tuple[int, int], axes: list[str]) -> None:
+    def __init__(self, path: str | Path, shape: tuple[int, int], axes: list[str], *,
+                 resident: bool = False) -> None:
         self.path = Path(path)
         self.shape = (int(shape[0]), int(shape[1]))
         self.axes = list(axes)
@@ -81,9 +105,13 @@ class MapsFile:
                                    dir=self.path.parent)
         self._fd, self._tmp, self._done = fd, Path(tmp), False
         self._mm: mmap.mmap | None = None
+        self._buffer: mmap.mmap | None = None  # the resident buffer, until `recycle`
         try:
-            self._reserve()
-            self._mm = mmap.mmap(fd, self._end)
+            self._reserve(_aligned(self._end) if resident else self._end)
+            if resident:
+                self._mm = self._buffer = RESIDENT.take(_aligned(self._end))
+            else:
+                self._mm = mmap.mmap(fd, self._end)
             self._bytes = np.frombuffer(self._mm, np.uint8)
             for m in self._members.values():
                 self._mm[m.data_at - len(m.npy_header):m.data_at] = m.npy_header
@@ -97,16 +125,16 @@ class MapsFile:
         (`calibration.prefault.IdlePrefault`)."""
         return self._bytes
 
-    def _reserve(self) -> None:
+    def _reserve(self, size: int) -> None:
         """Allocate the array members' disk blocks (`posix_fallocate`; a sparse file where the
         OS has none): ENOSPC here is a clear error, not a SIGBUS on a mapped page later."""
         try:
             if hasattr(os, "posix_fallocate"):
-                os.posix_fallocate(self._fd, 0, self._end)
+                os.posix_fallocate(self._fd, 0, size)
             else:
-                os.ftruncate(self._fd, self._end)
+                os.ftruncate(self._fd, size)
         except OSError as exc:
-            raise OSError(exc.errno, f"cannot reserve {self._end / 1e6:.0f} MB for the maps "
+            raise OSError(exc.errno, f"cannot reserve {size / 1e6:.0f} MB for the maps "
                           f"({exc.strerror})", str(self.path)) from None
 
     def outputs(self) -> dict[str, np.ndarray] | None:
@@ -169,11 +197,17 @@ class MapsFile:
         tail.crc = member_crc(tail, tail.data)
         end = tail.data_at + tail.nbytes
         members = [*self._members.values(), tail]
-        pwrite_all(self._fd, local_header(tail) + tail.npy_header + bytes(tail.data)
-                   + central_directory(members, end), tail.offset)
+        if self._buffer is not None:
+            self._write_image()
+        last = (local_header(tail) + tail.npy_header + bytes(tail.data)
+                + central_directory(members, end))
+        pwrite_all(self._fd, last, tail.offset)
+        if self._buffer is not None:  # (the image was written in whole disk blocks)
+            os.ftruncate(self._fd, tail.offset + len(last))
         t1 = time.perf_counter()
         if durable:
-            self._mm.flush()
+            if self._buffer is None:
+                self._mm.flush()
             os.fsync(self._fd)
         t2 = time.perf_counter()
         for arr in views:  # they are the committed file's pages now
@@ -186,15 +220,44 @@ class MapsFile:
         if timings is not None:
             timings["write"], timings["fsync"] = t1 - t0, t2 - t1
 
+    def _write_image(self) -> None:
+        """Write the resident buffer's image of the file up to `meta` (whole 4 KiB blocks)
+        with O_DIRECT, or through the page cache where the filesystem refuses it."""
+        assert self._buffer is not None
+        image = memoryview(self._buffer)[:_aligned(self._end)]
+        try:
+            fd = os.open(self._tmp, os.O_WRONLY | os.O_DIRECT)
+        except (OSError, AttributeError):  # (tmpfs; a system without O_DIRECT)
+            fd = -1
+        if fd >= 0:
+            try:
+                pwrite_all(fd, image, 0)
+                return
+            except OSError as exc:
+                if exc.errno != errno.EINVAL:
+                    raise
+            finally:
+                os.close(fd)
+        pwrite_all(self._fd, image, 0)
+
+    def recycle(self) -> None:
+        """Give the resident buffer to this process's next decode (after `close` or `commit`,
+        once no view of the outputs or of the committed maps is used again)."""
+        if self._buffer is not None and self._mm is None:
+            RESIDENT.give(self._buffer)
+            self._buffer = None
+
     def close(self) -> None:
         """Release the mapping and the descriptor; remove the temporary file unless committed
-        (views still alive keep their pages mapped until they go)."""
+        (views still alive keep their pages mapped until they go; a resident buffer is kept
+        for `recycle`, else dropped with the last view)."""
         if self._mm is not None:
             self._bytes = np.empty(0, np.uint8)
-            try:
-                self._mm.close()
-            except BufferError:  # the caller still holds views: unmapped when they go
-                pass
+            if self._buffer is None:
+                try:
+                    self._mm.close()
+                except BufferError:  # the caller still holds views: unmapped when they go
+                    pass
             self._mm = None
         if self._fd >= 0:
             os.close(self._fd)

@@ -11,7 +11,6 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 import zipfile
 from pathlib import Path
 
@@ -20,7 +19,6 @@ import pytest
 
 import calibration.decode.decoder as decoder_module
 from acquisition.patterns import build_plan
-from api.worker import tasks
 from api.worker.tasks import stream_decode_task
 from calibration import prefault
 from calibration.decode import DecodeError, StreamingDecoder
@@ -30,6 +28,7 @@ from calibration.shared.maps import load_maps, save_maps
 from calibration.shared.maps_file import MapsFile
 from calibration.shared.plan import write_plan
 from calibration.shared.progress import Cancelled, TaskContext
+from calibration.shared.resident_buffers import RESIDENT
 from tests.calibration.decode.test_decode import H, W, render
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -240,14 +239,15 @@ def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
 
 def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path,
                                                            monkeypatch):
-    """The live task (frames arriving in a frame store) gives the file np.load reads, equal
-    to decoding the same frames in memory, unmapped only after the task returned (its ~0.03 s
-    at 5 MP is not in the pose's ready time); with a cancel, nothing is left."""
+    """The live task (frames arriving in a frame store, staged in shared memory as a capture
+    stores them) gives the file np.load reads, equal to decoding the same frames in memory;
+    the file is written from a resident buffer (never mapped), which the worker keeps for its
+    next pose; the reader releases the staged frames; with a cancel, nothing is left."""
     monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
     write_plan(plan, tmp_path / "plan.json")
     pose, staged = tmp_path / "pose", tmp_path / "staged"
     staged.mkdir()
-    store = FrameStore(pose, len(plan.frames))
+    store = FrameStore(pose, len(plan.frames), stage=True)
     store.add(0, stack[0])
     ctx = TaskContext("job_1")
 
@@ -257,19 +257,16 @@ def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path
 
     feeder = threading.Timer(0.05, feed)
     feeder.start()
-    monkeypatch.setattr(tasks, "DROP_DELAY_S", 5.0)
+    RESIDENT.release()
     try:
         result = stream_decode_task(ctx, str(tmp_path / "plan.json"), str(pose),
                                     str(staged / "maps.npz"), meta=dict(META), durable=False)
     finally:
         feeder.join()
         store.close()
-    # the maps file stays mapped until after the task returned, then is unmapped (no leak)
-    assert _mapped(staged / "maps.npz")
-    deadline = time.monotonic() + 60.0
-    while _mapped(staged / "maps.npz") and time.monotonic() < deadline:
-        time.sleep(0.05)
     assert not _mapped(staged / "maps.npz")
+    assert RESIDENT.kept_bytes() >= (staged / "maps.npz").stat().st_size - 4096
+    assert not (pose / "frames.staging").exists()  # the reader said it was done
     # (the share prefaulted depends on the load: idle priority; the prefault's own test is
     # test_background_prefault_covers_the_regions_and_reports_its_error)
     assert 0.0 <= result["prefaulted"] <= 1.0
