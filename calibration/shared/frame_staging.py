@@ -16,8 +16,8 @@ file (`frames.staging`). A reader (`StagedFrames`) uses a slot only while the to
 one the sidecar named, and says so (`check`) after each read: a buffer reused under a
 reader that fell behind fails that decode with the reason rather than feeding it another
 pose's pixels. The sidecar stays until the reader is done (a reader that starts late, after
-the capture, still finds the buffer). Where /dev/shm is missing or full, no buffer is leased and the store writes
-through the page cache as before.
+the capture, still finds the buffer). Where /dev/shm is missing or full, no buffer is leased
+and the store writes through the page cache as before.
 """
 
 from __future__ import annotations
