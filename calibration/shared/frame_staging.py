@@ -45,7 +45,8 @@ MAX_FRAMES = HEADER_BYTES - _STAGED
 SHM_DIR = Path("/dev/shm")
 _PREFIX = "phasecal-frames-"
 # At most this much shared memory is held for staging by one process (4 cameras of 5 MP
-# take 1 GB); a capture beyond it writes through the page cache.
+# take 1 GB; free buffers of other sizes are removed to make room); a capture beyond it
+# writes through the page cache.
 POOL_LIMIT_BYTES = 4 << 30
 # A released buffer whose reader never said it was done is reused after this long.
 REUSE_AFTER_S = 60.0
@@ -143,9 +144,12 @@ class StagingPool:
                 if buf.count == count and buf.nbytes == nbytes and buf.reusable(now):
                     buf.begin()
                     return buf
-            held = sum(HEADER_BYTES + b.count * b.nbytes for b in self._buffers)
-            if held + HEADER_BYTES + count * nbytes > self.limit_bytes:
-                return None
+            if self._held() + HEADER_BYTES + count * nbytes > self.limit_bytes:
+                for buf in [b for b in self._buffers if b.reusable(now)]:  # other sizes'
+                    buf.close()
+                    self._buffers.remove(buf)
+                if self._held() + HEADER_BYTES + count * nbytes > self.limit_bytes:
+                    return None
             self._serial += 1
             path = self.folder / f"{_PREFIX}{os.getpid()}-{self._serial}"
             try:
@@ -157,6 +161,9 @@ class StagingPool:
             self._buffers.append(buf)
             buf.begin()
             return buf
+
+    def _held(self) -> int:
+        return sum(HEADER_BYTES + b.count * b.nbytes for b in self._buffers)
 
     def give_back(self, buf: StagingBuffer) -> None:
         """The pose's writer is done with `buf` (its reader may still be reading)."""
