@@ -145,7 +145,7 @@ class StagingPool:
                     buf.begin()
                     return buf
             if self._held() + HEADER_BYTES + count * nbytes > self.limit_bytes:
-                for buf in [b for b in self._buffers if b.reusable(now)]:  # other sizes'
+                for buf in [b for b in self._buffers if b.reusable(now)]:  # other sizes
                     buf.close()
                     self._buffers.remove(buf)
                 if self._held() + HEADER_BYTES + count * nbytes > self.limit_bytes:
