@@ -29,7 +29,7 @@ from calibration.shared.frame_store import FrameStore
 
 COUNT = 6
 SHAPE = (16, 32)  # uint16: 1024 bytes a frame, a multiple of 512 (O_DIRECT)
-REAL_OPEN, REAL_PWRITE = os.open, os.pwrite
+REAL_OPEN, REAL_CLOSE, REAL_PWRITE = os.open, os.close, os.pwrite
 
 
 def _frames(dtype: type = np.uint16, shape: tuple[int, int] = SHAPE,
@@ -135,8 +135,8 @@ def test_reader_takes_staged_frames_from_the_buffer_and_earlier_ones_from_the_fi
     assert not (folder / SIDECAR).exists()
 
 
-def test_writer_close_after_the_reader_is_done_removes_the_sidecar(tmp_path: Path,
-                                                                   pool: RecordingPool) -> None:
+def test_reader_done_before_the_writer_closes_reads_the_file_from_then_on(
+        tmp_path: Path, pool: RecordingPool) -> None:
     frames = _frames()
     folder = tmp_path / "pose"
     store = FrameStore(folder, COUNT, stage=True, flush_interval_s=0)
@@ -214,6 +214,12 @@ def test_pool_leases_nothing_past_its_limit_without_a_folder_or_over_max_frames(
         assert pool.lease(1, 16) is None
         _reader_done(tmp_path / "a", a)
         assert pool.lease(4, 1024) is a  # reuse needs no room
+        assert pool.lease(1, 16) is None  # `a` leased: not freed for another size
+        pool.give_back(a)
+        _reader_done(tmp_path / "a2", a)
+        b = pool.lease(2, 1024)  # `a`, reusable, freed to make room for another size
+        assert b is not None and b is not a
+        assert not a.path.exists() and b.path.exists()
     finally:
         pool.close()
     assert StagingPool(tmp_path / "missing").lease(4, 1024) is None
@@ -289,8 +295,8 @@ def test_staged_frames_check_sees_the_token_change(tmp_path: Path,
 
 class DirectIO:
     """Stands in for the filesystem's O_DIRECT: descriptors frame_store opens with it are
-    opened buffered and remembered (so the test does not depend on the disk under tmp_path),
-    and the first `fail` writes to them raise OSError(`errno_`)."""
+    opened buffered and remembered until closed (so the test does not depend on the disk
+    under tmp_path), and the first `fail` writes to them raise OSError(`errno_`)."""
 
     def __init__(self, fail: int = 0, errno_: int = errno.EINVAL) -> None:
         self.fail, self.errno = fail, errno_
@@ -306,12 +312,15 @@ class DirectIO:
         self.fds.add(fd)
         return fd
 
+    def close(self, fd: int) -> None:
+        self.fds.discard(fd)  # (its number may come back for a buffered descriptor)
+        REAL_CLOSE(fd)
+
     def pwrite(self, fd: int, data: memoryview, offset: int) -> int:
         if fd in self.fds:
             self.writes += 1
             if self.fail:
                 self.fail -= 1
-                self.fds.discard(fd)  # the store closes it: its number may come back
                 raise OSError(self.errno, os.strerror(self.errno))
             address = np.frombuffer(data, np.uint8).ctypes.data  # what O_DIRECT needs:
             assert offset % 512 == 0 and len(data) % 512 == 0 and address % 512 == 0
@@ -321,6 +330,7 @@ class DirectIO:
 def _direct_io(monkeypatch: pytest.MonkeyPatch, **kwargs: int) -> DirectIO:
     direct = DirectIO(**kwargs)
     monkeypatch.setattr(frame_store.os, "open", direct.open)
+    monkeypatch.setattr(frame_store.os, "close", direct.close)
     monkeypatch.setattr(frame_store.os, "pwrite", direct.pwrite)
     return direct
 
@@ -343,7 +353,8 @@ def test_first_o_direct_write_refused_falls_back_to_buffered_writes(
     io = _direct_io(monkeypatch, fail=1)
     frames = _frames()
     _store_all(tmp_path / "pose", frames, order=[2, 0, 1, 3, 4, 5])
-    assert (io.opened, io.writes) == (1, 1)  # refused once, buffered from then on
+    assert (io.opened, io.writes) == (1, 1)  # refused once, closed, buffered from then on
+    assert not io.fds
     np.testing.assert_array_equal(np.load(tmp_path / "pose" / "frames.npy"), frames)
     reader = FrameStore(tmp_path / "pose", COUNT)
     [(part, shm)] = reader.sources(list(range(COUNT)))  # staged all the same
