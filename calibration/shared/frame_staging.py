@@ -255,9 +255,15 @@ class StagedFrames:
 
     def done(self) -> None:
         """Tell the capture side this reader needs the buffer no more, and remove the sidecar
-        (the capture side leaves it to a reader that has not finished)."""
+        (the capture side leaves it to the reader) unless a later capture of the pose wrote
+        its own."""
         if self.current():
             self.header[_READER_DONE] = 1
+        try:
+            mine = json.loads(self.sidecar.read_text())["token"] == self.token.hex()
+        except (OSError, ValueError, KeyError, TypeError):
+            return
+        if mine:
             self.sidecar.unlink(missing_ok=True)
 
     def close(self) -> None:

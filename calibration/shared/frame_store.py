@@ -28,7 +28,6 @@ from calibration.decode.accumulate import ACCEPTED_DTYPES, DecodeError
 from calibration.shared.atomic import allocate, fsync_path
 from calibration.shared.frame_staging import (
     POOL,
-    SIDECAR,
     StagedFrames,
     StagingBuffer,
     write_sidecar,
@@ -130,6 +129,8 @@ class FrameStore:
         """The stored frames `indices` grouped by where a reader takes them: (plan indices,
         an (F, H, W) stack indexed by plan index); the staged ones from the writer's shared
         memory when it still serves this pose (`verify` after reading them)."""
+        if self._staged is not None and not self._staged.current():  # given to another pose
+            self.reader_done()  # (this pose's frames are all in frames.npy)
         if self._staged is None and self.count is not None:
             self._staged = StagedFrames.attach(self.folder, self.count)
         staged = self._staged.staged(indices) if self._staged is not None else []
@@ -300,9 +301,7 @@ class FrameStore:
                 if fd is not None:
                     os.close(fd)
             self._fd = self._direct_fd = None
-            if self._staging is not None:  # its reader may still read it (`reader_done`)
-                if self._staging.reader_done():  # (else the reader removes the sidecar)
-                    (self.folder / SIDECAR).unlink(missing_ok=True)
+            if self._staging is not None:  # its reader, if any, removes the sidecar
                 POOL.give_back(self._staging)
                 self._staging = self._slots = None
 

@@ -51,6 +51,9 @@ class ResidentBuffers:
         """Drop the kept buffers (their memory goes back to the OS)."""
         with self._lock:
             self._kept.clear()
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
 
     def kept_bytes(self) -> int:
         with self._lock:

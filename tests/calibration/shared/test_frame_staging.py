@@ -241,7 +241,8 @@ def test_pool_leases_nothing_past_its_limit_without_a_folder_or_over_max_frames(
 def test_reader_of_a_reused_buffer_fails_and_a_stale_sidecar_is_not_attached(
         tmp_path: Path, pool: RecordingPool, monkeypatch: pytest.MonkeyPatch) -> None:
     """Pose A's buffer leased again for pose B under A's reader (its reader never said it
-    was done): the reader's check fails with the reason; a new reader of A reads the file;
+    was done): the reader's check fails with the reason, and its next read takes the file;
+    a new reader of A reads the file;
     A's stale reader does not mark B's buffer done."""
     monkeypatch.setattr(frame_staging, "REUSE_AFTER_S", 0.0)
     frames = _frames()
@@ -255,6 +256,11 @@ def test_reader_of_a_reused_buffer_fails_and_a_stale_sidecar_is_not_attached(
     assert pool.leased[1] is pool.leased[0]
     with pytest.raises(DecodeError, match="reused by another capture"):
         reader.verify()
+    # the reader's next read, after the reuse, takes this pose's frames from the file
+    [(part, disk)] = reader.sources(list(range(COUNT)))
+    assert disk is reader.array()
+    np.testing.assert_array_equal(disk[part], frames)
+    reader.verify()
     assert StagedFrames.attach(tmp_path / "a", COUNT) is None
     late = FrameStore(tmp_path / "a", COUNT)
     [(part, disk)] = late.sources(list(range(COUNT)))
