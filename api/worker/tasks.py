@@ -48,6 +48,23 @@ def _summary(maps: Any, t0: float) -> dict[str, Any]:
             "wall_s": round(time.perf_counter() - t0, 3)}
 
 
+DROP_DELAY_S = 0.25  # how long after a live decode returns its maps are unmapped
+
+
+def _drop_later(obj: Any) -> None:
+    """Drop `obj` in a daemon thread `DROP_DELAY_S` from now, once the caller (which drops its
+    own references) has returned: a 5 MP pose's maps are views of a 205 MB file mapping whose
+    unmapping takes ~0.03 s, which the pose's ready time need not include."""
+    box, delay_s = [obj], DROP_DELAY_S
+    del obj
+
+    def drop() -> None:
+        time.sleep(delay_s)
+        box.clear()
+
+    threading.Thread(target=drop, name="drop-maps", daemon=True).start()
+
+
 def _keep_heap(pixels: int) -> None:
     """A worker keeps the heap memory its decodes free (`calibration.decode.heap`): no
     first-touch page faults of the finish's temporaries after the last frame; for images
@@ -94,17 +111,22 @@ def stream_decode_task(
     poll_s: float = 0.002,
     durable: bool = True,
     compiled: bool = False,
+    resident_maps: bool = False,
 ) -> dict[str, Any]:
     """Decode a pose while it is captured: follow its `FrameStore` and fold in each frame
     as soon as it is stored (frames stored before the task started, e.g. by an interrupted
     capture, come first). Ends with the maps once every plan frame is in; the capture side
     cancels the job if it fails. Reports progress only for the final stage. The frames are
     read from the capture side's shared memory where it staged them (`FrameStore.sources`).
-    The maps file is laid out before the first frame in a buffer this worker keeps from pose
-    to pose (`MapsFile(resident=True)`), the decoder writes into it, and the commit writes it
-    to disk with O_DIRECT; a new buffer's pages are faulted in at idle priority while frames
-    arrive. `durable=False` writes the maps without fsync (the caller makes them durable
-    after the pose is ready). `compiled`: the compiled
+    The maps file is laid out before the first frame and the decoder writes into it
+    (`MapsFile`); its pages are faulted in at idle priority while frames arrive. With
+    `resident_maps` (a rig's cameras) it is laid out in a buffer this worker keeps from pose
+    to pose instead, and the commit writes it to disk with O_DIRECT: one camera's 205 MB of
+    page cache (5 MP) is faulted in during the capture's idle time and leaves nothing to
+    write after the last frame (ready 0.27 s after it, against 0.33 with the O_DIRECT
+    write), four cameras' 820 MB is not (seconds of faults after the last frame on a VM).
+    `durable=False` writes the maps without fsync (the caller makes them durable after the
+    pose is ready). `compiled`: the compiled
     kernels at every image size (a long-lived worker loads them once: a 640x480 pose's finish
     ~3x faster; a one-off process would load them during the capture). Timings (wall, and CPU
     seconds of this process: all its threads) and the share of the maps file's pages faulted
@@ -117,9 +139,9 @@ def stream_decode_task(
     ctx.check_cancelled()
     added = np.zeros(total, dtype=bool)
     looks = 0
-    # the maps file, laid out now in a resident buffer: a new one's pages are faulted in at
+    # the maps file, laid out now: its pages (or a new resident buffer's) are faulted in at
     # idle priority while frames arrive (first-touch page faults: ~0.5 CPU s at 5 MP on a VM)
-    out = MapsFile(out_path, store.shape, plan.axes(), resident=True)
+    out = MapsFile(out_path, store.shape, plan.axes(), resident=resident_maps)
     with prefaulted(out) as ahead:
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts, compiled=compiled)
@@ -158,8 +180,12 @@ def stream_decode_task(
                "write_s": round(time.perf_counter() - t1, 3),
                "write_cpu_s": round(time.process_time() - c1, 3),
                "prefaulted": round(share_prefaulted, 3)}
-    del maps
-    out.recycle()  # its buffer, resident, holds the next pose's maps
+    if resident_maps:
+        del maps
+        out.recycle()  # the buffer holds this worker's next pose's maps
+    else:
+        _drop_later(maps)  # (unmapped after the summary is on its way)
+        del maps
     return summary
 
 
@@ -185,15 +211,16 @@ def stream_decode_rig_task(
     maps a name to (store folder, maps path, meta). One thread per camera in this worker
     (the decoder's kernels release the GIL, so the cameras' decodes share the cores), so a
     pose of more cameras than the pool has workers still decodes every camera while it is
-    captured. The first failure stops the other cameras' decodes and is raised; the
-    summaries by camera name otherwise."""
+    captured; each camera's maps are laid out in a buffer the worker keeps (`resident_maps`).
+    The first failure stops the other cameras' decodes and is raised; the summaries by
+    camera name otherwise."""
     stop = threading.Event()
 
     def one(name: str) -> dict[str, Any]:
         store_dir, out_path, meta = cameras[name]
         try:
             return stream_decode_task(CameraDecodeContext(ctx, stop), plan_path, store_dir,
-                                      out_path, meta=meta, **task_kwargs)
+                                      out_path, meta=meta, resident_maps=True, **task_kwargs)
         except BaseException:
             stop.set()
             raise
