@@ -65,13 +65,14 @@ def _drop_later(obj: Any) -> None:
     threading.Thread(target=drop, name="drop-maps", daemon=True).start()
 
 
-def _keep_heap(pixels: int) -> None:
+def _keep_heap(pixels: int, decodes: int = 1) -> None:
     """A worker keeps the heap memory its decodes free (`calibration.decode.heap`): no
     first-touch page faults of the finish's temporaries after the last frame; for images
-    the compiled kernels decode, also faulted in now (once per worker)."""
+    the compiled kernels decode, also faulted in now (once per worker, for `decodes` at
+    once: a rig's cameras)."""
     retain_freed_memory()
     if pixels >= COMPILED_MIN_PIXELS:
-        warm_heap()
+        warm_heap(decodes)
 
 
 def decode_task(
@@ -256,7 +257,7 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
     priority is starved by any busy process, and the decode tasks queued behind it with it
     (seen: poses ready 20-75 s late under load)."""
     warm_up()
-    _keep_heap(pixels)
+    _keep_heap(pixels, sets)
     if (plan_path is None or shape is None
             or holds_pixels(int(shape[0]) * int(shape[1]), sets)):
         return

@@ -19,6 +19,7 @@ import functools
 import os
 import sys
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -28,7 +29,7 @@ TRIM_MAX = 256 << 20
 # What a 5 MP finish's first run faulted in, with room for the accumulation's blocks that
 # stay allocated between (measured: 160 MB leaves ~800 faults; 48 MB ~8000).
 MAIN_WARM, THREAD_WARM = 160 << 20, 16 << 20
-_warmed = False
+_warmed = 0  # decoding threads whose heap arenas were faulted in
 
 
 @functools.lru_cache(maxsize=1)
@@ -52,16 +53,33 @@ def _touch(nbytes: int) -> None:
     del blocks
 
 
-def warm_heap() -> bool:
+def warm_heap(decodes: int = 1) -> bool:
     """Once per process (glibc only): keep freed memory, and fault in the heap pages a
     5 MP finish uses, in this thread and in each thread of the decode pool (each has its
-    own heap arena). True if done now."""
+    own heap arena); with `decodes` > 1 (a rig's cameras, each finished on a thread of its
+    own) in as many threads at once, so as many arenas are warm. True if done now."""
     global _warmed
-    if _warmed or not retain_freed_memory():
+    if _warmed >= decodes or not retain_freed_memory():
         return False
     from calibration.decode.batch import pool
 
-    _touch(MAIN_WARM)
+    if decodes > 1:
+        together = threading.Barrier(decodes)
+
+        def arena(_: int) -> None:
+            try:  # (at once: each thread takes an arena of its own)
+                together.wait(timeout=2.0)
+            except threading.BrokenBarrierError:
+                pass
+            _touch(MAIN_WARM)
+
+        with ThreadPoolExecutor(decodes, thread_name_prefix="warm-heap") as threads:
+            list(threads.map(arena, range(decodes)))
+    else:
+        _touch(MAIN_WARM)
+    if _warmed:
+        _warmed = decodes
+        return True
     workers = min(os.cpu_count() or 1, 4)  # (the pool's size)
     meet = threading.Barrier(workers)
 
@@ -73,5 +91,5 @@ def warm_heap() -> bool:
         _touch(THREAD_WARM)
 
     list(pool().map(one, range(workers)))
-    _warmed = True
+    _warmed = decodes
     return True
