@@ -204,12 +204,12 @@ class CaptureJob(PoseJob):
                     svc.executor, ctx, plan_path,
                     {name: (dirs[name], outs[name]) for name in names}, metas,
                     noise=self.noise_dn, durable=False, compiled=True)
-                # another worker loads the compiled decoder and, once, the sums of the rig's
-                # most common camera size, a set per such camera (as for one camera above)
+                # another worker loads the compiled decoder and, once, the sums and maps
+                # buffers of the rig's most common camera size, a set per such camera
                 shapes = Counter((c.info.height, c.info.width) for c in rig.cameras.values())
                 (h, w), count = shapes.most_common(1)[0]
                 svc.executor.submit(warm_decode_task, h * w, str(plan_path), (h, w),
-                                    self.noise_dn, count)
+                                    self.noise_dn, count, resident_maps=True)
                 try:
                     cap = capture_rig_live(ctx, rig, plan, dirs, decode,
                                            on_frame=svc.preview.publisher(self.rig_id))

@@ -242,18 +242,18 @@ def stream_decode_rig_task(
 
 def warm_decode_task(pixels: int, plan_path: str | None = None,
                      shape: tuple[int, int] | None = None, noise: Any = None,
-                     sets: int = 1) -> None:
+                     sets: int = 1, resident_maps: bool = False) -> None:
     """Load the decoder's compiled kernels in this worker (~1.4 CPU s once per process; live
     decodes use them at every image size): a live capture submits this next to its decode
     task, so the worker that decodes a later pose does not load them while that pose's
     frames arrive (under load, late enough to delay the pose). With `plan_path` and `shape`
-    (and the capture's `noise`) it also allocates `sets` decodes' sums and maps buffers (a
-    rig's cameras of that size decode at once) and keeps them (`sums_cache`,
-    `resident_buffers`) unless this worker already keeps
-    as many of images this size (another camera's, e.g. a preview camera's small ones, are
-    replaced): ~1 GB a camera at 5 MP, ~2.3 CPU s of first-touch page faults or far more on a
-    VM whose host reclaimed the memory, paid once per worker while a capture runs rather than
-    by the worker's first pose after its last frame. At normal CPU priority: a task at idle
+    (and the capture's `noise`) it also allocates `sets` decodes' sums (a rig's cameras of
+    that size decode at once), with `resident_maps` their maps buffers too, and keeps them
+    (`sums_cache`, `resident_buffers`) unless this worker already keeps as many of images
+    this size (another camera's, e.g. a preview camera's small ones, are replaced): ~1 GB a
+    camera at 5 MP, ~2.3 CPU s of first-touch page faults or far more on a VM whose host
+    reclaimed the memory, paid once per worker while a capture runs rather than by the
+    worker's first pose after its last frame. At normal CPU priority: a task at idle
     priority is starved by any busy process, and the decode tasks queued behind it with it
     (seen: poses ready 20-75 s late under load)."""
     warm_up()
@@ -262,7 +262,8 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
             or holds_pixels(int(shape[0]) * int(shape[1]), sets)):
         return
     plan = read_plan(plan_path)
-    warm_resident(tuple(shape), plan.axes(), sets)  # (buffers of the live decodes' maps)
+    if resident_maps:
+        warm_resident(tuple(shape), plan.axes(), sets)
     decoders = [StreamingDecoder(plan, tuple(shape), noise=noise, compiled=True)
                 for _ in range(sets)]
     for decoder in decoders:

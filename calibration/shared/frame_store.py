@@ -134,7 +134,8 @@ class FrameStore:
         if self._staged is None and self.count is not None:
             self._staged = StagedFrames.attach(self.folder, self.count)
         staged = self._staged.staged(indices) if self._staged is not None else []
-        rest = [i for i in indices if i not in set(staged)]
+        held = set(staged)
+        rest = [i for i in indices if i not in held]
         out = [(staged, self._staged.frames)] if staged else []
         if rest:
             out.append((rest, self.array()))

@@ -71,3 +71,36 @@ def test_warm_decode_task_replaces_another_cameras_sums(tmp_path) -> None:
         assert sums_cache.holds_pixels(48 * 64) and not sums_cache.holds_pixels(16 * 12)
     finally:
         sums_cache.release()
+
+
+def test_warm_decode_task_primes_a_set_per_rig_camera(tmp_path) -> None:
+    """A rig's cameras of one size decode at once, each with its own sums and (resident) maps
+    buffer: the warm task keeps one of each per camera, and a second warm task with as many
+    already kept allocates nothing; the first camera's maps file is laid out in a kept
+    buffer."""
+    from acquisition.patterns import build_plan
+    from calibration.decode import sums_cache
+    from calibration.shared.maps_file import MapsFile
+    from calibration.shared.plan import write_plan
+    from calibration.shared.resident_buffers import RESIDENT
+
+    plan = build_plan(1920, 1080, 0.2745)
+    write_plan(plan, tmp_path / "plan.json")
+    sums_cache.release()
+    RESIDENT.release()
+    try:
+        warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64), None, 3,
+                         resident_maps=True)
+        assert sums_cache.holds_pixels(48 * 64, 3) and not sums_cache.holds_pixels(48 * 64, 4)
+        kept = sums_cache.kept_arrays()
+        buffers = RESIDENT.kept_bytes()
+        assert buffers > 0 and buffers % 3 == 0
+        warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64), None, 3,
+                         resident_maps=True)
+        assert all(a is b for a, b in zip(sums_cache.kept_arrays(), kept, strict=True))
+        assert RESIDENT.kept_bytes() == buffers
+        with MapsFile(tmp_path / "maps.npz", (48, 64), plan.axes(), resident=True):
+            assert RESIDENT.kept_bytes() == buffers * 2 // 3  # one of them taken
+    finally:
+        sums_cache.release()
+        RESIDENT.release()
