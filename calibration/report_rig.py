@@ -4,7 +4,8 @@ their 1-sigma, under one verdict against stated thresholds, with the rig model's
 
 A lab reading it decides whether the rig model can be used for stereo or triangulation, or
 which camera needs more views; it is drawn from stored files only (rig.json, result.json and
-each camera's decoded maps), so it is the same page whenever it is drawn again.
+each camera's decoded maps, or for a rig fitted to board observations each camera's
+observation files), so it is the same page whenever it is drawn again.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from calibration.report_verdict import (
 )
 from calibration.rig_export import rig_export_bytes
 from calibration.shared.maps import load_maps
+from calibration.shared.observations import load_observations
 from calibration.shared.rig_model import RigModel, load_rig
 
 RIG_REPORT_FORMAT = "phasecal.rig-report/1"
@@ -48,17 +50,54 @@ BASELINE_SIGMA_WARN = 0.005
 BASELINE_SIGMA_FAIL = 0.02
 ROTATION_SIGMA_WARN_MRAD = 1.0
 ROTATION_SIGMA_FAIL_MRAD = 5.0
+# A board view covers the pixels near its detected points: each point is drawn as a disc of
+# this fraction of the sensor's shorter side (a few px), so sparse corners read as a region.
+POINT_RADIUS_FRACTION = 1 / 60
 
 
 @dataclass
 class RigReportInputs:
-    """The stored files a rig report is drawn from (paths, so it can run on a worker)."""
+    """The stored files a rig report is drawn from (paths, so it can run on a worker).
+
+    Coverage comes from each camera's decoded maps of a screen session or, for a rig
+    fitted to board observations, from its observation files: one or the other."""
 
     rig: str  # rig.json (phasecal.rig/1)
     result: str  # result.json of the joint fit ({"stats": ...})
     maps: dict[str, list[str]]  # camera -> its decoded maps of the training views
     header: ReportHeader
     downloads: list[Download] = field(default_factory=list)
+    # camera -> its observation files (phasecal.observations/1) of the training views
+    observations: dict[str, list[str]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.maps and self.observations:
+            raise ValueError("a rig report's coverage comes from maps or from observations, "
+                             "not both")
+
+
+@dataclass(frozen=True)
+class CoverageWords:
+    """How the page names what its coverage counts (decoded pixels of a screen, or detected
+    points of a board) and where a camera's noise comes from."""
+
+    colorbar: str
+    title: str
+    caption: str
+    target: str  # what a new view puts into an empty corner
+    noise: str  # the noise whitened residuals are divided by
+    sigma: str  # one residual's sigma
+
+
+DECODED_COVERAGE = CoverageWords(
+    "views decoded", "views per pixel",
+    "how many training views decoded each pixel; cells outlined red were seen by none",
+    "the screen", "its decoded noise", "its decoded sigma")
+POINT_COVERAGE = CoverageWords(
+    "views with a point here", "views with a detected point nearby",
+    "how many training views detected a board point near each pixel (each point drawn as a "
+    "small disc); cells outlined red hold no view's point",
+    "the board", "the noise of its detected points", "its point's pixel sigma")
 
 
 @dataclass
@@ -110,9 +149,33 @@ def _coverage(maps_paths: list[str], size: tuple[int, int]) -> tuple[np.ndarray,
     return counts, per_pixel
 
 
-def camera_summaries(rig: RigModel, stats: dict[str, Any], maps: dict[str, list[str]]
-                     ) -> list[CameraSummary]:
-    """Each camera's numbers, from the rig model, the joint fit's rows and its maps."""
+def _point_coverage(observation_paths: list[str], size: tuple[int, int]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Views with a detected point in each coverage cell (ny, nx), and views with a point
+    near each pixel (H, W) of one camera, from its board observations."""
+    w, h = size
+    nx, ny = COVERAGE_CELLS
+    per_pixel = np.zeros((h, w), dtype=np.int32)
+    counts = np.zeros((ny, nx))
+    radius = max(1, round(min(w, h) * POINT_RADIUS_FRACTION))
+    for path in observation_paths:
+        obs = load_observations(path)
+        uv = obs.image_xy[obs.used()]
+        uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)]
+        cells = np.zeros((ny, nx), dtype=bool)
+        cells[(uv[:, 1] * ny / h).astype(int), (uv[:, 0] * nx / w).astype(int)] = True
+        counts += cells
+        seen = np.zeros((h, w), dtype=np.uint8)
+        for u, v in np.rint(uv).astype(int):
+            cv2.circle(seen, (int(u), int(v)), radius, 1, thickness=-1)
+        per_pixel += seen
+    return counts, per_pixel
+
+
+def camera_summaries(rig: RigModel, stats: dict[str, Any], maps: dict[str, list[str]],
+                     observations: dict[str, list[str]] | None = None) -> list[CameraSummary]:
+    """Each camera's numbers, from the rig model, the joint fit's rows and its maps (or its
+    board observations)."""
     rows = stats.get("per_view", [])
     out = []
     for name, cam in rig.cameras.items():
@@ -121,7 +184,9 @@ def camera_summaries(rig: RigModel, stats: dict[str, Any], maps: dict[str, list[
         rms = [r.get("rms_px", r.get("rms_mm")) for r in mine]
         wrms = [r.get("whitened_rms") for r in mine]
         weights = [r.get("n_points", 0) for r in mine]
-        coverage, per_pixel = _coverage(maps.get(name, []), cam.model.image_size)
+        coverage, per_pixel = (
+            _point_coverage(observations.get(name, []), cam.model.image_size) if observations
+            else _coverage(maps.get(name, []), cam.model.image_size))
         out.append(CameraSummary(
             name, cam.model.type_name, tuple(cam.model.image_size), _key_numbers(cam.model),
             _pooled_rms(rms, weights), unit, _pooled_rms(wrms, weights), len(mine),
@@ -157,7 +222,8 @@ def _graded(value: float, warn: float, fail: float) -> str:
     return PASS if value <= warn else WARN if value <= fail else FAIL
 
 
-def rig_verdict(cameras: list[CameraSummary], extrinsics: list[ExtrinsicsSummary]) -> Verdict:
+def rig_verdict(cameras: list[CameraSummary], extrinsics: list[ExtrinsicsSummary],
+                words: CoverageWords = DECODED_COVERAGE) -> Verdict:
     """Pass/warn/fail per camera (residuals, coverage) and per camera's extrinsics."""
     checks = []
     for c in cameras:
@@ -166,7 +232,7 @@ def rig_verdict(cameras: list[CameraSummary], extrinsics: list[ExtrinsicsSummary
                 f"{c.name}: whitened RMS in the joint fit",
                 _graded(c.whitened_rms, ADEQUATE_RATIO, NOISE_RATIO_FAIL), f"{c.whitened_rms:.3g}",
                 f"pass <= {ADEQUATE_RATIO:g}, warn <= {NOISE_RATIO_FAIL:g}, fail above",
-                "the camera's residuals exceed its decoded noise: try a model with more "
+                f"the camera's residuals exceed {words.noise}: try a model with more "
                 "distortion terms for this camera, or check that the rig did not move"))
         empty = int(np.sum(c.coverage == 0))
         frac = empty / c.coverage.size
@@ -175,7 +241,8 @@ def rig_verdict(cameras: list[CameraSummary], extrinsics: list[ExtrinsicsSummary
             f"{c.name}: coverage of its sensor", status,
             f"{empty} of {c.coverage.size} cells empty ({frac:.0%})",
             f"pass: none empty, warn <= {EMPTY_CELLS_FAIL:.0%}, fail above",
-            f"capture poses that put the screen into {c.name}'s empty corners and edges"))
+            f"capture poses that put {words.target} into {c.name}'s empty corners and "
+            "edges"))
     for e in extrinsics:
         ratio = e.sigma_translation_mm / max(e.baseline_mm, 1e-9)
         checks.append(Check(
@@ -196,9 +263,11 @@ def rig_verdict(cameras: list[CameraSummary], extrinsics: list[ExtrinsicsSummary
     return Verdict(checks, [], [], [])
 
 
-def rig_downloads(rig: RigModel, cal_id: str) -> list[Download]:
-    """The rig model and every rig export as links to the service's routes."""
-    base = f"/calibrations/{cal_id}"
+def rig_downloads(rig: RigModel, cal_id: str, collection: str = "/calibrations"
+                  ) -> list[Download]:
+    """The rig model and every rig export as links to the service's routes (of the rig's
+    own collection: a screen session's calibrations, or the target rig calibrations)."""
+    base = f"{collection}/{cal_id}"
     out = [Download("rig model (phasecal.rig/1 JSON)", f"{base}/rig",
                     "every camera's model and extrinsics with covariance"),
            Download("ROS static transforms (every camera)",
@@ -225,19 +294,20 @@ def rig_downloads(rig: RigModel, cal_id: str) -> list[Download]:
 
 
 @one_at_a_time
-def _draw_coverage(cameras: list[CameraSummary], out_dir: Path) -> list[str]:
-    """One PNG per camera: the number of views that decoded each pixel."""
+def _draw_coverage(cameras: list[CameraSummary], out_dir: Path, words: CoverageWords
+                   ) -> list[str]:
+    """One PNG per camera: the number of views that covered each pixel."""
     names = []
     for i, c in enumerate(cameras):
         fig, ax = subplots(1, (6, 4.4))
         im = ax.imshow(c.poses_per_pixel, cmap="viridis", interpolation="nearest",
                        vmin=0, vmax=max(int(c.poses_per_pixel.max(initial=0)), 1))
-        fig.colorbar(im, ax=ax, label="views decoded")
+        fig.colorbar(im, ax=ax, label=words.colorbar)
         w, h = c.image_size
         nx, ny = c.coverage.shape[1], c.coverage.shape[0]
         for iy, ix in zip(*np.nonzero(c.coverage == 0), strict=True):
             ax.add_patch(_cell(ix * w / nx, iy * h / ny, w / nx, h / ny))
-        ax.set(title=f"{c.name}: views per pixel (red: empty cells)", xlabel="x (px)",
+        ax.set(title=f"{c.name}: {words.title} (red: empty cells)", xlabel="x (px)",
                ylabel="y (px)")
         fig.tight_layout()
         name = f"coverage_{i:02d}.png"
@@ -294,9 +364,9 @@ def _heldout_html(stats: dict[str, Any]) -> str:
 
 def rig_report_html(inputs: RigReportInputs, rig: RigModel, stats: dict[str, Any],
                     cameras: list[CameraSummary], extrinsics: list[ExtrinsicsSummary],
-                    images: list[str]) -> str:
+                    images: list[str], words: CoverageWords = DECODED_COVERAGE) -> str:
     """The whole page."""
-    verdict = rig_verdict(cameras, extrinsics)
+    verdict = rig_verdict(cameras, extrinsics, words)
     keys = sorted({k for c in cameras for k in c.key_numbers}, key=["fx", "fy", "cx", "cy"].index)
     cam_rows = [[c.name, c.model_type, f"{c.image_size[0]} x {c.image_size[1]}",
                  *[c.key_numbers.get(k) for k in keys], c.views,
@@ -310,8 +380,7 @@ def rig_report_html(inputs: RigReportInputs, rig: RigModel, stats: dict[str, Any
     fixed_note = (f"<p class='explain'>{html.escape(', '.join(fixed))} kept the rays of "
                   "their own fit; their extrinsics' sigma leaves out the rays' uncertainty "
                   "(a lower bound).</p>" if fixed else "")
-    figures = "".join(figure(n, f"{c.name}: how many training views decoded each pixel; "
-                                "cells outlined red were seen by none")
+    figures = "".join(figure(n, f"{c.name}: {words.caption}")
                       for n, c in zip(images, cameras, strict=True))
     head = inputs.header
     return (
@@ -326,7 +395,7 @@ def rig_report_html(inputs: RigReportInputs, rig: RigModel, stats: dict[str, Any
         + table(["camera", "model", "image", *keys, "views", "RMS residual", "whitened RMS",
                  "cells covered"], cam_rows).replace("<table", "<table id='cameras'", 1)
         + f"<p class='explain'>Residuals of the joint fit; the whitened RMS divides each "
-          f"residual by its decoded sigma (1 means the model explains the data down to the "
+          f"residual by {words.sigma} (1 means the model explains the data down to the "
           f"noise). Coverage counts a {COVERAGE_CELLS[0]} x {COVERAGE_CELLS[1]} grid of "
           f"each camera's own sensor.</p>"
         + f"<h2>Extrinsics (frame of {html.escape(rig.reference)})</h2>"
@@ -346,10 +415,11 @@ def draw_rig_report(inputs: RigReportInputs, out_dir: str) -> str:
     out.mkdir(parents=True, exist_ok=True)
     rig = load_rig(inputs.rig)
     stats = json.loads(Path(inputs.result).read_text(encoding="utf-8")).get("stats", {})
-    cameras = camera_summaries(rig, stats, inputs.maps)
+    cameras = camera_summaries(rig, stats, inputs.maps, inputs.observations)
     extrinsics = extrinsics_summaries(rig)
-    images = _draw_coverage(cameras, out)
-    page = rig_report_html(inputs, rig, stats, cameras, extrinsics, images)
+    words = POINT_COVERAGE if inputs.observations else DECODED_COVERAGE
+    images = _draw_coverage(cameras, out, words)
+    page = rig_report_html(inputs, rig, stats, cameras, extrinsics, images, words)
     (out / REPORT_PAGE).write_text(page, encoding="utf-8")
     return str(out / REPORT_PAGE)
 

@@ -1,22 +1,35 @@
 """Rig calibration jobs from target sessions: each camera's board observations (one target
 session per camera), its views paired across cameras by shot name, fitted jointly on a
 worker by the same task as a screen session's rig (api/worker/rig_tasks.py); this server
-moves rig.json and result.json into the calibration's folder."""
+moves rig.json and result.json into the calibration's folder and draws the rig's report as
+the job's last step, its coverage from each camera's observation files (a report that
+cannot be drawn does not fail the fit: its first request draws it again)."""
 
 from __future__ import annotations
 
+import logging
+import shutil
+import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy.orm import Session
 
-from api.db import TargetRigCalibrationRecord
+from api.db import TargetRigCalibrationRecord, TargetSessionRecord
 from api.jobs.model import Job, JobKind
+from api.problems import Problem
+from api.version import phasecal_version
 from api.worker.rig_tasks import RIG_OUTPUTS, rig_calibrate_task
+from calibration import ReportHeader, RigReportInputs, draw_rig_report, load_rig, rig_downloads
 from calibration.shared.progress import TaskContext
 
 if TYPE_CHECKING:
     from api.services import Services
+
+TARGET_RIG_COLLECTION = "/target-rig-calibrations"
+RIG_REPORT_DIR = "report"
+log = logging.getLogger("phasecal.reports")
 
 
 def shot_entries(svc: Services, cameras: dict[str, dict[str, Any]]
@@ -46,7 +59,7 @@ class TargetRigCalibrateJob(Job):
     reference: str
 
     def __post_init__(self) -> None:
-        self.resource = f"/target-rig-calibrations/{self.cal_id}"
+        self.resource = f"{TARGET_RIG_COLLECTION}/{self.cal_id}"
         self.claims = (self.cal_id,)
 
     def run(self, ctx: TaskContext) -> dict[str, Any]:
@@ -63,6 +76,11 @@ class TargetRigCalibrateJob(Job):
             result = fut.result()
             ctx.check_cancelled()
             svc.store.commit(staged, RIG_OUTPUTS, svc.store.dir_for(self.cal_id))
+        try:
+            draw_target_rig_report_now(svc, self.cal_id)
+        # Whatever went wrong, the fit stands; the report is drawn again on its first request.
+        except Exception as exc:
+            log.warning("calibration %s: rig report not drawn: %s", self.cal_id, exc)
         return result
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:
@@ -72,3 +90,69 @@ class TargetRigCalibrateJob(Job):
     def ended(self, s: Session, status: str, error: str) -> None:
         c = s.get(TargetRigCalibrationRecord, self.cal_id)
         c.status, c.error = status, error
+
+
+def target_rig_report_inputs(svc: Services, rec: TargetRigCalibrationRecord) -> RigReportInputs:
+    """What a target rig calibration's report is drawn from: rig.json, result.json and each
+    camera's observation files of the training shots (those still stored)."""
+    cal_dir = svc.store.dir_for(rec.id)
+    held = set(rec.heldout_shots or [])
+    observations: dict[str, list[str]] = {}
+    for cam, spec in rec.cameras.items():
+        ses_dir = svc.store.dir_for(spec["session_id"], create=False)  # it may be gone
+        for shot, vid in spec["views"].items():
+            path = ses_dir / f"{vid}.npz"
+            if shot not in held and path.is_file():
+                observations.setdefault(cam, []).append(str(path))
+    with svc.db.session() as s:
+        names = {cam: s.get(TargetSessionRecord, spec["session_id"])
+                 for cam, spec in rec.cameras.items()}
+        sessions = "; ".join(
+            f"{cam}: {ses.name or 'unnamed'} ({rec.cameras[cam]['session_id']})" if ses
+            else f"{cam}: {rec.cameras[cam]['session_id']} (deleted)"
+            for cam, ses in names.items())
+        target = next((ses.target for ses in names.values() if ses is not None), None)
+    shots = list(dict.fromkeys(shot for spec in rec.cameras.values() for shot in spec["views"]))
+    header = ReportHeader(
+        title=f"Rig calibration {rec.id}", session=sessions,
+        rig=f"board observations, target {target}" if target else "board observations",
+        cameras=", ".join(f"{c} ({m})" for c, m in rec.camera_models.items()),
+        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(rec.created_at)),
+        software=f"phasecal {phasecal_version()}",
+        poses_used=[shot for shot in shots if shot not in held],
+        heldout=list(rec.heldout_shots or []))
+    rig_json = cal_dir / "rig.json"
+    return RigReportInputs(str(rig_json), str(cal_dir / "result.json"), {}, header,
+                           rig_downloads(load_rig(rig_json), rec.id, TARGET_RIG_COLLECTION),
+                           observations=observations)
+
+
+def draw_target_rig_report_now(svc: Services, cal_id: str) -> Path:
+    """Draw a target rig calibration's report on the executor, wait, move it into place;
+    its folder."""
+    with svc.db.session() as s:
+        rec = s.get(TargetRigCalibrationRecord, cal_id)
+    inputs = target_rig_report_inputs(svc, rec)
+    tmp = svc.store.temp_dir()
+    try:
+        svc.executor.submit(draw_rig_report, inputs, str(tmp)).result()
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    final = svc.store.dir_for(cal_id) / RIG_REPORT_DIR
+    svc.store.replace_dir(tmp, final)
+    return final
+
+
+def target_rig_report_folder(svc: Services, rec: TargetRigCalibrationRecord) -> Path | None:
+    """The folder of a target rig calibration's report; None while the fit runs. Drawn here
+    when the job could not draw it."""
+    if rec.status in ("queued", "running"):
+        return None
+    if rec.status != "succeeded":
+        raise Problem(409, "not-ready", f"calibration {rec.id} is {rec.status}; a report "
+                      "exists only for a calibration that succeeded")
+    folder = svc.store.dir_for(rec.id) / RIG_REPORT_DIR
+    if (folder / "report.html").is_file():
+        return folder
+    return draw_target_rig_report_now(svc, rec.id)

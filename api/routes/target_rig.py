@@ -1,19 +1,22 @@
 """Rig calibrations from target sessions: one target session per camera (each its own image
 size, the same board), views paired across cameras by shot name, every camera fitted jointly
-as a job; the rig model (phasecal.rig/1) and its exports as a screen session's rig offers."""
+as a job; the rig model (phasecal.rig/1), its exports and its report page as a screen
+session's rig offers."""
 
 from __future__ import annotations
 
+import re
 import time
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends
-from fastapi.responses import JSONResponse, Response
+from fastapi import APIRouter, Depends, Query
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from api.db import TargetRigCalibrationRecord, TargetSessionRecord, TargetViewRecord
-from api.jobs.target_rig import TargetRigCalibrateJob
+from api.jobs.target_rig import TargetRigCalibrateJob, target_rig_report_folder
 from api.problems import Problem
+from api.reports import drawing_page
 from api.routes.common import PROBLEM_RESPONSES, accepted
 from api.routes.rig_calibrations import (
     RIG_EXPORT_RESPONSES,
@@ -33,11 +36,13 @@ from calibration import (
     load_rig,
     model_spec,
     observation_refusal,
+    self_contained,
 )
 
 router = APIRouter(tags=["target sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
 MAX_SHOTS = 2000
+REPORT_PNG = re.compile(r"[a-z]+(_[0-9]{2})?\.png")
 
 
 class TargetRigCamera(BaseModel):
@@ -218,3 +223,45 @@ def export_target_rig(
     or every camera's pose as ROS transforms (as /calibrations/{id}/rig/export)."""
     return rig_export_response(_fitted_rig(svc, cal_id), cal_id, format, camera, cameras,
                                approximate)
+
+
+@router.get("/target-rig-calibrations/{cal_id}/report.html", response_class=HTMLResponse,
+            responses={202: {"content": {"text/html": {}},
+                             "description": "the fit is still running: a page that says so "
+                                            "and reloads itself"}})
+def target_rig_report_page(cal_id: str, svc: Svc, download: Annotated[bool, Query(
+        description="the report as one self-contained file (images inlined) to save")] = False,
+                           ) -> HTMLResponse:
+    """The rig's report: every camera (model, key numbers, joint-fit RMS, views, coverage of
+    its sensor by the detected board points), the extrinsics with their 1-sigma, a verdict
+    against stated thresholds, held-out shots and the rig's downloads. Drawn by the job;
+    while the fit runs (202) a page that says so and reloads itself."""
+    rec = _record(svc, cal_id)
+    folder = target_rig_report_folder(svc, rec)
+    if folder is None:
+        return HTMLResponse(drawing_page(cal_id, rec.status),
+                            status_code=202, headers={"Retry-After": "2"})
+    page = (folder / "report.html").read_text(encoding="utf-8")
+    if download:
+        return HTMLResponse(self_contained(page, folder), headers={
+            "Content-Disposition": f'attachment; filename="{cal_id}-report.html"'})
+    # Images are linked by file name; this page lives one level above them.
+    return HTMLResponse(re.sub(r'src="([a-z_0-9]+\.png)"', r'src="report/\1"', page))
+
+
+@router.get("/target-rig-calibrations/{cal_id}/report/{name}", response_class=Response,
+            responses={200: {"content": {"image/png": {}, "text/html": {}}}})
+def target_rig_report_file(cal_id: str, name: str, svc: Svc) -> Response:
+    """One PNG of the report (names as linked from report.html), or report.html itself."""
+    if name != "report.html" and not REPORT_PNG.fullmatch(name):
+        raise Problem(404, "not-found", f"report file {name!r}: expected report.html or a "
+                      "PNG named in it")
+    folder = target_rig_report_folder(svc, _record(svc, cal_id))
+    if folder is None:
+        raise Problem(409, "not-ready", f"calibration {cal_id}'s report is drawn once its fit "
+                      "has succeeded; ask again in a few seconds")
+    path = folder / name
+    if not path.is_file():
+        raise Problem(404, "not-found", f"calibration {cal_id}'s report has no {name}")
+    media = "text/html" if name.endswith(".html") else "image/png"
+    return Response(path.read_bytes(), media_type=media)
