@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -114,7 +115,12 @@ def draw_rig_report_now(svc: Services, cal_id: str) -> Path:
     """Draw a rig calibration's report on the executor, wait, move it into place; its folder."""
     with svc.db.session() as s:
         rec = s.get(CalibrationRecord, cal_id)
-    inputs = rig_report_inputs(svc, rec)
+    return draw_report_into(svc, cal_id, rig_report_inputs(svc, rec))
+
+
+def draw_report_into(svc: Services, cal_id: str, inputs: RigReportInputs) -> Path:
+    """Draw a rig report from `inputs` on the executor, wait, move it into calibration
+    `cal_id`'s folder (screen-session and target-session rigs alike); its folder."""
     tmp = svc.store.temp_dir()
     try:
         svc.executor.submit(draw_rig_report, inputs, str(tmp)).result()
@@ -134,12 +140,19 @@ def is_rig_calibration(rec: CalibrationRecord) -> bool:
 def rig_report_folder(svc: Services, rec: CalibrationRecord) -> Path | None:
     """The folder of a rig calibration's report; None while the fit runs. Drawn here when
     the job could not draw it."""
-    if rec.status in ("queued", "running"):
+    return report_folder(svc, rec.id, rec.status, lambda: draw_rig_report_now(svc, rec.id))
+
+
+def report_folder(svc: Services, cal_id: str, status: str, draw: Callable[[], Path]
+                  ) -> Path | None:
+    """The folder of rig calibration `cal_id`'s report (`status`: its record's); None while
+    the fit runs, a 409 unless it succeeded; drawn by `draw` when missing."""
+    if status in ("queued", "running"):
         return None
-    if rec.status != "succeeded":
-        raise Problem(409, "not-ready", f"calibration {rec.id} is {rec.status}; a report "
+    if status != "succeeded":
+        raise Problem(409, "not-ready", f"calibration {cal_id} is {status}; a report "
                       "exists only for a calibration that succeeded")
-    folder = svc.store.dir_for(rec.id) / RIG_REPORT_DIR
+    folder = svc.store.dir_for(cal_id) / RIG_REPORT_DIR
     if (folder / "report.html").is_file():
         return folder
-    return draw_rig_report_now(svc, rec.id)
+    return draw()

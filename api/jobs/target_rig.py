@@ -8,7 +8,6 @@ cannot be drawn does not fail the fit: its first request draws it again)."""
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,17 +17,16 @@ from sqlalchemy.orm import Session
 
 from api.db import TargetRigCalibrationRecord, TargetSessionRecord
 from api.jobs.model import Job, JobKind
-from api.problems import Problem
+from api.jobs.rig_calibrations import draw_report_into, report_folder
 from api.version import phasecal_version
 from api.worker.rig_tasks import RIG_OUTPUTS, rig_calibrate_task
-from calibration import ReportHeader, RigReportInputs, draw_rig_report, load_rig, rig_downloads
+from calibration import ReportHeader, RigReportInputs, load_rig, rig_downloads
 from calibration.shared.progress import TaskContext
 
 if TYPE_CHECKING:
     from api.services import Services
 
 TARGET_RIG_COLLECTION = "/target-rig-calibrations"
-RIG_REPORT_DIR = "report"
 log = logging.getLogger("phasecal.reports")
 
 
@@ -132,27 +130,11 @@ def draw_target_rig_report_now(svc: Services, cal_id: str) -> Path:
     its folder."""
     with svc.db.session() as s:
         rec = s.get(TargetRigCalibrationRecord, cal_id)
-    inputs = target_rig_report_inputs(svc, rec)
-    tmp = svc.store.temp_dir()
-    try:
-        svc.executor.submit(draw_rig_report, inputs, str(tmp)).result()
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    final = svc.store.dir_for(cal_id) / RIG_REPORT_DIR
-    svc.store.replace_dir(tmp, final)
-    return final
+    return draw_report_into(svc, cal_id, target_rig_report_inputs(svc, rec))
 
 
 def target_rig_report_folder(svc: Services, rec: TargetRigCalibrationRecord) -> Path | None:
     """The folder of a target rig calibration's report; None while the fit runs. Drawn here
     when the job could not draw it."""
-    if rec.status in ("queued", "running"):
-        return None
-    if rec.status != "succeeded":
-        raise Problem(409, "not-ready", f"calibration {rec.id} is {rec.status}; a report "
-                      "exists only for a calibration that succeeded")
-    folder = svc.store.dir_for(rec.id) / RIG_REPORT_DIR
-    if (folder / "report.html").is_file():
-        return folder
-    return draw_target_rig_report_now(svc, rec.id)
+    return report_folder(svc, rec.id, rec.status,
+                         lambda: draw_target_rig_report_now(svc, rec.id))

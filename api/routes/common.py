@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import Query
-from fastapi.responses import JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 
 from api.db import PoseRecord, SessionRecord
 from api.pose_path import pose_cameras
 from api.problems import Problem
 from api.schemas import ProblemDetail
 from api.store import check_id
+from calibration import self_contained
+
+REPORT_PNG = re.compile(r"[a-z]+(_[0-9]{2})?\.png")  # the PNGs a report page links
 
 
 def _problem(description: str) -> dict[str, Any]:
@@ -77,3 +81,29 @@ def pose_to_dict(p: PoseRecord, pose_dir: Path | None = None) -> dict[str, Any]:
         "screen_pose": p.screen_pose, "error": p.error, "created_at": p.created_at,
         "cameras": None if pose_dir is None else pose_cameras(pose_dir, p.status, p.error),
     }
+
+
+def report_page_response(cal_id: str, folder: Path, page: str, download: bool) -> HTMLResponse:
+    """A drawn report page (`page`, from `folder`): one self-contained file to save with
+    `download`, else served with its images linked under `report/` (this page lives one
+    level above them)."""
+    if download:
+        return HTMLResponse(self_contained(page, folder), headers={
+            "Content-Disposition": f'attachment; filename="{cal_id}-report.html"'})
+    return HTMLResponse(re.sub(r'src="([a-z_0-9]+\.png)"', r'src="report/\1"', page))
+
+
+def check_report_file(name: str) -> None:
+    """A 404 unless `name` is report.html or a PNG name a report links."""
+    if name != "report.html" and not REPORT_PNG.fullmatch(name):
+        raise Problem(404, "not-found", f"report file {name!r}: expected report.html or a "
+                      "PNG named in it")
+
+
+def report_file_response(cal_id: str, name: str, folder: Path) -> Response:
+    """File `name` (checked by `check_report_file`) of a drawn report in `folder`."""
+    path = folder / name
+    if not path.is_file():
+        raise Problem(404, "not-found", f"calibration {cal_id}'s report has no {name}")
+    media = "text/html" if name.endswith(".html") else "image/png"
+    return Response(path.read_bytes(), media_type=media)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query
@@ -18,13 +17,17 @@ from api.reports import (
     drawing_page,
     ready_report,
 )
-from api.routes.common import PROBLEM_RESPONSES
+from api.routes.common import (
+    PROBLEM_RESPONSES,
+    check_report_file,
+    report_file_response,
+    report_page_response,
+)
 from api.services import Services, get_services
-from calibration import self_contained, with_links
+from calibration import with_links
 
 router = APIRouter(tags=["reports"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
-_PNG = re.compile(r"[a-z]+(_[0-9]{2})?\.png")
 _DIFF_FILES = {"diff.html": "text/html", "diff.png": "image/png", "diff_sigma.png": "image/png"}
 
 
@@ -49,30 +52,20 @@ def report_page(cal_id: str, svc: Svc, download: Annotated[bool, Query(
     page = (folder / "report.html").read_text(encoding="utf-8")
     if not rig:  # a rig has no single-camera model to compare with
         page = with_links(page, compare_links(svc, cal_id))
-    if download:
-        return HTMLResponse(self_contained(page, folder), headers={
-            "Content-Disposition": f'attachment; filename="{cal_id}-report.html"'})
-    # Images are linked by file name; this page lives one level above them.
-    return HTMLResponse(re.sub(r'src="([a-z_0-9]+\.png)"', r'src="report/\1"', page))
+    return report_page_response(cal_id, folder, page, download)
 
 
 @router.get("/calibrations/{cal_id}/report/{name}", response_class=Response,
             responses={200: {"content": {"image/png": {}, "text/html": {}}}})
 def report_file(cal_id: str, name: str, svc: Svc) -> Response:
     """One PNG of the report (names as linked from report.html), or report.html itself."""
-    if name != "report.html" and not _PNG.fullmatch(name):
-        raise Problem(404, "not-found", f"report file {name!r}: expected report.html or a "
-                      "PNG named in it")
+    check_report_file(name)
     rec = calibration(svc, cal_id)
     folder = rig_report_folder(svc, rec) if is_rig_calibration(rec) else ready_report(svc, cal_id)
     if folder is None:
         raise Problem(409, "not-ready", f"calibration {cal_id}'s report is being drawn; "
                       "ask again in a few seconds")
-    path = folder / name
-    if not path.is_file():
-        raise Problem(404, "not-found", f"calibration {cal_id}'s report has no {name}")
-    media = "text/html" if name.endswith(".html") else "image/png"
-    return Response(path.read_bytes(), media_type=media)
+    return report_file_response(cal_id, name, folder)
 
 
 @router.get("/calibrations/{cal_a}/diff/{cal_b}")

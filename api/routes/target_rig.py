@@ -5,7 +5,6 @@ session's rig offers."""
 
 from __future__ import annotations
 
-import re
 import time
 from typing import Annotated, Any
 
@@ -17,7 +16,13 @@ from api.db import TargetRigCalibrationRecord, TargetSessionRecord, TargetViewRe
 from api.jobs.target_rig import TargetRigCalibrateJob, target_rig_report_folder
 from api.problems import Problem
 from api.reports import drawing_page
-from api.routes.common import PROBLEM_RESPONSES, accepted
+from api.routes.common import (
+    PROBLEM_RESPONSES,
+    accepted,
+    check_report_file,
+    report_file_response,
+    report_page_response,
+)
 from api.routes.rig_calibrations import (
     RIG_EXPORT_RESPONSES,
     ExportApproximate,
@@ -36,13 +41,11 @@ from calibration import (
     load_rig,
     model_spec,
     observation_refusal,
-    self_contained,
 )
 
 router = APIRouter(tags=["target sessions"], responses=PROBLEM_RESPONSES)
 Svc = Annotated[Services, Depends(get_services)]
 MAX_SHOTS = 2000
-REPORT_PNG = re.compile(r"[a-z]+(_[0-9]{2})?\.png")
 
 
 class TargetRigCamera(BaseModel):
@@ -242,26 +245,16 @@ def target_rig_report_page(cal_id: str, svc: Svc, download: Annotated[bool, Quer
         return HTMLResponse(drawing_page(cal_id, rec.status),
                             status_code=202, headers={"Retry-After": "2"})
     page = (folder / "report.html").read_text(encoding="utf-8")
-    if download:
-        return HTMLResponse(self_contained(page, folder), headers={
-            "Content-Disposition": f'attachment; filename="{cal_id}-report.html"'})
-    # Images are linked by file name; this page lives one level above them.
-    return HTMLResponse(re.sub(r'src="([a-z_0-9]+\.png)"', r'src="report/\1"', page))
+    return report_page_response(cal_id, folder, page, download)
 
 
 @router.get("/target-rig-calibrations/{cal_id}/report/{name}", response_class=Response,
             responses={200: {"content": {"image/png": {}, "text/html": {}}}})
 def target_rig_report_file(cal_id: str, name: str, svc: Svc) -> Response:
     """One PNG of the report (names as linked from report.html), or report.html itself."""
-    if name != "report.html" and not REPORT_PNG.fullmatch(name):
-        raise Problem(404, "not-found", f"report file {name!r}: expected report.html or a "
-                      "PNG named in it")
+    check_report_file(name)
     folder = target_rig_report_folder(svc, _record(svc, cal_id))
     if folder is None:
         raise Problem(409, "not-ready", f"calibration {cal_id}'s report is drawn once its fit "
                       "has succeeded; ask again in a few seconds")
-    path = folder / name
-    if not path.is_file():
-        raise Problem(404, "not-found", f"calibration {cal_id}'s report has no {name}")
-    media = "text/html" if name.endswith(".html") else "image/png"
-    return Response(path.read_bytes(), media_type=media)
+    return report_file_response(cal_id, name, folder)

@@ -4,7 +4,6 @@ left at the destination when the decode fails, is cancelled, is killed or the di
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import subprocess
@@ -26,12 +25,13 @@ from calibration import prefault
 from calibration.decode import DecodeError, StreamingDecoder
 from calibration.prefault import IdlePrefault, populate
 from calibration.shared.frame_store import FrameStore
-from calibration.shared.maps import load_maps, save_maps
+from calibration.shared.maps import save_maps
 from calibration.shared.maps_file import MapsFile
 from calibration.shared.plan import write_plan
 from calibration.shared.progress import Cancelled, TaskContext
 from calibration.shared.resident_buffers import RESIDENT
 from tests.calibration.decode.test_decode import H, W, render
+from tests.calibration.shared.npz_checks import same_npz
 
 ROOT = Path(__file__).resolve().parents[3]
 META = {"pose_id": "pose_1"}
@@ -63,21 +63,6 @@ def _mapped(path: Path) -> bool:
         return any(len(f) > 4 and f[4] == ino for f in (line.split() for line in maps))
 
 
-def _same_npz(got: Path, want: Path) -> None:
-    """Every member equal byte for byte (NaN where the normal path has NaN), and valid."""
-    with zipfile.ZipFile(got) as zf:
-        assert zf.testzip() is None  # every member's CRC-32 matches
-    with np.load(got, allow_pickle=False) as a, np.load(want, allow_pickle=False) as b:
-        assert a.files == b.files
-        for key in a.files:
-            assert a[key].dtype == b[key].dtype and a[key].shape == b[key].shape, key
-            if key == "meta":
-                assert json.loads(str(a[key])) == json.loads(str(b[key]))
-            else:
-                assert a[key].tobytes() == b[key].tobytes(), key
-    load_maps(got)  # docs/formats.md members, dtypes, meta format
-
-
 def _data_offsets(path: Path) -> dict[str, int]:
     """Each member's array data offset, read from its local header and .npy header."""
     raw = path.read_bytes()
@@ -102,7 +87,7 @@ def test_decoder_writes_into_the_file_with_the_normal_paths_arrays(plan, stack, 
         maps = _decoder(plan, stack).finish(dict(META), into=out.outputs())
         out.commit(maps)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["maps.npz", "ref.npz"]
-    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+    same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
     # the decoder's arrays were the file's pages (no copy): read-only now
     for key in ("x", "y", "sigma_x", "sigma_y", "mask", "modulation_x", "blur_y"):
         assert not getattr(maps, key).flags.writeable, key
@@ -121,7 +106,7 @@ def test_maps_not_decoded_into_the_file_are_copied_in(plan, stack, tmp_path, mon
         with IdlePrefault([out.mapped], piece=3 << 12) as ahead:
             _wait_for(ahead)
         out.commit(maps)
-    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+    same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
     assert maps.x.flags.writeable  # the caller's own arrays are untouched
 
 
@@ -286,7 +271,7 @@ def test_live_decode_task_writes_the_maps_through_the_file(plan, stack, tmp_path
     assert 0.0 <= result["prefaulted"] <= 1.0
     assert [p.name for p in staged.iterdir()] == ["maps.npz"]
     save_maps(_decoder(plan, stack).finish(dict(META)), tmp_path / "ref.npz")
-    _same_npz(staged / "maps.npz", tmp_path / "ref.npz")
+    same_npz(staged / "maps.npz", tmp_path / "ref.npz")
 
     class CancelledOnceLaidOut(TaskContext):
         def cancelled(self) -> bool:  # the job is cancelled once the maps file exists
@@ -321,4 +306,4 @@ def test_live_decode_task_takes_the_kernels_below_a_megapixel_only_when_asked(
     ref.prepare()
     ref.add_frames(list(range(stack.shape[0])), stack)
     save_maps(ref.finish(dict(META)), tmp_path / "ref.npz")
-    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+    same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")

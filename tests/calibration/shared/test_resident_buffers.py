@@ -4,18 +4,17 @@ exactly as the mapped file's, even from a buffer that held another decode."""
 
 from __future__ import annotations
 
-import json
 import mmap
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from calibration.shared import maps_file
-from calibration.shared.maps import DecodedMaps, load_maps
+from calibration.shared.maps import DecodedMaps
 from calibration.shared.maps_file import MapsFile, warm_resident
 from calibration.shared.resident_buffers import ResidentBuffers
+from tests.calibration.shared.npz_checks import same_npz
 
 SHAPE = (48, 64)
 AXES = ["x", "y"]
@@ -95,21 +94,6 @@ def _commit(out: MapsFile, seed: int) -> None:
     out.commit(maps, durable=False)
 
 
-def _same_npz(got: Path, want: Path) -> None:
-    """Valid zip (every CRC-32), the same members, byte for byte (NaN included)."""
-    with zipfile.ZipFile(got) as zf:
-        assert zf.testzip() is None
-    with np.load(got, allow_pickle=False) as a, np.load(want, allow_pickle=False) as b:
-        assert a.files == b.files
-        for key in a.files:
-            assert a[key].dtype == b[key].dtype and a[key].shape == b[key].shape, key
-            if key == "meta":
-                assert json.loads(str(a[key])) == json.loads(str(b[key]))
-            else:
-                assert a[key].tobytes() == b[key].tobytes(), key
-    load_maps(got)
-
-
 def test_resident_maps_file_equals_the_mapped_one_and_its_buffer_serves_the_next(
         tmp_path: Path, resident: RecordingBuffers) -> None:
     """Committed from a resident buffer, the file np.load reads equals the mapped file's;
@@ -120,7 +104,7 @@ def test_resident_maps_file_equals_the_mapped_one_and_its_buffer_serves_the_next
     out = MapsFile(tmp_path / "resident.npz", SHAPE, AXES, resident=True)
     [buf] = resident.taken
     _commit(out, seed=1)
-    _same_npz(tmp_path / "resident.npz", tmp_path / "mapped.npz")
+    same_npz(tmp_path / "resident.npz", tmp_path / "mapped.npz")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mapped.npz", "resident.npz"]
     assert resident.kept_bytes() == 0
     out.recycle()
@@ -131,7 +115,7 @@ def test_resident_maps_file_equals_the_mapped_one_and_its_buffer_serves_the_next
     assert resident.taken[-1] is buf
     _commit(again, seed=2)
     again.recycle()
-    _same_npz(tmp_path / "resident2.npz", tmp_path / "mapped2.npz")
+    same_npz(tmp_path / "resident2.npz", tmp_path / "mapped2.npz")
     assert resident.kept_bytes() == len(buf)
 
 
