@@ -21,7 +21,12 @@ from multiprocessing.connection import wait as wait_ready
 from multiprocessing.managers import SyncManager
 from typing import Any, Protocol, runtime_checkable
 
-from api.worker.lifetime import die_with_parent, guard_args
+from api.worker.lifetime import (
+    die_with_parent,
+    guard_args,
+    one_blas_thread,
+    restore_blas_threads,
+)
 from api.worker.task_runner import TaskRunner, Ticket
 from calibration import warm_up
 from calibration.shared.progress import ProgressFn, TaskContext
@@ -107,12 +112,15 @@ def _run_remote(task_fn: Callable[..., Any], job_id: str, queue: Any, cancel_eve
     return task_fn(_RemoteContext(job_id, queue, cancel_event), *args, **kwargs)
 
 
-def start_worker(parent_pid: int, use_pdeathsig: bool, warm_kernels: bool) -> None:
-    """Worker-process initializer: the lifetime guards (`die_with_parent`), then, with
+def start_worker(parent_pid: int, use_pdeathsig: bool, warm_kernels: bool,
+                 blas_threads: int = 1) -> None:
+    """Worker-process initializer: the lifetime guards (`die_with_parent`), the worker's
+    `blas_threads` BLAS threads (spawned with one: `lifetime.one_blas_thread`), then, with
     `warm_kernels`, a daemon thread that loads the decoder's compiled kernels while the
     worker waits for its first task, so its first live decode does not pay the load
     (~0.4 CPU s from numba's cache) while that pose's frames arrive."""
     die_with_parent(parent_pid, use_pdeathsig)  # first: it needs a process of one thread
+    restore_blas_threads(blas_threads)
     if warm_kernels:
         threading.Thread(target=warm_kernels_quietly, name="phasecal-warm-kernels",
                          daemon=True).start()
@@ -166,19 +174,21 @@ class ProcessExecutor(TaskRunner):
         ctx = mp.get_context("spawn")
         workers = max_workers or max(1, min(2, os.cpu_count() or 1))
         guard = guard_args()  # workers and the manager die with this process (kill -9 too)
-        self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                         initializer=start_worker,
-                                         initargs=(*guard, warm_kernels))
-        # Spawn every worker now, from this thread: PDEATHSIG follows the spawning thread,
-        # and a worker spawned lazily by a short-lived job thread would die with it.
-        before = set(mp.active_children())
-        self._pool._launch_processes()
-        self._workers = [p for p in mp.active_children() if p not in before]
-        # A first task starts the pool's manager thread (spawning nothing more: every worker
-        # exists); without it shutdown() and interpreter exit never stop the workers.
-        self._pool.submit(os.getpid).result()
-        self._manager = SyncManager(ctx=ctx)
-        self._manager.start(die_with_parent, guard)
+        with one_blas_thread() as blas_threads:  # (until their SIGTERM is blocked)
+            self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                             initializer=start_worker,
+                                             initargs=(*guard, warm_kernels, blas_threads))
+            # Spawn every worker now, from this thread: PDEATHSIG follows the spawning
+            # thread, and a worker spawned lazily by a short-lived job thread would die
+            # with it.
+            before = set(mp.active_children())
+            self._pool._launch_processes()
+            self._workers = [p for p in mp.active_children() if p not in before]
+            # A first task starts the pool's manager thread (spawning nothing more: every
+            # worker exists); without it shutdown() and interpreter exit never stop them.
+            self._pool.submit(os.getpid).result()
+            self._manager = SyncManager(ctx=ctx)
+            self._manager.start(die_with_parent, guard)
         self._queue = self._manager.Queue()
         self._callbacks: dict[str, ProgressFn] = {}
         self._lock = threading.Lock()

@@ -12,19 +12,56 @@ reach the workers at the same moment as the server. A worker that died then woul
 job it runs (and its cancel flags with the manager) before the server could stop it in
 order, so workers ignore SIGINT, and SIGTERM unless their parent sent it (the process pool
 terminates a broken pool's workers with SIGTERM and must still be obeyed).
+
+Taking SIGTERM by sender needs it blocked in every thread of the worker, which holds only
+for threads started after the initializer: a worker imports NumPy before it (the spawned
+process re-imports the server's main module), and OpenBLAS starts its threads at load, one
+per core, with SIGTERM open. So workers are spawned with one BLAS thread
+(`one_blas_thread`) and get their BLAS threads back once SIGTERM is blocked
+(`restore_blas_threads`): without that, on any machine of more than one core, a stop of
+the whole service killed the workers mid-task.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 
 PR_SET_PDEATHSIG = 1
 WATCHDOG_PERIOD_S = 0.25
+BLAS_THREADS_VAR = "OPENBLAS_NUM_THREADS"
+
+
+@contextlib.contextmanager
+def one_blas_thread() -> Iterator[int]:
+    """Processes spawned inside start with one OpenBLAS thread (the environment they
+    inherit); yields the BLAS threads this process's children are meant to have (the
+    variable's value where it was set, else one per core) for `restore_blas_threads`."""
+    before = os.environ.get(BLAS_THREADS_VAR)
+    wanted = int(before) if before and before.isdigit() else (os.cpu_count() or 1)
+    os.environ[BLAS_THREADS_VAR] = "1"
+    try:
+        yield wanted
+    finally:
+        if before is None:
+            del os.environ[BLAS_THREADS_VAR]
+        else:
+            os.environ[BLAS_THREADS_VAR] = before
+
+
+def restore_blas_threads(count: int) -> None:
+    """Give this process `count` BLAS threads again, started now from this thread (so with
+    its signal mask)."""
+    if count > 1:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=count, user_api="blas")
 
 
 def _set_pdeathsig() -> bool:

@@ -13,6 +13,7 @@ the pose to the end.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sqlite3
@@ -359,3 +360,52 @@ def test_workers_ignore_the_services_stop_signals_but_obey_their_server() -> Non
     ran_in = int(out.split("task ran in", 1)[1].split()[0])
     assert ran_in in pids
     assert "exitcodes -15 -15" in out, out + err
+
+
+def worker_threads_and_blas() -> tuple[list[bool], int]:
+    """In a worker: whether each of its threads has SIGTERM blocked (but the one that waits
+    for it, where the wait opens it), and its BLAS threads."""
+    import numpy as np  # noqa: F401  (loaded in every worker: its BLAS threads exist)
+    from threadpoolctl import threadpool_info
+
+    waiter = [t.native_id for t in threading.enumerate() if t.name == "phasecal-sigterm"]
+    assert len(waiter) == 1, threading.enumerate()
+    blocked = []
+    for task in set(os.listdir("/proc/self/task")) - {str(waiter[0])}:
+        status = Path(f"/proc/self/task/{task}/status").read_text()
+        mask = int(status.split("SigBlk:")[1].split()[0], 16)
+        blocked.append(bool(mask & (1 << (signal.SIGTERM - 1))))
+    blas = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    return blocked, max(blas, default=1)
+
+
+BLAS_WORKER = """
+import json, os
+from api.worker.executor import ProcessExecutor
+from tests.api.test_api_shutdown import worker_threads_and_blas
+ex = ProcessExecutor(max_workers=1)
+blocked, blas = ex.submit(worker_threads_and_blas).result(timeout=60)
+print(json.dumps([blocked, blas, os.environ.get("OPENBLAS_NUM_THREADS")]), flush=True)
+ex.shutdown(wait=False)
+"""
+
+
+@pytest.mark.parametrize("blas", [None, "3"])
+def test_every_worker_thread_blocks_sigterm_and_keeps_its_blas_threads(blas: str | None
+                                                                       ) -> None:
+    """OpenBLAS starts a thread per core when NumPy loads, before the worker's initializer:
+    those threads would take a SIGTERM meant for the service by its default action (the
+    worker dies mid-task). Workers start with one BLAS thread and get theirs back once
+    SIGTERM is blocked: every thread then has it blocked, and a worker has the BLAS threads
+    the server's environment asks for (one per core when it says nothing); the server's own
+    environment is left as it was."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if blas is not None:
+        env["OPENBLAS_NUM_THREADS"] = blas
+    done = subprocess.run([sys.executable, "-c", BLAS_WORKER], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stderr
+    blocked, threads, after = json.loads(done.stdout.splitlines()[-1])
+    assert blocked and all(blocked), done.stdout
+    assert threads == (int(blas) if blas else os.cpu_count()), done.stdout
+    assert after == blas, done.stdout
