@@ -70,7 +70,7 @@ def test_npy_stack_decoded_into_the_laid_out_file(plan, tmp_path, monkeypatch, c
     import calibration.decode.decoder as decoder_module
     from calibration.decode import decode_stack
     from calibration.shared.maps import save_maps
-    from tests.calibration.shared.test_maps_file import _same_npz
+    from tests.calibration.shared.npz_checks import same_npz
 
     if compiled:  # (the compiled whole-stack path of large images)
         monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
@@ -81,7 +81,7 @@ def test_npy_stack_decoded_into_the_laid_out_file(plan, tmp_path, monkeypatch, c
     assert cli_main(_args(tmp_path, tmp_path / "frames.npy", tmp_path / "maps.npz")) == 0
     ref = decode_stack(plan, stack, noise=1.0, meta={"frames": str(tmp_path / "frames.npy")})
     save_maps(ref, tmp_path / "ref.npz")
-    _same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+    same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.npy", "maps.npz", "plan.json",
                                                           "ref.npz"]
 
