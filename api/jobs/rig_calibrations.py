@@ -58,21 +58,9 @@ class RigCalibrateJob(Job):
             pose_dir = svc.store.dir_for(pid)
             entries += [(cam, pid, "maps", str(camera_maps_path(pose_dir, cam)))
                         for cam in pose_camera_names(pose_dir)]
-        with svc.store.staging(ctx.job_id) as staged:
-            fut = svc.executor.run_task(rig_calibrate_task, plan_path, entries, self.models,
-                                        str(staged), job_id=ctx.job_id,
-                                        on_progress=ctx.progress, options=self.options,
-                                        heldout_views=self.heldout_pose_ids or None,
-                                        reference=self.reference)
-            result = fut.result()
-            ctx.check_cancelled()
-            svc.store.commit(staged, RIG_OUTPUTS, svc.store.dir_for(self.cal_id))
-        try:
-            draw_rig_report_now(svc, self.cal_id)
-        # Whatever went wrong, the fit stands; the report is drawn again on its first request.
-        except Exception as exc:
-            log.warning("calibration %s: rig report not drawn: %s", self.cal_id, exc)
-        return result
+        return fit_rig(svc, ctx, self.cal_id, plan_path, entries, self.models, self.options,
+                       self.heldout_pose_ids, self.reference,
+                       lambda: draw_rig_report_now(svc, self.cal_id))
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:
         c = s.get(CalibrationRecord, self.cal_id)
@@ -81,6 +69,28 @@ class RigCalibrateJob(Job):
     def ended(self, s: Session, status: str, error: str) -> None:
         c = s.get(CalibrationRecord, self.cal_id)
         c.status, c.error = status, error
+
+
+def fit_rig(svc: Services, ctx: TaskContext, cal_id: str, plan_path: str | None,
+            entries: list[tuple[str, str, str, str]], models: dict[str, str],
+            options: dict[str, Any], heldout: list[str], reference: str | None,
+            draw_report: Callable[[], Path]) -> dict[str, Any]:
+    """A rig's joint fit on a worker (`rig_calibrate_task` over `entries`), its files moved
+    into calibration `cal_id`'s folder, then its report drawn (`draw_report`); a report
+    that cannot be drawn does not fail the fit: its first request draws it again."""
+    with svc.store.staging(ctx.job_id) as staged:
+        fut = svc.executor.run_task(rig_calibrate_task, plan_path, entries, models,
+                                    str(staged), job_id=ctx.job_id, on_progress=ctx.progress,
+                                    options=options, heldout_views=heldout or None,
+                                    reference=reference)
+        result = fut.result()
+        ctx.check_cancelled()
+        svc.store.commit(staged, RIG_OUTPUTS, svc.store.dir_for(cal_id))
+    try:
+        draw_report()
+    except Exception as exc:  # whatever went wrong, the fit stands
+        log.warning("calibration %s: rig report not drawn: %s", cal_id, exc)
+    return result
 
 
 def rig_report_inputs(svc: Services, rec: CalibrationRecord) -> RigReportInputs:

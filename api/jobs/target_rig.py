@@ -7,7 +7,6 @@ cannot be drawn does not fail the fit: its first request draws it again)."""
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,9 +16,8 @@ from sqlalchemy.orm import Session
 
 from api.db import TargetRigCalibrationRecord, TargetSessionRecord
 from api.jobs.model import Job, JobKind
-from api.jobs.rig_calibrations import draw_report_into, report_folder
+from api.jobs.rig_calibrations import draw_report_into, fit_rig, report_folder
 from api.version import phasecal_version
-from api.worker.rig_tasks import RIG_OUTPUTS, rig_calibrate_task
 from calibration import ReportHeader, RigReportInputs, load_rig, rig_downloads
 from calibration.shared.progress import TaskContext
 
@@ -27,7 +25,6 @@ if TYPE_CHECKING:
     from api.services import Services
 
 TARGET_RIG_COLLECTION = "/target-rig-calibrations"
-log = logging.getLogger("phasecal.reports")
 
 
 def shot_entries(svc: Services, cameras: dict[str, dict[str, Any]]
@@ -64,22 +61,9 @@ class TargetRigCalibrateJob(Job):
         svc = self.svc
         with svc.db.session() as s:
             s.get(TargetRigCalibrationRecord, self.cal_id).status = "running"
-        with svc.store.staging(ctx.job_id) as staged:
-            fut = svc.executor.run_task(rig_calibrate_task, None,
-                                        shot_entries(svc, self.cameras), self.models,
-                                        str(staged), job_id=ctx.job_id,
-                                        on_progress=ctx.progress, options=self.options,
-                                        heldout_views=self.heldout_shots or None,
-                                        reference=self.reference)
-            result = fut.result()
-            ctx.check_cancelled()
-            svc.store.commit(staged, RIG_OUTPUTS, svc.store.dir_for(self.cal_id))
-        try:
-            draw_target_rig_report_now(svc, self.cal_id)
-        # Whatever went wrong, the fit stands; the report is drawn again on its first request.
-        except Exception as exc:
-            log.warning("calibration %s: rig report not drawn: %s", self.cal_id, exc)
-        return result
+        return fit_rig(svc, ctx, self.cal_id, None, shot_entries(svc, self.cameras),
+                       self.models, self.options, self.heldout_shots or [], self.reference,
+                       lambda: draw_target_rig_report_now(svc, self.cal_id))
 
     def succeeded(self, s: Session, result: dict[str, Any]) -> None:
         c = s.get(TargetRigCalibrationRecord, self.cal_id)

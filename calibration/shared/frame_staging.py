@@ -129,6 +129,7 @@ class StagingPool:
         self._lock = threading.Lock()
         self._serial = 0
         self._swept = False
+        atexit.register(self.close)  # (the buffers are files: removed when the process ends)
 
     def lease(self, count: int, nbytes: int) -> StagingBuffer | None:
         """A buffer of `count` frames of `nbytes` bytes for one pose (`begin` called), or None
@@ -156,8 +157,6 @@ class StagingPool:
                 buf = StagingBuffer(path, count, nbytes)
             except OSError:  # no room in /dev/shm: the page cache it is
                 return None
-            if not self._buffers:
-                atexit.register(self.close)
             self._buffers.append(buf)
             buf.begin()
             return buf
