@@ -139,6 +139,8 @@ _EXPORTS = {
     "RigReportInputs": "report_rig",
     "draw_rig_report": "report_rig",
     "rig_downloads": "report_rig",
+    "rig_model_stats": "report_rig",
+    "write_rig_downloads": "report_rig",
     "served_downloads": "report_downloads",
     "write_downloads": "report_downloads",
     "write_residual_report": "report",

@@ -23,6 +23,7 @@ from matplotlib.patches import Rectangle
 
 from calibration.evaluate import ADEQUATE_RATIO
 from calibration.figures import one_at_a_time, subplots
+from calibration.formats import FILE_NAMES, ExportOptions
 from calibration.models.base import ModelError
 from calibration.models.parametric import PinholeFamily
 from calibration.report_data import COVERAGE_CELLS, Download, ReportHeader
@@ -37,7 +38,7 @@ from calibration.report_verdict import (
     Check,
     Verdict,
 )
-from calibration.rig_export import rig_export_bytes
+from calibration.rig_export import RIG_FILE_NAMES, rig_export_bytes
 from calibration.shared.maps import load_maps
 from calibration.shared.observations import load_observations
 from calibration.shared.rig_model import RigModel, load_rig
@@ -63,7 +64,9 @@ class RigReportInputs:
     fitted to board observations, from its observation files: one or the other."""
 
     rig: str  # rig.json (phasecal.rig/1)
-    result: str  # result.json of the joint fit ({"stats": ...})
+    # result.json of the joint fit ({"stats": ...}); None: the statistics the rig model
+    # carries (its own and each camera's per-view rows; no held-out scores)
+    result: str | None
     maps: dict[str, list[str]]  # camera -> its decoded maps of the training views
     header: ReportHeader
     downloads: list[Download] = field(default_factory=list)
@@ -293,6 +296,44 @@ def rig_downloads(rig: RigModel, cal_id: str, collection: str = "/calibrations"
     return out
 
 
+def write_rig_downloads(rig: RigModel, rig_json: Path, out_dir: Path) -> list[Download]:
+    """Write the rig model and the rig exports `rig_downloads` offers into `out_dir`, linked
+    by file name (a report drawn from files, away from the service)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "rig.json").write_bytes(rig_json.read_bytes())
+    out = [Download("rig model (phasecal.rig/1 JSON)", "rig.json",
+                    "every camera's model and extrinsics with covariance")]
+    # (label, format, file name, rig_export_bytes keywords, note)
+    offers: list[tuple[str, str, str, dict[str, Any], str]] = [
+        ("ROS static transforms (every camera)", "ros-transforms",
+         RIG_FILE_NAMES["ros-transforms"], {}, "exact")]
+    for a, b in itertools.combinations(rig.cameras, 2):
+        offers += [(f"{a},{b}: OpenCV stereo YAML", "opencv-stereo",
+                    f"{a}_{b}_{RIG_FILE_NAMES['opencv-stereo']}", {"cameras": (a, b)},
+                    "cv2.stereoCalibrate's convention, X2 = R X1 + T (mm)"),
+                   (f"{a},{b}: stereo rectification maps (NPZ)", "stereo-remap",
+                    f"{a}_{b}_{RIG_FILE_NAMES['stereo-remap']}", {"cameras": (a, b)},
+                    "maps for cv2.remap with R1, R2, P1, P2, Q")]
+    for name, cam in rig.cameras.items():
+        for offer in export_offers(cam.model):
+            if not offer.available:
+                out.append(Download(f"{name}: {offer.label}", None, offer.note))
+                continue
+            opts = ExportOptions(approximate=offer.options.get("approximate") == "true")
+            offers.append((f"{name}: {offer.label}", offer.fmt,
+                           f"{name}_{FILE_NAMES[offer.fmt]}", {"camera": name, "opts": opts},
+                           offer.note))
+    for label, export_format, file_name, kwargs, note in offers:
+        try:
+            data, _ = rig_export_bytes(rig, export_format, **kwargs)
+        except ModelError as exc:
+            out.append(Download(label, None, str(exc)))
+            continue
+        (out_dir / file_name).write_bytes(data)
+        out.append(Download(label, file_name, note))
+    return out
+
+
 @one_at_a_time
 def _draw_coverage(cameras: list[CameraSummary], out_dir: Path, words: CoverageWords
                    ) -> list[str]:
@@ -409,12 +450,21 @@ def rig_report_html(inputs: RigReportInputs, rig: RigModel, stats: dict[str, Any
         + f"<h2>Coverage</h2>{figures}</body></html>")
 
 
+def rig_model_stats(rig: RigModel) -> dict[str, Any]:
+    """The joint fit's statistics as far as the rig model keeps them: its own (chi-square,
+    extrinsics, cameras held) and each camera's per-view rows."""
+    rows = [row for cam in rig.cameras.values()
+            for row in (cam.model.stats or {}).get("per_view", [])]
+    return {**rig.stats, "per_view": rows}
+
+
 def draw_rig_report(inputs: RigReportInputs, out_dir: str) -> str:
     """Write report.html and its coverage PNGs into `out_dir`; the page's path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rig = load_rig(inputs.rig)
-    stats = json.loads(Path(inputs.result).read_text(encoding="utf-8")).get("stats", {})
+    stats = (rig_model_stats(rig) if inputs.result is None
+             else json.loads(Path(inputs.result).read_text(encoding="utf-8")).get("stats", {}))
     cameras = camera_summaries(rig, stats, inputs.maps, inputs.observations)
     extrinsics = extrinsics_summaries(rig)
     words = POINT_COVERAGE if inputs.observations else DECODED_COVERAGE
@@ -424,4 +474,5 @@ def draw_rig_report(inputs: RigReportInputs, out_dir: str) -> str:
     return str(out / REPORT_PAGE)
 
 
-__all__ = ["RigReportInputs", "draw_rig_report", "rig_downloads", "rig_verdict"]
+__all__ = ["RigReportInputs", "draw_rig_report", "rig_downloads", "rig_model_stats",
+           "rig_verdict", "write_rig_downloads"]

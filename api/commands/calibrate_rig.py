@@ -9,6 +9,7 @@ from pathlib import Path
 from api.cli import UserError
 from api.progress import progress_bar
 from calibration import MODEL_NAMES, calibrate_rig_files, save_rig, split_rig_options
+from calibration.shared.atomic import write_json_atomic
 
 
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
@@ -18,6 +19,13 @@ def add_rig_arguments(p: argparse.ArgumentParser) -> None:
                         "(repeatable)")
     p.add_argument("--reference", metavar="CAMERA",
                    help="rig: the camera whose frame is the rig's (default: the first given)")
+
+
+def rig_result_path(model: str | Path) -> Path:
+    """Where a rig fit's statistics go beside its model (rig.json -> rig.result.json): the
+    residuals per camera and view and the held-out scores `phasecal report` draws."""
+    p = Path(model)
+    return p.with_name(f"{p.stem}.result.json")
 
 
 def split_prefix(text: str) -> tuple[str, str, str] | None:
@@ -68,7 +76,9 @@ def run_rig(args: argparse.Namespace, options: dict[str, object]) -> int:
     fit's own keys go to it, the rest to every camera's model)."""
     export = ("not for a rig; after fitting use `phasecal export --model RIG --camera CAMERA` "
               "(or --cameras A,B --format opencv-stereo)")
-    refused = {"export_opencv": export, "export_ros": export, "report": export,
+    refused = {"export_opencv": export, "export_ros": export,
+               "report": "a rig's report is a page: after fitting use `phasecal report "
+                         "--model RIG` with the same CAMERA/VIEW= inputs",
                "uncertainty_png": "applies to one camera's observations",
                "cross_validate": "applies to one camera's observations",
                "max_points": "a rig takes --option max_points_per_view=N"}
@@ -100,10 +110,12 @@ def run_rig(args: argparse.Namespace, options: dict[str, object]) -> int:
             model_options={c: model_opts for c in cameras},
             heldout_views=args.heldout_view, progress=update)
     save_rig(result.rig, args.output)
+    stats_path = rig_result_path(args.output)
+    write_json_atomic(stats_path, {"stats": result.json_stats()})
     st = result.stats
     print(f"wrote {args.output}: rig of {len(cameras)} cameras, reference {st['reference']}, "
           f"reduced chi2 {st['reduced_chi2']:.3g}, {st['n_points']} points "
-          f"({st['outliers_dropped']} outliers dropped)")
+          f"({st['outliers_dropped']} outliers dropped); the fit's statistics in {stats_path}")
     for cam, ex in st["extrinsics"].items():
         if cam == st["reference"]:
             continue
