@@ -111,4 +111,5 @@ class Operations:
     download_file = Operation(ops.download_file)
     download_maps = Operation(ops.download_maps)
     download_frames = Operation(ops.download_frames)
+    download_report = Operation(ops.download_report)
     export = Operation(ops.export)

@@ -5,6 +5,8 @@ each builder here a method of both clients, `api.client.core` runs the descripti
 from __future__ import annotations
 
 import json
+import os
+import tempfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,8 +16,11 @@ from urllib.parse import quote
 import httpx
 
 from api.client import types as t
+from api.client.errors import PROBLEM_BASE, ServiceError
 
 T = TypeVar("T")
+#: The collections whose calibrations have a report page (`{collection}/{id}/report.html`).
+REPORT_COLLECTIONS = ("/calibrations", "/target-rig-calibrations")
 #: Opens an upload's files afresh for each try: (httpx `files`, handles to close after it).
 Opener = Callable[[], tuple[list[tuple[str, Any]], list[Any]]]
 
@@ -300,6 +305,21 @@ def export_request(cal: str | t.Calibration, fmt: str, **params: Any) -> tuple[s
         k: (",".join(map(str, v)) if isinstance(v, list | tuple) else v) for k, v in q.items()}
 
 
+def report_path(cal: str | Mapping[str, Any]) -> str:
+    """Path of a calibration's report page. A rig calibrated from target sessions has its
+    own collection: its record (`get_target_rig_calibration`: `cameras`, no `session_id`)
+    or the job that made it (its `resource`) says so; an id alone or a calibration record
+    (one camera, or a screen session's rig) names one under /calibrations."""
+    if isinstance(cal, Mapping) and "resource" in cal:  # a job: its resource names the route
+        collection, _, cal_id = str(cal["resource"] or "").rpartition("/")
+        if collection not in REPORT_COLLECTIONS or not cal_id:
+            raise ValueError(f"report: job {cal.get('id')} made {cal['resource']!r}, not one "
+                             "calibration")
+        return f"{collection}/{quote(cal_id, safe='')}/report.html"
+    target = isinstance(cal, Mapping) and "cameras" in cal and "session_id" not in cal
+    return f"{REPORT_COLLECTIONS[1] if target else REPORT_COLLECTIONS[0]}/{ident(cal)}/report.html"
+
+
 def maps_path(session: str | t.Session, pose: str | t.Pose) -> str:
     """Path of a pose's decoded maps NPZ."""
     return f"/sessions/{ident(session)}/poses/{ident(pose)}/maps.npz"
@@ -373,6 +393,40 @@ def download_frames(session: str | t.Session, pose: str | t.Pose, dest: str | Pa
     """A pose's captured frames as a zip of frame_NNNN.png (or .tif) images to `dest`."""
     return Op("GET", frames_zip_path(session, pose), params={"format": image_format},
               save_to=Path(dest), answer=lambda _: Path(dest))
+
+
+def download_report(cal: str | Mapping[str, Any], dest: str | Path) -> Op[Path]:
+    """A calibration's report as one self-contained HTML file (images inlined) to `dest`:
+    one camera's, a screen session's rig's or a target rig's (`report_path`: pass the
+    target rig's record or job). While the fit runs or the report is being drawn the
+    service answers 202: then `ServiceError` (status 202, type .../not-ready) and `dest`
+    is left as it was."""
+    return Op("GET", report_path(cal), params={"download": 1},
+              answer=saved_page(Path(dest)))
+
+
+def saved_page(dest: Path) -> Callable[[httpx.Response], Path]:
+    """The answer of `download_report`: the page written to `dest` (under a temporary name,
+    then renamed), or `ServiceError` for a 202 (not drawn yet) without touching `dest`."""
+    def answer(r: httpx.Response) -> Path:
+        if r.status_code != 200:
+            wait = r.headers.get("retry-after", "a few")
+            detail = (f"{r.request.url.path}: the report is not drawn yet (the fit is running "
+                      f"or the page is being drawn); ask again in {wait} s")
+            raise ServiceError(r.status_code, detail, {
+                "type": PROBLEM_BASE + "not-ready", "title": "Report not ready",
+                "status": r.status_code, "detail": detail})
+        fd, tmp = tempfile.mkstemp(prefix=dest.name + ".", suffix=".part", dir=dest.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(r.content)
+            os.replace(tmp, dest)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return dest
+
+    return answer
 
 
 def export(cal: str | t.Calibration, fmt: str, dest: str | Path,
