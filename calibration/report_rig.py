@@ -5,7 +5,8 @@ their 1-sigma, under one verdict against stated thresholds, with the rig model's
 A lab reading it decides whether the rig model can be used for stereo or triangulation, or
 which camera needs more views; it is drawn from stored files only (rig.json, result.json and
 each camera's decoded maps, or for a rig fitted to board observations each camera's
-observation files), so it is the same page whenever it is drawn again.
+observation files), so it is the same page whenever it is drawn again. Without result.json
+(a rig model from elsewhere) it draws what rig.json itself keeps.
 """
 
 from __future__ import annotations

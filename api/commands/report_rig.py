@@ -86,6 +86,9 @@ def split_views(entries: list[tuple[str, str, str, str]], stats: dict[str, Any],
     """The training views in input order, after checking each input view against the fit:
     a training view of it, or a view it held out and scored (named with --heldout-view)."""
     trained = {row.get("view") for row in stats.get("per_view", [])}
+    if not trained:
+        raise UserError("--result: the fit's statistics name no fitted view (per_view); give "
+                        "the result.json of the fit that wrote this rig")
     scored = {row.get("view") for row in stats.get("heldout") or []}
     views = list(dict.fromkeys(e[1] for e in entries))
     for view in heldout:

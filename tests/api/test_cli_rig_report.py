@@ -132,6 +132,10 @@ def test_inputs_that_do_not_fit_the_model_are_refused_in_one_line(maps_rig, tmp_
     stats = json.loads((d / "rig.result.json").read_text())
     stats["stats"]["reduced_chi2"] *= 2
     stale.write_text(json.dumps(stats))
+    bare = json.loads(Path(rig).read_text())  # a rig model whose cameras keep no residuals
+    for cam in bare["cameras"].values():
+        cam["model"]["stats"] = {}
+    (tmp_path / "bare.json").write_text(json.dumps(bare))
     cases = {
         "is a rig (phasecal.rig/1); name each file CAMERA/VIEW=PATH":
             ["--model", rig, "--maps", *plain],
@@ -146,6 +150,8 @@ def test_inputs_that_do_not_fit_the_model_are_refused_in_one_line(maps_rig, tmp_
             ["--model", rig, "--maps", *inputs],
         "--heldout-view: the fit used view 'v0'":
             ["--model", rig, "--maps", *inputs, "--heldout-view", HELD, "--heldout-view", "v0"],
+        "the fit's statistics name no fitted view": [
+            "--model", str(tmp_path / "bare.json"), "--maps", *inputs],
         "is not the fit of": ["--model", rig, "--maps", *inputs, "--heldout-view", HELD,
                               "--result", str(stale)],
     }
