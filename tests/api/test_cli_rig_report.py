@@ -46,7 +46,8 @@ def maps_rig(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str]]
     return d, inputs
 
 
-def _rows(page: str, table_id: str) -> list[list[str]]:
+def table_rows(page: str, table_id: str) -> list[list[str]]:
+    """The data cells of a report table, row by row."""
     body = re.search(rf"<table id='{table_id}'.*?</table>", page, re.S).group(0)
     return [re.findall(r"<td>(.*?)</td>", row) for row in re.findall(r"<tr>(.*?)</tr>", body)
             if "<td>" in row]
@@ -63,14 +64,14 @@ def test_rig_report_names_every_camera_and_the_extrinsics_with_sigma(maps_rig, t
     assert f"statistics from {d / 'rig.result.json'}" in capsys.readouterr().out
     page = (out / "report.html").read_text()
     assert "<meta name='phasecal-report' content='phasecal.rig-report/1'>" in page
-    cams = _rows(page, "cameras")
+    cams = table_rows(page, "cameras")
     assert [r[0] for r in cams] == ["A", "B"]
     assert all(r[1] == "opencv5" and r[2] == "320 x 240" and r[7] == str(VIEWS - 1)
                for r in cams)
     doc = json.loads((d / "rig.json").read_text())
     ext = doc["cameras"]["B"]["extrinsics"]
     sd = np.sqrt(np.diag(ext["covariance"]))
-    (row,) = _rows(page, "extrinsics")
+    (row,) = table_rows(page, "extrinsics")
     assert row[0] == "B"
     assert float(row[1]) == pytest.approx(
         np.linalg.norm(np.asarray(ext["R"]).T @ np.asarray(ext["t_mm"])), rel=1e-3)
@@ -102,8 +103,8 @@ def test_without_the_fit_result_the_rig_model_statistics_are_drawn(maps_rig, tmp
     bare = (tmp_path / "bare" / "report.html").read_text()
     full = (tmp_path / "full" / "report.html").read_text()
     # the per-camera residuals and extrinsics are the same numbers, from the rig file alone
-    assert _rows(bare, "cameras") == _rows(full, "cameras")
-    assert _rows(bare, "extrinsics") == _rows(full, "extrinsics")
+    assert table_rows(bare, "cameras") == table_rows(full, "cameras")
+    assert table_rows(bare, "extrinsics") == table_rows(full, "extrinsics")
     assert "No view was held out." in bare
 
 
@@ -115,7 +116,7 @@ def test_rig_report_from_board_observations(tmp_path) -> None:
     assert main(["report", "--model", str(rig), "--observations", *inputs,
                  "-o", str(tmp_path / "report")]) == 0
     page = (tmp_path / "report" / "report.html").read_text()
-    assert [r[0] for r in _rows(page, "cameras")] == ["A", "B"]
+    assert [r[0] for r in table_rows(page, "cameras")] == ["A", "B"]
     # coverage counted from the detected points, as the service's target-rig report does
     assert "how many training views detected a board point near each pixel" in page
     assert len(list((tmp_path / "report").glob("coverage_*.png"))) == 2

@@ -2,11 +2,13 @@
 a calibration record: /calibrations; a target rig's record or job: /target-rig-calibrations),
 a report not drawn yet refused without touching the file, and end to end against a real
 `phasecal serve`: a rig calibrated from target sessions, its report saved whole by the sync
-and the async client."""
+and the async client, with the numbers `phasecal report` draws from the served rig model
+and the same observation files."""
 
 from __future__ import annotations
 
 import asyncio
+import json
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +16,9 @@ import httpx
 import numpy as np
 import pytest
 
+from api.cli import main
 from api.client import AsyncPhasecalClient, PhasecalClient, ServiceError
+from tests.api.test_cli_rig_report import table_rows
 from tests.api.test_client_core import Face
 from tests.api_server import ServerProcess
 from tests.calibration.rig.conftest import SCREEN, board_view_files, two_pinholes
@@ -87,6 +91,7 @@ def test_a_target_rig_report_saved_by_both_clients(tmp_path: Path) -> None:
                                                           "opencv5"), timeout_s=300)
             saved = client.download_report(job, tmp_path / "sync.html")
             record = client.get_target_rig_calibration(job["resource"].rsplit("/", 1)[1])
+            rig = client.get(f"{job['resource']}/rig")
 
         async def save_async() -> Path:
             async with AsyncPhasecalClient(srv.url) as aio:
@@ -101,3 +106,10 @@ def test_a_target_rig_report_saved_by_both_clients(tmp_path: Path) -> None:
     assert "<table id='extrinsics'" in page
     assert page.count('src="data:image/png;base64,') == 2 and 'src="report/' not in page
     assert saved_async.read_text() == page
+    # the command line draws the same numbers from the served rig model and the same files
+    (tmp_path / "rig.json").write_text(json.dumps(rig))
+    assert main(["report", "--model", str(tmp_path / "rig.json"), "--observations", *inputs,
+                 "-o", str(tmp_path / "cli")]) == 0
+    cli = (tmp_path / "cli" / "report.html").read_text()
+    for table in ("cameras", "extrinsics"):
+        assert table_rows(cli, table) == table_rows(page, table)
