@@ -30,7 +30,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "detect": ("detect", "find chessboard / ChArUco corners in images: one observations NPZ "
                          "per image (phasecal.observations/1)"),
     "report": ("report", "calibration report (verdict, downloads, report.html + PNGs and a "
-                         "single-file copy) from a model.json and the poses' maps"),
+                         "single-file copy) from a model.json and the poses' maps, or from "
+                         "a rig model and its cameras' CAMERA/VIEW= files"),
     "diff": ("diff", "difference of two models' rays (after the best rotation) against "
                      "their combined uncertainty: diff.html + maps + diff.json"),
     "guide": ("guide", "pose guidance from maps: starting poses, whether the poses are "
