@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 Transform = tuple[np.ndarray, np.ndarray]
 
@@ -14,8 +15,9 @@ def from_rvec(rvec: np.ndarray) -> np.ndarray:
 
 
 def to_rvec(rotation: np.ndarray) -> np.ndarray:
-    """Axis-angle vector (3,) rad of a 3x3 rotation."""
-    return cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].ravel()
+    """Axis-angle vector (3,) rad of a 3x3 rotation; exact for small angles too (OpenCV's
+    Rodrigues returns zero below 1e-5 rad, more than a dense fit's rotation sigma)."""
+    return Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_rotvec()
 
 
 def compose(outer: Transform, inner: Transform) -> Transform:

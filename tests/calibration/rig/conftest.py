@@ -12,8 +12,12 @@ import pytest
 from calibration.fit.rig.calibrate import calibrate_rig
 from calibration.fit.rig.inputs import RigInput
 from calibration.fit.rig.result import RigResult
+from calibration.fit.rig.transforms import to_rvec
+from calibration.fit.sgcc.initial import gauge_rotation
 from calibration.shared.observations import save_observations
 from calibration.shared.plan import ScreenGeometry
+from calibration.shared.rig_model import RigModel
+from hw_mocks.camera_base import TruthCamera
 from hw_mocks.cameras import mild_pinhole
 from hw_mocks.rig_truth import (
     RigTruth,
@@ -40,6 +44,24 @@ def two_pinholes() -> RigTruth:
     rb, tb = camera_at((150.0, 0.0, 0.0), yaw_deg=-6.0)
     return RigTruth({"A": mild_pinhole(320, 240), "B": mild_pinhole(320, 240)},
                     {"A": ra, "B": rb}, {"A": ta, "B": tb})
+
+
+def gauge_frame(cam: TruthCamera) -> np.ndarray:
+    """Rotation from the truth camera's frame to the sGCC gauge's (the ray at the sensor
+    centre +z, the row through it in the x-z plane), from the truth's own rays."""
+    cu, cv = (cam.width - 1) / 2, (cam.height - 1) / 2
+    _, d = cam.rays(np.array([cu, cu + 1e-3]), np.array([cv, cv]))
+    return gauge_rotation(d[0], (d[1] - d[0]) / 1e-3)
+
+
+def extrinsics_z(rig: RigModel, truth: RigTruth, frames: dict[str, np.ndarray]) -> np.ndarray:
+    """B's pose relative to A against the truth (each camera in its model's frame), over the
+    predicted 1-sigma: rotation vector, translation."""
+    r_rel, t_rel = truth.relative("A", "B")
+    r_true = frames["B"] @ r_rel @ frames["A"].T
+    rot, t = rig.relative("A", "B")
+    err = np.concatenate([to_rvec(rot @ r_true.T), t - frames["B"] @ t_rel])
+    return err / np.sqrt(np.diag(rig.camera("B").covariance))
 
 
 def board_view_files(folder: Path, truth: RigTruth, screen: ScreenGeometry, views: int,

@@ -7,19 +7,16 @@ from __future__ import annotations
 
 import dataclasses
 
-import cv2
 import numpy as np
 import pytest
 
 from calibration.fit.rig.calibrate import calibrate_rig
 from calibration.fit.rig.inputs import RigInput
-from calibration.fit.sgcc.initial import gauge_rotation
 from calibration.fit.sparse.crossval import AGREE_RATIO
 from calibration.fit.sparse.uncertainty import projection_covariance
 from calibration.shared.rig_model import RigModel
-from hw_mocks.camera_base import TruthCamera
 from hw_mocks.rig_truth import RigTruth, grid_points, shared_views, view_maps, view_observations
-from tests.calibration.rig.conftest import SCREEN, two_pinholes
+from tests.calibration.rig.conftest import SCREEN, extrinsics_z, gauge_frame, two_pinholes
 
 VIEWS = 8
 SIGMA_PX = 0.1
@@ -45,25 +42,6 @@ def _inputs(obs: list, cameras: str = "AB") -> list[RigInput]:
     return [RigInput(c, v, observations=o) for c, v, o in obs if c in cameras]
 
 
-def _gauge_frame(cam: TruthCamera) -> np.ndarray:
-    """Rotation from the truth camera's frame to the sGCC gauge's (the ray at the sensor
-    centre +z, the row through it in the x-z plane), from the truth's own rays."""
-    cu, cv = (cam.width - 1) / 2, (cam.height - 1) / 2
-    _, d = cam.rays(np.array([cu, cu + 1e-3]), np.array([cv, cv]))
-    return gauge_rotation(d[0], (d[1] - d[0]) / 1e-3)
-
-
-def _extrinsics_z(rig: RigModel, truth: RigTruth, frames: dict[str, np.ndarray]
-                  ) -> np.ndarray:
-    """B's pose relative to A against the truth (each camera in its model's frame), over the
-    predicted 1-sigma: rotation vector, translation."""
-    r_rel, t_rel = truth.relative("A", "B")
-    r_true = frames["B"] @ r_rel @ frames["A"].T
-    rot, t = rig.relative("A", "B")
-    err = np.concatenate([cv2.Rodrigues(rot @ r_true.T)[0].ravel(), t - frames["B"] @ t_rel])
-    return err / np.sqrt(np.diag(rig.camera("B").covariance))
-
-
 def _ray_errors(rig: RigModel, truth: RigTruth, name: str, frame: np.ndarray,
                 pixels: np.ndarray) -> tuple[float, float]:
     """The truth's rays at `pixels`, turned into the model's frame and projected by the
@@ -83,8 +61,8 @@ def test_sgcc_rig_from_observations_matches_the_truth(board_views) -> None:
     st = result.stats
     assert st["intrinsics_fixed"] == [] and st["converged"]
     assert 0.8 < st["reduced_chi2"] < 1.25
-    frames = {c: _gauge_frame(truth.cameras[c]) for c in "AB"}
-    assert np.all(np.abs(_extrinsics_z(result.rig, truth, frames)) < 3.0)
+    frames = {c: gauge_frame(truth.cameras[c]) for c in "AB"}
+    assert np.all(np.abs(extrinsics_z(result.rig, truth, frames)) < 3.0)
     for cam in "AB":
         seen = np.concatenate([o.image_xy[o.used()] for c, _, o in obs if c == cam])
         ratio, rms = _ray_errors(result.rig, truth, cam, frames[cam], seen)
@@ -102,8 +80,8 @@ def test_mixed_rig_maps_parametric_and_observations_noncentral(board_views) -> N
     assert st["intrinsics_fixed"] == [] and st["converged"]
     assert {r["camera"]: r for r in st["per_view"]}["B"]["rms_px"] < 0.2
     # A (opencv5) is in its optical frame, B (non-central sGCC) in its gauge's
-    frames = {"A": np.eye(3), "B": _gauge_frame(truth.cameras["B"])}
-    assert np.all(np.abs(_extrinsics_z(result.rig, truth, frames)) < 3.0)
+    frames = {"A": np.eye(3), "B": gauge_frame(truth.cameras["B"])}
+    assert np.all(np.abs(extrinsics_z(result.rig, truth, frames)) < 3.0)
 
 
 def test_raygrid_and_too_few_points_are_refused_with_the_reason(board_views) -> None:
