@@ -7,9 +7,11 @@ pinhole and a 150-degree fisheye 150 mm apart. Per seed, every camera sees the s
 - sparse data: the corners of an 11 x 8 chessboard drawn on the screen, 0.1 px noise;
 - dense data: decoded maps, 0.05 screen-px noise (the decoder's sigma), of which the joint
   fit takes `--dense-points` pixels per camera and view;
-- the sparse data again with every camera fitted as sgcc (row "sgcc"): each camera's frame
-  is then its sGCC gauge (the ray at the sensor centre +z), so the truth is turned into the
-  gauges taken from the true cameras' own rays before comparing.
+- the sparse data again with every camera fitted as sgcc (row "sgcc"), and the dense data
+  with every camera fitted as sgcc (row "dsgcc": each camera's spline from its own dense fit
+  of the decoded maps): each camera's frame is then its sGCC gauge (the ray at the sensor
+  centre +z), so the truth is turned into the gauges taken from the true cameras' own rays
+  before comparing.
 For each camera pair it prints the extrinsics error against the truth (rotation mrad,
 translation mm; RMS over seeds), the predicted 1-sigma, the std of the normalized errors
 (error / predicted sigma over the 6 components and the seeds: honest near 1), and OpenCV on
@@ -19,7 +21,8 @@ fisheye pair on undistorted normalized points; a pair that never sees the screen
 chained through the middle camera). Ratios are ours / OpenCV's error (RMS over seeds):
 sparse on identical points (goal <= 1.0), dense on every decoded pixel (goal <= 0.2).
 
-Rerun: `nice .venv/bin/python -P benchmarks/rig.py` (~4 min CPU; `--seeds`, `--case`).
+Rerun: `nice .venv/bin/python -P benchmarks/rig.py` (~4 min CPU; `--seeds`, `--case`,
+`--kind`).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration import RigInput, calibrate_rig
+from calibration.fit.rig.transforms import to_rvec
 from calibration.fit.sgcc.initial import gauge_rotation
 from calibration.shared.plan import ScreenGeometry
 from hw_mocks.camera_base import TruthCamera
@@ -55,6 +59,8 @@ W, H = 480, 360
 SPARSE_SIGMA_PX = 0.1
 DENSE_SIGMA_SCREEN_PX = 0.05
 VIEWS_PER_GROUP = 8
+KINDS = ("sparse", "dense", "sgcc", "dsgcc")
+GAUGED = ("sgcc", "dsgcc")  # rows whose cameras are sGCC: compared in the sGCC gauges
 
 
 @dataclass
@@ -96,7 +102,7 @@ def rig_truth(case: Case) -> RigTruth:
 def pose_error(rot: np.ndarray, t: np.ndarray, r_true: np.ndarray, t_true: np.ndarray
                ) -> np.ndarray:
     """(rotation vector error rad, translation error mm) as 6 numbers."""
-    return np.concatenate([cv2.Rodrigues(rot @ r_true.T)[0].ravel(), t - t_true])
+    return np.concatenate([to_rvec(rot @ r_true.T), t - t_true])
 
 
 def gauge_frame(cam: TruthCamera) -> np.ndarray:
@@ -181,7 +187,7 @@ def opencv_relative(case: Case, obs: dict, first: str, second: str
 
 
 # -- one seed -----------------------------------------------------------------------------
-def run_seed(case: Case, seed: int, dense_points: int) -> dict:
+def run_seed(case: Case, seed: int, dense_points: int, kinds: list[str]) -> dict:
     rng = np.random.default_rng(seed)
     truth = rig_truth(case)
     views = shared_views(truth, SCREEN, case.groups, VIEWS_PER_GROUP, rng,
@@ -200,13 +206,17 @@ def run_seed(case: Case, seed: int, dense_points: int) -> dict:
     for kind, inputs, opts, models in (
             ("sparse", sparse, {}, case.models),
             ("dense", dense, {"max_points_per_view": dense_points}, case.models),
-            ("sgcc", sparse, {}, sgcc)):
+            ("sgcc", sparse, {}, sgcc),
+            ("dsgcc", dense, {"max_points_per_view": dense_points}, sgcc)):
+        if kinds and kind not in kinds:
+            continue
         t0 = time.process_time()
         res = calibrate_rig(inputs, models, SCREEN, options=opts, reference="A")
         out["cpu"][kind] = time.process_time() - t0
         for first, second in case.pairs:
             rot, t = res.rig.relative(first, second)
-            err = pose_error(rot, t, *truth_relative(truth, first, second, kind == "sgcc"))
+            err = pose_error(rot, t, *truth_relative(truth, first, second,
+                                                        kind in GAUGED))
             sd = np.sqrt(np.diag(res.rig.camera(second).covariance))  # first is "A"
             out[(kind, first, second)] = (err, sd)
     t0 = time.process_time()
@@ -226,6 +236,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=6)
     ap.add_argument("--case", choices=sorted(CASES), action="append")
+    ap.add_argument("--kind", choices=KINDS, action="append",
+                    help="rows to run (default all)")
     ap.add_argument("--dense-points", type=int, default=4000,
                     help="decoded pixels per camera and view in the dense fit")
     args = ap.parse_args()
@@ -238,10 +250,11 @@ def main() -> None:
           f"{'cpu s':>6}")
     for name in args.case or sorted(CASES):
         case = CASES[name]
-        runs = [run_seed(case, s, args.dense_points) for s in range(args.seeds)]
+        kinds = args.kind or list(KINDS)
+        runs = [run_seed(case, s, args.dense_points, kinds) for s in range(args.seeds)]
         for first, second in case.pairs:
             cv = [r[("opencv", first, second)][0] for r in runs]
-            for kind in ("sparse", "dense", "sgcc"):
+            for kind in kinds:
                 errs = [r[(kind, first, second)][0] for r in runs]
                 sds = [r[(kind, first, second)][1] for r in runs]
                 z = np.concatenate([e / s for e, s in zip(errs, sds, strict=True)])

@@ -7,12 +7,14 @@ Three kinds, all weighted by the data's own uncertainty:
   pixel, so their screen sigma is carried into the camera image through the local
   Jacobian of the projection (a full 2x2 covariance per point); target observations carry
   `sigma_px / weight`.
-- spline blocks: pixel blocks of an sGCC camera. The same pixel residual and weights, but
-  in the closed form of the single-camera sparse fit (`sparse/ray_residual.py`: the angle
-  between the point and the pixel's ray, turned into pixels by the spline's local
-  Jacobian), which needs no iterative projection and gives exact derivatives over the
-  spline's coefficients.
-- ray blocks (a generic camera whose rays are held from its own fit): each pixel's ray,
+- spline blocks: pixel blocks of an sGCC camera, its spline fitted in the joint fit or held
+  from its own dense fit. The same pixel residual and weights, but in the closed form of
+  the single-camera sparse fit (`sparse/ray_residual.py`: the angle between the point and
+  the pixel's ray, turned into pixels by the spline's local Jacobian), which needs no
+  iterative projection and gives exact derivatives over the spline's coefficients (a held
+  spline's share of the extrinsics' covariance is built from them). Decoded points carry
+  their screen sigma through the residual's exact derivative over the point.
+- ray blocks (a raygrid camera, whose rays are held from its own fit): each pixel's ray,
   carried into the target's frame, meets the target plane; the miss in mm is divided by
   the decoded sigma in mm. Works for non-central models, and needs no projection.
 """
@@ -117,12 +119,24 @@ def _pixel_kind(model: CameraModel, pixels: np.ndarray
     return "pixel", None
 
 
+def _residual_screen_jacobian(model: CameraModel, pose: tuple[np.ndarray, np.ndarray],
+                              points: PointSet) -> np.ndarray:
+    """(N, 2, 2) d(pixel residual)/d(screen px) of decoded points at `pose`: the spline
+    residual's exact derivative over the point for an sGCC model, else the projection's by
+    central differences."""
+    if not isinstance(model, SGCCBase):
+        return screen_jacobian(model, pose[0], pose[1], points)
+    rot, t = pose
+    d_point = ray_residual(model, points.pixels, points.screen_mm @ rot.T + t).d_point
+    return d_point @ rot[:, :2] * np.asarray(points.pitch_mm, dtype=np.float64)
+
+
 def maps_pixel_block(camera: str, view: str, model: CameraModel,
                      pose: tuple[np.ndarray, np.ndarray], points: PointSet) -> Block:
     """Pixel (or spline) terms of decoded points; the screen sigma is carried into the image
-    through the projection's local Jacobian at the start pose (it changes little over the
+    through the residual's local Jacobian at the start pose (it changes little over the
     fit)."""
-    jac = screen_jacobian(model, pose[0], pose[1], points)
+    jac = _residual_screen_jacobian(model, pose, points)
     cov = np.einsum("nij,nj,nkj->nik", jac, points.sigma_px**2, jac)
     ok = np.all(np.isfinite(cov.reshape(-1, 4)), axis=1) & (cov[:, 0, 0] > 0)
     ok &= np.linalg.det(np.where(ok[:, None, None], cov, np.eye(2))) > 0

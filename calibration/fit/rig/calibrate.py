@@ -27,6 +27,7 @@ from calibration.fit.rig.result import RigResult
 from calibration.fit.rig.start import CameraStart, chain_extrinsics, start_camera, view_poses
 from calibration.fit.rig.transforms import Transform, compose
 from calibration.models.base import CameraModel
+from calibration.models.sgcc import SGCCBase
 from calibration.shared.plan import ScreenGeometry
 from calibration.shared.progress import CancelCheck, ProgressFn, check_cancelled
 from calibration.shared.rig_model import RigCamera, RigModel
@@ -59,7 +60,9 @@ def _check_inputs(inputs: list[RigInput], models: Mapping[str, str],
 
 def _block(inp: RigInput, start: CameraStart, to_camera: Transform,
            screen: ScreenGeometry | None, max_points: int) -> Block:
-    """The residual block of one input at the start values."""
+    """The residual block of one input at the start values: decoded maps of a held sGCC
+    camera as spline terms (their exact derivatives carry its spline's uncertainty into
+    the covariance), of any other held model as rays."""
     if inp.observations is not None:
         obs = inp.observations
         used = obs.used()
@@ -67,7 +70,7 @@ def _block(inp: RigInput, start: CameraStart, to_camera: Transform,
                                  obs.target_xyz[used], obs.weights()[used], obs.sigma_px)
     assert inp.maps is not None and screen is not None
     pts = subsample(point_set(inp.maps, screen), max_points)
-    if start.free.any():
+    if start.free.any() or isinstance(start.model, SGCCBase):
         return maps_pixel_block(inp.camera, inp.view, start.model, to_camera, pts)
     return maps_ray_block(inp.camera, inp.view, start.model, pts)
 
@@ -213,8 +216,12 @@ def calibrate_rig(
         "reference": reference,
         "models": {c: per_camera[c] for c in cameras},
         "intrinsics_fixed": [c for c in cameras if not states[c].free.any()],
+        "intrinsics_rays_in_covariance": [
+            c for c in cameras if states[c].held_spline_covariance() is not None],
         "intrinsics_note": ("a camera listed in intrinsics_fixed keeps its rays from its own "
-                            "fit; its extrinsics' covariance does not include their uncertainty"),
+                            "fit; the extrinsics' covariance includes their uncertainty (its "
+                            "own fit's covariance) for the cameras listed in "
+                            "intrinsics_rays_in_covariance, and leaves it out for the others"),
         "reduced_chi2": chi2, "iterations": info["iterations"], "converged": info["converged"],
         "training_views": views, "per_view": per_block, "extrinsics": extr_stats,
         "outliers_dropped": int(dropped), "n_points": int(sum(len(b) for b in blocks)),

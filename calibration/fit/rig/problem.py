@@ -74,6 +74,13 @@ class RigCameraState:
         p[self.free] = values
         self.model.set_params(p)
 
+    def held_spline_covariance(self) -> np.ndarray | None:
+        """The covariance over `model.get_params()` of an sGCC spline the fit holds at its own
+        dense fit's estimate (that fit's, in the same gauge), else None."""
+        if self.gauge is None and not self.free.any() and isinstance(self.model, SGCCBase):
+            return self.model.covariance
+        return None
+
     def set_covariance(self, cov: np.ndarray) -> None:
         """A fitted spline's model takes the covariance of its moved directions (`cov`, the
         joint fit's, poses and extrinsics marginalized), so its ray sigma is the rig's."""
@@ -264,5 +271,33 @@ class RigProblem:
         jp = jn[self.n_data:]
         fixed = float(np.sum(inv * (normal - jp.T @ jp))) if jp.size else float(self.size)
         chi2 = float(res @ res) / max(res.size - fixed, 1.0)
-        cov = inv / np.outer(scale, scale) * chi2
+        cov = (inv * chi2 + self._held_spline_share(x, jn, inv)) / np.outer(scale, scale)
         return 0.5 * (cov + cov.T), chi2
+
+    def _held_spline_share(self, x: np.ndarray, jn: np.ndarray, inv: np.ndarray) -> np.ndarray:
+        """The held splines' uncertainty carried into the fitted parameters (the "consider"
+        covariance, in the columns of `jn`): G Sigma_s G^T with G = (J^T J)^-1 J^T J_s, J_s
+        the whitened derivatives of the camera's spline blocks over its coefficients and
+        Sigma_s its own fit's covariance. For a linear model it is the joint fit's marginal
+        had the spline been fitted with that uncertainty. J^T J_s is summed block by block
+        over the columns a block moves (a block's J_s is points x coefficients)."""
+        share = np.zeros_like(inv)
+        self.set_models(x)
+        for name, cam in self.cameras.items():
+            sigma = cam.held_spline_covariance()
+            if sigma is None:
+                continue
+            assert isinstance(cam.model, SGCCBase)
+            ext = self.extrinsic(x, name)
+            cross = np.zeros((self.size, sigma.shape[0]))
+            for b, rows in zip(self.blocks, self.rows, strict=True):
+                if b.camera != name or b.kind != "spline":
+                    continue
+                d = b.spline_jacobian(cam.model, compose(ext, self.pose(x, b.view)))
+                d = np.nan_to_num(d.reshape(rows.size, -1), nan=0.0, posinf=0.0, neginf=0.0)
+                jb = jn[rows]
+                cols = np.flatnonzero(np.any(jb != 0, axis=0))
+                cross[cols] += jb[:, cols].T @ d
+            g = inv @ cross
+            share += g @ sigma @ g.T
+        return share
