@@ -21,8 +21,9 @@ from tests.calibration.rig.conftest import SCREEN, SimulatedRigFit, extrinsics_z
 
 @pytest.fixture(scope="module")
 def sgcc_maps_fit(stereo_maps_fit: SimulatedRigFit) -> RigResult:
-    """The shared pair's decoded maps with both cameras fitted as sgcc (v6 held out)."""
-    return calibrate_rig(stereo_maps_fit.inputs, "sgcc", SCREEN,
+    """The shared pair's decoded maps, A fitted as sgcc and B as sgcc-noncentral (v6 held
+    out)."""
+    return calibrate_rig(stereo_maps_fit.inputs, {"A": "sgcc", "B": "sgcc-noncentral"}, SCREEN,
                          options={"max_points_per_view": 600}, heldout_views=["v6"])
 
 
