@@ -26,6 +26,7 @@ _EXPORTS = {
     "COMPILED_MIN_PIXELS": "decode.decoder",
     "warm_up": "decode.kernel_warm",
     "retain_freed_memory": "decode.heap",
+    "one_heap_arena": "decode.heap",
     "warm_heap": "decode.heap",
     "holds_pixels": "decode.sums_cache",
     # fit through the registry

@@ -28,7 +28,7 @@ from api.worker.lifetime import (
     restore_blas_threads,
 )
 from api.worker.task_runner import TaskRunner, Ticket
-from calibration import warm_up
+from calibration import one_heap_arena, warm_up
 from calibration.shared.progress import ProgressFn, TaskContext
 
 DASK_ENV = "PHASECAL_DASK"
@@ -174,7 +174,9 @@ class ProcessExecutor(TaskRunner):
         ctx = mp.get_context("spawn")
         workers = max_workers or max(1, min(2, os.cpu_count() or 1))
         guard = guard_args()  # workers and the manager die with this process (kill -9 too)
-        with one_blas_thread() as blas_threads:  # (until their SIGTERM is blocked)
+        # workers start with one BLAS thread (until their SIGTERM is blocked) and one heap
+        # arena (a rig's concurrent decodes keep their freed memory: `one_heap_arena`)
+        with one_blas_thread() as blas_threads, one_heap_arena():
             self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
                                              initializer=start_worker,
                                              initargs=(*guard, warm_kernels, blas_threads))

@@ -70,7 +70,7 @@ def _keep_heap(pixels: int, decodes: int = 1) -> None:
     first-touch page faults of the finish's temporaries after the last frame; for images
     the compiled kernels decode, also faulted in now (once per worker, for `decodes` at
     once: a rig's cameras)."""
-    retain_freed_memory()
+    retain_freed_memory(decodes)
     if pixels >= COMPILED_MIN_PIXELS:
         warm_heap(decodes)
 
@@ -113,6 +113,7 @@ def stream_decode_task(
     durable: bool = True,
     compiled: bool = False,
     resident_maps: bool = False,
+    decodes: int = 1,
 ) -> dict[str, Any]:
     """Decode a pose while it is captured: follow its `FrameStore` and fold in each frame
     as soon as it is stored (frames stored before the task started, e.g. by an interrupted
@@ -131,7 +132,8 @@ def stream_decode_task(
     kernels at every image size (a long-lived worker loads them once: a 640x480 pose's finish
     ~3x faster; a one-off process would load them during the capture). Timings (wall, and CPU
     seconds of this process: all its threads) and the share of the maps file's pages faulted
-    in ahead by the last frame (`prefaulted`) in the summary."""
+    in ahead by the last frame (`prefaulted`) in the summary. `decodes`: how many decodes
+    this worker runs at once (a rig's cameras), whose freed heap it keeps (`_keep_heap`)."""
     plan = read_plan(plan_path)
     opts, saturation = _decoder_setup(options)
     total = len(plan.frames)
@@ -147,7 +149,7 @@ def stream_decode_task(
         decoder = StreamingDecoder(plan, store.shape, noise=noise, saturation_dn=saturation,
                                    options=opts, compiled=compiled)
         decoder.prepare()
-        _keep_heap(store.shape[0] * store.shape[1])
+        _keep_heap(store.shape[0] * store.shape[1], decodes)
         try:
             while not added.all():
                 if looks % 16 == 0:  # (a worker process's cancel flag: a round trip)
@@ -221,7 +223,8 @@ def stream_decode_rig_task(
         store_dir, out_path, meta = cameras[name]
         try:
             return stream_decode_task(CameraDecodeContext(ctx, stop), plan_path, store_dir,
-                                      out_path, meta=meta, resident_maps=True, **task_kwargs)
+                                      out_path, meta=meta, resident_maps=True,
+                                      decodes=len(cameras), **task_kwargs)
         except BaseException:
             stop.set()
             raise

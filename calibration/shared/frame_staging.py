@@ -17,7 +17,8 @@ one the sidecar named, and says so (`check`) after each read: a buffer reused un
 reader that fell behind fails that decode with the reason rather than feeding it another
 pose's pixels. The sidecar stays until the reader is done (a reader that starts late, after
 the capture, still finds the buffer). Where /dev/shm is missing or full, no buffer is leased
-and the store writes through the page cache as before.
+and the store writes through the page cache as before. A reading process keeps its mapping
+of each buffer from pose to pose (`ReaderMappings`).
 """
 
 from __future__ import annotations
@@ -50,6 +51,9 @@ _PREFIX = "phasecal-frames-"
 POOL_LIMIT_BYTES = 4 << 30
 # A released buffer whose reader never said it was done is reused after this long.
 REUSE_AFTER_S = 60.0
+# A reader's mappings are dropped after this long without a pose, and kept for at most
+# this many buffers (a rig's cameras, and the buffers that replace them).
+READER_KEEP_S, READER_KEEP = 120.0, 8
 SIDECAR = "frames.staging"
 
 
@@ -198,6 +202,81 @@ def _running(pid: int) -> bool:
 POOL = StagingPool()
 
 
+class ReaderMappings:
+    """A reading process's mappings of staging buffers, kept from pose to pose.
+
+    A buffer mapped afresh for each pose is read through new page-table entries: ~4000
+    page faults per 250 MB (5 MP, 50 frames; the kernel maps 16 pages per fault) in the
+    decode worker, every pose and camera. A kept mapping already has them. A mapping whose
+    file was removed or replaced is closed at the next `get` (its memory is the file's:
+    held while mapped), all of them after `READER_KEEP_S` without a `get`."""
+
+    def __init__(self, keep: int = READER_KEEP, keep_s: float = READER_KEEP_S) -> None:
+        self.keep, self.keep_s = keep, keep_s
+        self._maps: dict[str, tuple[tuple[int, int, int], mmap.mmap]] = {}
+        self._lock = threading.Lock()
+        self._timer: threading.Timer | None = None
+
+    def get(self, path: str) -> mmap.mmap:
+        """A writable mapping of the whole buffer file `path` (OSError if it is gone)."""
+        with self._lock:
+            self._drop_stale()
+            kept = self._maps.pop(path, None)
+            fd = os.open(path, os.O_RDWR)
+            try:
+                st = os.fstat(fd)
+                key = (st.st_dev, st.st_ino, st.st_size)
+                if kept is not None and kept[0] == key:
+                    mm = kept[1]
+                else:
+                    mm = mmap.mmap(fd, 0)
+            finally:
+                os.close(fd)
+            self._maps[path] = (key, mm)  # (last used last)
+            for old in list(self._maps)[:-self.keep]:
+                _close(self._maps.pop(old)[1])
+            if self._timer is not None:
+                self._timer.cancel()
+            self._timer = threading.Timer(self.keep_s, self.release)
+            self._timer.daemon = True
+            self._timer.start()
+            return mm
+
+    def _drop_stale(self) -> None:
+        """Close the mappings of buffers removed or replaced since."""
+        for path, (key, mm) in list(self._maps.items()):
+            try:
+                st = os.stat(path)
+                current = (st.st_dev, st.st_ino, st.st_size) == key
+            except OSError:
+                current = False
+            if not current:
+                del self._maps[path]
+                _close(mm)
+
+    def release(self) -> None:
+        """Close every kept mapping."""
+        with self._lock:
+            for _, mm in self._maps.values():
+                _close(mm)
+            self._maps.clear()
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._maps)
+
+
+def _close(mm: mmap.mmap) -> None:
+    """Unmap `mm`, or leave it to the views still reading it (unmapped with the last)."""
+    try:
+        mm.close()
+    except BufferError:
+        pass
+
+
+READER_MAPS = ReaderMappings()
+
+
 def write_sidecar(folder: Path, buf: StagingBuffer, shape: tuple[int, int],
                   dtype: np.dtype) -> None:
     """Name `buf` (and its token) to readers of the frame store in `folder`."""
@@ -212,15 +291,11 @@ class StagedFrames:
     def __init__(self, info: dict[str, Any], sidecar: Path) -> None:
         self.sidecar = sidecar
         self.token = bytes.fromhex(info["token"])
-        fd = os.open(info["path"], os.O_RDWR)
-        try:
-            self._mm = mmap.mmap(fd, 0)
-        finally:
-            os.close(fd)
-        self.header = np.frombuffer(self._mm, np.uint8, HEADER_BYTES)
+        mm = READER_MAPS.get(info["path"])  # (kept for the next pose)
+        self.header = np.frombuffer(mm, np.uint8, HEADER_BYTES)
         self.count = int(info["count"])
         self.frames = np.ndarray((self.count, *info["shape"]), dtype=np.dtype(info["dtype"]),
-                                 buffer=self._mm, offset=HEADER_BYTES)
+                                 buffer=mm, offset=HEADER_BYTES)
         self.frames.flags.writeable = False
 
     @classmethod
@@ -266,8 +341,5 @@ class StagedFrames:
             self.sidecar.unlink(missing_ok=True)
 
     def close(self) -> None:
+        """Drop this reader's views (the mapping stays with `READER_MAPS`)."""
         self.frames = self.header = np.empty(0, np.uint8)
-        try:
-            self._mm.close()
-        except BufferError:
-            pass

@@ -385,27 +385,35 @@ from api.worker.executor import ProcessExecutor
 from tests.api.test_api_shutdown import worker_threads_and_blas
 ex = ProcessExecutor(max_workers=1)
 blocked, blas = ex.submit(worker_threads_and_blas).result(timeout=60)
-print(json.dumps([blocked, blas, os.environ.get("OPENBLAS_NUM_THREADS")]), flush=True)
+arena = ex.submit(os.getenv, "MALLOC_ARENA_MAX").result(timeout=60)
+print(json.dumps([blocked, blas, os.environ.get("OPENBLAS_NUM_THREADS"), arena,
+                  os.environ.get("MALLOC_ARENA_MAX")]), flush=True)
 ex.shutdown(wait=False)
 """
 
 
-@pytest.mark.parametrize("blas", [None, "3"])
-def test_every_worker_thread_blocks_sigterm_and_keeps_its_blas_threads(blas: str | None
-                                                                       ) -> None:
+@pytest.mark.parametrize(("blas", "arena"), [(None, None), ("3", "2")])
+def test_every_worker_thread_blocks_sigterm_and_keeps_its_blas_threads(
+        blas: str | None, arena: str | None) -> None:
     """OpenBLAS starts a thread per core when NumPy loads, before the worker's initializer:
     those threads would take a SIGTERM meant for the service by its default action (the
     worker dies mid-task). Workers start with one BLAS thread and get theirs back once
     SIGTERM is blocked: every thread then has it blocked, and a worker has the BLAS threads
-    the server's environment asks for (one per core when it says nothing); the server's own
-    environment is left as it was."""
-    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    the server's environment asks for (one per core when it says nothing). Workers run in
+    one heap arena unless the server's environment chose a count (`decode.heap`). The
+    server's own environment is left as it was."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "MALLOC_ARENA_MAX")}
     if blas is not None:
         env["OPENBLAS_NUM_THREADS"] = blas
+    if arena is not None:
+        env["MALLOC_ARENA_MAX"] = arena
     done = subprocess.run([sys.executable, "-c", BLAS_WORKER], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=180)
     assert done.returncode == 0, done.stderr
-    blocked, threads, after = json.loads(done.stdout.splitlines()[-1])
+    blocked, threads, after, worker_arenas, arenas_after = json.loads(
+        done.stdout.splitlines()[-1])
     assert blocked and all(blocked), done.stdout
     assert threads == (int(blas) if blas else os.cpu_count()), done.stdout
     assert after == blas, done.stdout
+    assert worker_arenas == (arena or "1") and arenas_after == arena, done.stdout

@@ -4,6 +4,7 @@ BLAS thread (`models.blas_threads`)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 import threadpoolctl
 
+from calibration.decode import heap
 from calibration.decode.noise import residual_line
 from calibration.models.blas_threads import single_thread_blas
 
@@ -48,6 +50,47 @@ def test_freed_memory_is_reused_without_page_faults():
     assert default > 1000  # 80 blocks of 384 pages: glibc hands most of them back
     assert retained < 50
     assert warmed < 50
+
+
+# Four threads at once allocate, write and free 96 MB each in 24 MB blocks (a rig's four
+# finishes), round after round: page faults of the process per round.
+_THREADS = textwrap.dedent("""
+    import resource, threading
+    import numpy as np
+    from calibration.decode import heap
+    assert heap.retain_freed_memory(4)
+    def work():
+        blocks = [np.ones(24 << 20, dtype=np.uint8) for _ in range(4)]
+        del blocks
+    faults = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    rounds = []
+    for _ in range(5):
+        before = faults()
+        threads = [threading.Thread(target=work) for _ in range(4)]
+        [t.start() for t in threads]
+        [t.join() for t in threads]
+        rounds.append(faults() - before)
+    print(min(rounds[1:]))
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc arenas")
+def test_concurrent_decodes_keep_their_freed_memory_in_one_arena(monkeypatch):
+    """glibc gives threads arenas of 64 MB heaps and deletes a heap that becomes free
+    whatever the trim threshold: concurrent finishes faulted their temporaries in afresh
+    every pose. Workers run in one arena (`one_heap_arena`), which keeps them."""
+    def faults(env: dict[str, str]) -> int:
+        out = subprocess.run([sys.executable, "-c", _THREADS], capture_output=True, text=True,
+                             check=True, env=env)
+        return int(out.stdout.split()[-1])
+
+    monkeypatch.delenv(heap.ARENA_VAR, raising=False)
+    base = dict(os.environ)
+    with heap.one_heap_arena():
+        one_arena = dict(os.environ)
+    assert one_arena[heap.ARENA_VAR] == "1" and heap.ARENA_VAR not in os.environ
+    assert faults(base) > 1000  # 16 blocks of 6144 pages: whole heaps handed back
+    assert faults(one_arena) < 100
 
 
 def test_noise_line_runs_on_one_blas_thread(monkeypatch):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import os
+import resource
 import subprocess
 from pathlib import Path
 
@@ -411,3 +412,66 @@ def test_first_lease_removes_buffers_of_dead_processes_only(tmp_path: Path) -> N
     finally:
         pool.close()
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, unrelated.name])
+
+
+# -- 7. a reader's mappings, kept from pose to pose ---------------------------------------
+
+def _read_all(frames: np.ndarray) -> int:
+    """Page faults of this thread while every byte of `frames` is read once."""
+    before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+    int(frames.sum(dtype=np.uint64))
+    return resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before
+
+
+def test_reader_reads_a_reused_buffer_through_its_kept_mapping(
+        tmp_path: Path, pool: RecordingPool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Pose after pose, a camera's frames come through the same buffer: the decode worker
+    maps it once (a buffer mapped afresh each pose faulted its page tables in again: ~4000
+    faults per 250 MB), and reads each pose's pixels from it."""
+    kept = frame_staging.ReaderMappings()
+    monkeypatch.setattr(frame_staging, "READER_MAPS", kept)
+    faults = []
+    for pose, seed in enumerate((5, 6)):
+        frames = _frames(shape=(128, 512), seed=seed)  # 128 KiB a frame
+        folder = tmp_path / f"pose{pose}"
+        _store_all(folder, frames)
+        reader = FrameStore(folder, COUNT)
+        [(part, shm)] = reader.sources(list(range(COUNT)))
+        faults.append(_read_all(shm))
+        np.testing.assert_array_equal(shm[part], frames)
+        reader.verify()
+        reader.reader_done()
+        del shm
+    assert len(pool.leased) == 2 and pool.leased[0] is pool.leased[1]  # one buffer, reused
+    assert len(kept) == 1
+    assert faults[0] >= 10 and 4 * faults[1] <= faults[0], faults
+
+
+def test_kept_mappings_follow_their_files(tmp_path: Path) -> None:
+    """A removed or replaced buffer's mapping is closed at the next `get` (its memory is held
+    while mapped); at most `keep` are kept, the least recently used dropped first."""
+    kept = frame_staging.ReaderMappings(keep=2)
+    paths = []
+    for k in range(3):
+        path = tmp_path / f"buf{k}"
+        path.write_bytes(bytes([k + 1]) * 8192)
+        paths.append(str(path))
+    try:
+        a = kept.get(paths[0])
+        assert kept.get(paths[0]) is a and a[0] == 1
+        b = kept.get(paths[1])
+        os.unlink(paths[0])
+        assert kept.get(paths[1]) is b and len(kept) == 1 and a.closed
+        Path(paths[1]).unlink()  # replaced: another file at the same path
+        Path(paths[1]).write_bytes(bytes([9]) * 8192)
+        b2 = kept.get(paths[1])
+        assert b2 is not b and b.closed and b2[0] == 9
+        c = kept.get(paths[2])
+        Path(paths[0]).write_bytes(bytes([7]) * 8192)
+        kept.get(paths[0])  # a third: the least recently used (paths[1]) goes
+        assert len(kept) == 2 and b2.closed and not c.closed
+        with pytest.raises(OSError):
+            kept.get(str(tmp_path / "missing"))
+    finally:
+        kept.release()
+    assert len(kept) == 0 and c.closed
