@@ -27,7 +27,12 @@ import numpy as np
 
 from calibration.evaluate import screen_jacobian
 from calibration.fit.correspondences import PointSet
-from calibration.fit.sparse.ray_residual import ray_residual, residual_pixels
+from calibration.fit.sparse.ray_residual import (
+    PixelRays,
+    pixel_rays,
+    ray_residual,
+    residual_pixels,
+)
 from calibration.models.base import CameraModel
 from calibration.models.sgcc import SGCCBase
 
@@ -46,6 +51,7 @@ class Block:
     directions: np.ndarray | None = None  # ray: (N, 3) unit, camera frame
     sigma_known: bool = True  # False: observations without sigma_px (scaled from residuals)
     basis: tuple[np.ndarray, ...] | None = None  # spline: the spline basis at the pixels
+    rays: PixelRays | None = None  # spline held by the fit: its rays at the pixels
 
     def __len__(self) -> int:
         """Number of points (each gives two residuals)."""
@@ -58,7 +64,8 @@ class Block:
                      None if self.origins is None else self.origins[keep],
                      None if self.directions is None else self.directions[keep],
                      self.sigma_known,
-                     None if self.basis is None else tuple(b[keep] for b in self.basis))
+                     None if self.basis is None else tuple(b[keep] for b in self.basis),
+                     None if self.rays is None else self.rays.subset(keep))
 
     def residuals(self, model: CameraModel, to_camera: tuple[np.ndarray, np.ndarray]
                   ) -> np.ndarray:
@@ -69,8 +76,12 @@ class Block:
             uv = model.project(self.target @ rot.T + t)
             return np.einsum("nij,nj->ni", self.whiten, uv - self.pixels)
         if self.kind == "spline":
-            assert isinstance(model, SGCCBase)
-            miss = residual_pixels(model, self.pixels, self.target @ rot.T + t, self.basis)
+            points = self.target @ rot.T + t
+            if self.rays is not None:
+                miss = self.rays.residual_pixels(points)
+            else:
+                assert isinstance(model, SGCCBase)
+                miss = residual_pixels(model, self.pixels, points, self.basis)
             return np.einsum("nij,nj->ni", self.whiten, miss)
         assert self.origins is not None and self.directions is not None
         o = (self.origins - t) @ rot  # R^T (o - t), row-wise
@@ -132,18 +143,22 @@ def _residual_screen_jacobian(model: CameraModel, pose: tuple[np.ndarray, np.nda
 
 
 def maps_pixel_block(camera: str, view: str, model: CameraModel,
-                     pose: tuple[np.ndarray, np.ndarray], points: PointSet) -> Block:
+                     pose: tuple[np.ndarray, np.ndarray], points: PointSet,
+                     held: bool = False) -> Block:
     """Pixel (or spline) terms of decoded points; the screen sigma is carried into the image
     through the residual's local Jacobian at the start pose (it changes little over the
-    fit)."""
+    fit). A spline the fit `held` keeps its rays at the pixels, computed once."""
     jac = _residual_screen_jacobian(model, pose, points)
     cov = np.einsum("nij,nj,nkj->nik", jac, points.sigma_px**2, jac)
     ok = np.all(np.isfinite(cov.reshape(-1, 4)), axis=1) & (cov[:, 0, 0] > 0)
     ok &= np.linalg.det(np.where(ok[:, None, None], cov, np.eye(2))) > 0
     pts = points.subset(ok)
     kind, basis = _pixel_kind(model, pts.pixels)
+    rays = None
+    if held and isinstance(model, SGCCBase):
+        rays = pixel_rays(model, pts.pixels, basis)
     return Block(camera, view, kind, pts.screen_mm, pts.pixels, _inverse_cholesky(cov[ok]),
-                 basis=basis)
+                 basis=basis, rays=rays)
 
 
 def maps_ray_block(camera: str, view: str, model: CameraModel, points: PointSet) -> Block:

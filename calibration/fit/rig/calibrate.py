@@ -71,7 +71,8 @@ def _block(inp: RigInput, start: CameraStart, to_camera: Transform,
     assert inp.maps is not None and screen is not None
     pts = subsample(point_set(inp.maps, screen), max_points)
     if start.free.any() or isinstance(start.model, SGCCBase):
-        return maps_pixel_block(inp.camera, inp.view, start.model, to_camera, pts)
+        return maps_pixel_block(inp.camera, inp.view, start.model, to_camera, pts,
+                                held=not start.free.any())
     return maps_ray_block(inp.camera, inp.view, start.model, pts)
 
 

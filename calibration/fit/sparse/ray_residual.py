@@ -43,6 +43,25 @@ def logmap_jacobian(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass
+class PixelRays:
+    """The spline at N pixels as the residual takes it: each pixel's ray (exponential-map
+    coordinates and origin) and the inverse of the spline's local Jacobian there. A fit that
+    holds the spline computes them once and only moves the points."""
+
+    ab: np.ndarray  # (N, 2) rad
+    origin: np.ndarray  # (N, 3) mm
+    minv: np.ndarray  # (N, 2, 2) M^-1, px/rad
+
+    def residual_pixels(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) residuals (px) of camera-frame `points` (N, 3) mm at these pixels."""
+        return (self.minv @ (logmap(points - self.origin) - self.ab)[:, :, None])[:, :, 0]
+
+    def subset(self, keep: np.ndarray) -> PixelRays:
+        """The pixels selected by a boolean mask."""
+        return PixelRays(self.ab[keep], self.origin[keep], self.minv[keep])
+
+
+@dataclass
 class _Miss:
     """The pieces of the residual at N pixels that its derivatives reuse."""
 
@@ -63,12 +82,11 @@ def _inverse_2x2(m: np.ndarray) -> np.ndarray:
         return out / det[:, None, None]
 
 
-def _miss(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
-          basis: tuple[np.ndarray, ...] | None, derivatives: bool = True) -> _Miss:
-    """r = M(q)^-1 (logmap(P - o(q)) - ab(q)) with what its derivatives need (the logmap's
-    Jacobian only if `derivatives`)."""
+def pixel_rays(model: SGCCBase, pixels: np.ndarray,
+               basis: tuple[np.ndarray, ...] | None = None) -> PixelRays:
+    """The model's rays and inverse local Jacobians at `pixels` (N, 2); `basis` is
+    `model.grid.basis(u, v, derivatives=True)` at the pixels when cached."""
     q = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    n, c = len(q), model.n_components
     basis = basis if basis is not None else model.grid.basis(q[:, 0], q[:, 1],
                                                              derivatives=True)
     idx, w, wdu, wdv = basis
@@ -77,15 +95,25 @@ def _miss(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
     comps = np.matmul(w[:, None, :], ctrl)[:, 0]
     jac_uv = np.matmul(ctrl[:, :, :2].transpose(0, 2, 1),
                        np.stack([wdu, wdv], axis=2))  # M (N, 2, 2): d ab / d (u, v)
-    origin = np.zeros((n, 3))
-    if c == 4:
+    origin = np.zeros((len(q), 3))
+    if model.n_components == 4:
         origin[:, :2] = comps[:, 2:4]
-    if derivatives:
-        target, lj = logmap_jacobian(points - origin)
-    else:
-        target, lj = logmap(points - origin), None
-    minv = _inverse_2x2(jac_uv)
-    return _Miss(basis, minv, lj, np.einsum("nij,nj->ni", minv, target - comps[:, :2]))
+    return PixelRays(comps[:, :2], origin, _inverse_2x2(jac_uv))
+
+
+def _miss(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
+          basis: tuple[np.ndarray, ...] | None, derivatives: bool = True) -> _Miss:
+    """r = M(q)^-1 (logmap(P - o(q)) - ab(q)) with what its derivatives need (the logmap's
+    Jacobian only if `derivatives`)."""
+    q = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    basis = basis if basis is not None else model.grid.basis(q[:, 0], q[:, 1],
+                                                             derivatives=True)
+    rays = pixel_rays(model, q, basis)
+    if not derivatives:
+        return _Miss(basis, rays.minv, None, rays.residual_pixels(points))
+    target, lj = logmap_jacobian(points - rays.origin)
+    return _Miss(basis, rays.minv, lj,
+                 (rays.minv @ (target - rays.ab)[:, :, None])[:, :, 0])
 
 
 def residual_pixels(model: SGCCBase, pixels: np.ndarray, points: np.ndarray,
