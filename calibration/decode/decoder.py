@@ -86,8 +86,10 @@ def one_shot_compiled(pixels: int, noise: object) -> bool:
     return pixels >= (RESIDUAL_COMPILED_PIXELS if noise is None else ALWAYS_COMPILED_PIXELS)
 
 
+@functools.lru_cache(maxsize=1)
 def _software_version() -> str:
-    """Installed phasecal version, or 'unknown' when running from a bare checkout."""
+    """Installed phasecal version, or 'unknown' when running from a bare checkout (looked up
+    once: the lookup reads the installed packages' metadata, ~3 ms a finish)."""
     try:
         from importlib.metadata import version
 
