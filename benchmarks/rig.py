@@ -21,7 +21,7 @@ fisheye pair on undistorted normalized points; a pair that never sees the screen
 chained through the middle camera). Ratios are ours / OpenCV's error (RMS over seeds):
 sparse on identical points (goal <= 1.0), dense on every decoded pixel (goal <= 0.2).
 
-Rerun: `nice .venv/bin/python -P benchmarks/rig.py` (~4 min CPU; `--seeds`, `--case`,
+Rerun: `nice .venv/bin/python -P benchmarks/rig.py` (~9 min CPU; `--seeds`, `--case`,
 `--kind`).
 """
 
