@@ -1,14 +1,19 @@
 """sGCC cameras in a rig fitted from decoded maps: each keeps the spline of its own dense fit,
 and the extrinsics' covariance carries that spline's uncertainty (the "consider"
-covariance), which equals the joint fit's marginal had the spline been fitted with it."""
+covariance), which equals the joint fit's marginal had the spline been fitted with it; the
+same rig through `phasecal calibrate --maps`."""
 
 from __future__ import annotations
 
 import copy
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from acquisition.patterns import build_plan
+from api.cli import main
 from calibration.fit.correspondences import point_set, subsample
 from calibration.fit.rig.blocks import maps_pixel_block
 from calibration.fit.rig.calibrate import calibrate_rig
@@ -16,6 +21,8 @@ from calibration.fit.rig.problem import RigCameraState, RigProblem
 from calibration.fit.rig.result import RigResult
 from calibration.fit.rig.transforms import compose
 from calibration.models.sgcc import SGCCBase
+from calibration.shared.maps import save_maps
+from calibration.shared.plan import write_plan
 from tests.calibration.rig.conftest import SCREEN, SimulatedRigFit, extrinsics_z, gauge_frame
 
 
@@ -78,3 +85,25 @@ def test_held_spline_share_is_the_joint_marginal(stereo_maps_fit: SimulatedRigFi
                                rtol=1e-6)
     ratio = np.sqrt(np.diag(cov)[:6] / np.diag(cov_bare)[:6])  # B's extrinsics
     assert ratio.min() >= 1.0 and ratio.max() > 3.0, ratio
+
+
+def test_the_cli_writes_the_same_rig(stereo_maps_fit: SimulatedRigFit, sgcc_maps_fit: RigResult,
+                                     tmp_path: Path) -> None:
+    """`phasecal calibrate --maps` of the same files and models: the rig file carries the
+    extrinsics' covariance with the splines' share, and the statistics name those cameras."""
+    plan = build_plan(SCREEN.width_px, SCREEN.height_px, SCREEN.pitch_mm)
+    write_plan(plan, tmp_path / "plan.json")
+    args = []
+    for i in stereo_maps_fit.inputs:
+        assert i.maps is not None
+        save_maps(i.maps, tmp_path / f"{i.camera}{i.view}.npz")
+        args.append(f"{i.camera}/{i.view}={tmp_path / f'{i.camera}{i.view}.npz'}")
+    out = tmp_path / "rig.json"
+    assert main(["calibrate", "--plan", str(tmp_path / "plan.json"), "--maps", *args,
+                 "--model", "sgcc", "--model", "B=sgcc-noncentral", "--heldout-view", "v6",
+                 "--option", "max_points_per_view=600", "-o", str(out)]) == 0
+    ext = json.loads(out.read_text())["cameras"]["B"]["extrinsics"]
+    np.testing.assert_allclose(ext["covariance"], sgcc_maps_fit.rig.camera("B").covariance,
+                               rtol=1e-6, atol=1e-15)
+    stats = json.loads(out.with_name("rig.result.json").read_text())["stats"]
+    assert stats["intrinsics_rays_in_covariance"] == ["A", "B"]
