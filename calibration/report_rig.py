@@ -404,6 +404,24 @@ def _heldout_html(stats: dict[str, Any]) -> str:
     return table(["view", "camera", "RMS miss (px or mm)", "whitened RMS"], rows)
 
 
+def held_rays_note(stats: dict[str, Any]) -> str:
+    """What the extrinsics' sigma of the cameras that kept their own fit's rays includes:
+    those rays' uncertainty where the fit carried it (`intrinsics_rays_in_covariance`),
+    else nothing of it (a lower bound)."""
+    fixed = stats.get("intrinsics_fixed") or []
+    carried = [c for c in fixed if c in (stats.get("intrinsics_rays_in_covariance") or [])]
+    left_out = [c for c in fixed if c not in carried]
+    notes = []
+    if carried:
+        notes.append(f"{', '.join(carried)} kept the rays of their own fit; their "
+                     "extrinsics' sigma includes those rays' uncertainty (that fit's "
+                     "covariance).")
+    if left_out:
+        notes.append(f"{', '.join(left_out)} kept the rays of their own fit; their "
+                     "extrinsics' sigma leaves out the rays' uncertainty (a lower bound).")
+    return "".join(f"<p class='explain'>{html.escape(n)}</p>" for n in notes)
+
+
 def rig_report_html(inputs: RigReportInputs, rig: RigModel, stats: dict[str, Any],
                     cameras: list[CameraSummary], extrinsics: list[ExtrinsicsSummary],
                     images: list[str], words: CoverageWords = DECODED_COVERAGE) -> str:
@@ -418,10 +436,7 @@ def rig_report_html(inputs: RigReportInputs, rig: RigModel, stats: dict[str, Any
                  ", ".join(f"{v:.4g}" for v in e.translation_mm),
                  f"{e.sigma_translation_mm:.3g}", f"{e.sigma_rotation_mrad:.3g}"]
                 for e in extrinsics]
-    fixed = stats.get("intrinsics_fixed") or []
-    fixed_note = (f"<p class='explain'>{html.escape(', '.join(fixed))} kept the rays of "
-                  "their own fit; their extrinsics' sigma leaves out the rays' uncertainty "
-                  "(a lower bound).</p>" if fixed else "")
+    fixed_note = held_rays_note(stats)
     figures = "".join(figure(n, f"{c.name}: {words.caption}")
                       for n, c in zip(images, cameras, strict=True))
     head = inputs.header

@@ -124,6 +124,9 @@ def run_rig(args: argparse.Namespace, options: dict[str, object]) -> int:
               f"{max(ex['translation_sigma_mm']):.3g} mm")
     if st["intrinsics_fixed"]:
         print(f"  intrinsics held from each camera's own fit: {', '.join(st['intrinsics_fixed'])}")
+        carried = st.get("intrinsics_rays_in_covariance") or []
+        print(f"  their rays' uncertainty in the extrinsics' sigma: "
+              f"{', '.join(carried) if carried else 'none (the sigma is a lower bound)'}")
     for row in st.get("heldout", []):
         scores = ", ".join(f"{c} whitened RMS {s['whitened_rms']:.3g}"
                            for c, s in row["cameras"].items() if s["whitened_rms"] is not None)

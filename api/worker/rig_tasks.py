@@ -45,8 +45,9 @@ def rig_calibrate_task(
     stats = result.json_stats()
     write_json_atomic(out / "result.json", {"stats": stats})
     summary = {k: stats[k] for k in ("reference", "models", "reduced_chi2", "extrinsics",
-                                     "intrinsics_fixed", "n_points", "outliers_dropped",
-                                     "converged") if k in stats}
+                                     "intrinsics_fixed", "intrinsics_rays_in_covariance",
+                                     "n_points", "outliers_dropped", "converged")
+               if k in stats}
     if "heldout" in stats:
         summary["heldout"] = stats["heldout"]
     return {"stats": summary, "exports": list(RIG_OUTPUTS)}

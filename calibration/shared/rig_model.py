@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from calibration.models.base import CameraModel, ModelError, jsonable, model_from_dict
@@ -126,8 +125,11 @@ def _camera_from_dict(name: str, data: Any, source: str) -> RigCamera:
         raise RigModelError(f"{where}.extrinsics.covariance: not symmetric")
     if np.any(np.diag(cov) < 0):
         raise RigModelError(f"{where}.extrinsics.covariance: negative variance on the diagonal")
-    # A rotation stored to JSON precision: re-orthonormalize through its rotation vector.
-    rot = cv2.Rodrigues(cv2.Rodrigues(rot)[0])[0]
+    # A rotation stored to JSON precision: the nearest rotation matrix (SVD). Not through
+    # cv2.Rodrigues, which returns a zero vector below 1e-5 rad: a dense fit's sigma is
+    # smaller than that, and a near-parallel pair's rotation became exactly identity.
+    u, _, vt = np.linalg.svd(rot)
+    rot = u @ vt
     return RigCamera(model, rot, t, cov)
 
 

@@ -249,5 +249,6 @@ def calibrate_rig(
         stats["heldout"] = scored
     stats["wall_s"] = time.perf_counter() - t0
     rig = RigModel(reference, rig_cams, {k: stats[k] for k in (
-        "reduced_chi2", "extrinsics", "intrinsics_fixed", "models", "n_points")})
+        "reduced_chi2", "extrinsics", "intrinsics_fixed", "intrinsics_rays_in_covariance",
+        "models", "n_points")})
     return RigResult(rig, {v: problem.pose(x, v) for v in views}, stats)

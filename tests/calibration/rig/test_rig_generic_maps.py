@@ -21,6 +21,7 @@ from calibration.fit.rig.problem import RigCameraState, RigProblem
 from calibration.fit.rig.result import RigResult
 from calibration.fit.rig.transforms import compose
 from calibration.models.sgcc import SGCCBase
+from calibration.report_rig import held_rays_note
 from calibration.shared.maps import save_maps
 from calibration.shared.plan import write_plan
 from tests.calibration.rig.conftest import SCREEN, SimulatedRigFit, extrinsics_z, gauge_frame
@@ -39,6 +40,12 @@ def test_held_splines_enter_the_extrinsics_covariance(stereo_maps_fit: Simulated
     st = sgcc_maps_fit.stats
     assert st["intrinsics_fixed"] == ["A", "B"]
     assert st["intrinsics_rays_in_covariance"] == ["A", "B"]
+    assert sgcc_maps_fit.rig.stats["intrinsics_rays_in_covariance"] == ["A", "B"]  # kept
+    note = held_rays_note(st)
+    assert "A, B kept the rays" in note and "includes" in note and "lower bound" not in note
+    raygrid = held_rays_note({"intrinsics_fixed": ["A", "B"],
+                              "intrinsics_rays_in_covariance": ["A"]})
+    assert "A kept" in raygrid and "B kept" in raygrid and "lower bound" in raygrid
     assert st["converged"] and 0.7 < st["reduced_chi2"] < 1.4
     truth = stereo_maps_fit.truth
     frames = {c: gauge_frame(truth.cameras[c]) for c in "AB"}

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from calibration.shared.rig_model import RigModelError, load_rig, rig_from_dict, save_rig
 
@@ -23,6 +24,18 @@ def test_round_trip_keeps_models_extrinsics_and_covariance(stereo_maps_fit, tmp_
     p = np.array([[30.0, -10.0, 450.0]])
     o, d = b2.unproject(b2.project(p))
     assert np.linalg.norm(np.cross(p - o, d)) < 1e-6
+
+
+def test_a_rotation_below_ten_microradians_survives_the_round_trip(stereo_maps_fit) -> None:
+    """A near-parallel pair's relative rotation can be smaller than 1e-5 rad (a dense fit's
+    sigma is a few microradians): the loader keeps it, not the identity."""
+    doc = json.loads(json.dumps(stereo_maps_fit.result.rig.to_dict()))
+    rvec = np.array([3e-6, -2e-6, 4e-6])
+    rot = Rotation.from_rotvec(rvec).as_matrix()
+    doc["cameras"]["B"]["extrinsics"]["R"] = rot.tolist()
+    back = rig_from_dict(json.loads(json.dumps(doc))).camera("B").rotation
+    assert np.allclose(Rotation.from_matrix(back).as_rotvec(), rvec, rtol=0, atol=1e-12)
+    assert np.allclose(back @ back.T, np.eye(3), atol=1e-15)
 
 
 @pytest.mark.parametrize(("edit", "message"), [
