@@ -21,6 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 from matplotlib.patches import Rectangle
+from scipy.spatial.transform import Rotation
 
 from calibration.evaluate import ADEQUATE_RATIO
 from calibration.figures import one_at_a_time, subplots
@@ -214,7 +215,8 @@ def extrinsics_summaries(rig: RigModel) -> list[ExtrinsicsSummary]:
         if name == rig.reference:
             continue
         centre = -cam.rotation.T @ cam.translation
-        angle = float(np.degrees(np.linalg.norm(cv2.Rodrigues(cam.rotation)[0])))
+        # (SciPy: cv2.Rodrigues gives 0 below 1e-5 rad, finer than a dense fit's sigma)
+        angle = float(np.degrees(Rotation.from_matrix(cam.rotation).magnitude()))
         sd = np.sqrt(np.clip(np.diag(cam.covariance), 0, None))
         out.append(ExtrinsicsSummary(name, float(np.linalg.norm(centre)), angle, centre,
                                      float(np.linalg.norm(sd[3:])),
