@@ -13,10 +13,8 @@ import pytest
 from acquisition.patterns import build_plan
 from api.cli import main
 from calibration.mrcal_io import read_cameramodel_with_extrinsics
-from calibration.shared.maps import save_maps
 from calibration.shared.plan import write_plan
-from hw_mocks.rig_truth import shared_views, view_maps
-from tests.calibration.rig.conftest import board_view_files, two_pinholes
+from tests.calibration.rig.conftest import board_view_files, maps_view_files, two_pinholes
 from tests.calibration.test_exports import SYSTEM_PYTHON, needs_mrcal
 
 VIEWS = 5
@@ -29,13 +27,7 @@ def rig_dir(tmp_path_factory):
     plan = build_plan(640, 400, 0.5)
     write_plan(plan, d / "plan.json")
     truth = two_pinholes()
-    rng = np.random.default_rng(8)
-    for k, (group, view) in enumerate(shared_views(truth, plan.screen, [("A", "B")], VIEWS,
-                                                   rng)):
-        for cam in group:
-            save_maps(view_maps(truth, cam, view, plan.screen, sigma_px=0.05, rng=rng),
-                      d / f"{cam}{k}.npz")
-    inputs = [f"{c}/v{k}={d / f'{c}{k}.npz'}" for k in range(VIEWS) for c in "AB"]
+    inputs = maps_view_files(d, truth, plan.screen, VIEWS, np.random.default_rng(8))
     assert main(["calibrate", "--plan", str(d / "plan.json"), "--maps", *inputs,
                  "--model", "opencv5", "--model", "B=opencv-rational",
                  "--option", "max_points_per_view=400", "-o", str(d / "rig.json")]) == 0

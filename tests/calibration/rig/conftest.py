@@ -14,6 +14,7 @@ from calibration.fit.rig.inputs import RigInput
 from calibration.fit.rig.result import RigResult
 from calibration.fit.rig.transforms import to_rvec
 from calibration.fit.sgcc.initial import gauge_rotation
+from calibration.shared.maps import save_maps
 from calibration.shared.observations import save_observations
 from calibration.shared.plan import ScreenGeometry
 from calibration.shared.rig_model import RigModel
@@ -78,6 +79,18 @@ def board_view_files(folder: Path, truth: RigTruth, screen: ScreenGeometry, view
                                                 rng=rng), path)
             inputs.append(f"{cam}/v{k}={path}")
     return inputs
+
+
+def maps_view_files(folder: Path, truth: RigTruth, screen: ScreenGeometry, views: int,
+                    rng: np.random.Generator) -> list[str]:
+    """`CAMERA/VIEW=PATH` arguments of `phasecal calibrate --maps`: A and B see `views`
+    shared views of `screen` (decoded maps, 0.05 px noise), one maps file per camera and
+    view, named `v0`, `v1`, ... in view order."""
+    for k, (group, view) in enumerate(shared_views(truth, screen, [("A", "B")], views, rng)):
+        for cam in group:
+            save_maps(view_maps(truth, cam, view, screen, sigma_px=0.05, rng=rng),
+                      folder / f"{cam}{k}.npz")
+    return [f"{c}/v{k}={folder / f'{c}{k}.npz'}" for k in range(views) for c in "AB"]
 
 
 @pytest.fixture(scope="session")
