@@ -17,6 +17,7 @@ import pytest
 from acquisition.patterns import build_plan
 from api.cli import main
 from calibration.shared.plan import write_plan
+from tests.api.rig_report_checks import check_extrinsics_row, table_rows
 from tests.calibration.rig.conftest import (
     SCREEN,
     board_view_files,
@@ -43,13 +44,6 @@ def maps_rig(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str]]
     return d, inputs
 
 
-def table_rows(page: str, table_id: str) -> list[list[str]]:
-    """The data cells of a report table, row by row."""
-    body = re.search(rf"<table id='{table_id}'.*?</table>", page, re.S).group(0)
-    return [re.findall(r"<td>(.*?)</td>", row) for row in re.findall(r"<tr>(.*?)</tr>", body)
-            if "<td>" in row]
-
-
 def test_rig_report_names_every_camera_and_the_extrinsics_with_sigma(maps_rig, tmp_path,
                                                                      capsys) -> None:
     d, inputs = maps_rig
@@ -67,13 +61,7 @@ def test_rig_report_names_every_camera_and_the_extrinsics_with_sigma(maps_rig, t
                for r in cams)
     doc = json.loads((d / "rig.json").read_text())
     ext = doc["cameras"]["B"]["extrinsics"]
-    sd = np.sqrt(np.diag(ext["covariance"]))
-    (row,) = table_rows(page, "extrinsics")
-    assert row[0] == "B"
-    assert float(row[1]) == pytest.approx(
-        np.linalg.norm(np.asarray(ext["R"]).T @ np.asarray(ext["t_mm"])), rel=1e-3)
-    assert float(row[4]) == pytest.approx(np.linalg.norm(sd[3:]), rel=1e-2)
-    assert float(row[5]) == pytest.approx(np.linalg.norm(sd[:3]) * 1e3, rel=1e-2)
+    check_extrinsics_row(page, "B", ext)
     held = re.search(r"<h2>Held-out views</h2>(.*?)<h2>", page, re.S).group(1)
     assert f"<td>{HELD}</td>" in held and "<td>B</td>" in held
     assert f"<th>held-out views</th><td>1: {HELD}</td>" in page

@@ -18,7 +18,7 @@ import pytest
 
 from api.cli import main
 from api.client import AsyncPhasecalClient, PhasecalClient, ServiceError
-from tests.api.test_cli_rig_report import table_rows
+from tests.api.rig_report_checks import table_rows
 from tests.api.test_client_core import Face
 from tests.api_server import ServerProcess
 from tests.calibration.rig.conftest import SCREEN, board_view_files, two_pinholes
