@@ -174,7 +174,7 @@ def stream_decode_task(
         share_prefaulted = ahead.done / ahead.total
         ctx.progress(total, total, "unwrap")
         c0 = time.process_time()
-        maps = decoder.finish(dict(meta or {}), into=out.outputs())
+        maps = decoder.finish(dict(meta or {}), into=out.outputs(), final_rows=out.write_rows)
         decoder.release()  # its sums, zeroed again, serve this worker's next pose
         t1, c1 = time.perf_counter(), time.process_time()
         out.commit(maps, durable=durable)  # durable=False: page cache, fsync by the caller

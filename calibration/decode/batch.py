@@ -12,7 +12,7 @@ import functools
 import math
 import os
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -42,6 +42,14 @@ def pool() -> ThreadPoolExecutor:
 
 # a forked child has none of the parent's threads: it starts its own pool
 os.register_at_fork(after_in_child=pool.cache_clear)
+
+
+def in_parallel(fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
+    """`fn`'s results over `items` from the shared pool, in the items' order as they come
+    (the caller acts on the first ones while the pool works on the rest)."""
+    if len(items) <= 1:
+        return map(fn, items)
+    return pool().map(fn, items)
 
 
 def run_parallel(fn: Callable[[Any], None], items: Sequence[Any]) -> None:

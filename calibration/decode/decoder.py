@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
@@ -26,6 +26,7 @@ from calibration.decode.batch import (
     StackPass,
     add_frames,
     chunk_view,
+    in_parallel,
     run_parallel,
 )
 from calibration.decode.dark_chunks import write_dark_range
@@ -51,7 +52,7 @@ from calibration.decode.noise import (
 )
 from calibration.decode.options import DecodeOptions
 from calibration.decode.phase import SetFit, fit_set
-from calibration.decode.validity import hide_invalid, hide_screen_edges
+from calibration.decode.validity import FinalRows, hide_invalid
 from calibration.shared.maps import MAPS_FORMAT, DecodedMaps
 from calibration.shared.plan import Plan
 
@@ -212,9 +213,12 @@ class StreamingDecoder:
 
     # -- finishing ---------------------------------------------------------------------
     def finish(self, meta: dict[str, Any] | None = None,
-               into: dict[str, np.ndarray] | None = None) -> DecodedMaps:
+               into: dict[str, np.ndarray] | None = None,
+               final_rows: Callable[[int], None] | None = None) -> DecodedMaps:
         """Decode the accumulated frames into `DecodedMaps` (`DecodeError` if unusable), into
-        the arrays `into` if given (`calibration.shared.maps_file.MapsFile.outputs`)."""
+        the arrays `into` if given (`calibration.shared.maps_file.MapsFile.outputs`);
+        `final_rows(rows)` hears, while later rows still decode, how many leading rows of
+        the outputs will not change again (`MapsFile.write_rows`)."""
         acc = self._acc
         missing = acc.missing
         if missing:
@@ -224,7 +228,8 @@ class StreamingDecoder:
             )
         self._finished = True
         acc.allocate()  # (a plan of flats only: nothing was added)
-        return self._decode(lambda sl: chunk_view(acc, sl), meta, into=into)
+        return self._decode(lambda sl: chunk_view(acc, sl), meta, into=into,
+                            final_rows=final_rows)
 
     def finish_stack(self, stack: np.ndarray, meta: dict[str, Any] | None = None,
                      step: Callable[[float], None] | None = None,
@@ -249,9 +254,10 @@ class StreamingDecoder:
     def _decode(self, chunk_of: Callable[[slice], ChunkSums], meta: dict[str, Any] | None,
                 step: Callable[[float], None] | None = None,
                 summed: Callable[[], None] | None = None,
-                into: dict[str, np.ndarray] | None = None) -> DecodedMaps:
+                into: dict[str, np.ndarray] | None = None,
+                final_rows: Callable[[int], None] | None = None) -> DecodedMaps:
         """Noise estimate, then every pixel range's finish; `chunk_of` gives a range's sums,
-        `into` the output planes and mask (else new arrays)."""
+        `into` the output planes and mask (else new arrays), `final_rows` as for `finish`."""
         acc = self._acc
         h, w = acc.shape
         npix = h * w
@@ -271,15 +277,20 @@ class StreamingDecoder:
         inputs = self._finish_inputs() if kernel_planes is not None else None
         chunks = [slice(s, min(s + size, npix)) for s in range(0, npix, size)]
         group = max(1, len(chunks) // 16) if step is not None else len(chunks)
-        tallies: list[np.ndarray] = []  # (list.append: atomic across the pool's threads)
+        tallies: list[np.ndarray] = []
+        final = FinalRows(reason.reshape(h, w), mask, out, final_rows)
         for g in range(0, len(chunks), group):
-            self._map(lambda sl: tallies.append(self._finish_chunk(
-                chunk_of(sl), sl, out, inputs, kernel_planes, reason, mask)), chunks[g:g + group])
+            part = chunks[g:g + group]
+            done = self._in_order(lambda sl: self._finish_chunk(
+                chunk_of(sl), sl, out, inputs, kernel_planes, reason, mask), part)
+            for sl, tally in zip(part, done, strict=True):
+                tallies.append(tally)
+                final.decoded(sl.stop)  # (ranges in pixel order: rows final behind them)
             if step is not None:
                 step(min(g + group, len(chunks)) / len(chunks))
         if summed is not None:
             summed()
-        counts = hide_screen_edges(reason.reshape(h, w), mask, out, tallies)
+        counts = final.counts(tallies)
         if counts["valid"] == 0:
             raise DecodeError(_no_valid_message(counts, npix))
         info = {
@@ -320,6 +331,13 @@ class StreamingDecoder:
             return
         for sl in chunks:
             fn(sl)
+
+    def _in_order(self, fn: Callable[[slice], Any], chunks: list[slice]) -> Iterator[Any]:
+        """`fn`'s results on disjoint pixel chunks, in the chunks' order as they come: from
+        the shared pool (as `_map`), one after another for other namespaces."""
+        if self.xp is np:
+            return in_parallel(fn, chunks)
+        return map(fn, chunks)
 
     def _residuals(self, fits: list[SetFit], chunk: ChunkSums) -> tuple[Any, Any, Any]:
         """Per-pixel residual sum of squares, its degrees of freedom and their noise level.

@@ -6,6 +6,7 @@ in the maps' meta say what limited a pose (docs/decoder.md lists them).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
@@ -83,19 +84,21 @@ def classify(
 EDGE_BAND_ROWS = 64
 
 
-def mark_screen_edges(reason: np.ndarray) -> np.ndarray:
+def mark_screen_edges(reason: np.ndarray, rows: tuple[int, int] | None = None) -> np.ndarray:
     """Pixels next to one that sees no screen straddle the screen's edge: mark them (in place)
     and return their flat indices (they were valid).
 
     `reason` is the (H, W) host array of codes; the footprint of such a pixel covers both
     the screen and its dark surround, so its decoded point is biased. A valid pixel is
     marked where its 3x3 neighbourhood (cut at the image border) holds a `no_screen`
-    pixel: that set dilated by one pixel, row-wise then column-wise, band by band.
+    pixel: that set dilated by one pixel, row-wise then column-wise, band by band. `rows`
+    (r0, r1): only those rows are marked (the rows either side must hold their codes).
     """
     dark, h = REASONS.index("no_screen"), reason.shape[0]
+    first, stop = rows if rows is not None else (0, h)
     marked = []
-    for r0 in range(0, h, EDGE_BAND_ROWS):
-        r1 = min(r0 + EDGE_BAND_ROWS, h)
+    for r0 in range(first, stop, EDGE_BAND_ROWS):
+        r1 = min(r0 + EDGE_BAND_ROWS, stop)
         lo, hi = max(r0 - 1, 0), min(r1 + 1, h)  # the band and the rows either side
         near = reason[lo:hi] == dark
         if not near.any():
@@ -103,9 +106,9 @@ def mark_screen_edges(reason: np.ndarray) -> np.ndarray:
         wide = near.copy()
         wide[:, 1:] |= near[:, :-1]
         wide[:, :-1] |= near[:, 1:]
-        rows = np.arange(r0, r1)
-        touched = (wide[rows - lo] | wide[np.maximum(rows - 1, 0) - lo]
-                   | wide[np.minimum(rows + 1, h - 1) - lo])
+        rows_here = np.arange(r0, r1)
+        touched = (wide[rows_here - lo] | wide[np.maximum(rows_here - 1, 0) - lo]
+                   | wide[np.minimum(rows_here + 1, h - 1) - lo])
         marked.append(np.flatnonzero(touched & (reason[r0:r1] == 0)) + r0 * reason.shape[1])
     edge = np.concatenate(marked) if marked else np.zeros(0, dtype=np.int64)
     reason.reshape(-1)[edge] = REASONS.index("screen_edge")
@@ -129,16 +132,41 @@ def hide_invalid(out: dict[str, np.ndarray], mask: np.ndarray, reason: np.ndarra
     return np.array([np.count_nonzero(codes == code) for code in range(len(REASONS))])
 
 
-def hide_screen_edges(reason: np.ndarray, mask: np.ndarray, out: dict[str, np.ndarray],
-                      tallies: list[np.ndarray]) -> dict[str, int]:
-    """After every range's `hide_invalid`: the screen-edge pass over the (H, W) `reason`, its
-    pixels (valid until now) hidden too; the image's pixel counts by reason."""
-    tally = np.sum(tallies, axis=0)
-    if tally[REASONS.index("no_screen")]:  # (else every pixel sees the screen: no edge)
-        edge = mark_screen_edges(reason)
-        mask[edge] = False
+class FinalRows:
+    """The rows of a decode's outputs that are final while later pixel ranges still decode.
+
+    A row's screen-edge pass (`mark_screen_edges`) reads the rows either side, so rows
+    become final one row behind the decoded pixels: after each `decoded` call the edges of
+    the rows it completed are marked, their pixels hidden too, and `on_final(rows)` hears
+    how many leading rows will not change again (a resident maps buffer writes them to disk
+    while the rest decodes)."""
+
+    def __init__(self, reason: np.ndarray, mask: np.ndarray, out: dict[str, np.ndarray],
+                 on_final: Callable[[int], None] | None = None) -> None:
+        self.reason, self.mask, self.out, self.on_final = reason, mask, out, on_final
+        self.rows = 0  # rows final so far
+        self.edges = 0  # screen-edge pixels marked so far
+
+    def decoded(self, pixels: int) -> None:
+        """The first `pixels` pixels (row-major, after `hide_invalid`) hold their codes: the
+        rows that completes are final once whole bands (or the image) are decoded."""
+        h, w = self.reason.shape
+        rows = h if pixels >= h * w else max(pixels // w - 1, 0)  # (the next row is read)
+        if rows < h and rows - self.rows < EDGE_BAND_ROWS:
+            return
+        edge = mark_screen_edges(self.reason, (self.rows, rows))
+        self.mask[edge] = False
         for key in HIDDEN:
-            out[key][edge] = np.nan
-        tally[0] -= edge.size
-        tally[REASONS.index("screen_edge")] += edge.size
-    return {name: int(tally[code]) for code, name in enumerate(REASONS)}
+            self.out[key][edge] = np.nan
+        self.edges += edge.size
+        self.rows = rows
+        if self.on_final is not None:
+            self.on_final(rows)
+
+    def counts(self, tallies: list[np.ndarray]) -> dict[str, int]:
+        """The image's pixel counts by reason, from the ranges' `hide_invalid` tallies and
+        the edges marked (every row final)."""
+        tally = np.sum(tallies, axis=0)
+        tally[0] -= self.edges
+        tally[REASONS.index("screen_edge")] += self.edges
+        return {name: int(tally[code]) for code, name in enumerate(REASONS)}

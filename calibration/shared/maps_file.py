@@ -106,6 +106,8 @@ class MapsFile:
         self._fd, self._tmp, self._done = fd, Path(tmp), False
         self._mm: mmap.mmap | None = None
         self._buffer: mmap.mmap | None = None  # the resident buffer, until `recycle`
+        self._direct: int | None = None  # its O_DIRECT descriptor (-1: refused; None: not yet)
+        self._written: dict[str, int] = {}  # bytes of each member's data on disk (`write_rows`)
         try:
             self._reserve(_aligned(self._end) if resident else self._end)
             if resident:
@@ -157,6 +159,22 @@ class MapsFile:
         m = self._members[key]
         return self._bytes[m.data_at:m.data_at + m.nbytes].view(_DTYPES[key]).reshape(self.shape)
 
+    def write_rows(self, rows: int) -> None:
+        """Write the leading `rows` rows of every member (whole disk blocks) from the resident
+        buffer now, while the decoder fills the rest (`StreamingDecoder.finish`'s
+        `final_rows`): the commit writes only what is left, the last rows and the headers,
+        not the whole 205 MB of a 5 MP pose after its finish. Nothing for a mapped file (its
+        pages are the file's)."""
+        if self._buffer is None or self._mm is None:
+            return
+        width = self.shape[1]
+        for key, m in self._members.items():
+            done = self._written.get(key, 0)
+            upto = rows * width * _DTYPES[key].itemsize // _BLOCK * _BLOCK
+            if upto > done:  # (data starts page-aligned: whole blocks from there)
+                self._write_blocks(m.data_at + done, m.data_at + upto)
+                self._written[key] = upto
+
     def commit(self, maps: DecodedMaps, *, durable: bool = True,
                timings: dict[str, float] | None = None) -> None:
         """Complete the file with `maps` and rename it to `path`: arrays that are not already
@@ -180,6 +198,7 @@ class MapsFile:
                                  f"{view.dtype} {view.shape}")
             if arr.ctypes.data != view.ctypes.data or not arr.flags.c_contiguous:
                 np.copyto(view, arr)
+                self._written.pop(key, None)  # (its blocks on disk are stale now)
             else:
                 views.append(arr)
         order = sorted(self._members.values(), key=lambda m: -m.nbytes)  # balanced threads
@@ -221,24 +240,38 @@ class MapsFile:
             timings["write"], timings["fsync"] = t1 - t0, t2 - t1
 
     def _write_image(self) -> None:
-        """Write the resident buffer's image of the file up to `meta` (whole 4 KiB blocks)
-        with O_DIRECT, or through the page cache where the filesystem refuses it."""
+        """Write the resident buffer's image of the file up to `meta` (whole 4 KiB blocks),
+        less the blocks `write_rows` wrote: the headers and each member's rest."""
+        at = 0
+        for key, m in self._members.items():  # (in file order)
+            done = self._written.get(key, 0)
+            if done:
+                self._write_blocks(at, m.data_at)
+                at = m.data_at + done
+        self._write_blocks(at, _aligned(self._end))
+
+    def _write_blocks(self, start: int, stop: int) -> None:
+        """Write bytes [start, stop) (block-aligned) of the resident buffer to the file with
+        O_DIRECT, or through the page cache where the filesystem refuses it."""
+        if stop <= start:
+            return
         assert self._buffer is not None
-        image = memoryview(self._buffer)[:_aligned(self._end)]
-        try:
-            fd = os.open(self._tmp, os.O_WRONLY | os.O_DIRECT)
-        except (OSError, AttributeError):  # (tmpfs; a system without O_DIRECT)
-            fd = -1
-        if fd >= 0:
+        image = memoryview(self._buffer)[start:stop]
+        if self._direct is None:
             try:
-                pwrite_all(fd, image, 0)
+                self._direct = os.open(self._tmp, os.O_WRONLY | os.O_DIRECT)
+            except (OSError, AttributeError):  # (tmpfs; a system without O_DIRECT)
+                self._direct = -1
+        if self._direct >= 0:
+            try:
+                pwrite_all(self._direct, image, start)
                 return
             except OSError as exc:
                 if exc.errno != errno.EINVAL:
                     raise
-            finally:
-                os.close(fd)
-        pwrite_all(self._fd, image, 0)
+                os.close(self._direct)
+                self._direct = -1
+        pwrite_all(self._fd, image, start)
 
     def recycle(self) -> None:
         """Give the resident buffer to this process's next decode (after `close` or `commit`,
@@ -262,6 +295,9 @@ class MapsFile:
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
+        if self._direct is not None and self._direct >= 0:
+            os.close(self._direct)
+        self._direct = None
         if not self._done:
             self._tmp.unlink(missing_ok=True)
 

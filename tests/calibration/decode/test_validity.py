@@ -1,5 +1,6 @@
-"""Hiding invalid pixels range by range (`hide_invalid`, then `hide_screen_edges`) gives the
-maps, mask and counts of marking the screen edges on the whole image first and hiding after."""
+"""Hiding invalid pixels range by range (`hide_invalid`, then the screen edges as rows become
+final, `FinalRows`) gives the maps, mask and counts of marking the screen edges on the whole
+image first and hiding after; rows it reports final do not change again."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ from calibration.decode.validity import (
     EDGE_BAND_ROWS,
     HIDDEN,
     REASONS,
+    FinalRows,
     hide_invalid,
-    hide_screen_edges,
     mark_screen_edges,
 )
 
@@ -34,7 +35,9 @@ def test_range_by_range_hiding_equals_hiding_the_whole_image_after_the_edges(see
     flat, mask = reason.reshape(-1).copy(), np.empty(h * w, dtype=bool)
     tallies = [hide_invalid(out, mask, flat, slice(s, min(s + 500, h * w)))
                for s in range(0, h * w, 500)]
-    counts = hide_screen_edges(flat.reshape(h, w), mask, out, tallies)
+    final = FinalRows(flat.reshape(h, w), mask, out)
+    final.decoded(h * w)
+    counts = final.counts(tallies)
     assert np.array_equal(flat, want_reason.reshape(-1))
     assert np.array_equal(mask, want_mask)
     for key in out:
@@ -77,8 +80,54 @@ def test_an_image_that_sees_the_screen_everywhere_has_no_screen_edge():
     reason[3, 2] = REASONS.index("off_screen")
     flat, mask = reason.reshape(-1).copy(), np.empty(reason.size, dtype=bool)
     out = {key: np.ones(reason.size) for key in HIDDEN}
-    counts = hide_screen_edges(flat.reshape(reason.shape), mask,
-                               out, [hide_invalid(out, mask, flat, slice(0, reason.size))])
+    tallies = [hide_invalid(out, mask, flat, slice(0, reason.size))]
+    final = FinalRows(flat.reshape(reason.shape), mask, out)
+    final.decoded(reason.size)
+    counts = final.counts(tallies)
     assert counts["screen_edge"] == 0 and counts["off_screen"] == 1
     assert counts["valid"] == reason.size - 1 == int(mask.sum())
     assert np.array_equal(flat, reason.reshape(-1))
+
+
+@pytest.mark.parametrize("step", [97, 1000, 4099])
+def test_rows_reported_final_do_not_change_again(step):
+    """Ranges decoded in pixel order: each `on_final(rows)` comes once rows [0, rows) hold
+    their final codes, mask and maps (a resident maps buffer writes them to disk then), the
+    rows a band at least apart, the last call every row."""
+    rng = np.random.default_rng(step)
+    h, w = 3 * EDGE_BAND_ROWS + 5, 41
+    reason = rng.choice(np.array([0, 0, 0, 5], dtype=np.uint8), size=(h, w))
+    reason[:, :6] = REASONS.index("no_screen")  # a dark surround down the whole left side
+    reason[rng.random((h, w)) < 0.05] = REASONS.index("no_screen")
+    out = {key: rng.normal(size=h * w) for key in HIDDEN}
+    codes = reason.reshape(-1)
+    want = reason.copy()  # the whole image's edges
+    mark_screen_edges(want)
+    want = want.reshape(-1)
+    hidden = want != 0
+    want_out = {key: np.where(hidden, np.nan, v) for key, v in out.items()}
+    flat, mask = np.zeros(h * w, dtype=np.uint8), np.empty(h * w, dtype=bool)  # as decoded
+    seen: list[tuple[int, np.ndarray, np.ndarray, dict]] = []
+
+    def on_final(rows: int) -> None:
+        n = rows * w
+        seen.append((rows, flat[:n].copy(), mask[:n].copy(),
+                     {key: v[:n].copy() for key, v in out.items()}))
+
+    final = FinalRows(flat.reshape(h, w), mask, out, on_final)
+    tallies = []
+    for s in range(0, h * w, step):
+        sl = slice(s, min(s + step, h * w))
+        flat[sl] = codes[sl]  # (the range's codes appear when it is decoded)
+        tallies.append(hide_invalid(out, mask, flat, sl))
+        final.decoded(sl.stop)
+    rows = [r for r, *_ in seen]
+    assert rows[-1] == h and len(rows) >= 2
+    assert all(b - a >= EDGE_BAND_ROWS for a, b in zip(rows[:-2], rows[1:-1], strict=True))
+    for r, kept_codes, kept_mask, kept in seen:
+        n = r * w
+        assert np.array_equal(kept_codes, want[:n]) and np.array_equal(kept_mask, ~hidden[:n])
+        for key in out:
+            assert np.array_equal(kept[key], want_out[key][:n], equal_nan=True), (r, key)
+    assert final.counts(tallies)["screen_edge"] == int(np.count_nonzero(
+        flat == REASONS.index("screen_edge"))) > 0

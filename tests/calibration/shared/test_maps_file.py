@@ -23,6 +23,7 @@ from api.worker import tasks
 from api.worker.tasks import stream_decode_task
 from calibration import prefault
 from calibration.decode import DecodeError, StreamingDecoder
+from calibration.decode.options import DecodeOptions
 from calibration.prefault import IdlePrefault, populate
 from calibration.shared.frame_store import FrameStore
 from calibration.shared.maps import save_maps
@@ -49,8 +50,8 @@ def stack(plan):
     return frames
 
 
-def _decoder(plan, stack):
-    dec = StreamingDecoder(plan, (H, W))
+def _decoder(plan, stack, options=None):
+    dec = StreamingDecoder(plan, (H, W), options=options)
     dec.prepare()
     dec.add_frames(list(range(stack.shape[0])), stack)
     return dec
@@ -222,6 +223,54 @@ def test_killed_writer_leaves_no_maps_at_the_destination(tmp_path):
     leftovers = [p.name for p in tmp_path.iterdir()]
     assert len(leftovers) == 1 and leftovers[0].startswith(".maps.")  # the job's staging
     # folder, which holds it, is removed by the server (api/store.py `staging`)
+
+
+def _x_on_disk(out: MapsFile, rows: int) -> np.ndarray:
+    """The leading `rows` rows of member x as the file on disk holds them now (the resident
+    buffer's blocks go with O_DIRECT, past the page cache)."""
+    (tmp,) = [p for p in out.path.parent.iterdir() if p.name.startswith(f".{out.path.stem}.")]
+    offset = out.outputs()["position"][0].ctypes.data - out.mapped.ctypes.data
+    with open(tmp, "rb", buffering=0) as f:
+        return np.frombuffer(os.pread(f.fileno(), rows * W * 8, offset), np.float64)
+
+
+def test_resident_maps_rows_go_to_disk_while_later_rows_decode(plan, stack, tmp_path,
+                                                               monkeypatch):
+    """A rig camera's maps (resident buffer): the rows the decoder reports final are written
+    while it decodes the rest, each already as the finished maps hold it; the commit writes
+    what is left and the file is the normal path's."""
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
+    options = DecodeOptions(chunk_pixels=W * 16)  # (ranges of 16 rows: bands final early)
+    save_maps(_decoder(plan, stack, options).finish(dict(META)), tmp_path / "ref.npz")
+    seen: list[tuple[int, np.ndarray]] = []
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes(), resident=True) as out:
+        def final_rows(rows: int) -> None:
+            out.write_rows(rows)
+            seen.append((rows, _x_on_disk(out, rows)))
+
+        maps = _decoder(plan, stack, options).finish(dict(META), into=out.outputs(),
+                                                     final_rows=final_rows)
+        out.commit(maps, durable=False)
+        out.recycle()
+    assert [r for r, _ in seen][-1] == H and seen[0][0] < H  # rows went out before the end
+    for rows, x in seen:
+        whole = rows * W * 8 // 4096 * 4096 // 8  # (whole disk blocks of x)
+        assert np.array_equal(x[:whole], maps.x.reshape(-1)[:whole], equal_nan=True), rows
+    same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+
+
+def test_rows_written_then_replaced_by_copied_maps_are_written_again(plan, stack, tmp_path):
+    """Maps committed from arrays of their own (copied in) after `write_rows` wrote the
+    buffer's rows: the copied members go to disk whole, not the stale blocks."""
+    maps = _decoder(plan, stack).finish(dict(META))
+    save_maps(maps, tmp_path / "ref.npz")
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes(), resident=True) as out:
+        for plane in out.outputs().values():
+            plane[...] = 7  # what the buffer held before
+        out.write_rows(H)
+        out.commit(maps, durable=False)
+        out.recycle()
+    same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
 
 
 @pytest.mark.parametrize("resident", [False, True])
