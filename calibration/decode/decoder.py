@@ -61,6 +61,7 @@ if TYPE_CHECKING:  # (a numba module: loaded only with the compiled path)
 
 # The photon-transfer fit uses only pixels without clipped steps when at least this many exist.
 _MIN_CLEAN_PIXELS = 2000
+_DARK_PROBE = 64  # the stride of `_finish_dark_range`'s first look at a range
 # Larger images fit the photon-transfer line on evenly spread pieces of this many pixels,
 # about _NOISE_SAMPLE in all (the fit needs ~1e5 pixels; more costs time, twice in finish_stack).
 _NOISE_PIECE = 1 << 14
@@ -388,12 +389,13 @@ class StreamingDecoder:
                                               power.take(use, axis=1), self._floor,
                                               dark.take(use))
 
-    def _sees_no_screen(self, chunk: ChunkSums) -> Any:
-        """Pixels whose flat contrast fails `min_contrast_snr` even at the smallest credible
-        noise (the floor): `no_screen` whatever the noise estimate, so their clipped steps
-        (a dark surround reading 0 DN) need no least-squares fit, the costliest part."""
+    def _sees_no_screen(self, chunk: ChunkSums, every: int = 1) -> Any:
+        """Pixels (each `every`-th) whose flat contrast fails `min_contrast_snr` even at the
+        smallest credible noise (the floor): `no_screen` whatever the noise estimate, so
+        their clipped steps (a dark surround reading 0 DN) need no least-squares fit, the
+        costliest part."""
         acc = self._acc
-        bright, dark = chunk.bright / acc.n_bright, chunk.dark / acc.n_dark
+        bright, dark = chunk.bright[::every] / acc.n_bright, chunk.dark[::every] / acc.n_dark
         floor_sigma = math.sqrt(self._floor * (1.0 / acc.n_bright + 1.0 / acc.n_dark))
         return ~((bright - dark) >= self.options.min_contrast_snr * floor_sigma)
 
@@ -454,7 +456,10 @@ class StreamingDecoder:
         line or the pixel's own residual) are never below that floor; a given noise may be."""
         if self._variance is not None or (chunk.bits is not None and chunk.bits.any()):
             return False
-        if not self._sees_no_screen(chunk).all():
+        # (a probe of every `_DARK_PROBE`-th pixel first: a lit range, most of them, is told
+        # from a few hundred pixels, not after the whole range's arithmetic)
+        if not (self._sees_no_screen(chunk, _DARK_PROBE).all()
+                and self._sees_no_screen(chunk).all()):
             return False
         write_dark_range(chunk, sl, planes, reason)
         return True
