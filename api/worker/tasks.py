@@ -260,19 +260,20 @@ def warm_decode_task(pixels: int, plan_path: str | None = None,
     priority is starved by any busy process, and the decode tasks queued behind it with it
     (seen: poses ready 20-75 s late under load)."""
     warm_up()
+    if (plan_path is not None and shape is not None
+            and not holds_pixels(int(shape[0]) * int(shape[1]), sets)):
+        plan = read_plan(plan_path)
+        if resident_maps:
+            warm_resident(tuple(shape), plan.axes(), sets)
+        decoders = [StreamingDecoder(plan, tuple(shape), noise=noise, compiled=True)
+                    for _ in range(sets)]
+        for decoder in decoders:
+            decoder.prepare()
+        for decoder in decoders:
+            decoder.release()
+    # after the kept sums (their members under glibc's mmap threshold come from the heap):
+    # the free heap faulted in now lies above them, where the finishes' temporaries go
     _keep_heap(pixels, sets)
-    if (plan_path is None or shape is None
-            or holds_pixels(int(shape[0]) * int(shape[1]), sets)):
-        return
-    plan = read_plan(plan_path)
-    if resident_maps:
-        warm_resident(tuple(shape), plan.axes(), sets)
-    decoders = [StreamingDecoder(plan, tuple(shape), noise=noise, compiled=True)
-                for _ in range(sets)]
-    for decoder in decoders:
-        decoder.prepare()
-    for decoder in decoders:
-        decoder.release()
 
 
 def calibrate_task(
