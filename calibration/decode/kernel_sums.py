@@ -38,7 +38,11 @@ from calibration.decode.kernel_unwrap import STATE_ROWS, unwrap_block
 
 DIRTY = 255  # reason code of pixels this kernel leaves to the array path
 
-BLOCK = 128  # pixels per block: the per-set scratch rows stay in L1
+# Pixels per block: the block's scratch (~170 KB with 6 period sets) stays in a core's L2
+# (256 KB and up on common CPUs), and the per-block costs (array views, the unwrapping
+# call, loop set-up) come a quarter as often as at 128, where they were 15-25 % of the
+# kernel's time (benchmarks/finish_kernel.py; the maps are identical at any block size).
+BLOCK = 512
 
 
 # no fastmath: NaN and infinity tests matter here
