@@ -104,3 +104,34 @@ def test_warm_decode_task_primes_a_set_per_rig_camera(tmp_path) -> None:
     finally:
         sums_cache.release()
         RESIDENT.release()
+
+
+def test_warm_decode_task_warms_the_heap_after_allocating_the_sums(tmp_path, monkeypatch):
+    """The sums' members under glibc's mmap threshold come from the heap: warmed before them,
+    the free heap kept for the finishes' temporaries was taken by the sums, and the worker's
+    next rig pose faulted its noise-line fits in afresh (~19000 pages at 4 x 5 MP). The warm
+    heap is faulted in once the sums are allocated and kept."""
+    from acquisition.patterns import build_plan
+    from api.worker import tasks
+    from calibration.decode import StreamingDecoder, sums_cache
+    from calibration.shared.plan import write_plan
+
+    write_plan(build_plan(1920, 1080, 0.2745), tmp_path / "plan.json")
+    order: list[str] = []
+    prepare = StreamingDecoder.prepare
+
+    def prepared(self) -> None:
+        prepare(self)
+        order.append("sums")
+
+    monkeypatch.setattr(StreamingDecoder, "prepare", prepared)
+    monkeypatch.setattr(tasks, "_keep_heap", lambda pixels, decodes=1: order.append("heap"))
+    sums_cache.release()
+    try:
+        warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64), None, 2)
+        assert order == ["sums", "sums", "heap"]
+        order.clear()
+        warm_decode_task(64 * 48, str(tmp_path / "plan.json"), (48, 64), None, 2)
+        assert order == ["heap"]  # (sums already kept: the heap is still kept warm)
+    finally:
+        sums_cache.release()
