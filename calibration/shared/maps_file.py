@@ -9,8 +9,9 @@ before the first frame (`MapsFile`), its pages are faulted in while frames arriv
 directory are written (`commit`) and the file is renamed into place whole: no copy of
 ~200 MB of maps and no page faults after the last frame. A long-lived worker lays the file
 out in a resident buffer instead (`resident=True`, `resident_buffers`): the file's image is
-then written from it with O_DIRECT at the commit (no page-cache pages to fault in, pose after
-pose: seconds of CPU on a VM for a 4-camera rig), and the buffer serves the next decode
+then written from it with O_DIRECT (no page-cache pages to fault in, pose after pose: seconds
+of CPU on a VM for a 4-camera rig), the rows the decoder reports final while it finishes the
+rest (`write_rows`), what is left at the commit, and the buffer serves the next decode
 (`recycle`).
 A failed or cancelled decode removes the temporary file (`close`); np.load reads the result
 like any NPZ (docs/formats.md). POSIX: the file is renamed while the decoder's views of it may

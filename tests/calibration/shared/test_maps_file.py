@@ -4,6 +4,7 @@ left at the destination when the decode fails, is cancelled, is killed or the di
 
 from __future__ import annotations
 
+import errno
 import os
 import struct
 import subprocess
@@ -256,6 +257,48 @@ def test_resident_maps_rows_go_to_disk_while_later_rows_decode(plan, stack, tmp_
     for rows, x in seen:
         whole = rows * W * 8 // 4096 * 4096 // 8  # (whole disk blocks of x)
         assert np.array_equal(x[:whole], maps.x.reshape(-1)[:whole], equal_nan=True), rows
+    same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
+
+
+@pytest.mark.parametrize("refused_at", ["open", "write"])
+def test_rows_go_through_the_page_cache_where_o_direct_is_refused(plan, stack, tmp_path,
+                                                                  monkeypatch, refused_at):
+    """A filesystem without O_DIRECT (tmpfs refuses the open; others refuse the first write
+    with EINVAL): the rows and the rest are written through the page cache, same file."""
+    from calibration.shared import maps_file
+
+    monkeypatch.setattr(decoder_module, "COMPILED_MIN_PIXELS", 0)
+    options = DecodeOptions(chunk_pixels=W * 16)
+    save_maps(_decoder(plan, stack, options).finish(dict(META)), tmp_path / "ref.npz")
+    real_open, real_write, direct = os.open, maps_file.pwrite_all, set()
+
+    def fake_open(path, flags, *args):
+        if not flags & os.O_DIRECT:
+            return real_open(path, flags, *args)
+        if refused_at == "open":
+            raise OSError(errno.EINVAL, "O_DIRECT refused")
+        fd = real_open(path, flags & ~os.O_DIRECT, *args)
+        direct.add(fd)
+        return fd
+
+    def fake_write(fd, data, offset):
+        if fd in direct:
+            raise OSError(errno.EINVAL, "unaligned for this filesystem")
+        return real_write(fd, data, offset)
+
+    monkeypatch.setattr(maps_file.os, "open", fake_open)
+    monkeypatch.setattr(maps_file, "pwrite_all", fake_write)
+    rows: list[int] = []
+    with MapsFile(tmp_path / "maps.npz", (H, W), plan.axes(), resident=True) as out:
+        def final_rows(n: int) -> None:
+            out.write_rows(n)
+            rows.append(n)
+
+        maps = _decoder(plan, stack, options).finish(dict(META), into=out.outputs(),
+                                                     final_rows=final_rows)
+        out.commit(maps, durable=False)
+        out.recycle()
+    assert len(rows) >= 2 and (refused_at == "open" or direct)
     same_npz(tmp_path / "maps.npz", tmp_path / "ref.npz")
 
 
