@@ -8,7 +8,9 @@ s per finish), while unmapping takes the address space's lock that the other thr
 page faults wait on. `retain_freed_memory` serves blocks up to `MMAP_MAX` from the heap and
 keeps up to `TRIM_MAX` of free heap per arena: from a worker's second pose on, a finish
 takes ~20 faults. `warm_heap` also faults in, before the frames arrive, what the first
-pose's finish would take (~0.04 CPU s, huge pages), and keeps that much free heap.
+pose's finish would take (~0.04 CPU s, huge pages), and keeps that much free heap; again
+after a fit in the same process handed the free heap back (`models.heap.retained_heap`),
+else that worker's next pose faults it in after its last frame.
 
 A process decoding several cameras at once (a rig's, a thread each) runs in one heap arena
 (`one_heap_arena`, set in its environment before it starts): glibc gives other threads
@@ -32,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from calibration.models.heap import trims
+
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc <malloc.h>
 MMAP_MAX = 32 << 20  # glibc's own ceiling for its adaptive threshold
 TRIM_MAX = 256 << 20
@@ -39,6 +43,7 @@ TRIM_MAX = 256 << 20
 # stay allocated between (measured: 160 MB leaves ~800 faults; 48 MB ~8000).
 MAIN_WARM, THREAD_WARM = 160 << 20, 16 << 20
 _warmed = 0  # decoding threads whose heap arenas were faulted in
+_warmed_at = 0  # `models.heap.trims()` then: a fit since handed that heap back
 _warming = threading.Lock()  # (a rig's camera threads ask at once)
 _keep_for = 1  # the most finishes at once this process has run
 ARENA_VAR = "MALLOC_ARENA_MAX"  # glibc's arena count, read once as a process starts
@@ -107,7 +112,9 @@ def warm_heap(decodes: int = 1) -> bool:
 
 def _warm_heap(decodes: int) -> bool:
     """`warm_heap`, under its lock."""
-    global _warmed
+    global _warmed, _warmed_at
+    if trims() != _warmed_at:  # a fit in this process returned the free heap: warm it again
+        _warmed, _warmed_at = 0, trims()
     if not retain_freed_memory(decodes) or _warmed >= decodes:
         return False
     from calibration.decode.batch import pool

@@ -24,6 +24,7 @@ _TRIM_AFTER = 2 * _MMAP_MAX  # what the dynamic threshold reaches after a 32 MB 
 
 _lock = threading.Lock()
 _active = 0
+_trims = 0  # how often the free heap went back to the system (`trims`)
 
 
 def _libc() -> ctypes.CDLL | None:
@@ -39,11 +40,17 @@ def _libc() -> ctypes.CDLL | None:
 _LIBC = _libc()
 
 
+def trims() -> int:
+    """How many times `retained_heap` has handed the free heap back to the system: a process
+    that keeps a warm heap for its decodes (`calibration.decode.heap`) warms it again."""
+    return _trims
+
+
 @contextmanager
 def retained_heap() -> Iterator[None]:
     """Within the block freed memory stays mapped (no heap trimming); nested and concurrent
     blocks share one setting, the last to leave returns the memory to the system."""
-    global _active
+    global _active, _trims
     if _LIBC is None:
         yield
         return
@@ -60,3 +67,4 @@ def retained_heap() -> Iterator[None]:
             if _active == 0:
                 _LIBC.mallopt(_M_TRIM_THRESHOLD, _TRIM_AFTER)
                 _LIBC.malloc_trim(0)
+                _trims += 1

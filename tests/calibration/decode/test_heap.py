@@ -26,6 +26,12 @@ _FAULTS = textwrap.dedent("""
     from calibration.decode import heap
     if sys.argv[1] == "warm":
         assert heap.warm_heap() and not heap.warm_heap()
+    elif sys.argv[1] == "trimmed":  # a fit in between handed the free heap back
+        from calibration.models.heap import retained_heap
+        assert heap.warm_heap()
+        with retained_heap():
+            pass
+        assert heap.warm_heap() and not heap.warm_heap()
     elif sys.argv[1] == "retain":
         assert heap.retain_freed_memory()
     faults = lambda: resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
@@ -50,6 +56,7 @@ def test_freed_memory_is_reused_without_page_faults():
     assert default > 1000  # 80 blocks of 384 pages: glibc hands most of them back
     assert retained < 50
     assert warmed < 50
+    assert _faults("trimmed") < 50  # warmed again after a fit's malloc_trim
 
 
 # Four threads at once allocate, write and free 96 MB each in 24 MB blocks (a rig's four
