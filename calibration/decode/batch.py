@@ -54,11 +54,8 @@ def in_parallel(fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]
 
 def run_parallel(fn: Callable[[Any], None], items: Sequence[Any]) -> None:
     """Run `fn` over `items` in the shared pool (the kernels release the GIL)."""
-    if len(items) <= 1:
-        for item in items:
-            fn(item)
-        return
-    list(pool().map(fn, items))
+    for _ in in_parallel(fn, items):
+        pass
 
 
 def _roles(acc: FrameAccumulator, indices: Sequence[int]) -> tuple[np.ndarray, ...]:

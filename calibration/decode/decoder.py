@@ -27,7 +27,6 @@ from calibration.decode.batch import (
     add_frames,
     chunk_view,
     in_parallel,
-    run_parallel,
 )
 from calibration.decode.dark_chunks import write_dark_range
 from calibration.decode.finish import (
@@ -325,17 +324,14 @@ class StreamingDecoder:
         )
 
     def _map(self, fn: Callable[[slice], None], chunks: list[slice]) -> None:
-        """Run `fn` on disjoint pixel chunks in the shared pool (NumPy and the kernels release
-        the GIL, so threads use the cores); one after another for other namespaces."""
-        if self.xp is np:
-            run_parallel(fn, chunks)
-            return
-        for sl in chunks:
-            fn(sl)
+        """Run `fn` on disjoint pixel chunks (`_in_order`, results dropped)."""
+        for _ in self._in_order(fn, chunks):
+            pass
 
     def _in_order(self, fn: Callable[[slice], Any], chunks: list[slice]) -> Iterator[Any]:
         """`fn`'s results on disjoint pixel chunks, in the chunks' order as they come: from
-        the shared pool (as `_map`), one after another for other namespaces."""
+        the shared pool (NumPy and the kernels release the GIL, so threads use the cores),
+        one after another for other namespaces."""
         if self.xp is np:
             return in_parallel(fn, chunks)
         return map(fn, chunks)
